@@ -1,0 +1,5 @@
+import sys
+
+from tactiled.cli import main
+
+sys.exit(main())

@@ -1,0 +1,295 @@
+"""One config object: a TOML file read once into frozen dataclasses, validated at load.
+
+An unknown key or a bad value is one :class:`~tactiled.errors.ConfigError` naming the key
+path (``detector.on_factor: must be > detector.off_factor``). CLI flags override fields
+through :meth:`Config.override`; nothing else merges in.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import ipaddress
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+from tactiled.errors import ConfigError
+
+DEFAULT_ENDPOINT = "tcp://127.0.0.1:7350"
+STAT_NAMES = ("mean", "sd", "energy", "rms", "skew", "kurt")
+
+
+def _check(ok: bool, key: str, message: str) -> None:
+    if not ok:
+        raise ConfigError(f"{key}: {message}")
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """The sensor and its serial port."""
+
+    id: str = "fingertip0"
+    port: str = "/dev/ttyACM0"
+    baudrate: int = 1_000_000
+    fs: float = 20_000.0
+    channels: int = 2
+    volts_per_count: float = 5.0 / 32768.0
+
+    def validate(self, p: str) -> None:
+        _check(bool(self.id) and "/" not in self.id, f"{p}.id", "must be non-empty, without '/'")
+        _check(bool(self.port), f"{p}.port", "must be non-empty")
+        _check(self.baudrate > 0, f"{p}.baudrate", "must be > 0")
+        _check(self.fs > 0, f"{p}.fs", "must be > 0 Hz")
+        _check(1 <= self.channels <= 8, f"{p}.channels", "must be in 1..8")
+        _check(self.volts_per_count > 0, f"{p}.volts_per_count", "must be > 0")
+
+
+@dataclass(frozen=True)
+class SerialConfig:
+    """Reconnection of the serial source."""
+
+    retry_initial_s: float = 0.05
+    retry_max_s: float = 2.0
+
+    def validate(self, p: str) -> None:
+        _check(self.retry_initial_s > 0, f"{p}.retry_initial_s", "must be > 0")
+        _check(self.retry_max_s >= self.retry_initial_s, f"{p}.retry_max_s", f"must be >= {p}.retry_initial_s")
+
+
+@dataclass(frozen=True)
+class RingConfig:
+    """The ring buffer of raw samples."""
+
+    seconds: float = 20.0
+
+    def validate(self, p: str) -> None:
+        _check(self.seconds >= 1.0, f"{p}.seconds", "must be >= 1")
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Online slide detector: hysteresis on a short-time energy envelope over a tracked noise floor."""
+
+    hop_ms: float = 5.0
+    on_factor: float = 8.0
+    off_factor: float = 3.0
+    off_hold_s: float = 0.08
+    min_slide_s: float = 0.15
+    max_slide_s: float = 6.0
+    holdoff_s: float = 0.1
+    floor_tau_s: float = 2.0
+
+    def validate(self, p: str) -> None:
+        _check(self.hop_ms > 0, f"{p}.hop_ms", "must be > 0")
+        _check(self.off_factor > 1.0, f"{p}.off_factor", "must be > 1")
+        _check(self.on_factor > self.off_factor, f"{p}.on_factor", f"must be > {p}.off_factor")
+        _check(self.off_hold_s >= 0, f"{p}.off_hold_s", "must be >= 0")
+        _check(self.min_slide_s > 0, f"{p}.min_slide_s", "must be > 0")
+        _check(self.max_slide_s > self.min_slide_s, f"{p}.max_slide_s", f"must be > {p}.min_slide_s")
+        _check(self.holdoff_s >= 0, f"{p}.holdoff_s", "must be >= 0")
+        _check(self.floor_tau_s > 0, f"{p}.floor_tau_s", "must be > 0")
+
+
+@dataclass(frozen=True)
+class WindowConfig:
+    """The analysis window: ``start_s`` after the slide's onset, ``duration_s`` long."""
+
+    start_s: float = 0.3
+    duration_s: float = 0.5
+
+    def validate(self, p: str) -> None:
+        _check(self.start_s >= 0, f"{p}.start_s", "must be >= 0")
+        _check(self.duration_s > 0, f"{p}.duration_s", "must be > 0")
+
+
+@dataclass(frozen=True)
+class SpikesConfig:
+    """Spike (outlier) removal before feature extraction."""
+
+    method: str = "hampel"
+    half_width: int = 5
+    nsigma: float = 4.0
+
+    def validate(self, p: str) -> None:
+        _check(self.method in ("hampel", "mad", "none"), f"{p}.method", "must be one of hampel, mad, none")
+        _check(self.half_width >= 1, f"{p}.half_width", "must be >= 1")
+        _check(self.nsigma > 0, f"{p}.nsigma", "must be > 0")
+
+
+@dataclass(frozen=True)
+class FeaturesConfig:
+    """DWT features: wavelet, levels, extension mode, domains and statistics."""
+
+    wavelet: str = "coif5"
+    level: int = 4
+    mode: str = "symmetric"
+    domains: tuple[str, ...] = ("time", "freq")
+    stats: tuple[str, ...] = STAT_NAMES
+
+    def validate(self, p: str) -> None:
+        import pywt
+
+        _check(self.wavelet in pywt.wavelist(kind="discrete"), f"{p}.wavelet", "must be a discrete PyWavelets wavelet")
+        _check(1 <= self.level <= 8, f"{p}.level", "must be in 1..8")
+        _check(self.mode in pywt.Modes.modes, f"{p}.mode", f"must be one of {', '.join(pywt.Modes.modes)}")
+        _check(bool(self.domains) and set(self.domains) <= {"time", "freq"}, f"{p}.domains", "must be a non-empty subset of time, freq")
+        _check(bool(self.stats) and set(self.stats) <= set(STAT_NAMES), f"{p}.stats", f"must be a non-empty subset of {', '.join(STAT_NAMES)}")
+
+
+@dataclass(frozen=True)
+class ClassifierConfig:
+    """When the daemon abstains instead of publishing a label."""
+
+    min_confidence: float = 0.0
+    max_saturated: float = 0.01
+
+    def validate(self, p: str) -> None:
+        _check(0.0 <= self.min_confidence <= 1.0, f"{p}.min_confidence", "must be in [0, 1]")
+        _check(0.0 <= self.max_saturated <= 1.0, f"{p}.max_saturated", "must be in [0, 1]")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The model file; empty means the model shipped in the package."""
+
+    path: str = ""
+
+    def validate(self, p: str) -> None:
+        return None
+
+
+@dataclass(frozen=True)
+class PublishConfig:
+    """The ZeroMQ PUB socket."""
+
+    endpoint: str = DEFAULT_ENDPOINT
+    allow_remote: bool = False
+    status_interval_s: float = 0.5
+    curve_secret_key_file: str = ""
+    curve_authorized_dir: str = ""
+
+    def validate(self, p: str) -> None:
+        _check(self.endpoint.startswith(("tcp://", "ipc://", "inproc://")), f"{p}.endpoint", "must start with tcp://, ipc:// or inproc://")
+        _check(0.01 <= self.status_interval_s <= 1.0, f"{p}.status_interval_s", "must be in [0.01, 1] s")
+        _check(self.allow_remote or is_local_endpoint(self.endpoint), f"{p}.endpoint",
+               "binds a non-loopback address; set publish.allow_remote = true to allow it")
+        _check(bool(self.curve_secret_key_file) == bool(self.curve_authorized_dir), f"{p}.curve_authorized_dir",
+               f"must be set together with {p}.curve_secret_key_file")
+
+
+def is_local_endpoint(endpoint: str) -> bool:
+    """True for ipc://, inproc:// and tcp:// endpoints on a loopback address."""
+    if not endpoint.startswith("tcp://"):
+        return True
+    host = endpoint[len("tcp://"):].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration of one daemon (one sensor)."""
+
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    serial: SerialConfig = field(default_factory=SerialConfig)
+    ring: RingConfig = field(default_factory=RingConfig)
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    window: WindowConfig = field(default_factory=WindowConfig)
+    spikes: SpikesConfig = field(default_factory=SpikesConfig)
+    features: FeaturesConfig = field(default_factory=FeaturesConfig)
+    classifier: ClassifierConfig = field(default_factory=ClassifierConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    publish: PublishConfig = field(default_factory=PublishConfig)
+
+    def validate(self) -> None:
+        for f in dataclasses.fields(self):
+            getattr(self, f.name).validate(f.name)
+
+    def override(self, values: dict[str, Any]) -> Config:
+        """A copy with ``{"section.key": value}`` replaced (values already typed), validated."""
+        sections: dict[str, dict[str, Any]] = {}
+        for path, value in values.items():
+            if value is None:
+                continue
+            section, _, key = path.partition(".")
+            sections.setdefault(section, {})[key] = value
+        new = dataclasses.replace(
+            self, **{s: dataclasses.replace(getattr(self, s), **kv) for s, kv in sections.items()}
+        )
+        new.validate()
+        return new
+
+
+T = TypeVar("T")
+
+
+def _coerce(value: Any, typ: Any, key: str) -> Any:
+    if typ is bool:
+        _check(isinstance(value, bool), key, "must be true or false")
+        return value
+    if typ is int:
+        _check(isinstance(value, int) and not isinstance(value, bool), key, "must be an integer")
+        return value
+    if typ is float:
+        _check(isinstance(value, (int, float)) and not isinstance(value, bool), key, "must be a number")
+        return float(value)
+    if typ is str:
+        _check(isinstance(value, str), key, "must be a string")
+        return value
+    if typing.get_origin(typ) is tuple:
+        _check(isinstance(value, list) and all(isinstance(v, str) for v in value), key, "must be a list of strings")
+        return tuple(value)
+    raise ConfigError(f"{key}: unsupported type")  # pragma: no cover - only our own dataclasses reach here
+
+
+def _build(cls: type[T], table: Any, prefix: str) -> T:
+    _check(isinstance(table, dict), prefix, "must be a table")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    for key in table:
+        _check(key in names, f"{prefix}.{key}" if prefix else key, "unknown key")
+    kwargs = {}
+    for name in names:
+        if name in table:
+            key = f"{prefix}.{name}" if prefix else name
+            hint = hints[name]
+            if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+                kwargs[name] = _build(hint, table[name], key)
+            elif isinstance(hint, types.GenericAlias) or hint in (bool, int, float, str):
+                kwargs[name] = _coerce(table[name], hint, key)
+            else:
+                kwargs[name] = _build(hint, table[name], key)
+    return cls(**kwargs)
+
+
+def parse_config(text: str, source: str = "<config>") -> Config:
+    """Parse TOML text into a validated :class:`Config`; errors name ``source`` and the key path."""
+    try:
+        data = tomllib.loads(text)
+        config = _build(Config, data, "")
+        config.validate()
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+    return config
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Read a TOML config file (``None``: all defaults)."""
+    if path is None:
+        config = Config()
+        config.validate()
+        return config
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read config: {exc.strerror}") from None
+    return parse_config(text, str(path))

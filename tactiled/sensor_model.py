@@ -1,0 +1,345 @@
+"""A physically grounded model of the fingertip (shared/notes/methods.md, sections C and D).
+
+Causes → effects, per slide:
+
+1. kinematics v(t): hand mode rests, accelerates 0 → v_max (~0.09 m/s, varying slide to
+   slide) as v_max·min(t/t_ramp, 1)^p with 5 % tremor, cruises and stops; robot mode runs a
+   fixed speed with a 20 ms ramp.  x(t) = Σ v / fs.
+2. surface z(x): a Gaussian self-affine profile (PSD flat below q_r = 2π/ℓc, ∝ q^(−1−2H)
+   above) on a 2 µm grid, scaled so that Rq = √(π/2)·Ra (Gaussian heights), one fresh track
+   per slide; ℓc and H differ between specimens.
+3. contact averaging: a Gaussian spatial low-pass of width a (also the anti-alias filter).
+4. excitation e(t) = d z_f(x(t))/dt = v·z_f′(x(t)) [m/s]; film k sees a wider contact and a
+   lower gain, plus cross-talk; stick-slip bursts at onset.
+5. fingertip mechanics: a 2nd-order resonance ωn²/(s² + 2ζωn s + ωn²) per film,
+   discretised exactly (zero-order hold, scipy.signal.cont2discrete) and run with lfilter.
+6. PVDF + buffer: gain G (V per m/s) times a per-slide contact-force factor exp(σ_F·N(0,1)),
+   then the first-order RC high-pass (τ = RC, bilinear).
+7. disturbances: mains 50 Hz + 150 Hz (−12 dB), white noise, 1/f drift, Poisson spikes.
+8. ADC: ±5 V, 16 bits, clipping, rounding.
+
+Every LTI block carries its filter state from chunk to chunk, so reading the stream in any
+chunk sizes gives the same samples as reading it at once; everything is seeded.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy import signal
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A specimen: name, arithmetic roughness Ra (µm), lateral correlation length ℓc (µm), Hurst H."""
+
+    name: str
+    ra_um: float
+    corr_um: float
+    hurst: float
+
+
+def default_surfaces() -> list[Surface]:
+    """The 15 polished surfaces, Ra 0.44 … 4.43 µm spaced geometrically, named ``Ra0.44`` …."""
+    ras = np.geomspace(0.44, 4.43, 15)
+    rng = np.random.default_rng(20180649)  # fixed: the specimens are the same in every run
+    corr = rng.uniform(60.0, 300.0, ras.size)
+    hurst = rng.uniform(0.6, 0.9, ras.size)
+    return [Surface(f"Ra{ra:.2f}", float(ra), float(c), float(h)) for ra, c, h in zip(ras, corr, hurst, strict=True)]
+
+
+def pick_surfaces(spec: str | int | None) -> list[Surface]:
+    """``None``: all 15; an int N (or "N"): N spread over the Ra range; else names ``Ra0.44,Ra1.04``."""
+    surfaces = default_surfaces()
+    if spec is None or spec == "":
+        return surfaces
+    if isinstance(spec, int) or str(spec).isdigit():
+        n = int(spec)
+        if not 1 <= n <= len(surfaces):
+            raise ValueError(f"--surfaces: N must be in 1..{len(surfaces)}, got {n}")
+        return [surfaces[i] for i in np.round(np.linspace(0, len(surfaces) - 1, n)).astype(int)]
+    by_name = {s.name: s for s in surfaces}
+    out = []
+    for name in str(spec).split(","):
+        if name.strip() not in by_name:
+            raise ValueError(f"--surfaces: unknown surface {name!r}; known: {', '.join(by_name)}")
+        out.append(by_name[name.strip()])
+    return out
+
+
+@dataclass(frozen=True)
+class SimParams:
+    """Every parameter of the model, with the ranges the notes justify. Units in names."""
+
+    fs: float = 20_000.0
+    channels: int = 2
+    mode: str = "manual"  # manual | robot
+    volts_per_count: float = 5.0 / 32768.0
+    full_scale_v: float = 5.0
+    # kinematics
+    v_max_mps: tuple[float, float] = (0.075, 0.105)
+    t_ramp_s: tuple[float, float] = (0.5, 0.9)
+    ramp_power: tuple[float, float] = (1.0, 1.5)
+    tremor: float = 0.05
+    robot_speed_mps: float = 0.08
+    slide_s: tuple[float, float] = (1.1, 1.6)
+    rest_s: tuple[float, float] = (0.5, 1.2)
+    # surface and contact
+    dx_um: float = 2.0
+    contact_um: float = 150.0
+    # electromechanics
+    gain_v_per_mps: float = 300.0
+    force_sigma: float = 0.06
+    robot_force_sigma: float = 0.01
+    fn_hz: tuple[float, ...] = (900.0, 1200.0)
+    zeta: float = 0.3
+    tau_hp_s: float = 0.024
+    film_gain: tuple[float, ...] = (1.0, 0.7)
+    crosstalk: float = 0.15
+    stick_slip: bool = True
+    # disturbances
+    mains_hz: float = 50.0
+    mains_v: float = 0.01
+    noise_v: float = 0.002
+    drift_v: float = 0.003
+    spike_rate_hz: float = 2.0
+    spike_v: tuple[float, float] = (0.5, 2.0)
+
+    def for_channel(self, values: tuple[float, ...], c: int, step: float) -> float:
+        return values[c] if c < len(values) else values[-1] * step ** (c - len(values) + 1)
+
+    def to_meta(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class SlideTruth:
+    """Ground truth of one slide: start of motion and end (absolute sample indices), surface."""
+
+    start: int
+    stop: int
+    surface: Surface
+    v_max_mps: float
+    force: float
+
+
+def _self_affine_profile(n: int, dx: float, surface: Surface, rng: np.random.Generator) -> tuple[npt.NDArray[np.complex128], FloatArray]:
+    """Spectrum Z(q) of a Gaussian self-affine profile of n points, scaled to Rq = √(π/2)·Ra; and q (rad/m)."""
+    q = np.asarray(2 * np.pi * np.fft.rfftfreq(n, dx), dtype=np.float64)
+    q_r = 2 * np.pi / (surface.corr_um * 1e-6)
+    shape = np.where(q < q_r, 1.0, (np.maximum(q, 1e-12) / q_r) ** (-(1 + 2 * surface.hurst)))
+    spec = (rng.standard_normal(q.size) + 1j * rng.standard_normal(q.size)) * np.sqrt(shape)
+    spec[0] = 0.0
+    z = np.fft.irfft(spec, n)
+    rq = math.sqrt(math.pi / 2) * surface.ra_um * 1e-6
+    scaled: npt.NDArray[np.complex128] = spec * (rq / z.std())
+    return scaled, q
+
+
+class SensorModel:
+    """A stream of samples from a fingertip sliding over ``surfaces``.
+
+    Call :meth:`add_slide` / :meth:`add_rest` to schedule episodes (or let
+    :meth:`schedule_random` do it), then :meth:`read` / :meth:`read_volts` any number of
+    samples in any chunks. ``truth`` lists the slides scheduled so far.
+    """
+
+    def __init__(self, params: SimParams, seed: int = 0) -> None:
+        if params.mode not in ("manual", "robot"):
+            raise ValueError(f"mode must be manual or robot, got {params.mode!r}")
+        if params.channels < 1 or params.fs <= 0:
+            raise ValueError("channels must be >= 1 and fs > 0")
+        self.p = params
+        self.rng = np.random.default_rng(seed)
+        self.truth: list[SlideTruth] = []
+        self._scheduled: list[FloatArray] = []  # episodes (n, C, 4): excitation [m/s], white [V], drift, spikes [V]
+        self._scheduled_n = 0
+        self._pos = 0  # absolute index of the next sample read
+        self._buffer = np.zeros((0, params.channels))
+        self._buffer_start = 0
+        fs, c = params.fs, params.channels
+        self._mech = []
+        for k in range(c):
+            fn = min(params.for_channel(params.fn_hz, k, 1.2), 0.45 * fs)
+            wn = 2 * np.pi * fn
+            a_c = np.array([[0.0, 1.0], [-wn * wn, -2 * params.zeta * wn]])
+            b_c = np.array([[0.0], [wn * wn]])
+            ad, bd, cd, dd, _ = signal.cont2discrete((a_c, b_c, np.array([[1.0, 0.0]]), np.array([[0.0]])), 1 / fs, method="zoh")
+            b, a = signal.ss2tf(ad, bd, cd, dd)
+            self._mech.append((np.asarray(b[0], dtype=np.float64), np.asarray(a, dtype=np.float64)))
+        self._hp = signal.bilinear([params.tau_hp_s, 0.0], [params.tau_hp_s, 1.0], fs)
+        self._zi_mech = [np.zeros(max(len(a), len(b)) - 1) for b, a in self._mech]
+        self._zi_hp = [np.zeros(1) for _ in range(c)]
+        self._zi_drift = [np.zeros(1) for _ in range(c)]
+        self._gains: list[FloatArray] = []
+        self._mains_phase = self.rng.uniform(0, 2 * np.pi, 2)
+
+    # ---- scheduling -------------------------------------------------------------------------
+
+    @property
+    def scheduled_end(self) -> int:
+        """Absolute index one past the last scheduled sample."""
+        return self._scheduled_n
+
+    def add_rest(self, seconds: float) -> None:
+        """Schedule ``seconds`` without contact (noise, hum and spikes only)."""
+        n = max(1, round(seconds * self.p.fs))
+        self._push(np.zeros((n, self.p.channels)), np.ones(n))
+
+    def add_slide(self, surface: Surface, seconds: float | None = None) -> SlideTruth:
+        """Schedule one slide over ``surface``; returns its ground truth."""
+        p, rng, fs = self.p, self.rng, self.p.fs
+        dur = seconds if seconds is not None else rng.uniform(*p.slide_s)
+        n = max(2, round(dur * fs))
+        t = np.arange(n) / fs
+        if p.mode == "manual":
+            v_max = rng.uniform(*p.v_max_mps)
+            ramp = np.minimum(t / rng.uniform(*p.t_ramp_s), 1.0) ** rng.uniform(*p.ramp_power)
+            tremor = 1 + p.tremor * np.sin(2 * np.pi * rng.uniform(3, 10) * t + rng.uniform(0, 2 * np.pi))
+            stop_s = 0.1
+            force = math.exp(p.force_sigma * rng.standard_normal())
+        else:
+            v_max = p.robot_speed_mps
+            ramp = np.minimum(t / 0.02, 1.0)
+            tremor = np.ones(n)
+            stop_s = 0.02
+            force = math.exp(p.robot_force_sigma * rng.standard_normal())
+        v = v_max * ramp * tremor * np.clip((dur - t) / stop_s, 0.0, 1.0)
+        v[0] = 0.0
+        v = np.maximum(v, 0.0)
+        x = np.concatenate(([0.0], np.cumsum(v[:-1]) / fs))
+        dx = p.dx_um * 1e-6
+        m = int(x[-1] / dx) + 64
+        m += m % 2
+        spec, q = _self_affine_profile(m, dx, surface, rng)
+        grid = np.arange(m) * dx
+        exc = np.zeros((n, p.channels))
+        for k in range(p.channels):
+            a = p.contact_um * 1e-6 * (1 + 0.5 * k)
+            slope = np.fft.irfft(1j * q * spec * np.exp(-0.5 * (q * a) ** 2), m)
+            exc[:, k] = p.for_channel(p.film_gain, k, 0.7) * v * np.interp(x, grid, slope)
+        if p.channels > 1:
+            exc[:, 1:] += p.crosstalk * exc[:, :1]
+        if p.stick_slip:
+            onset_n = np.flatnonzero(v > 0)[0]
+            for _ in range(rng.integers(1, 4)):
+                t0 = onset_n / fs + rng.uniform(0.0, 0.12)
+                tt = t - t0
+                burst = rng.uniform(3e-4, 1.5e-3) * np.exp(-np.maximum(tt, 0) / rng.uniform(0.003, 0.01)) * np.sin(2 * np.pi * rng.uniform(50, 300) * tt)
+                burst[tt < 0] = 0.0
+                exc += burst[:, None] * rng.uniform(0.5, 1.0, p.channels)
+        moving = np.flatnonzero(v > 0)
+        truth = SlideTruth(self._scheduled_n + int(moving[0]), self._scheduled_n + int(moving[-1]) + 1, surface, float(v_max), float(force))
+        self.truth.append(truth)
+        self._push(exc, np.full(n, force))
+        return truth
+
+    def schedule_random(self, surfaces: Sequence[Surface], until: int) -> None:
+        """Rest and slide over randomly chosen ``surfaces`` until ``until`` samples are scheduled."""
+        while self._scheduled_n < until:
+            self.add_rest(self.rng.uniform(*self.p.rest_s))
+            self.add_slide(surfaces[int(self.rng.integers(len(surfaces)))])
+
+    def _push(self, exc: FloatArray, gain: FloatArray) -> None:
+        """Queue an episode with all its random disturbances drawn now, so reads are chunk-invariant."""
+        p, rng = self.p, self.rng
+        n, c = exc.shape
+        white = p.noise_v * rng.standard_normal((n, c))
+        drift = rng.standard_normal((n, c))
+        spikes = np.zeros((n, c))
+        for _ in range(rng.poisson(p.spike_rate_hz * n / p.fs)):
+            at, width, k = int(rng.integers(n)), int(rng.integers(1, 4)), int(rng.integers(c))
+            spikes[at:at + width, k] += rng.choice((-1.0, 1.0)) * rng.uniform(*p.spike_v)
+        self._scheduled.append(np.stack([exc, white, drift, spikes], axis=2))
+        self._gains.append(gain)
+        self._scheduled_n += n
+
+    # ---- reading ----------------------------------------------------------------------------
+
+    def read_volts(self, n: int) -> FloatArray:
+        """The next ``n`` samples in volts (n, C), before the ADC; schedules rest if needed."""
+        if self._scheduled_n - self._pos < n:
+            self.add_rest((n - (self._scheduled_n - self._pos)) / self.p.fs)
+        block, gain = self._take(n)
+        exc, white, drift_in, spikes = (block[:, :, i] for i in range(4))
+        p, fs = self.p, self.p.fs
+        out = np.empty_like(exc)
+        idx = np.arange(self._pos, self._pos + n)
+        t_abs = idx / fs
+        mains = p.mains_v * (np.sin(2 * np.pi * p.mains_hz * t_abs + self._mains_phase[0])
+                             + 0.25 * np.sin(2 * np.pi * 3 * p.mains_hz * t_abs + self._mains_phase[1]))
+        drift_b, drift_a = [1.0 - 0.999], [1.0, -0.999]
+        for k in range(p.channels):
+            b, a = self._mech[k]
+            y, self._zi_mech[k] = signal.lfilter(b, a, exc[:, k], zi=self._zi_mech[k])
+            y = y * p.gain_v_per_mps * gain
+            y, self._zi_hp[k] = signal.lfilter(self._hp[0], self._hp[1], y, zi=self._zi_hp[k])
+            drift, self._zi_drift[k] = signal.lfilter(drift_b, drift_a, drift_in[:, k], zi=self._zi_drift[k])
+            out[:, k] = y + mains * (1.0 - 0.3 * k) + white[:, k] + p.drift_v * 22.0 * drift + spikes[:, k]
+        self._pos += n
+        return out
+
+    def _take(self, n: int) -> tuple[FloatArray, FloatArray]:
+        parts, gains, need = [], [], n
+        while need:
+            block, gain = self._scheduled[0], self._gains[0]
+            take = min(need, block.shape[0])
+            parts.append(block[:take])
+            gains.append(gain[:take])
+            if take == block.shape[0]:
+                self._scheduled.pop(0)
+                self._gains.pop(0)
+            else:
+                self._scheduled[0] = block[take:]
+                self._gains[0] = gain[take:]
+            need -= take
+        return np.concatenate(parts), np.concatenate(gains)
+
+    def read(self, n: int) -> npt.NDArray[np.int16]:
+        """The next ``n`` samples as int16 ADC counts (n, C): clipped at ±full scale, rounded."""
+        return adc(self.read_volts(n), self.p.volts_per_count, self.p.full_scale_v)
+
+    @property
+    def position(self) -> int:
+        return self._pos
+
+
+def adc(volts: FloatArray, volts_per_count: float, full_scale_v: float = 5.0) -> npt.NDArray[np.int16]:
+    """Clip to ±``full_scale_v`` and quantise to int16 counts."""
+    counts = np.round(np.clip(volts, -full_scale_v, full_scale_v) / volts_per_count)
+    return np.clip(counts, -32768, 32767).astype(np.int16)
+
+
+@dataclass
+class SimulatedFile:
+    samples: npt.NDArray[np.int16]
+    truth: list[SlideTruth] = field(default_factory=list)
+
+
+def simulate_file(params: SimParams, surface: Surface, slides: int, seed: int) -> SimulatedFile:
+    """One recording: ``slides`` slides over one surface, rests between and around them."""
+    model = SensorModel(params, seed)
+    for _ in range(slides):
+        model.add_rest(model.rng.uniform(*params.rest_s))
+        model.add_slide(surface)
+    model.add_rest(0.4)
+    return SimulatedFile(model.read(model.scheduled_end), model.truth)
+
+
+def with_mode(params: SimParams, mode: str | None, fs: float | None, channels: int | None = None) -> SimParams:
+    """``params`` with the CLI's mode, rate and channel count applied."""
+    changes: dict[str, Any] = {}
+    if mode:
+        changes["mode"] = mode
+    if fs:
+        changes["fs"] = float(fs)
+    if channels:
+        changes["channels"] = int(channels)
+    return replace(params, **changes)

@@ -1,0 +1,111 @@
+"""Serial ingest on pyserial, in a reader thread.
+
+A plain thread (not an asyncio serial adapter) because it keeps reading while the event
+loop is busy, needs nothing beyond pyserial, and owns the reconnect loop: on unplug it
+reports the disconnection once, retries with capped exponential backoff, and resumes when
+the device path comes back (possibly a new pty behind the same symlink). Bytes go to
+``on_bytes`` and state changes to ``on_state``; both are called from the reader thread,
+so an asyncio user wraps them with ``loop.call_soon_threadsafe``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from collections.abc import Callable
+
+import serial
+
+from tactiled.errors import DeviceError
+
+log = logging.getLogger(__name__)
+
+CONNECTED = "connected"
+DISCONNECTED = "disconnected"
+
+
+def check_port(path: str) -> None:
+    """Raise :class:`DeviceError` naming ``path`` if it cannot be opened now."""
+    if "://" in path:
+        return
+    if not os.path.exists(path):
+        raise DeviceError(f"{path}: no such serial device")
+    try:
+        port = serial.Serial(path, timeout=0)
+    except (serial.SerialException, OSError) as exc:
+        raise DeviceError(f"{path}: cannot open serial device: {exc}") from None
+    port.close()
+
+
+class SerialSource:
+    """Reads ``path`` in a thread until :meth:`stop`; counts :attr:`reconnects`."""
+
+    def __init__(
+        self,
+        path: str,
+        on_bytes: Callable[[bytes], None],
+        on_state: Callable[[str, str], None] | None = None,
+        *,
+        baudrate: int = 1_000_000,
+        retry_initial_s: float = 0.05,
+        retry_max_s: float = 2.0,
+        read_size: int = 65536,
+    ) -> None:
+        self.path = path
+        self.reconnects = 0
+        self.connected = False
+        self._on_bytes = on_bytes
+        self._on_state = on_state or (lambda state, detail: None)
+        self._baudrate = baudrate
+        self._retry = (retry_initial_s, retry_max_s)
+        self._read_size = read_size
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"serial:{path}", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout)
+
+    def _open(self) -> serial.Serial:
+        port = serial.serial_for_url(self.path, baudrate=self._baudrate, timeout=0.05)
+        return port
+
+    def _run(self) -> None:
+        delay = self._retry[0]
+        ever_connected = False
+        reported_down = False
+        while not self._stop.is_set():
+            try:
+                port = self._open()
+            except (serial.SerialException, OSError, ValueError) as exc:
+                if not reported_down:
+                    log.warning("%s: cannot open: %s; retrying", self.path, exc)
+                    self._on_state(DISCONNECTED, str(exc))
+                    reported_down = True
+                self._stop.wait(delay)  # capped backoff between retries, not synchronisation
+                delay = min(delay * 2, self._retry[1])
+                continue
+            if ever_connected:
+                self.reconnects += 1
+            ever_connected = True
+            reported_down = False
+            delay = self._retry[0]
+            self.connected = True
+            self._on_state(CONNECTED, self.path)
+            try:
+                while not self._stop.is_set():
+                    data = port.read(max(1, min(port.in_waiting, self._read_size)))
+                    if data:
+                        self._on_bytes(data)
+            except (serial.SerialException, OSError) as exc:
+                log.warning("%s: disconnected: %s", self.path, exc)
+                self.connected = False
+                self._on_state(DISCONNECTED, str(exc))
+                reported_down = True
+            finally:
+                self.connected = False
+                port.close()

@@ -1,0 +1,86 @@
+"""``tactiled simulate``: labelled datasets and the virtual board, from :mod:`tactiled.sensor_model`."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from tactiled.errors import TactiledError
+from tactiled.recording import Recording, save_recording
+from tactiled.sensor_model import SensorModel, SimParams, pick_surfaces, simulate_file, with_mode
+from tactiled.virtualboard import VirtualBoard
+
+
+def _surfaces(spec: str | None) -> list:  # type: ignore[type-arg]
+    try:
+        return pick_surfaces(spec)
+    except ValueError as exc:
+        raise TactiledError(str(exc)) from None
+
+
+def _params(mode: str, fs: float, channels: int) -> SimParams:
+    if not 1 <= channels <= 8:
+        raise TactiledError(f"--channels: must be in 1..8, got {channels}")
+    return with_mode(SimParams(), mode, fs, channels)
+
+
+def write_dataset(out: Path, *, seed: int = 0, surfaces: str | None = None, files_per_surface: int = 4,
+                  slides_per_file: int = 5, mode: str = "manual", fs: float = 20_000.0, channels: int = 2,
+                  progress: Callable[[str], None] | None = None) -> list[Path]:
+    """Write ``files_per_surface`` recordings per surface with ground truth; returns their paths."""
+    if files_per_surface < 1 or slides_per_file < 1:
+        raise TactiledError("--files-per-surface and --slides-per-file must be >= 1")
+    params = _params(mode, fs, channels)
+    chosen = _surfaces(surfaces)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i, surface in enumerate(chosen):
+        for f in range(files_per_surface):
+            file_seed = int(np.random.SeedSequence([seed, i, f]).generate_state(1)[0])
+            sim = simulate_file(params, surface, slides_per_file, file_seed)
+            rec = Recording(
+                samples=sim.samples, fs=params.fs, volts_per_count=params.volts_per_count,
+                slide_start=np.array([t.start for t in sim.truth]), slide_stop=np.array([t.stop for t in sim.truth]),
+                surface=np.array([t.surface.name for t in sim.truth]), ra_um=np.array([t.surface.ra_um for t in sim.truth]),
+                meta={"simulator": params.to_meta(), "seed": file_seed, "surface": vars(surface),
+                      "v_max_mps": [t.v_max_mps for t in sim.truth], "force": [t.force for t in sim.truth]},
+            )
+            path = out / f"{mode}_{surface.name}_{f:02d}.npz"
+            save_recording(path, rec)
+            paths.append(path)
+        if progress:
+            progress(f"simulate: {surface.name} ({i + 1}/{len(chosen)})")
+    return paths
+
+
+def run_virtual_board(args: argparse.Namespace) -> int:
+    """Run a virtual board until SIGINT/SIGTERM or ``--seconds``; prints the device path first."""
+    params = _params(args.mode, args.fs, args.channels)
+    try:
+        unplug_at = [float(t) for t in args.unplug_at.split(",") if t.strip()]
+    except ValueError:
+        raise TactiledError(f"--unplug-at: not a list of seconds: {args.unplug_at!r}") from None
+    log = open(args.log, "w", encoding="utf-8") if args.log else None  # noqa: SIM115 - closed below
+    stop = threading.Event()
+    try:
+        board = VirtualBoard(SensorModel(params, args.seed), _surfaces(args.surfaces), link=args.link, speed=args.speed,
+                             corrupt=args.corrupt, drop=args.drop, garbage=args.garbage, unplug_at=unplug_at,
+                             unplug_s=args.unplug_s, seed=args.seed, log=log)
+        path = board.open()
+        print(args.link or path, flush=True)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+        board.run(stop, args.seconds)
+    except ValueError as exc:
+        raise TactiledError(str(exc)) from None
+    finally:
+        if log:
+            log.close()
+    sys.stdout.flush()
+    return 0

@@ -1,0 +1,149 @@
+"""The sans-IO frame decoder against the spec, byte at a time, in chunks, with faults."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from tactiled.frames import FrameDecoder, crc16, encode_frame, encode_frames, frame_size
+
+
+def test_crc_check_value() -> None:
+    assert crc16(b"123456789") == 0x29B1
+
+
+def test_spec_example_bytes() -> None:
+    frame = encode_frame(7, np.array([[1, -1], [256, -256]], dtype=np.int16))
+    assert frame.hex(" ") == "a5 5a 01 02 02 00 07 00 00 00 01 00 ff ff 00 01 00 ff 7d 11"
+    (decoded,) = FrameDecoder().feed(frame)
+    assert decoded.index == 7
+    assert decoded.samples.tolist() == [[1, -1], [256, -256]]
+
+
+def _stream(n_frames: int, channels: int = 2, count: int = 20, first: int = 0, seed: int = 0) -> tuple[list[bytes], np.ndarray]:
+    rng = np.random.default_rng(seed)
+    samples = rng.integers(-32768, 32768, (n_frames * count, channels)).astype(np.int16)
+    frames = [encode_frame(first + i * count, samples[i * count:(i + 1) * count]) for i in range(n_frames)]
+    return frames, samples
+
+
+def _decode(data: bytes, cuts: list[int]) -> tuple[list[tuple[int, bytes]], FrameDecoder]:
+    dec = FrameDecoder()
+    out = []
+    prev = 0
+    for cut in [*sorted(cuts), len(data)]:
+        out += [(f.index, f.samples.tobytes()) for f in dec.feed(data[prev:cut])]
+        prev = cut
+    return out, dec
+
+
+def test_byte_at_a_time_equals_whole() -> None:
+    frames, _ = _stream(30)
+    data = b"".join(frames)
+    whole, _ = _decode(data, [])
+    bytewise, _ = _decode(data, list(range(1, len(data))))
+    assert whole == bytewise
+    assert len(whole) == 30
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.data())
+def test_chunking_never_changes_frames(data: st.DataObject) -> None:
+    frames, _ = _stream(12, seed=data.draw(st.integers(0, 1000)))
+    stream = b"".join(frames)
+    cuts = data.draw(st.lists(st.integers(0, len(stream)), max_size=40))
+    assert _decode(stream, cuts)[0] == _decode(stream, [])[0]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.data())
+def test_corrupted_frames_lose_exactly_those(data: st.DataObject) -> None:
+    n = 20
+    frames, samples = _stream(n, seed=data.draw(st.integers(0, 1000)))
+    bad = set(data.draw(st.lists(st.integers(1, n - 2), max_size=5, unique=True)))
+    corrupted = []
+    for i, frame in enumerate(frames):
+        if i in bad:
+            b = bytearray(frame)
+            at = data.draw(st.integers(2, len(b) - 1))
+            b[at] ^= data.draw(st.integers(1, 255))
+            frame = bytes(b)
+        corrupted.append(frame)
+    stream = b"".join(corrupted)
+    cuts = data.draw(st.lists(st.integers(0, len(stream)), max_size=10))
+    out, dec = _decode(stream, cuts)
+    assert [i for i, _ in out] == [i * 20 for i in range(n) if i not in bad]
+    for index, raw in out:
+        assert raw == samples[index:index + 20].tobytes()
+    assert dec.stats.samples_lost == 20 * len(bad - {n - 1})
+    assert dec.stats.crc_errors + dec.stats.bad_headers >= len(bad)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.data())
+def test_garbage_between_frames_loses_nothing(data: st.DataObject) -> None:
+    frames, _ = _stream(15, seed=data.draw(st.integers(0, 1000)))
+    parts = []
+    junk_total = 0
+    for frame in frames:
+        junk = data.draw(st.binary(max_size=30))
+        junk_total += len(junk)
+        parts += [junk, frame]
+    stream = b"".join(parts)
+    out, dec = _decode(stream, data.draw(st.lists(st.integers(0, len(stream)), max_size=10)))
+    assert [i for i, _ in out] == [i * 20 for i in range(15)]
+    assert dec.stats.samples_lost == 0
+    assert dec.stats.bytes_discarded == junk_total
+
+
+def test_sync_word_inside_payload_is_not_trusted() -> None:
+    samples = np.array([[0x5AA5, 0x5AA5]] * 20, dtype=np.uint16).view(np.int16)
+    frames = [encode_frame(i * 20, samples) for i in range(5)]
+    stream = b"".join(frames)
+    out, _dec = _decode(stream[3:], [])  # start mid-frame: the payload's a5 5a must not produce frames
+    assert [i for i, _ in out] == [20, 40, 60, 80]
+
+
+def test_index_wrap_is_seamless() -> None:
+    first = 2**32 - 50
+    frames, _samples = _stream(6, first=first)
+    out, dec = _decode(b"".join(frames), [])
+    assert [i for i, _ in out] == [first + 20 * k for k in range(6)]
+    assert dec.stats.samples_lost == 0 and dec.stats.restarts == 0
+
+
+def test_gap_counts_lost_samples_across_wrap() -> None:
+    first = 2**32 - 30
+    frames, _ = _stream(6, first=first)
+    out, dec = _decode(b"".join(frames[:1] + frames[3:]), [])
+    assert [i for i, _ in out] == [first, first + 60, first + 80, first + 100]
+    assert dec.stats.samples_lost == 40
+
+
+def test_restart_is_reported_and_duplicates_dropped() -> None:
+    frames, _ = _stream(200)  # 4000 samples
+    after, _ = _stream(3, first=0, seed=9)
+    dec = FrameDecoder(duplicate_window=1000)
+    out = dec.feed(b"".join(frames) + frames[-1])  # a duplicated frame
+    assert dec.stats.duplicates == 1 and len(out) == 200
+    restarted = dec.feed(b"".join(after))
+    assert dec.stats.restarts == 1
+    assert restarted[0].restart and restarted[0].index == 4000
+    assert [f.index for f in restarted] == [4000, 4020, 4040]
+
+
+def test_bad_headers_and_sizes() -> None:
+    assert frame_size(2, 20) == 92  # the spec's layout table (its prose says 94)
+    for body in (b"\xa5\x5a\x02\x02\x01\x00", b"\xa5\x5a\x01\x09\x01\x00", b"\xa5\x5a\x01\x02\x00\x00"):
+        dec = FrameDecoder()
+        assert dec.feed(body + bytes(20)) == []
+        assert dec.stats.bad_headers >= 1
+
+
+def test_encode_frames_splits_like_firmware() -> None:
+    samples = np.arange(100, dtype=np.int16).reshape(50, 2)
+    data = encode_frames(5, samples, count=20)
+    out = FrameDecoder().feed(data)
+    assert [f.index for f in out] == [5, 25, 45]
+    assert np.array_equal(np.concatenate([f.samples for f in out]), samples)
