@@ -65,6 +65,211 @@ def cmd_simulate_serial(args: argparse.Namespace) -> int:
     return run_virtual_board(args)
 
 
+def _model_for(path: str | None, fs: float, channels: int, where: str, explicit: bool) -> object | None:
+    """The model to use on a stream: an explicit one must fit; the shipped one is used only if it fits."""
+    from tactiled.errors import ModelError
+    from tactiled.model import default_model_path, load_model
+
+    if path:
+        model = load_model(path)
+        model.check_stream(fs, channels, where)
+        return model
+    if not explicit and default_model_path().exists():
+        model = load_model(None)
+        try:
+            model.check_stream(fs, channels, where)
+        except ModelError as exc:
+            log.warning("shipped model not used: %s", exc)
+            return None
+        return model
+    return None
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    import json
+
+    from tactiled.errors import RecordingError
+    from tactiled.recording import load_recording
+    from tactiled.replay import replay_recording, result_record
+
+    config = _config(args)
+    failed = 0
+    publisher = None
+    if args.publish:
+        from tactiled.publish import Publisher
+
+        publisher = Publisher(config.override({"publish.endpoint": args.publish}).publish)
+    try:
+        for path in args.files:
+            try:
+                rec = load_recording(path)
+            except RecordingError as exc:
+                print(f"tactiled: error: {exc}", file=sys.stderr)
+                failed += 1
+                continue
+            model = _model_for(args.model, rec.fs, rec.channels, path, explicit=args.no_model)
+            on_event = None
+            if publisher is not None:
+                on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""))
+            for r in replay_recording(rec, config, model, block=args.block, speed=args.speed, on_event=on_event):
+                obj = result_record(path, rec, r)
+                if args.json:
+                    print(json.dumps(obj), flush=True)
+                else:
+                    conf = "" if r.confidence is None else f" ({r.confidence:.2f})"
+                    why = f" [{r.reason}]" if r.reason else ""
+                    truth = f" truth {obj['truth']}" if obj["truth"] else ""
+                    print(f"{path}: slide {r.slide_id}: {r.start}-{r.stop} ({obj['duration_s']:.2f} s) window {r.window[0]}-{r.window[1]}: "
+                          f"{r.label or '-'}{conf}{why} spikes {r.quality['spikes']}{truth}", flush=True)
+    finally:
+        if publisher is not None:
+            publisher.close()
+    return EXIT_USAGE if failed else EXIT_OK
+
+
+def cmd_features(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from tactiled.analysis import AnalysisSettings
+    from tactiled.recording import atomic_savez
+    from tactiled.train import collect, load_recordings
+
+    config = _config(args)
+    recs = load_recordings(args.files)
+    if not recs:
+        raise TactiledError("no readable recordings")
+    channels = min(r.channels for _, r in recs)
+    ds = collect(recs, config, AnalysisSettings.from_config(config, channels), progress=lambda m: print(m, file=sys.stderr), require_labels=False)
+    atomic_savez(args.output, {"x": ds.x, "names": np.array(ds.names), "labels": ds.y, "groups": ds.groups, "files": np.array(ds.files, dtype=np.str_),
+                               "start": ds.starts, "stop": ds.stops})
+    print(f"{args.output}: {ds.x.shape[0]} slides x {ds.x.shape[1]} features" + (f" (skipped {ds.skipped})" if ds.skipped else ""))
+    return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from tactiled.analysis import AnalysisSettings
+    from tactiled.train import DEFAULT_PARAMS, collect, fit_model, load_recordings, measure_onset_lag
+
+    def progress(msg: str) -> None:
+        print(f"train: {msg}", file=sys.stderr, flush=True)
+
+    config = _config(args)
+    recs = load_recordings(args.files)
+    if len(recs) != len(args.files):
+        raise TactiledError("unreadable recordings (listed above); nothing written")
+    fs = {r.fs for _, r in recs}
+    channels = {r.channels for _, r in recs}
+    if len(fs) != 1 or len(channels) != 1:
+        raise TactiledError(f"recordings differ in fs {sorted(fs)} or channels {sorted(channels)}; train one rate at a time")
+    lag, lags = measure_onset_lag([r for _, r in recs], config)
+    progress(f"detector onset lag: median {lag * 1e3:.1f} ms over {lags.size} slides")
+    settings = AnalysisSettings.from_config(config, channels.pop())
+    settings = AnalysisSettings(**{**settings.__dict__, "onset_lag_s": lag})
+    ds = collect(recs, config, settings, progress)
+    progress(f"{len(ds.y)} slides, {len(set(ds.y.tolist()))} surfaces, {ds.x.shape[1]} candidate features")
+    params = dict(DEFAULT_PARAMS[args.classifier])
+    if args.hidden and args.classifier == "elm":
+        params["n_hidden"] = args.hidden
+    model = fit_model(ds, settings, args.classifier, params, args.features, args.seed, fs.pop(), recs[0][1].channels, progress)
+    model.summary["onset_lag_s"] = lag
+    fingerprint = model.save(args.output)
+    print(f"{args.output}: {args.classifier} on {len(model.names)} features ({', '.join(model.names)}), {len(model.classes)} classes, "
+          f"fingerprint {fingerprint}")
+    return EXIT_OK
+
+
+def cmd_score(args: argparse.Namespace) -> int:
+    import json
+
+    from tactiled.model import load_model
+    from tactiled.score import score_report
+    from tactiled.train import collect, load_recordings
+
+    config = _config(args)
+    model = load_model(args.model)
+    recs = load_recordings(args.files)
+    for name, rec in recs:
+        model.check_stream(rec.fs, rec.channels, name)
+    truth_only = [(n, r) for n, r in recs if r.slides()]
+    ds = collect(truth_only, config, model.settings)
+    if not len(ds.y):
+        raise TactiledError("no ground-truth slides to score")
+    report = score_report(ds.y, model.predict(ds.x), model.classes)
+    report["skipped"] = ds.skipped
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(f"accuracy {report['accuracy']:.4f} over {report['n']} slides")
+        for c, r in report["recall"].items():
+            print(f"  {c:>10s}: recall {r:.3f}")
+    return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from tactiled.daemon import Daemon
+
+    config = _config(args, {"sensor.port": args.port, "sensor.id": args.sensor_id, "publish.endpoint": args.publish,
+                            "model.path": args.model})
+    model = None
+    if not args.no_model:
+        model = _model_for(config.model.path or None, config.sensor.fs, config.sensor.channels, f"sensor {config.sensor.id}",
+                           explicit=bool(config.model.path))
+        if model is None:
+            raise TactiledError("no model fits this sensor (train one with tactiled train, or pass --no-model)")
+
+    async def main() -> None:
+        daemon = Daemon(config, model, args.record)  # type: ignore[arg-type]
+        print(f"tactiled: sensor {config.sensor.id} on {config.sensor.port}, publishing on {daemon.endpoint}", file=sys.stderr, flush=True)
+        await daemon.run()
+
+    asyncio.run(main())
+    return EXIT_OK
+
+
+def cmd_monitor(args: argparse.Namespace) -> int:
+    from tactiled.monitor import run_monitor
+
+    endpoint = args.connect or _config(args).publish.endpoint
+    return run_monitor(endpoint)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Virtual board on a pty + daemon with the shipped model + monitor, in one command."""
+    import subprocess
+    import tempfile
+
+    from tactiled.monitor import run_monitor
+
+    with tempfile.TemporaryDirectory(prefix="tactiled-demo-") as tmp:
+        link = f"{tmp}/tty"
+        endpoint = args.publish or f"ipc://{tmp}/pub"
+        exe = [sys.executable, "-m", "tactiled"]
+        board = subprocess.Popen([*exe, "simulate", "serial", "--link", link, "--mode", args.mode, "--seed", str(args.seed)],
+                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        assert board.stdout is not None
+        board.stdout.readline()  # the device path: the pty exists from here on
+        daemon = subprocess.Popen([*exe, "run", "--port", link, "--publish", endpoint], stderr=open(f"{tmp}/daemon.log", "w"))  # noqa: SIM115
+        try:
+            if args.headless:
+                from tactiled_client import BlockingSubscriber, NoData, Roughness
+
+                with BlockingSubscriber(endpoint, topics=["roughness"], timeout=args.headless) as sub:
+                    try:
+                        for msg in sub:
+                            if isinstance(msg, Roughness):
+                                print(f"slide {msg.slide_id}: {msg.label or '-'} ({msg.confidence or 0:.2f}) {msg.reason or ''}", flush=True)
+                    except NoData:
+                        print(f"tactiled: no label for {args.headless} s; daemon log: {tmp}/daemon.log", file=sys.stderr)
+                        return EXIT_FAIL
+            return run_monitor(endpoint)
+        finally:
+            for proc in (daemon, board):
+                proc.terminate()
+                proc.wait(5)
+
+
 # ---- parser -----------------------------------------------------------------------------------
 
 def _positive_float(text: str) -> float:
@@ -130,6 +335,61 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--channels", type=int, default=2)
     p.add_argument("--log", help="write one JSON line per event sent (slides, faults) to this file")
     p.set_defaults(handler=cmd_simulate_serial)
+    p = sub.add_parser("run", help="the daemon: serial port -> roughness labels over ZeroMQ")
+    p.add_argument("--config", help="TOML config (default: built-in defaults)")
+    p.add_argument("--port", help="serial device (overrides sensor.port)")
+    p.add_argument("--model", help="model file (overrides model.path; default: the shipped model)")
+    p.add_argument("--no-model", action="store_true", help="publish slides and status only")
+    p.add_argument("--publish", help="ZeroMQ endpoint to bind (overrides publish.endpoint)")
+    p.add_argument("--sensor-id", help="sensor id in topics (overrides sensor.id)")
+    p.add_argument("--record", help="also keep every sample received and write it as a recording on exit (memory grows 80 kB/s)")
+    p.set_defaults(handler=cmd_run)
+
+    p = sub.add_parser("monitor", help="terminal view of a running daemon")
+    p.add_argument("--connect", help="daemon endpoint (default: publish.endpoint of --config or the default)")
+    p.add_argument("--config")
+    p.set_defaults(handler=cmd_monitor)
+
+    p = sub.add_parser("demo", help="simulated sensor + daemon + monitor")
+    p.add_argument("--mode", choices=("manual", "robot"), default="manual")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--publish", help="endpoint for the demo daemon (default: an ipc socket in a temporary folder)")
+    p.add_argument("--headless", type=float, default=None, metavar="TIMEOUT", help="print labels instead of the monitor; stop after TIMEOUT s of silence")
+    p.set_defaults(handler=cmd_demo)
+
+    p = sub.add_parser("replay", help="run recordings through the daemon's pipeline")
+    p.add_argument("files", nargs="+")
+    p.add_argument("--config")
+    p.add_argument("--json", action="store_true", help="one JSON object per slide")
+    p.add_argument("--speed", type=_positive_float, default=None, help="pace at X times real time (default: as fast as possible)")
+    p.add_argument("--model", help="model file (default: the shipped model, when it fits the recording)")
+    p.add_argument("--no-model", action="store_true", help="no classification (labels are null)")
+    p.add_argument("--publish", help="also publish the daemon's messages on this ZeroMQ endpoint")
+    p.add_argument("--block", type=int, default=4096, help="samples per block fed to the pipeline")
+    p.set_defaults(handler=cmd_replay)
+
+    p = sub.add_parser("features", help="feature vectors of every slide")
+    p.add_argument("files", nargs="+")
+    p.add_argument("-o", "--output", required=True)
+    p.add_argument("--config")
+    p.set_defaults(handler=cmd_features)
+
+    p = sub.add_parser("train", help="train a model from labelled recordings")
+    p.add_argument("files", nargs="+")
+    p.add_argument("-o", "--output", required=True)
+    p.add_argument("--config")
+    p.add_argument("--classifier", choices=("elm", "knn", "svm"), default="elm")
+    p.add_argument("--features", default="auto", help="N to select, auto (stop when CV accuracy stops rising), or all")
+    p.add_argument("--hidden", type=int, default=None, help="ELM hidden units")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(handler=cmd_train)
+
+    p = sub.add_parser("score", help="accuracy of a model on ground-truth slides")
+    p.add_argument("model")
+    p.add_argument("files", nargs="+")
+    p.add_argument("--config")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_score)
     return parser
 
 

@@ -74,8 +74,10 @@ class DetectorConfig:
     """Online slide detector: hysteresis on a short-time energy envelope over a tracked noise floor."""
 
     hop_ms: float = 5.0
-    on_factor: float = 8.0
-    off_factor: float = 3.0
+    band_low_hz: float = 60.0
+    mains_hz: float = 50.0
+    on_factor: float = 6.0
+    off_factor: float = 2.0
     off_hold_s: float = 0.08
     min_slide_s: float = 0.15
     max_slide_s: float = 6.0
@@ -84,6 +86,8 @@ class DetectorConfig:
 
     def validate(self, p: str) -> None:
         _check(self.hop_ms > 0, f"{p}.hop_ms", "must be > 0")
+        _check(self.band_low_hz > 0, f"{p}.band_low_hz", "must be > 0 Hz")
+        _check(self.mains_hz == 0 or 40 <= self.mains_hz <= 70, f"{p}.mains_hz", "must be 0 (off) or in 40..70 Hz")
         _check(self.off_factor > 1.0, f"{p}.off_factor", "must be > 1")
         _check(self.on_factor > self.off_factor, f"{p}.on_factor", f"must be > {p}.off_factor")
         _check(self.off_hold_s >= 0, f"{p}.off_hold_s", "must be >= 0")
@@ -109,7 +113,7 @@ class WindowConfig:
 class SpikesConfig:
     """Spike (outlier) removal before feature extraction."""
 
-    method: str = "hampel"
+    method: str = "mad"
     half_width: int = 5
     nsigma: float = 4.0
 
@@ -145,8 +149,10 @@ class ClassifierConfig:
 
     min_confidence: float = 0.0
     max_saturated: float = 0.01
+    max_lost: float = 0.02
 
     def validate(self, p: str) -> None:
+        _check(0.0 <= self.max_lost <= 0.5, f"{p}.max_lost", "must be in [0, 0.5]")
         _check(0.0 <= self.min_confidence <= 1.0, f"{p}.min_confidence", "must be in [0, 1]")
         _check(0.0 <= self.max_saturated <= 1.0, f"{p}.max_saturated", "must be in [0, 1]")
 
@@ -168,16 +174,12 @@ class PublishConfig:
     endpoint: str = DEFAULT_ENDPOINT
     allow_remote: bool = False
     status_interval_s: float = 0.5
-    curve_secret_key_file: str = ""
-    curve_authorized_dir: str = ""
 
     def validate(self, p: str) -> None:
         _check(self.endpoint.startswith(("tcp://", "ipc://", "inproc://")), f"{p}.endpoint", "must start with tcp://, ipc:// or inproc://")
         _check(0.01 <= self.status_interval_s <= 1.0, f"{p}.status_interval_s", "must be in [0.01, 1] s")
         _check(self.allow_remote or is_local_endpoint(self.endpoint), f"{p}.endpoint",
                "binds a non-loopback address; set publish.allow_remote = true to allow it")
-        _check(bool(self.curve_secret_key_file) == bool(self.curve_authorized_dir), f"{p}.curve_authorized_dir",
-               f"must be set together with {p}.curve_secret_key_file")
 
 
 def is_local_endpoint(endpoint: str) -> bool:

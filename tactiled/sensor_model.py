@@ -50,7 +50,7 @@ def default_surfaces() -> list[Surface]:
     """The 15 polished surfaces, Ra 0.44 … 4.43 µm spaced geometrically, named ``Ra0.44`` …."""
     ras = np.geomspace(0.44, 4.43, 15)
     rng = np.random.default_rng(20180649)  # fixed: the specimens are the same in every run
-    corr = rng.uniform(60.0, 300.0, ras.size)
+    corr = rng.uniform(20.0, 60.0, ras.size)
     hurst = rng.uniform(0.6, 0.9, ras.size)
     return [Surface(f"Ra{ra:.2f}", float(ra), float(c), float(h)) for ra, c, h in zip(ras, corr, hurst, strict=True)]
 
@@ -84,8 +84,8 @@ class SimParams:
     volts_per_count: float = 5.0 / 32768.0
     full_scale_v: float = 5.0
     # kinematics
-    v_max_mps: tuple[float, float] = (0.075, 0.105)
-    t_ramp_s: tuple[float, float] = (0.5, 0.9)
+    v_max_mps: tuple[float, float] = (0.085, 0.095)
+    t_ramp_s: tuple[float, float] = (0.2, 0.35)
     ramp_power: tuple[float, float] = (1.0, 1.5)
     tremor: float = 0.05
     robot_speed_mps: float = 0.08
@@ -93,9 +93,9 @@ class SimParams:
     rest_s: tuple[float, float] = (0.5, 1.2)
     # surface and contact
     dx_um: float = 2.0
-    contact_um: float = 150.0
+    contact_um: float = 50.0
     # electromechanics
-    gain_v_per_mps: float = 300.0
+    gain_v_per_mps: float = 150.0
     force_sigma: float = 0.06
     robot_force_sigma: float = 0.01
     fn_hz: tuple[float, ...] = (900.0, 1200.0)
@@ -137,9 +137,11 @@ def _self_affine_profile(n: int, dx: float, surface: Surface, rng: np.random.Gen
     shape = np.where(q < q_r, 1.0, (np.maximum(q, 1e-12) / q_r) ** (-(1 + 2 * surface.hurst)))
     spec = (rng.standard_normal(q.size) + 1j * rng.standard_normal(q.size)) * np.sqrt(shape)
     spec[0] = 0.0
-    z = np.fft.irfft(spec, n)
+    # scale by the ensemble variance (E|X_k|² = 2·shape_k, irfft weights interior bins twice):
+    # the specimen has this Rq, each finite track fluctuates around it as a measured track would
+    expected_var = 4.0 * float(shape[1:].sum()) / n**2
     rq = math.sqrt(math.pi / 2) * surface.ra_um * 1e-6
-    scaled: npt.NDArray[np.complex128] = spec * (rq / z.std())
+    scaled = np.asarray(spec * (rq / math.sqrt(expected_var)), dtype=np.complex128)
     return scaled, q
 
 
@@ -218,9 +220,9 @@ class SensorModel:
         dx = p.dx_um * 1e-6
         m = int(x[-1] / dx) + 64
         m += m % 2
-        spec, q = _self_affine_profile(m, dx, surface, rng)
         grid = np.arange(m) * dx
         exc = np.zeros((n, p.channels))
+        spec, q = _self_affine_profile(m, dx, surface, rng)
         for k in range(p.channels):
             a = p.contact_um * 1e-6 * (1 + 0.5 * k)
             slope = np.fft.irfft(1j * q * spec * np.exp(-0.5 * (q * a) ** 2), m)

@@ -64,11 +64,12 @@ class Message:
     sensor: str
     type: str
     extra: dict[str, Any] = field(default_factory=dict, repr=False)
+    missed: int = field(default=0, compare=False)  # set by the subscriber from seq, never on the wire
 
     @classmethod
     def from_map(cls: builtins.type[T], body: dict[str, Any]) -> T:
         """Build from a decoded map; unknown fields go to ``extra``, missing optional ones default."""
-        names = {f.name for f in fields(cls)} - {"extra"}
+        names = {f.name for f in fields(cls)} - {"extra", "missed"}
         known = {k: v for k, v in body.items() if k in names}
         extra = {k: v for k, v in body.items() if k not in names}
         return cls(**known, extra=extra)
@@ -116,6 +117,7 @@ class Status(Message):
     samples_lost: int = 0
     crc_errors: int = 0
     bytes_discarded: int = 0
+    bad_headers: int = 0
     reconnects: int = 0
     restarts: int = 0
     slides: int = 0
@@ -127,6 +129,8 @@ class Status(Message):
     index: int = 0  # newest sensor sample index
     level: list[float] = field(default_factory=list)  # RMS per film over the last status interval, V
     version: str = ""
+    dropped_messages: int = 0
+    channel_errors: int = 0
     time_unix: float = 0.0
 
 

@@ -1,0 +1,154 @@
+"""Subscribe to one or more tactiled daemons.
+
+Async::
+
+    async with Subscriber("tcp://127.0.0.1:7350", topics=["roughness"]) as sub:
+        async for msg in sub:
+            print(msg.label, msg.confidence)
+
+Blocking (scripts)::
+
+    with BlockingSubscriber("tcp://127.0.0.1:7350") as sub:
+        for msg in sub:
+            ...
+
+Every message is typed (:mod:`tactiled_client.schema`); ``msg.missed`` is how many
+messages of that topic were lost just before it (from ``seq``); ``timeout`` (s) raises
+:class:`NoData` when nothing arrives for that long; :meth:`latest` returns the newest
+roughness label if it is younger than a given age.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import AsyncIterator, Iterator, Sequence
+from types import TracebackType
+from typing import Any
+
+import zmq
+import zmq.asyncio
+
+from tactiled_client import schema
+
+
+class NoData(TimeoutError):
+    """Nothing arrived within the subscriber's timeout."""
+
+
+class _Tracker:
+    """seq bookkeeping and the freshest roughness message, shared by both subscribers."""
+
+    def __init__(self) -> None:
+        self.last_seq: dict[str, int] = {}
+        self.missed: dict[str, int] = {}
+        self._latest: tuple[float, schema.Roughness] | None = None
+
+    def accept(self, frames: list[bytes]) -> schema.Message:
+        topic, body = schema.decode(frames)
+        msg = schema.parse(topic, body)
+        last = self.last_seq.get(topic)
+        gap = 0 if last is None or msg.seq <= last else msg.seq - last - 1
+        if last is not None and msg.seq <= last:
+            gap = 0  # the daemon restarted: seq starts again
+        self.last_seq[topic] = msg.seq
+        self.missed[topic] = self.missed.get(topic, 0) + gap
+        msg.missed = gap
+        if isinstance(msg, schema.Roughness):
+            self._latest = (time.monotonic(), msg)
+        return msg
+
+    def latest(self, max_age_s: float) -> schema.Roughness | None:
+        if self._latest is None or time.monotonic() - self._latest[0] > max_age_s:
+            return None
+        return self._latest[1]
+
+
+def _prefixes(topics: Sequence[str] | None, sensor: str | None) -> list[bytes]:
+    kinds = list(topics) if topics else [""]
+    out = []
+    for kind in kinds:
+        if kind and kind not in schema.TOPICS:
+            raise ValueError(f"unknown topic {kind!r}; choose from {', '.join(schema.TOPICS)}")
+        out.append((f"{kind}/{sensor}" if kind and sensor else kind).encode())
+    return out
+
+
+def _endpoints(endpoints: str | Sequence[str]) -> list[str]:
+    return [endpoints] if isinstance(endpoints, str) else list(endpoints)
+
+
+class Subscriber(_Tracker):
+    """Async subscriber: ``async with Subscriber(endpoint) as sub: async for msg in sub``."""
+
+    def __init__(self, endpoints: str | Sequence[str], topics: Sequence[str] | None = None, sensor: str | None = None,
+                 timeout: float | None = None, context: zmq.asyncio.Context | None = None) -> None:
+        super().__init__()
+        self.endpoints = _endpoints(endpoints)
+        self.prefixes = _prefixes(topics, sensor)
+        self.timeout = timeout
+        self._context = context or zmq.asyncio.Context.instance()
+        self._socket: zmq.asyncio.Socket | None = None
+
+    async def __aenter__(self) -> Subscriber:
+        sock = self._context.socket(zmq.SUB)
+        sock.setsockopt(zmq.LINGER, 0)
+        for p in self.prefixes:
+            sock.setsockopt(zmq.SUBSCRIBE, p)
+        for e in self.endpoints:
+            sock.connect(e)
+        self._socket = sock
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._socket is not None:
+            self._socket.close(linger=0)
+            self._socket = None
+
+    async def receive(self) -> schema.Message:
+        """The next message; :class:`NoData` after ``timeout`` seconds of silence."""
+        assert self._socket is not None, "use 'async with Subscriber(...)'"
+        if self.timeout is not None and not await self._socket.poll(int(self.timeout * 1000)):
+            raise NoData(f"no message from {', '.join(self.endpoints)} for {self.timeout} s")
+        return self.accept(await self._socket.recv_multipart())
+
+    def __aiter__(self) -> AsyncIterator[schema.Message]:
+        return self
+
+    async def __anext__(self) -> schema.Message:
+        return await self.receive()
+
+
+class BlockingSubscriber(_Tracker):
+    """Blocking subscriber for scripts: ``with BlockingSubscriber(endpoint) as sub: for msg in sub``."""
+
+    def __init__(self, endpoints: str | Sequence[str], topics: Sequence[str] | None = None, sensor: str | None = None,
+                 timeout: float | None = None, context: zmq.Context[Any] | None = None) -> None:
+        super().__init__()
+        self.endpoints = _endpoints(endpoints)
+        self.timeout = timeout
+        self._socket = (context or zmq.Context.instance()).socket(zmq.SUB)
+        self._socket.setsockopt(zmq.LINGER, 0)
+        for p in _prefixes(topics, sensor):
+            self._socket.setsockopt(zmq.SUBSCRIBE, p)
+        for e in self.endpoints:
+            self._socket.connect(e)
+
+    def receive(self, timeout: float | None = None) -> schema.Message:
+        """The next message; :class:`NoData` after ``timeout`` (default: the subscriber's) seconds of silence."""
+        t = self.timeout if timeout is None else timeout
+        if t is not None and not self._socket.poll(int(t * 1000)):
+            raise NoData(f"no message from {', '.join(self.endpoints)} for {t} s")
+        return self.accept(self._socket.recv_multipart())
+
+    def __iter__(self) -> Iterator[schema.Message]:
+        while True:
+            yield self.receive()
+
+    def close(self) -> None:
+        self._socket.close(linger=0)
+
+    def __enter__(self) -> BlockingSubscriber:
+        return self
+
+    def __exit__(self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None) -> None:
+        self.close()

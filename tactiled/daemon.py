@@ -1,0 +1,215 @@
+"""``tactiled run``: one asyncio daemon per sensor.
+
+Tasks in one TaskGroup: ``ingest`` (serial bytes → decoder → pipeline, the pipeline in a
+worker thread so feature extraction never stalls the loop → publisher), ``status`` (at
+least once a second, and the systemd watchdog), ``stop`` (SIGTERM / SIGINT). The serial
+source is a reader thread (tactiled.serialsource) that survives unplugs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import signal
+import socket
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from tactiled_client import schema
+
+from tactiled import __version__
+from tactiled.config import Config
+from tactiled.frames import Frame, FrameDecoder
+from tactiled.model import Model
+from tactiled.pipeline import Pipeline, PipelineEvent
+from tactiled.publish import Publisher
+from tactiled.record import FrameAssembler
+from tactiled.recording import Recording, save_recording
+from tactiled.serialsource import CONNECTED, SerialSource
+
+log = logging.getLogger(__name__)
+
+
+def sd_notify(message: str) -> None:
+    """Send ``message`` to systemd's notify socket if there is one (Type=notify, watchdog)."""
+    path = os.environ.get("NOTIFY_SOCKET")
+    if not path:
+        return
+    if path.startswith("@"):
+        path = "\0" + path[1:]
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        try:
+            sock.connect(path)
+            sock.sendall(message.encode())
+        except OSError as exc:
+            log.warning("sd_notify failed: %s", exc)
+
+
+def group_frames(frames: list[Frame]) -> list[tuple[int, np.ndarray]]:
+    """Consecutive frames joined into (index, (n, C) samples) blocks."""
+    blocks: list[tuple[int, list[np.ndarray]]] = []
+    end = None
+    for f in frames:
+        if blocks and f.index == end and f.samples.shape[1] == blocks[-1][1][0].shape[1]:
+            blocks[-1][1].append(f.samples)
+        else:
+            blocks.append((f.index, [f.samples]))
+        end = f.index + f.samples.shape[0]
+    return [(i, np.concatenate(parts) if len(parts) > 1 else parts[0]) for i, parts in blocks]
+
+
+@dataclass
+class DaemonState:
+    started: float = field(default_factory=time.monotonic)
+    connected: bool = False
+    samples_window: int = 0
+    sumsq: np.ndarray | None = None
+    last_index: int = 0
+    channel_errors: int = 0
+
+
+class Daemon:
+    """The daemon's state and tasks; :meth:`run` until stopped."""
+
+    def __init__(self, config: Config, model: Model | None, record_to: str | None = None) -> None:
+        self.config = config
+        self.model = model
+        s = config.sensor
+        self.fingerprint = model.fingerprint if model else ""
+        self.decoder = FrameDecoder()
+        self.pipeline = Pipeline(config, s.fs, s.channels, s.volts_per_count, True, model)
+        self.publisher = Publisher(config.publish)
+        self.state = DaemonState()
+        self.stop_event = asyncio.Event()
+        self.source: SerialSource | None = None
+        self.record_to = record_to
+        self.assembler = FrameAssembler(config.sensor.channels) if record_to else None
+
+    @property
+    def endpoint(self) -> str:
+        return self.publisher.endpoint
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        queue: asyncio.Queue[bytes | tuple[str, str]] = asyncio.Queue()
+        s = self.config.sensor
+
+        def on_bytes(data: bytes) -> None:
+            loop.call_soon_threadsafe(queue.put_nowait, data)
+
+        def on_state(state: str, detail: str) -> None:
+            loop.call_soon_threadsafe(queue.put_nowait, (state, detail))
+
+        self.source = SerialSource(s.port, on_bytes, on_state, baudrate=s.baudrate,
+                                   retry_initial_s=self.config.serial.retry_initial_s, retry_max_s=self.config.serial.retry_max_s)
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, self.stop_event.set)
+        self.source.start()
+        log.info("tactiled %s: sensor %s on %s, publishing on %s, model %s", __version__, s.id, s.port, self.endpoint, self.fingerprint or "none")
+        sd_notify("READY=1")
+        try:
+            async with asyncio.TaskGroup() as tg:
+                ingest = tg.create_task(self._ingest(queue), name="ingest")
+                status = tg.create_task(self._status(), name="status")
+                await self.stop_event.wait()
+                ingest.cancel()
+                status.cancel()
+        finally:
+            sd_notify("STOPPING=1")
+            self.source.stop()
+            self.publisher.send(schema.STATUS, s.id, self._status_body(stopping=True))
+            self.publisher.close()
+            if self.assembler is not None and self.record_to:
+                self._save_recording(self.record_to)
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.remove_signal_handler(sig)
+
+    async def _ingest(self, queue: asyncio.Queue[bytes | tuple[str, str]]) -> None:
+        sensor = self.config.sensor
+        while True:
+            item = await queue.get()
+            chunks = [item]
+            while not queue.empty():
+                chunks.append(queue.get_nowait())
+            data = bytearray()
+            for chunk in chunks:
+                if isinstance(chunk, tuple):
+                    self.state.connected = chunk[0] == CONNECTED
+                    log.log(logging.INFO if self.state.connected else logging.WARNING, "%s: %s (%s)", sensor.port, chunk[0], chunk[1])
+                else:
+                    data += chunk
+            if not data:
+                continue
+            blocks = []
+            frames = self.decoder.feed(bytes(data))
+            if self.assembler is not None:
+                for frame in frames:
+                    self.assembler.add(frame)
+            for index, samples in group_frames(frames):
+                if samples.shape[1] != sensor.channels:
+                    self.state.channel_errors += 1
+                    continue
+                blocks.append((index, samples))
+                sq = np.sum(samples.astype(np.float64) ** 2, axis=0)
+                self.state.sumsq = sq if self.state.sumsq is None else self.state.sumsq + sq
+                self.state.samples_window += samples.shape[0]
+                self.state.last_index = index + samples.shape[0]
+            if blocks:
+                detected_at = time.perf_counter()
+                events = await asyncio.to_thread(self._feed_blocks, blocks)
+                for ev in events:
+                    self.publisher.publish_event(sensor.id, ev, sensor.fs, self.fingerprint, detected_at)
+
+    def _save_recording(self, path: str) -> None:
+        assert self.assembler is not None
+        s = self.config.sensor
+        rec = Recording(samples=self.assembler.samples(), fs=s.fs, volts_per_count=s.volts_per_count, first_index=self.assembler.first_index or 0,
+                        lost=self.assembler.lost(), meta={"sensor": s.id, "port": s.port, "source": "tactiled run --record"})
+        save_recording(path, rec)
+        log.info("%s: saved %d samples received", path, rec.samples.shape[0])
+
+    def _feed_blocks(self, blocks: list[tuple[int, np.ndarray]]) -> list[PipelineEvent]:
+        events: list[PipelineEvent] = []
+        for index, samples in blocks:
+            events += self.pipeline.feed(index, samples)
+        return events
+
+    def _status_body(self, interval: float = 0.0, stopping: bool = False) -> dict[str, Any]:
+        st, stats = self.state, self.decoder.stats
+        if stopping:
+            state = "stopping"
+        elif not (self.source and self.source.connected):
+            state = schema.STATE_DISCONNECTED
+        elif self.pipeline.sliding:
+            state = schema.STATE_SLIDING
+        elif st.samples_window == 0:
+            state = schema.STATE_CONNECTED
+        else:
+            state = schema.STATE_IDLE
+        level = []
+        if st.sumsq is not None and st.samples_window:
+            level = [round(float(np.sqrt(v / st.samples_window)) * self.config.sensor.volts_per_count, 6) for v in st.sumsq]
+        return {"state": state, "samples": stats.samples, "samples_lost": stats.samples_lost, "crc_errors": stats.crc_errors,
+                "bytes_discarded": stats.bytes_discarded, "bad_headers": stats.bad_headers,
+                "reconnects": self.source.reconnects if self.source else 0, "restarts": stats.restarts,
+                "slides": self.pipeline.slides, "labels": self.pipeline.labels, "fs_nominal": self.config.sensor.fs,
+                "fs_measured": round(st.samples_window / interval, 1) if interval > 0 else 0.0, "model": self.fingerprint,
+                "uptime_s": round(time.monotonic() - st.started, 3), "index": st.last_index, "level": level, "version": __version__,
+                "dropped_messages": self.publisher.dropped, "channel_errors": st.channel_errors}
+
+    async def _status(self) -> None:
+        interval = self.config.publish.status_interval_s
+        last = time.monotonic()
+        watchdog = "WATCHDOG_USEC" in os.environ
+        while True:
+            await asyncio.sleep(interval)  # the status period itself, not synchronisation
+            now = time.monotonic()
+            self.publisher.send(schema.STATUS, self.config.sensor.id, self._status_body(now - last))
+            self.state.samples_window = 0
+            self.state.sumsq = None
+            last = now
+            if watchdog:
+                sd_notify("WATCHDOG=1")

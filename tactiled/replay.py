@@ -1,0 +1,69 @@
+"""``tactiled replay``: a recording through the daemon's own pipeline.
+
+The recording becomes the same stream the daemon sees (blocks of samples at their sensor
+indices, lost rows marked) and runs through :class:`~tactiled.pipeline.Pipeline`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from tactiled.config import Config
+from tactiled.pipeline import Pipeline, PipelineEvent, SlideResult
+from tactiled.recording import Recording
+
+
+def result_record(file: str, rec: Recording, r: SlideResult) -> dict[str, Any]:
+    """The JSON object of one slide (positions in the file)."""
+    truth = None
+    for start, stop, surface in rec.slides():
+        if r.start < stop and r.stop > start:
+            truth = surface
+            break
+    return {"file": file, "slide": r.slide_id, "start": r.start, "stop": r.stop, "window": list(r.window),
+            "label": r.label, "confidence": None if r.confidence is None else round(r.confidence, 4),
+            "top": [[c, p] for c, p in r.top], "reason": r.reason, "quality": r.quality, "truth": truth,
+            "duration_s": round((r.stop - r.start) / rec.fs, 4)}
+
+
+def replay_recording(rec: Recording, config: Config, model: Any | None, *, block: int = 4096, speed: float | None = None,
+                     on_event: Callable[[PipelineEvent], None] | None = None) -> list[SlideResult]:
+    """Run ``rec`` through a fresh pipeline in blocks of ``block`` samples; returns the slide results.
+
+    Samples are fed at their sensor indices (``first_index + position``), exactly as the
+    daemon saw them; results are converted back to positions in the file.
+
+    ``speed``: pace the stream at that many times real time (None: as fast as possible).
+    ``on_event`` sees every pipeline event as it happens.
+    """
+    pipeline = Pipeline(config, rec.fs, rec.channels, rec.volts_per_count, rec.is_integer, model)
+    valid = rec.valid_mask()
+    all_valid = bool(valid.all())
+    results: list[SlideResult] = []
+    n = rec.samples.shape[0]
+    base = rec.first_index
+    t0 = time.monotonic()
+
+    def handle(events: list[PipelineEvent]) -> None:
+        for ev in events:
+            if on_event:
+                on_event(ev)
+            if isinstance(ev, SlideResult):
+                results.append(replace(ev, start=ev.start - base, stop=ev.stop - base, window=(ev.window[0] - base, ev.window[1] - base)))
+
+    for lo in range(0, n, block):
+        hi = min(lo + block, n)
+        if speed:
+            ahead = lo / rec.fs / speed - (time.monotonic() - t0)
+            if ahead > 0:
+                time.sleep(ahead)  # pacing the replay at --speed, not synchronisation
+        handle(pipeline.feed(base + lo, rec.samples[lo:hi], None if all_valid else valid[lo:hi]))
+    # flush: a slide still in progress at the end of the file ends there
+    tail = round(max(config.detector.off_hold_s, 0.2) * rec.fs) + pipeline.detector.hop * 2
+    handle(pipeline.feed(base + n, np.zeros((tail, rec.channels), dtype=rec.samples.dtype), np.zeros(tail, dtype=bool)))
+    return results

@@ -1,0 +1,128 @@
+"""The daemon end to end: virtual board on a pty → tactiled run → client-library subscribers."""
+
+from __future__ import annotations
+
+import itertools
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import zmq
+from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, Status
+
+from tactiled.config import Config
+from tactiled.model import load_model
+from tactiled.recording import load_recording
+from tactiled.replay import replay_recording
+from tactiled.sensor_model import SensorModel, SimParams, pick_surfaces
+from tactiled.virtualboard import VirtualBoard, read_log
+from tests.conftest import tactiled_cmd, wait_for
+
+
+def test_daemon_labels_every_slide_like_replay_through_faults(tmp_path: Path) -> None:
+    link, log_path = str(tmp_path / "tty"), tmp_path / "board.jsonl"
+    endpoint = f"ipc://{tmp_path}/pub"
+    stop = threading.Event()
+    with open(log_path, "w") as log:
+        board = VirtualBoard(SensorModel(SimParams(), seed=5), pick_surfaces(5), link=link, speed=3.0, corrupt=0.005, drop=0.0025,
+                             garbage=0.005, unplug_at=[9.0], unplug_s=0.5, seed=5, log=log)
+        board.open()
+        thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
+        thread.start()
+        ctx = zmq.Context.instance()
+        lazy = ctx.socket(zmq.SUB)  # a subscriber that never reads
+        lazy.setsockopt(zmq.SUBSCRIBE, b"")
+        lazy.connect(endpoint)
+        proc = subprocess.Popen(tactiled_cmd("run", "--port", link, "--publish", endpoint, "--record", str(tmp_path / "got.npz")),
+                                stderr=subprocess.PIPE, text=True)
+        messages: list[object] = []
+        try:
+            with BlockingSubscriber(endpoint, timeout=20) as sub:
+                def enough() -> bool:
+                    messages.append(sub.receive())
+                    unplugged = any(isinstance(m, Status) and m.reconnects >= 1 for m in messages)
+                    after = [m for m in messages if isinstance(m, Roughness)]
+                    return unplugged and len(after) >= 6 and isinstance(messages[-1], Roughness) and \
+                        any(isinstance(m, Status) and m.reconnects >= 1 for m in messages[: messages.index(after[-1])])
+                wait_for(enough, timeout=120, what="six labels and a reconnect")
+                t0 = time.monotonic()
+                proc.terminate()
+                proc.wait(10)
+                elapsed = time.monotonic() - t0
+                try:
+                    while True:
+                        messages.append(sub.receive(timeout=0.5))
+                except NoData:
+                    pass
+        finally:
+            stop.set()
+            thread.join(10)
+            lazy.close(linger=0)
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, proc.stderr.read() if proc.stderr else ""
+    assert elapsed < 2.0
+    rough = [m for m in messages if isinstance(m, Roughness)]
+    statuses = [m for m in messages if isinstance(m, Status)]
+    slides = [m for m in messages if isinstance(m, Slide)]
+    # no message lost between daemon and subscriber; seq consecutive per topic
+    assert all(m.missed == 0 for m in messages)  # type: ignore[attr-defined]
+    for kind in (rough, statuses, slides):
+        seqs = [m.seq for m in kind]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+    # status at least once a second
+    times = [m.time_unix for m in statuses]
+    assert max(b - a for a, b in itertools.pairwise(times)) <= 1.0
+    # every ended slide has exactly one roughness message
+    ended = {m.slide_id for m in slides if m.event == "end"}
+    assert sorted(m.slide_id for m in rough) == sorted(ended)
+    labelled = [m for m in rough if m.label is not None]
+    assert len(labelled) >= 4
+    assert all(m.model == load_model().fingerprint and m.latency_ms >= 0 for m in rough)
+    # the labels replay gives on the very samples the daemon received
+    got = load_recording(tmp_path / "got.npz")
+    replayed = {r.start + got.first_index: r for r in replay_recording(got, Config(), load_model())}
+    for m in rough:
+        r = replayed[m.start]
+        assert (r.stop + got.first_index, r.label, r.reason) == (m.stop, m.label, m.reason)
+    # counters match the faults injected while the daemon listened
+    last = statuses[-1]
+    events = [e for e in read_log(log_path) if e.get("index", -1) >= got.first_index and e.get("index", 0) < got.first_index + got.samples.shape[0]]
+    corrupted = sum(e["event"] == "corrupt" for e in events)
+    dropped = sum(e["event"] == "drop" for e in events)
+    assert last.crc_errors + last.bad_headers >= corrupted > 0
+    assert last.samples_lost >= 20 * (corrupted + dropped) + round(0.5 * 20_000)
+    assert last.samples_lost == int(got.lost[:, 1].sum())
+    assert last.reconnects == 1
+
+
+def test_daemon_refuses_public_bind_and_bad_model(tmp_path: Path) -> None:
+    res = subprocess.run(tactiled_cmd("run", "--port", "/dev/null", "--publish", "tcp://0.0.0.0:0"), capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == ["tactiled: error: publish.endpoint: binds a non-loopback address; set publish.allow_remote = true to allow it"]
+    bad = tmp_path / "m.npz"
+    bad.write_bytes(b"not a zip")
+    res = subprocess.run(tactiled_cmd("run", "--port", "/dev/null", "--model", str(bad)), capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1 and str(bad) in res.stderr
+
+
+def test_daemon_waits_for_a_missing_port_and_reports_it(tmp_path: Path) -> None:
+    endpoint = f"ipc://{tmp_path}/pub"
+    link = str(tmp_path / "later")
+    with BlockingSubscriber(endpoint, topics=["status"], timeout=20) as sub:
+        proc = subprocess.Popen(tactiled_cmd("run", "--port", link, "--publish", endpoint), stderr=subprocess.PIPE, text=True)
+        try:
+            first = sub.receive()
+            assert isinstance(first, Status) and first.state == "disconnected"
+            board = VirtualBoard(SensorModel(SimParams(), seed=1), pick_surfaces(2), link=link, speed=1.0)
+            board.open()
+            stop = threading.Event()
+            thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
+            thread.start()
+            wait_for(lambda: (m := sub.receive()) and isinstance(m, Status) and m.samples > 0, timeout=30, what="samples after plug-in")
+        finally:
+            proc.terminate()
+            proc.wait(10)
+            stop.set()
+    assert proc.returncode == 0

@@ -1,0 +1,171 @@
+"""Features, spike removal, detector, chunk invariance, replay."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import pywt
+
+from tactiled.analysis import Analyser, AnalysisSettings
+from tactiled.config import Config
+from tactiled.detect import SlideDetector, SlideEnd
+from tactiled.errors import WindowError
+from tactiled.features import FeaturePlan, classifier_inputs, feature_names
+from tactiled.recording import Recording, load_recording, save_recording
+from tactiled.replay import replay_recording
+from tactiled.sensor_model import SimParams, default_surfaces, simulate_file, with_mode
+from tactiled.spikes import remove_spikes
+from tests.conftest import run_cli
+
+NAMES = feature_names(2)
+
+
+def test_names_and_count() -> None:
+    assert len(NAMES) == 192 and NAMES[0] == "film1.time.A1.mean" and "film2.freq.D4.kurt" in NAMES
+
+
+def test_features_match_direct_pywavelets() -> None:
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((3000, 2))
+    values = dict(zip(NAMES, FeaturePlan(NAMES).compute(x), strict=True))
+    spec = np.abs(np.fft.rfft(x[:, 1]))
+    a = spec
+    for _ in range(3):
+        a, d = pywt.dwt(a, "coif5", mode="symmetric")
+    assert np.isclose(values["film2.freq.D3.energy"], np.sum(d**2))
+    assert np.isclose(values["film2.freq.A3.sd"], np.std(a, ddof=1))
+    c = pywt.wavedec(x[:, 0], "coif5", level=4)
+    assert np.isclose(values["film1.time.A4.mean"], c[0].mean())
+    assert np.isclose(values["film1.time.D1.rms"], np.sqrt(np.mean(c[-1] ** 2)))
+    d2 = c[-2] - c[-2].mean()
+    assert np.isclose(values["film1.time.D2.skew"], np.mean(d2**3) / np.mean(d2**2) ** 1.5)
+    assert np.isclose(values["film1.time.D2.kurt"], np.mean(d2**4) / np.mean(d2**2) ** 2)
+
+
+def test_subset_plan_equals_full_extraction() -> None:
+    x = np.random.default_rng(2).standard_normal((2000, 2))
+    full = dict(zip(NAMES, FeaturePlan(NAMES).compute(x), strict=True))
+    subset = ["film2.time.D3.energy", "film1.freq.A2.sd", "film1.time.D1.kurt", "film2.freq.A4.mean", "film1.time.A1.rms", "film2.time.D4.skew"]
+    assert FeaturePlan(subset).compute(x).tolist() == [full[n] for n in subset]
+    time_only = FeaturePlan(["film1.time.D2.sd"])
+    assert time_only.min_samples() == 29 * 4 and time_only.channels_needed == 1
+    assert time_only.compute(np.ones((200, 1)) * np.arange(200)[:, None]).shape == (1,)
+
+
+@pytest.mark.parametrize("kind", ["zeros", "square", "spike", "constant"])
+def test_extreme_windows_give_finite_features(kind: str) -> None:
+    n = 2000
+    x = {"zeros": np.zeros((n, 2)), "constant": np.full((n, 2), 3.3), "spike": np.zeros((n, 2)),
+         "square": np.where(np.arange(n) % 40 < 20, 32767, -32767)[:, None] * np.ones((1, 2)) * 5 / 32768}[kind]
+    if kind == "spike":
+        x[n // 2, 0] = 1e6
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f = FeaturePlan(NAMES).compute(x)
+        assert np.all(np.isfinite(f))
+        assert np.all(np.isfinite(classifier_inputs(f[None, :], NAMES)))
+
+
+def test_one_sample_too_short_is_a_clear_reason() -> None:
+    plan = FeaturePlan(NAMES)
+    need = plan.min_samples()
+    plan.compute(np.random.default_rng(0).standard_normal((need, 2)))
+    with pytest.raises(WindowError) as err:
+        plan.compute(np.zeros((need - 1, 2)))
+    assert err.value.reason == "window_too_short"
+    res = Analyser(AnalysisSettings(names=tuple(NAMES)), 1.0, False).analyse(np.zeros((need - 1, 2)))
+    assert res.features is None and res.reason == "window_too_short"
+
+
+def test_saturated_window_is_reported() -> None:
+    x = np.full((3000, 2), 32767, dtype=np.int16)
+    res = Analyser(AnalysisSettings(names=tuple(NAMES)), 5 / 32768, True).analyse(x)
+    assert res.reason == "saturated" and res.quality["saturated"] == 1.0
+
+
+def test_spike_removal_counts_and_replaces() -> None:
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((5000, 2)) * 0.1
+    x[[100, 2000], 0] = 5.0
+    x[3000:3003, 1] = -4.0
+    for method in ("mad", "hampel"):
+        clean, n = remove_spikes(x, method, 5, 4.0)
+        assert n >= 5 and np.abs(clean).max() < 1.0
+    assert remove_spikes(np.zeros((100, 2)), "mad")[1] == 0
+    assert remove_spikes(x, "none")[1] == 0
+
+
+@pytest.fixture(scope="module")
+def hand_files() -> list[tuple[Recording, list[tuple[int, int]]]]:
+    out = []
+    for mode in ("manual", "robot"):
+        params = with_mode(SimParams(), mode, None)
+        for i, s in enumerate(default_surfaces()):
+            sim = simulate_file(params, s, 2, 100 * i + (mode == "robot"))
+            out.append((Recording(sim.samples, params.fs, params.volts_per_count), [(t.start, t.stop) for t in sim.truth]))
+    return out
+
+
+def test_detection_rate_and_boundaries(hand_files: list[tuple[Recording, list[tuple[int, int]]]]) -> None:
+    found = false = total = 0
+    errors = []
+    for rec, truth in hand_files:
+        det = SlideDetector(Config().detector, rec.fs, 2)
+        ends = [e for e in det.feed(0, rec.volts()) if isinstance(e, SlideEnd) and e.reason != "too_short"]
+        total += len(truth)
+        matched = set()
+        for start, stop in truth:
+            hits = [e for e in ends if e.start < stop and e.stop > start]
+            if hits:
+                found += 1
+                matched.add(hits[0])
+                errors += [abs(hits[0].start - start) / rec.fs, abs(hits[0].stop - stop) / rec.fs]
+        false += len([e for e in ends if e not in matched])
+    assert found / total >= 0.98
+    assert false / total <= 0.02
+    assert np.median(errors) <= 0.05
+
+
+def test_silent_recording_gives_no_slide() -> None:
+    rec = Recording(np.zeros((40000, 2), dtype=np.int16), 20000.0, 5 / 32768)
+    assert replay_recording(rec, Config(), None) == []
+
+
+def test_chunk_invariance(hand_files: list[tuple[Recording, list[tuple[int, int]]]]) -> None:
+    rec = hand_files[3][0]
+    rec = Recording(rec.samples[:60000], rec.fs, rec.volts_per_count)
+    settings = AnalysisSettings.from_config(Config(), 2)
+    runs = []
+    for block in (1, 7, 64, rec.samples.shape[0]):
+        results = replay_recording(rec, Config(), None, block=block)
+        runs.append([(r.start, r.stop, r.window, r.reason) for r in results])
+        if block == 64:
+            feats = [r.features for r in results]
+    assert runs[0] == runs[1] == runs[2] == runs[3] and len(runs[0]) >= 1
+    plan = FeaturePlan(settings.names)
+    assert plan is not None and all(f is None or np.all(np.isfinite(f)) for f in feats)
+
+
+def test_replay_bad_inputs_exit_2_and_keep_good_files(tmp_path: Path, hand_files: list[tuple[Recording, list[tuple[int, int]]]]) -> None:
+    good = tmp_path / "good.npz"
+    rec = hand_files[0][0]
+    save_recording(good, Recording(rec.samples[:80000], rec.fs, rec.volts_per_count))
+    nan = tmp_path / "nan.npz"
+    np.savez(nan, samples=np.full((100, 2), np.nan), fs=np.float64(20000))
+    missing = tmp_path / "missing.npz"
+    np.savez(missing, samples=np.zeros((100, 2), dtype=np.int16))
+    pickled = tmp_path / "pickled.npz"
+    np.savez(pickled, samples=np.array([{"a": 1}], dtype=object), fs=np.float64(20000))
+    res = run_cli("replay", "--json", "--no-model", str(nan), str(good), str(missing), str(pickled))
+    assert res.returncode == 2
+    errors = res.stderr.strip().splitlines()
+    assert errors == [f"tactiled: error: {nan}: samples: contains NaN or Inf", f"tactiled: error: {missing}: fs: missing (required)",
+                      f"tactiled: error: {pickled}: samples: cannot load without pickle (Object arrays cannot be loaded when allow_pickle=False)"]
+    lines = [json.loads(line) for line in res.stdout.splitlines()]
+    assert lines and all(line["file"] == str(good) and line["label"] is None for line in lines)
+    assert {"file", "start", "stop", "window", "quality", "label", "confidence"} <= set(lines[0])
+    assert load_recording(good).samples.shape == (80000, 2)

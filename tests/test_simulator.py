@@ -1,0 +1,94 @@
+"""The sensor model's physics and determinism, and the dataset CLI."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from tactiled.recording import load_recording
+from tactiled.sensor_model import SensorModel, SimParams, Surface, _self_affine_profile, default_surfaces, simulate_file
+from tests.conftest import run_cli
+
+QUIET = dict(noise_v=0.0, mains_v=0.0, drift_v=0.0, spike_rate_hz=0.0, stick_slip=False)
+
+
+def test_rq_over_ra_of_gaussian_profiles() -> None:
+    spec, _ = _self_affine_profile(2**21, 2e-6, default_surfaces()[4], np.random.default_rng(0))
+    z = np.fft.irfft(spec, 2**21)
+    assert abs(z.std() / np.abs(z).mean() - 1.2533) < 0.01
+
+
+def _slide_rms(params: SimParams, surface: Surface, seed: int = 0) -> float:
+    m = SensorModel(params, seed)
+    m.add_rest(0.2)
+    t = m.add_slide(surface, 1.0)
+    v = m.read_volts(m.scheduled_end)
+    return float(v[t.start + 4000:t.stop - 2000, 0].std())
+
+
+def test_amplitude_rises_with_ra_at_fixed_speed_and_force() -> None:
+    p = replace(SimParams(mode="robot", robot_force_sigma=0.0), **QUIET)  # type: ignore[arg-type]
+    # one texture (lateral scale and Hurst exponent fixed), Ra swept over the default range
+    rms = [_slide_rms(p, Surface(f"Ra{ra:.2f}", ra, 40.0, 0.7)) for ra in np.geomspace(0.44, 4.43, 8)]
+    assert all(b > a for a, b in itertools.pairwise(rms))
+
+
+def test_spectral_peak_moves_with_speed() -> None:
+    peaks = []
+    for speed in (0.03, 0.09):
+        p = replace(SimParams(mode="robot", robot_speed_mps=speed, fn_hz=(5000.0, 5000.0), zeta=0.7), **QUIET)  # type: ignore[arg-type]
+        m = SensorModel(p, 1)
+        t = m.add_slide(default_surfaces()[10], 1.0)
+        v = m.read_volts(m.scheduled_end)[t.start + 2000:t.stop - 2000, 0]
+        spec = np.abs(np.fft.rfft(v * np.hanning(v.size))) ** 2
+        f = np.fft.rfftfreq(v.size, 1 / p.fs)
+        peaks.append(float(np.sum(f * spec) / np.sum(spec)))
+    assert 2.0 < peaks[1] / peaks[0] < 4.0
+
+
+def test_chunked_equals_one_shot_and_seeded() -> None:
+    def run(chunks: list[int]) -> np.ndarray:
+        m = SensorModel(SimParams(), 7)
+        m.schedule_random(default_surfaces(), 60000)
+        return np.concatenate([m.read(c) for c in chunks])
+
+    one = run([60000])
+    assert np.array_equal(one, run([1, 19, 20, 4000, 35960, 20000]))
+    assert np.array_equal(one, run([60000]))
+    assert not np.array_equal(one, SensorModel(SimParams(), 8).read(60000))
+
+
+def test_finite_and_clipping_only_beyond_full_scale() -> None:
+    p = replace(SimParams(), gain_v_per_mps=5000.0)
+    m = SensorModel(p, 3)
+    m.schedule_random(default_surfaces()[-3:], 80000)
+    volts = m.read_volts(80000)
+    assert np.all(np.isfinite(volts))
+    from tactiled.sensor_model import adc
+
+    counts = adc(volts, p.volts_per_count)
+    clipped = (counts == 32767) | (counts == -32768)
+    assert clipped.any()
+    assert np.all(np.abs(volts[clipped]) >= 5.0 - p.volts_per_count)
+    assert np.all(np.abs(volts[~clipped]) < 5.0)
+
+
+def test_any_rate_and_channel_count() -> None:
+    sim = simulate_file(replace(SimParams(), fs=2200.0, channels=1), default_surfaces()[3], 2, 0)
+    assert sim.samples.shape[1] == 1 and len(sim.truth) == 2
+
+
+def test_dataset_cli(tmp_path: Path) -> None:
+    res = run_cli("simulate", "dataset", "--out", str(tmp_path), "--surfaces", "Ra0.44,Ra4.43", "--files-per-surface", "1",
+                  "--slides-per-file", "2", "--mode", "robot")
+    assert res.returncode == 0, res.stderr
+    files = sorted(tmp_path.glob("*.npz"))
+    assert len(files) == 2
+    rec = load_recording(files[0])
+    assert rec.surface is not None and list(rec.surface) == ["Ra0.44", "Ra0.44"] and rec.meta["simulator"]["mode"] == "robot"
+    assert np.all(rec.slide_stop > rec.slide_start)
+    bad = run_cli("simulate", "dataset", "--out", str(tmp_path), "--surfaces", "Ra9")
+    assert bad.returncode == 2 and "unknown surface 'Ra9'" in bad.stderr
