@@ -365,7 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", help="model file (default: the shipped model, when it fits the recording)")
     p.add_argument("--no-model", action="store_true", help="no classification (labels are null)")
     p.add_argument("--publish", help="also publish the daemon's messages on this ZeroMQ endpoint")
-    p.add_argument("--block", type=int, default=4096, help="samples per block fed to the pipeline")
+    p.add_argument("--block", type=int, default=65536, help="samples per block fed to the pipeline")
     p.set_defaults(handler=cmd_replay)
 
     p = sub.add_parser("features", help="feature vectors of every slide")

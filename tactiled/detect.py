@@ -90,13 +90,15 @@ class SlideDetector:
         hops = buf.shape[0] // self.hop
         events: list[Event] = []
         if hops:
-            raw = buf[: hops * self.hop].reshape(hops, self.hop, -1)
+            # (hops, C, hop), contiguous along the hop: medians reduce along the last axis
+            raw = np.ascontiguousarray(buf[: hops * self.hop].reshape(hops, self.hop, -1).transpose(0, 2, 1))
             # clamp spikes within each hop before the filter, so they do not ring through it
-            med = np.median(raw, axis=1, keepdims=True)
-            lim = 6 * 1.4826 * np.median(np.abs(raw - med), axis=1, keepdims=True)
-            clean = np.clip(raw, med - lim, med + lim).reshape(hops * self.hop, -1)
+            med = np.median(raw, axis=2, keepdims=True)
+            lim = 6 * 1.4826 * np.median(np.abs(raw - med), axis=2, keepdims=True)
+            clean = np.clip(raw, med - lim, med + lim).transpose(0, 2, 1).reshape(hops * self.hop, -1)
             filtered, self._zi = signal.sosfilt(self._sos, clean, axis=0, zi=self._zi)
-            energy = np.median(filtered.reshape(hops, self.hop, -1) ** 2, axis=1).sum(axis=1)
+            sq = np.ascontiguousarray((filtered.reshape(hops, self.hop, -1) ** 2).transpose(0, 2, 1))
+            energy = np.median(sq, axis=2).sum(axis=1)
             for h in range(hops):
                 events += self._step(self._pending_index + h * self.hop, float(energy[h]))
         self._pending = buf[hops * self.hop:]

@@ -87,6 +87,7 @@ class DecoderStats:
     samples: int = 0
     crc_errors: int = 0
     bad_headers: int = 0
+    truncated: int = 0  # incomplete frames at the end of a finite stream (flush)
     bytes_discarded: int = 0
     samples_lost: int = 0
     restarts: int = 0
@@ -113,9 +114,24 @@ class FrameDecoder:
         """Bytes held back waiting for the rest of a frame."""
         return len(self._buf)
 
+    def flush(self) -> list[Frame]:
+        """End of stream: decode what is left, treating an incomplete frame as garbage.
+
+        A corrupted count field can make the decoder wait for more bytes than will come;
+        at the end of a finite stream that must not hold back the good frames after it.
+        """
+        out = self._decode(final=True)
+        self.stats.bytes_discarded += len(self._buf)
+        self._buf = b""
+        return out
+
     def feed(self, data: bytes | bytearray | memoryview) -> list[Frame]:
         """Decode what ``data`` completes; partial frames are kept for the next call."""
-        buf = self._buf + bytes(data) if self._buf else bytes(data)
+        self._buf = self._buf + bytes(data) if self._buf else bytes(data)
+        return self._decode(final=False)
+
+    def _decode(self, final: bool) -> list[Frame]:
+        buf = self._buf
         n = len(buf)
         pos = 0
         out: list[Frame] = []
@@ -140,7 +156,12 @@ class FrameDecoder:
                 continue
             total = HEADER_SIZE + 2 * channels * count + CRC_SIZE
             if n - pos < total:
-                break
+                if not final:
+                    break
+                stats.truncated += 1  # at the end of the stream, an incomplete frame is not a frame
+                stats.bytes_discarded += 1
+                pos += 1
+                continue
             end = pos + total - CRC_SIZE
             if crc_hqx(buf[pos + 2:end], 0xFFFF) != unpack_crc(buf, end)[0]:
                 stats.crc_errors += 1

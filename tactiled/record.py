@@ -120,6 +120,12 @@ def record(port: str, seconds: float, out: str | Path, *, fs: float, channels: i
     finally:
         source.stop()
         signal.signal(signal.SIGTERM, previous)
+    while not chunks.empty():
+        data = chunks.get_nowait()
+        for frame in decoder.feed(data or b""):
+            assembler.add(frame)
+    for frame in decoder.flush():
+        assembler.add(frame)
     lost = assembler.lost()
     info = dict(meta or {})
     info.update({"port": port, "recorded_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "restarts": assembler.restarts,

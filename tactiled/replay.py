@@ -31,7 +31,7 @@ def result_record(file: str, rec: Recording, r: SlideResult) -> dict[str, Any]:
             "duration_s": round((r.stop - r.start) / rec.fs, 4)}
 
 
-def replay_recording(rec: Recording, config: Config, model: Any | None, *, block: int = 4096, speed: float | None = None,
+def replay_recording(rec: Recording, config: Config, model: Any | None, *, block: int = 65536, speed: float | None = None,
                      on_event: Callable[[PipelineEvent], None] | None = None) -> list[SlideResult]:
     """Run ``rec`` through a fresh pipeline in blocks of ``block`` samples; returns the slide results.
 

@@ -35,6 +35,7 @@ def _decode(data: bytes, cuts: list[int]) -> tuple[list[tuple[int, bytes]], Fram
     for cut in [*sorted(cuts), len(data)]:
         out += [(f.index, f.samples.tobytes()) for f in dec.feed(data[prev:cut])]
         prev = cut
+    out += [(f.index, f.samples.tobytes()) for f in dec.flush()]
     return out, dec
 
 
@@ -77,7 +78,7 @@ def test_corrupted_frames_lose_exactly_those(data: st.DataObject) -> None:
     for index, raw in out:
         assert raw == samples[index:index + 20].tobytes()
     assert dec.stats.samples_lost == 20 * len(bad - {n - 1})
-    assert dec.stats.crc_errors + dec.stats.bad_headers >= len(bad)
+    assert dec.stats.crc_errors + dec.stats.bad_headers + dec.stats.truncated >= len(bad)
 
 
 @settings(max_examples=60, deadline=None)
@@ -131,6 +132,16 @@ def test_restart_is_reported_and_duplicates_dropped() -> None:
     assert dec.stats.restarts == 1
     assert restarted[0].restart and restarted[0].index == 4000
     assert [f.index for f in restarted] == [4000, 4020, 4040]
+
+
+def test_flush_releases_frames_behind_a_corrupted_count() -> None:
+    frames, _ = _stream(3)
+    bad = bytearray(frames[1])
+    bad[4] ^= 32  # count 20 -> 52: the decoder waits for 220 bytes
+    dec = FrameDecoder()
+    assert [f.index for f in dec.feed(frames[0] + bytes(bad) + frames[2])] == [0]
+    assert [f.index for f in dec.flush()] == [40]
+    assert dec.pending == 0
 
 
 def test_bad_headers_and_sizes() -> None:
