@@ -21,6 +21,9 @@ from tactiled.sensor_model import SensorModel, SimParams, default_surfaces
 
 
 def main() -> None:
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)  # as the tactiled command does
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=120.0)
     args = ap.parse_args()

@@ -59,6 +59,14 @@ def cmd_simulate_dataset(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_simulate_figure(args: argparse.Namespace) -> int:
+    from tactiled.simulate import write_figure
+
+    write_figure(Path(args.output), args.mode, args.seed)
+    print(args.output)
+    return EXIT_OK
+
+
 def cmd_simulate_serial(args: argparse.Namespace) -> int:
     from tactiled.simulate import run_virtual_board
 
@@ -270,6 +278,22 @@ def cmd_demo(args: argparse.Namespace) -> int:
                 proc.wait(5)
 
 
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from tactiled.evaluate import run_evaluation
+    from tactiled.train import load_recordings
+
+    config = _config(args)
+    recs = [(n, r) for n, r in load_recordings(args.files) if r.slides()]
+    if len(recs) < 2:
+        raise TactiledError("evaluation needs at least two readable recordings with ground-truth slides")
+    if len({(r.fs, r.channels) for _, r in recs}) != 1:
+        raise TactiledError("recordings differ in fs or channels; evaluate one kind at a time")
+    results = run_evaluation(recs, config, Path(args.report), experiments=args.experiments, folds=args.folds, quick=args.quick, seed=args.seed,
+                             progress=lambda m: print(f"evaluate: {m}", file=sys.stderr, flush=True))
+    print(f"{args.report}/report.md: {len(recs)} recordings, {results['seconds']:.0f} s")
+    return EXIT_OK
+
+
 # ---- parser -----------------------------------------------------------------------------------
 
 def _positive_float(text: str) -> float:
@@ -318,6 +342,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fs", type=_positive_float, default=20_000.0)
     p.add_argument("--channels", type=int, default=2)
     p.set_defaults(handler=cmd_simulate_dataset)
+
+    p = sim.add_parser("figure", help="PNG of one slide per surface class: signal and spectrum")
+    p.add_argument("-o", "--output", required=True)
+    p.add_argument("--mode", choices=("manual", "robot"), default="manual")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(handler=cmd_simulate_figure)
 
     p = sim.add_parser("serial", help="a virtual board streaming frames on a pty")
     p.add_argument("--link", help="keep this symlink pointing at the pty")
@@ -384,6 +414,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(handler=cmd_train)
 
+    p = sub.add_parser("evaluate", help="the papers' experiments by grouped cross-validation")
+    p.add_argument("files", nargs="+")
+    p.add_argument("--report", required=True, help="output folder: report.md, report.json, PNG figures")
+    p.add_argument("--config")
+    p.add_argument("--experiments", default="abcdef", help="a: classifiers, b: window grid, c: sampling rate, d: feature count, "
+                   "e: clustering, f: error against run time (default all)")
+    p.add_argument("--folds", type=int, default=5)
+    p.add_argument("--quick", action="store_true", help="small grids and fewer features (for tests)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(handler=cmd_evaluate)
+
     p = sub.add_parser("score", help="accuracy of a model on ground-truth slides")
     p.add_argument("model")
     p.add_argument("files", nargs="+")
@@ -399,6 +440,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="tactiled: %(levelname)s: %(message)s", stream=sys.stderr)
     handler: Handler = args.handler
+    # every matrix here is small: BLAS threads only add overhead (13x slower ELM fits measured)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
     try:
         return handler(args)
     except TactiledError as exc:

@@ -53,8 +53,10 @@ class SerialConfig:
 
     retry_initial_s: float = 0.05
     retry_max_s: float = 2.0
+    read_interval_s: float = 0.01
 
     def validate(self, p: str) -> None:
+        _check(0.001 <= self.read_interval_s <= 0.5, f"{p}.read_interval_s", "must be in [0.001, 0.5] s")
         _check(self.retry_initial_s > 0, f"{p}.retry_initial_s", "must be > 0")
         _check(self.retry_max_s >= self.retry_initial_s, f"{p}.retry_max_s", f"must be >= {p}.retry_initial_s")
 

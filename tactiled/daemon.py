@@ -1,7 +1,8 @@
 """``tactiled run``: one asyncio daemon per sensor.
 
-Tasks in one TaskGroup: ``ingest`` (serial bytes → decoder → pipeline, the pipeline in a
-worker thread so feature extraction never stalls the loop → publisher), ``status`` (at
+Tasks in one TaskGroup: ``ingest`` (serial bytes → decoder → pipeline → publisher; blocks
+that complete an analysis window run in a worker thread so feature extraction never
+stalls the loop, detection-only blocks run inline, cheaper than a thread hop), ``status`` (at
 least once a second, and the systemd watchdog), ``stop`` (SIGTERM / SIGINT). The serial
 source is a reader thread (tactiled.serialsource) that survives unplugs.
 """
@@ -48,17 +49,25 @@ def sd_notify(message: str) -> None:
             log.warning("sd_notify failed: %s", exc)
 
 
-def group_frames(frames: list[Frame]) -> list[tuple[int, np.ndarray]]:
-    """Consecutive frames joined into (index, (n, C) samples) blocks."""
+PROCESS_S = 0.04  # the pipeline runs on batches of at least this much sensor time, s
+
+
+def group_blocks(items: list[tuple[int, np.ndarray]]) -> list[tuple[int, np.ndarray]]:
+    """Consecutive (index, (n, C) samples) items joined into as few blocks as possible."""
     blocks: list[tuple[int, list[np.ndarray]]] = []
     end = None
-    for f in frames:
-        if blocks and f.index == end and f.samples.shape[1] == blocks[-1][1][0].shape[1]:
-            blocks[-1][1].append(f.samples)
+    for index, samples in items:
+        if blocks and index == end and samples.shape[1] == blocks[-1][1][0].shape[1]:
+            blocks[-1][1].append(samples)
         else:
-            blocks.append((f.index, [f.samples]))
-        end = f.index + f.samples.shape[0]
+            blocks.append((index, [samples]))
+        end = index + samples.shape[0]
     return [(i, np.concatenate(parts) if len(parts) > 1 else parts[0]) for i, parts in blocks]
+
+
+def group_frames(frames: list[Frame]) -> list[tuple[int, np.ndarray]]:
+    """Consecutive frames joined into (index, (n, C) samples) blocks."""
+    return group_blocks([(f.index, f.samples) for f in frames])
 
 
 @dataclass
@@ -86,6 +95,9 @@ class Daemon:
         self.stop_event = asyncio.Event()
         self.source: SerialSource | None = None
         self.record_to = record_to
+        self._backlog: list[tuple[int, np.ndarray]] = []
+        self._backlog_n = 0
+        self._process_n = round(PROCESS_S * s.fs)
         self.assembler = FrameAssembler(config.sensor.channels) if record_to else None
 
     @property
@@ -104,7 +116,8 @@ class Daemon:
             loop.call_soon_threadsafe(queue.put_nowait, (state, detail))
 
         self.source = SerialSource(s.port, on_bytes, on_state, baudrate=s.baudrate,
-                                   retry_initial_s=self.config.serial.retry_initial_s, retry_max_s=self.config.serial.retry_max_s)
+                                   retry_initial_s=self.config.serial.retry_initial_s, retry_max_s=self.config.serial.retry_max_s,
+                                   read_interval_s=self.config.serial.read_interval_s)
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self.stop_event.set)
         self.source.start()
@@ -143,7 +156,6 @@ class Daemon:
                     data += chunk
             if not data:
                 continue
-            blocks = []
             frames = self.decoder.feed(bytes(data))
             if self.assembler is not None:
                 for frame in frames:
@@ -152,14 +164,22 @@ class Daemon:
                 if samples.shape[1] != sensor.channels:
                     self.state.channel_errors += 1
                     continue
-                blocks.append((index, samples))
-                sq = np.sum(samples.astype(np.float64) ** 2, axis=0)
+                self._backlog.append((index, samples))
+                self._backlog_n += samples.shape[0]
+                sq = np.einsum("ij,ij->j", samples, samples, dtype=np.float64)
                 self.state.sumsq = sq if self.state.sumsq is None else self.state.sumsq + sq
                 self.state.samples_window += samples.shape[0]
                 self.state.last_index = index + samples.shape[0]
-            if blocks:
+            # the port is read every serial.read_interval_s (the tty buffer is small); the pipeline
+            # runs on batches of at least PROCESS_S of samples: half the CPU of per-read processing
+            if self._backlog_n >= self._process_n:
+                blocks, self._backlog, self._backlog_n = group_blocks(self._backlog), [], 0
                 detected_at = time.perf_counter()
-                events = await asyncio.to_thread(self._feed_blocks, blocks)
+                end = blocks[-1][0] + blocks[-1][1].shape[0]
+                if self.pipeline.will_analyse(end):  # feature extraction: off the event loop
+                    events = await asyncio.to_thread(self._feed_blocks, blocks)
+                else:  # detection only: cheaper than a thread hop
+                    events = self._feed_blocks(blocks)
                 for ev in events:
                     self.publisher.publish_event(sensor.id, ev, sensor.fs, self.fingerprint, detected_at)
 

@@ -1,6 +1,6 @@
 """Online slide detection, driven by the sample index only.
 
-The input (n, C) volts is cut into hops aligned to absolute sample indices; within each
+The input (n, C) volts is cut into hops starting at the first sample fed; within each
 hop samples beyond the hop's median ± 6 scaled MADs are clamped (spikes must not ring
 through the filter), then it goes through an 8th-order Butterworth band-pass (``band_low_hz`` … min(4 kHz,
 0.45·fs); DC and drift are below it) and notches (Q 5: short ringing) at the mains frequency and its
@@ -8,7 +8,9 @@ harmonics up to the 5th, with carried state. Per hop of
 ``hop_ms`` (hops are aligned to absolute sample indices) the envelope is the median of
 the squared band-passed samples summed over channels: a 1–3-sample spike barely moves a
 median, a slide moves all of it. A noise floor tracks the envelope while idle (exponential
-in the log domain, time constant ``floor_tau_s``). A slide starts when the envelope
+in the log domain, time constant ``floor_tau_s``); hops of exact digital silence (zero-filled
+lost samples) never move it: hops with lost samples (``valid``) never start a slide nor move
+the floor, count as quiet within a slide, and the 20 ms after them let the filters settle. A slide starts when the envelope
 exceeds ``on_factor`` × floor (its onset is moved back over the hops just before that were
 above ``off_factor`` × floor), and ends when it stays below ``off_factor`` × floor for
 ``off_hold_s``, or after ``max_slide_s``. Slides shorter than ``min_slide_s`` are dropped;
@@ -63,7 +65,10 @@ class SlideDetector:
         self._sos = np.concatenate(sections)
         self._zi = np.zeros((self._sos.shape[0], 2, channels))
         self._pending = np.zeros((0, channels))
+        self._pending_valid = np.zeros(0, dtype=bool)
         self._pending_index: int | None = None
+        self._settle = round(0.02 * fs)  # after lost samples the filters ring: no onset, no floor update
+        self._settle_until = -1
         self._floor: float | None = None
         self._alpha = 1.0 - math.exp(-self.hop / (config.floor_tau_s * fs))
         self._recent: deque[tuple[int, float]] = deque(maxlen=max(1, round(0.2 * fs / self.hop)))
@@ -76,17 +81,23 @@ class SlideDetector:
         self.envelope = 0.0
         self.floor = 0.0
 
-    def feed(self, index: int, samples: npt.NDArray[np.float64]) -> list[Event]:
-        """Process ``samples`` (n, C) volts whose first sample has absolute ``index``."""
+    def feed(self, index: int, samples: npt.NDArray[np.float64], valid: npt.NDArray[np.bool_] | None = None) -> list[Event]:
+        """Process ``samples`` (n, C) volts whose first sample has absolute ``index``.
+
+        ``valid`` (n,) marks samples that carry data; an index gap counts as invalid samples.
+        """
+        if valid is None:
+            valid = np.ones(samples.shape[0], dtype=bool)
         if self._pending_index is None:
-            self._pending_index = index - (index % self.hop)
-            self._pending = np.zeros((index - self._pending_index, samples.shape[1]))
+            self._pending_index = index  # hops start at the first sample fed
         expected = self._pending_index + self._pending.shape[0]
         if index != expected:
             if index < expected:
                 raise ValueError(f"block at {index} overlaps samples already fed up to {expected}")
             samples = np.concatenate([np.zeros((index - expected, samples.shape[1])), samples])
+            valid = np.concatenate([np.zeros(index - expected, dtype=bool), valid])
         buf = np.concatenate([self._pending, samples]) if self._pending.shape[0] else samples
+        vbuf = np.concatenate([self._pending_valid, valid]) if self._pending_valid.shape[0] else valid
         hops = buf.shape[0] // self.hop
         events: list[Event] = []
         if hops:
@@ -99,26 +110,36 @@ class SlideDetector:
             filtered, self._zi = signal.sosfilt(self._sos, clean, axis=0, zi=self._zi)
             sq = np.ascontiguousarray((filtered.reshape(hops, self.hop, -1) ** 2).transpose(0, 2, 1))
             energy = np.median(sq, axis=2).sum(axis=1)
+            hop_valid = np.asarray(vbuf[: hops * self.hop].reshape(hops, self.hop).all(axis=1), dtype=bool)
             for h in range(hops):
-                events += self._step(self._pending_index + h * self.hop, float(energy[h]))
+                events += self._step(self._pending_index + h * self.hop, float(energy[h]), bool(hop_valid[h]))
         self._pending = buf[hops * self.hop:]
+        self._pending_valid = vbuf[hops * self.hop:]
         self._pending_index += hops * self.hop
         return events
 
-    def _step(self, at: int, env: float) -> list[Event]:
+    def _step(self, at: int, env: float, valid: bool = True) -> list[Event]:
         c, hop = self.c, self.hop
         self.envelope = env
         self._hops_seen += 1
+        if not valid or env <= 0.0:
+            # lost samples, or exact digital silence: nothing about the noise floor, no onset;
+            # quiet for a slide in progress; the filters settle for a while after a gap
+            self._settle_until = at + hop + self._settle
+            if self._floor is None or not self.sliding:
+                self._recent.clear()
+                return []
+            env = 0.0
         if self._floor is None:
-            self._floor = max(env, 1e-18)
+            self._floor = env
+            self._hops_seen = 1
         floor = self._floor
         self.floor = floor
         events: list[Event] = []
         if not self.sliding:
             if self._hops_seen <= self._warmup:
                 self._floor = min(floor, env) if env > 0 else floor
-                self._floor = max(self._floor, 1e-18)
-            elif env > c.on_factor * floor and at >= self._holdoff_until:
+            elif env > c.on_factor * floor and at >= max(self._holdoff_until, self._settle_until):
                 start = at
                 for idx, e in reversed(self._recent):
                     if e > c.off_factor * floor and idx == start - hop:
@@ -129,8 +150,8 @@ class SlideDetector:
                 self._start = start
                 self._quiet_since = None
                 events.append(SlideStart(start))
-            else:
-                self._floor = math.exp(math.log(floor) + self._alpha * (math.log(max(env, 1e-18)) - math.log(floor)))
+            elif at >= self._settle_until:
+                self._floor = math.exp(math.log(floor) + self._alpha * (math.log(env) - math.log(floor)))
             self._recent.append((at, env))
             return events
         # sliding

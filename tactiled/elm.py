@@ -34,7 +34,14 @@ def _softmax(z: FloatArray) -> FloatArray:
 
 
 def ridge_solve(h: FloatArray, t: FloatArray, alpha: float) -> FloatArray:
-    """β (L, K) minimising ‖hβ − t‖² + λ‖β‖², λ = alpha·trace(hᵀh)/L: Cholesky, SVD fallback."""
+    """β (L, K) minimising ‖hβ − t‖² + λ‖β‖², λ = alpha·trace(hᵀh)/L: Cholesky, SVD fallback.
+
+    ``alpha = 0`` gives the minimum-norm least-squares solution (the pseudo-inverse of the
+    papers' plain ELM) by SVD, never a normal-equations inverse.
+    """
+    if alpha == 0:
+        plain: FloatArray = linalg.lstsq(h, t, lapack_driver="gelsd")[0]
+        return plain
     hth = h.T @ h
     lam = alpha * max(float(np.trace(hth)) / hth.shape[0], 1e-12)
     try:
@@ -53,9 +60,10 @@ def ridge_solve(h: FloatArray, t: FloatArray, alpha: float) -> FloatArray:
 class ELMClassifier(ClassifierMixin, BaseEstimator):  # type: ignore[misc]
     """Extreme learning machine: ``n_hidden`` sigmoid units, ridge ``alpha``, seeded ``random_state``."""
 
-    def __init__(self, n_hidden: int = 200, alpha: float = 1e-6, random_state: int = 0, calibrate: bool = True) -> None:
+    def __init__(self, n_hidden: int = 200, alpha: float = 1e-6, random_state: int = 0, calibrate: bool = True, init: str = "hpelm") -> None:
         self.n_hidden = n_hidden
         self.alpha = alpha
+        self.init = init
         self.random_state = random_state
         self.calibrate = calibrate
 
@@ -67,8 +75,12 @@ class ELMClassifier(ClassifierMixin, BaseEstimator):  # type: ignore[misc]
     def _fit_core(self, x: FloatArray, y_idx: npt.NDArray[np.intp], n_classes: int) -> None:
         rng = np.random.default_rng(self.random_state)
         d = x.shape[1]
-        self.weights_ = rng.standard_normal((d, self.n_hidden)) * (3.0 / np.sqrt(max(d, 1)))
-        self.biases_ = rng.standard_normal(self.n_hidden)
+        if self.init == "huang":  # Huang's reference code: W ~ U(-1, 1), b ~ U(0, 1)
+            self.weights_ = rng.uniform(-1.0, 1.0, (d, self.n_hidden))
+            self.biases_ = rng.uniform(0.0, 1.0, self.n_hidden)
+        else:
+            self.weights_ = rng.standard_normal((d, self.n_hidden)) * (3.0 / np.sqrt(max(d, 1)))
+            self.biases_ = rng.standard_normal(self.n_hidden)
         t = -np.ones((x.shape[0], n_classes))
         t[np.arange(x.shape[0]), y_idx] = 1.0
         self.beta_ = ridge_solve(self._hidden(x), t, self.alpha)

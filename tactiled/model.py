@@ -22,8 +22,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from sklearn.neighbors import KNeighborsClassifier
-from sklearn.svm import SVC
 
 from tactiled.analysis import AnalysisSettings
 from tactiled.elm import ELMClassifier, _softmax
@@ -45,10 +43,15 @@ def default_model_path() -> Path:
 def make_classifier(kind: str, params: dict[str, Any], seed: int = 0) -> Any:
     """A fresh scikit-learn estimator of ``kind`` (elm, knn, svm) with ``params``."""
     if kind == "elm":
-        return ELMClassifier(n_hidden=int(params.get("n_hidden", 200)), alpha=float(params.get("alpha", 1e-6)), random_state=seed)
+        return ELMClassifier(n_hidden=int(params.get("n_hidden", 200)), alpha=float(params.get("alpha", 1e-6)), random_state=seed,
+                             init=str(params.get("init", "hpelm")))
     if kind == "knn":
+        from sklearn.neighbors import KNeighborsClassifier  # imported on demand: the daemon with an ELM never needs it
+
         return KNeighborsClassifier(n_neighbors=int(params.get("n_neighbors", 9)))
     if kind == "svm":
+        from sklearn.svm import SVC
+
         return SVC(kernel=str(params.get("kernel", "rbf")), C=float(params.get("C", 10.0)), gamma=params.get("gamma", "scale"), random_state=seed)
     raise ModelError(f"unknown classifier {kind!r}; choose one of {', '.join(CLASSIFIERS)}")
 

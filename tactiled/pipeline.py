@@ -93,6 +93,10 @@ class Pipeline:
     def sliding(self) -> bool:
         return self._onset is not None
 
+    def will_analyse(self, end: int) -> bool:
+        """True if feeding samples up to absolute index ``end`` completes the current slide's window (feature work)."""
+        return self._onset is not None and self._pending is None and self._pending_window is not None and end >= self._pending_window[1]
+
     def feed(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None = None) -> list[PipelineEvent]:
         """Process ``samples`` (n, C) whose first sample has absolute ``index`` (gaps are lost samples)."""
         self.ring.write(index, samples, valid)
@@ -100,7 +104,7 @@ class Pipeline:
         if valid is not None:
             volts[~valid] = 0.0
         events: list[PipelineEvent] = []
-        for ev in self.detector.feed(index, volts):  # the detector zero-fills index gaps itself
+        for ev in self.detector.feed(index, volts, valid):  # the detector treats index gaps as lost itself
             if isinstance(ev, SlideStart):
                 self._slide_id += 1
                 self._onset = ev.start

@@ -84,3 +84,40 @@ def run_virtual_board(args: argparse.Namespace) -> int:
             log.close()
     sys.stdout.flush()
     return 0
+
+
+def write_figure(out: Path, mode: str = "manual", seed: int = 0) -> None:
+    """One slide per surface class: film 1's raw signal and its spectrum (PNG; needs matplotlib)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise TactiledError("the figure needs matplotlib: pip install 'tactiled[report]'") from None
+    params = _params(mode, 20_000.0, 2)
+    surfaces = pick_surfaces(None)
+    fig, axes = plt.subplots(len(surfaces), 2, figsize=(11, 1.1 * len(surfaces)), sharex="col")
+    for row, surface in enumerate(surfaces):
+        model = SensorModel(params, seed + row)
+        model.add_rest(0.3)
+        truth = model.add_slide(surface, 1.3)
+        model.add_rest(0.3)
+        volts = model.read(model.scheduled_end).astype(np.float64) * params.volts_per_count
+        t = np.arange(volts.shape[0]) / params.fs
+        axes[row, 0].plot(t, volts[:, 0], lw=0.4)
+        axes[row, 0].axvspan(truth.start / params.fs, truth.stop / params.fs, color="orange", alpha=0.15)
+        axes[row, 0].set_ylabel(surface.name, rotation=0, ha="right", fontsize=8)
+        seg = volts[truth.start + round(0.3 * params.fs):truth.start + round(0.8 * params.fs), 0]
+        spec = np.abs(np.fft.rfft(seg * np.hanning(seg.size))) / seg.size
+        f = np.fft.rfftfreq(seg.size, 1 / params.fs)
+        axes[row, 1].semilogy(f, spec + 1e-9, lw=0.4)
+        axes[row, 1].set_xlim(0, 3000)
+        axes[row, 1].set_ylim(1e-6, 1e-1)
+    axes[-1, 0].set_xlabel("time, s (shaded: ground-truth slide)")
+    axes[-1, 1].set_xlabel("frequency, Hz (window 0.3-0.8 s after the start of motion)")
+    axes[0, 0].set_title(f"film 1, volts ({mode} sliding)")
+    axes[0, 1].set_title("amplitude spectrum, V")
+    fig.tight_layout()
+    fig.savefig(out, dpi=90)
+    plt.close(fig)

@@ -169,3 +169,19 @@ def test_replay_bad_inputs_exit_2_and_keep_good_files(tmp_path: Path, hand_files
     assert lines and all(line["file"] == str(good) and line["label"] is None for line in lines)
     assert {"file", "start", "stop", "window", "quality", "label", "confidence"} <= set(lines[0])
     assert load_recording(good).samples.shape == (80000, 2)
+
+
+def test_detector_unaligned_start_and_zero_filled_gap(hand_files: list[tuple[Recording, list[tuple[int, int]]]]) -> None:
+    """Regression: zero padding before an unaligned first sample, or a zero-filled gap, drove
+    the noise floor to ~0 and no slide ever ended."""
+    rec, truth = hand_files[5]
+    volts = rec.volts()
+    cut = truth[0][0] - 4000  # start in the rest before the first slide
+    det = SlideDetector(Config().detector, rec.fs, 2)
+    events = det.feed(13_163, volts[cut:truth[1][0] - 4000])
+    n = truth[1][0] - 4000 - cut
+    events += det.feed(13_163 + n, np.zeros((60_000, 2)), np.zeros(60_000, dtype=bool))  # three seconds of lost samples
+    events += det.feed(13_163 + n + 60_000, volts[truth[1][0] - 4000:])
+    ends = [e for e in events if isinstance(e, SlideEnd)]
+    assert len(ends) == 2, ends
+    assert all(e.reason == "quiet" and (e.stop - e.start) / rec.fs < 2.0 for e in ends)

@@ -1,0 +1,120 @@
+"""The live daemon at 20 kHz from the simulator on a pty: CPU share, latency, memory (and a soak).
+
+Usage: python bench/bench_daemon.py [--seconds 600] [--corrupt 0.01 --drop 0.005 --garbage 0.01]
+                                    [--unplugs 3] [--subscribers 5]
+One of the subscribers never reads. Budgets (shared/DESIGN.md): <= 5 % of one core; end of
+slide -> label published <= 20 ms at p99; resident memory <= 150 MB and flat over 10 minutes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+import numpy as np
+import zmq
+from tactiled_client import BlockingSubscriber, NoData, Roughness, Status
+
+
+def cpu_seconds(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seconds", type=float, default=600.0)
+    ap.add_argument("--corrupt", type=float, default=0.0)
+    ap.add_argument("--drop", type=float, default=0.0)
+    ap.add_argument("--garbage", type=float, default=0.0)
+    ap.add_argument("--unplugs", type=int, default=0)
+    ap.add_argument("--subscribers", type=int, default=1, help="readers; one more that never reads is always added")
+    ap.add_argument("--json", help="write the figures here too")
+    args = ap.parse_args()
+    tmp = tempfile.mkdtemp(prefix="tactiled-bench-")
+    link, endpoint, log = f"{tmp}/tty", f"ipc://{tmp}/pub", f"{tmp}/board.jsonl"
+    exe = [sys.executable, "-m", "tactiled"]
+    unplug_at = ",".join(str(round(args.seconds * (k + 1) / (args.unplugs + 1), 1)) for k in range(args.unplugs))
+    board = subprocess.Popen([*exe, "simulate", "serial", "--link", link, "--seed", "11", "--corrupt", str(args.corrupt), "--drop", str(args.drop),
+                              "--garbage", str(args.garbage), "--log", log, *(["--unplug-at", unplug_at] if unplug_at else [])],
+                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    assert board.stdout is not None
+    board.stdout.readline()
+    lazy = zmq.Context.instance().socket(zmq.SUB)
+    lazy.setsockopt(zmq.SUBSCRIBE, b"")
+    lazy.connect(endpoint)
+    daemon = subprocess.Popen([*exe, "run", "--port", link, "--publish", endpoint], stderr=open(f"{tmp}/daemon.log", "w"))  # noqa: SIM115
+    latencies: list[float] = []
+    statuses: list[Status] = []
+    labels = [0] * args.subscribers
+    missed = [0] * args.subscribers
+    stop = threading.Event()
+
+    def reader(k: int) -> None:
+        with BlockingSubscriber(endpoint, timeout=1.0) as sub:
+            while not stop.is_set():
+                try:
+                    msg = sub.receive()
+                except NoData:
+                    continue
+                missed[k] += msg.missed
+                if isinstance(msg, Roughness):
+                    labels[k] += 1
+                    if k == 0:
+                        latencies.append(msg.latency_ms)
+                elif isinstance(msg, Status) and k == 0:
+                    statuses.append(msg)
+
+    threads = [threading.Thread(target=reader, args=(k,), daemon=True) for k in range(args.subscribers)]
+    for t in threads:
+        t.start()
+    time.sleep(3.0)  # let the daemon start and import before measuring: benchmark warm-up, not synchronisation
+    c0, t0 = cpu_seconds(daemon.pid), time.monotonic()
+    rss = []
+    while time.monotonic() - t0 < args.seconds:
+        time.sleep(min(10.0, args.seconds / 20))  # sampling period of the memory curve
+        rss.append((round(time.monotonic() - t0, 1), round(rss_mb(daemon.pid), 1)))
+    cpu = (cpu_seconds(daemon.pid) - c0) / (time.monotonic() - t0)
+    t_term = time.monotonic()
+    daemon.terminate()
+    daemon.wait(10)
+    stop_s = time.monotonic() - t_term
+    stop.set()
+    board.terminate()
+    board.wait(10)
+    lazy.close(linger=0)
+    last = statuses[-1] if statuses else None
+    lat = np.array(latencies)
+    out = {
+        "seconds": args.seconds, "cpu_share": round(cpu, 4), "labels": labels, "missed_messages": missed,
+        "latency_ms_p50": round(float(np.percentile(lat, 50)), 3) if lat.size else None,
+        "latency_ms_p99": round(float(np.percentile(lat, 99)), 3) if lat.size else None,
+        "latency_ms_max": round(float(lat.max()), 3) if lat.size else None,
+        "rss_mb": rss, "rss_mb_first_last_max": [rss[0][1], rss[-1][1], max(r for _, r in rss)] if rss else None,
+        "daemon_exit": daemon.returncode, "stop_s": round(stop_s, 3),
+        "status": None if last is None else {k: getattr(last, k) for k in ("samples", "samples_lost", "crc_errors", "bad_headers",
+                                                                             "bytes_discarded", "reconnects", "slides", "labels")},
+    }
+    print(json.dumps(out, indent=1))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(out, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,47 @@
+"""`tactiled evaluate` end to end on a small simulated set, and the clustering pieces."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from tactiled.cluster import hungarian_accuracy, kmeans, som_clusters
+from tests.conftest import run_cli
+
+
+def test_hungarian_and_kmeans_metrics() -> None:
+    rng = np.random.default_rng(0)
+    centres = np.array([[5.0, 0.0], [0.0, 5.0], [-5.0, -5.0]])
+    y = np.repeat(np.arange(3), 30)
+    x = centres[y] + rng.standard_normal((90, 2)) * 0.5
+    for metric in ("sqeuclidean", "cityblock", "cosine"):
+        assert hungarian_accuracy(kmeans(x, 3, metric, n_init=3), y.astype(str)) > 0.95
+    assert hungarian_accuracy(som_clusters(x, 3, iterations=2000), y) > 0.9
+    assert hungarian_accuracy(np.array([1, 1, 0, 0]), np.array(["a", "a", "b", "b"])) == 1.0
+
+
+def test_evaluate_writes_all_six_experiments(tmp_path: Path) -> None:
+    data = tmp_path / "d"
+    res = run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "3", "--slides-per-file", "3", "--mode", "robot")
+    assert res.returncode == 0, res.stderr
+    report = tmp_path / "r"
+    res = run_cli("evaluate", *sorted(str(p) for p in data.glob("*.npz")), "--report", str(report), "--quick", "--folds", "3", timeout=300)
+    assert res.returncode == 0, res.stderr
+    out = json.loads((report / "report.json").read_text())
+    assert set(out) >= {"classifiers", "window_grid", "sampling_rate", "feature_count", "unsupervised"}
+    acc = out["classifiers"]["results"]
+    assert {"ELM", "kNN k=9", "SVM RBF", "SVM linear", "ELM (plain: U(-1,1), pinv)"} <= set(acc)
+    assert all(0.0 <= r["mean"] <= 1.0 and r["sd"] >= 0 for r in acc.values())
+    assert acc["ELM"]["mean"] > 0.6  # three well separated surfaces
+    assert [r["fs"] for r in out["sampling_rate"]] == [20000.0, 5000.0]
+    md = (report / "report.md").read_text()
+    for heading in ("(a) Classifiers", "(b) Start point", "(c) Sampling rate", "(d) Number", "(e) Without labels", "(f) Error against run time"):
+        assert heading in md
+    assert (report / "error_vs_runtime.png").stat().st_size > 10_000
+
+
+def test_evaluate_needs_ground_truth(tmp_path: Path) -> None:
+    res = run_cli("evaluate", str(tmp_path / "nope.npz"), "--report", str(tmp_path / "r"))
+    assert res.returncode == 2 and "at least two readable recordings" in res.stderr
