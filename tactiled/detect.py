@@ -32,6 +32,18 @@ from scipy import signal
 from tactiled.config import DetectorConfig
 
 
+def median_last(a: npt.NDArray[np.float64], keepdims: bool = False) -> npt.NDArray[np.float64]:
+    """The median along the last axis, by ``np.partition`` (same values as ``np.median``, less overhead)."""
+    m = a.shape[-1]
+    k = m // 2
+    if m % 2:
+        out = np.partition(a, k, axis=-1)[..., k]
+    else:
+        p = np.partition(a, (k - 1, k), axis=-1)
+        out = (p[..., k - 1] + p[..., k]) / 2
+    return out[..., None] if keepdims else out
+
+
 @dataclass(frozen=True)
 class SlideStart:
     start: int  # absolute sample index of the onset
@@ -104,12 +116,12 @@ class SlideDetector:
             # (hops, C, hop), contiguous along the hop: medians reduce along the last axis
             raw = np.ascontiguousarray(buf[: hops * self.hop].reshape(hops, self.hop, -1).transpose(0, 2, 1))
             # clamp spikes within each hop before the filter, so they do not ring through it
-            med = np.median(raw, axis=2, keepdims=True)
-            lim = 6 * 1.4826 * np.median(np.abs(raw - med), axis=2, keepdims=True)
+            med = median_last(raw, keepdims=True)
+            lim = 6 * 1.4826 * median_last(np.abs(raw - med), keepdims=True)
             clean = np.clip(raw, med - lim, med + lim).transpose(0, 2, 1).reshape(hops * self.hop, -1)
             filtered, self._zi = signal.sosfilt(self._sos, clean, axis=0, zi=self._zi)
             sq = np.ascontiguousarray((filtered.reshape(hops, self.hop, -1) ** 2).transpose(0, 2, 1))
-            energy = np.median(sq, axis=2).sum(axis=1)
+            energy = median_last(sq).sum(axis=1)
             hop_valid = np.asarray(vbuf[: hops * self.hop].reshape(hops, self.hop).all(axis=1), dtype=bool)
             for h in range(hops):
                 events += self._step(self._pending_index + h * self.hop, float(energy[h]), bool(hop_valid[h]))

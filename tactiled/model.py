@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import zipfile
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -27,6 +26,7 @@ from tactiled.analysis import AnalysisSettings
 from tactiled.elm import ELMClassifier, _softmax
 from tactiled.errors import ModelError
 from tactiled.features import classifier_inputs
+from tactiled.npzio import NpzError, read_npz
 from tactiled.recording import atomic_savez
 
 FORMAT = "tactiled-model"
@@ -150,21 +150,10 @@ def load_model(path: str | Path | None = None) -> Model:
     """Load and check a model file (``None``: the shipped model); :class:`ModelError` names file and problem."""
     path = Path(path) if path else default_model_path()
     try:
-        npz = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise ModelError(f"{path}: no such model file") from None
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise ModelError(f"{path}: not a readable .npz model file: {exc}") from None
-    _need(isinstance(npz, np.lib.npyio.NpzFile), path, "not an .npz model file")
-    arrays: dict[str, Any] = {}
-    with npz:
-        for key in npz.files:
-            try:
-                arrays[key] = npz[key]
-            except ValueError as exc:
-                raise ModelError(f"{path}: array {key}: refused (object arrays need pickle): {exc}") from None
-            except (OSError, zipfile.BadZipFile, EOFError) as exc:
-                raise ModelError(f"{path}: array {key}: corrupt: {exc}") from None
+        arrays = read_npz(path)
+    except NpzError as exc:
+        what = "no such model file" if str(exc) == "no such file" else str(exc)
+        raise ModelError(f"{path}: array {exc.key}: {what}" if exc.key else f"{path}: {what}") from None
     _need("header" in arrays and arrays["header"].shape == () and arrays["header"].dtype.kind == "U", path, "header: missing or not a string")
     try:
         header = json.loads(arrays.pop("header").item())

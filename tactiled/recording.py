@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.errors import RecordingError
+from tactiled.npzio import NpzError, read_npz
 
 
 @dataclass
@@ -73,22 +73,9 @@ def _fail(path: object, key: str, message: str) -> RecordingError:
 def load_recording(path: str | Path) -> Recording:
     """Load and validate a recording; raises :class:`RecordingError` naming file and key."""
     try:
-        npz = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise RecordingError(f"{path}: no such file") from None
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise RecordingError(f"{path}: not a readable .npz file: {exc}") from None
-    if not isinstance(npz, np.lib.npyio.NpzFile):
-        raise RecordingError(f"{path}: not an .npz archive")
-    with npz:
-        arrays: dict[str, npt.NDArray[Any]] = {}
-        for key in npz.files:
-            try:
-                arrays[key] = npz[key]
-            except ValueError as exc:
-                raise _fail(path, key, f"cannot load without pickle ({exc})") from None
-            except (OSError, zipfile.BadZipFile, EOFError) as exc:
-                raise _fail(path, key, f"corrupt array: {exc}") from None
+        arrays = read_npz(path)
+    except NpzError as exc:
+        raise RecordingError(f"{path}: {exc.key}: {exc}" if exc.key else f"{path}: {exc}") from None
     return _validate(path, arrays)
 
 

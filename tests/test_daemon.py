@@ -126,3 +126,30 @@ def test_daemon_waits_for_a_missing_port_and_reports_it(tmp_path: Path) -> None:
             proc.wait(10)
             stop.set()
     assert proc.returncode == 0
+
+
+def test_replay_publishes_the_daemon_messages(tmp_path: Path) -> None:
+    """A controller can be tested offline: replay --publish sends the same messages as the daemon."""
+    import json
+
+    from tactiled.recording import Recording, save_recording
+    from tactiled.sensor_model import simulate_file
+
+    params = SimParams()
+    sim = simulate_file(params, pick_surfaces("Ra2.29")[0], 3, 4)
+    path = tmp_path / "r.npz"
+    save_recording(path, Recording(sim.samples, params.fs, params.volts_per_count, first_index=1000))
+    endpoint = f"ipc://{tmp_path}/replay"
+    with BlockingSubscriber(endpoint, topics=["roughness", "slide"], timeout=30) as sub:
+        proc = subprocess.Popen(tactiled_cmd("replay", "--json", "--speed", "4", "--publish", endpoint, str(path)),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        got = []
+        while len([m for m in got if isinstance(m, Roughness)]) < 3:
+            got.append(sub.receive())
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    printed = [json.loads(line) for line in out.splitlines()]
+    rough = [m for m in got if isinstance(m, Roughness)]
+    assert [(m.start - 1000, m.stop - 1000, m.label) for m in rough] == [(p["start"], p["stop"], p["label"]) for p in printed]
+    assert [m.seq for m in rough] == [0, 1, 2] and all(m.model == load_model().fingerprint for m in rough)
+    assert [m.event for m in got if isinstance(m, Slide)][:2] == ["start", "end"]

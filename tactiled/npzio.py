@@ -1,0 +1,56 @@
+"""Reading ``.npz`` files safely: no pickle, and no array larger than the bytes stored.
+
+Shared by the recording and model loaders. Every member's ``.npy`` header is read first;
+an array whose declared size exceeds what the archive stores for it (a hostile or corrupt
+header asking for terabytes) is refused before anything is allocated.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+
+class NpzError(ValueError):
+    """``key`` is the member at fault ('' for the archive); the message says what."""
+
+    def __init__(self, key: str, message: str) -> None:
+        super().__init__(message)
+        self.key = key
+
+
+def read_npz(path: str | Path) -> dict[str, npt.NDArray[Any]]:
+    """All arrays of an ``.npz`` archive, loaded without pickle after a size check of each."""
+    try:
+        zf = zipfile.ZipFile(path)
+    except FileNotFoundError:
+        raise NpzError("", "no such file") from None
+    except (OSError, zipfile.BadZipFile, EOFError, ValueError) as exc:
+        raise NpzError("", f"not a readable .npz file: {exc}") from None
+    arrays: dict[str, npt.NDArray[Any]] = {}
+    with zf:
+        for info in zf.infolist():
+            key = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            try:
+                with zf.open(info) as fh:
+                    version = np.lib.format.read_magic(fh)
+                    readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+                    if version not in readers:
+                        raise NpzError(key, f"unsupported .npy format version {version}")
+                    shape, _, dtype = readers[version](fh)  # the header only: nothing allocated yet
+                    if dtype.hasobject:
+                        raise NpzError(key, "cannot load without pickle (object array)")
+                    nbytes = int(np.prod(shape, dtype=np.float64)) * dtype.itemsize
+                    if nbytes > info.file_size:
+                        raise NpzError(key, f"declares shape {shape} ({nbytes} bytes) but stores {info.file_size} bytes")
+                with zf.open(info) as fh:
+                    arrays[key] = np.lib.format.read_array(fh, allow_pickle=False)
+            except NpzError:
+                raise
+            except (ValueError, OSError, zipfile.BadZipFile, EOFError, KeyError, MemoryError) as exc:
+                raise NpzError(key, f"corrupt array: {exc}") from None
+    return arrays
