@@ -294,6 +294,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_curve_keys(args: argparse.Namespace) -> int:
+    import zmq.auth
+
+    out = Path(args.dir)
+    out.mkdir(parents=True, exist_ok=True)
+    public, secret = zmq.auth.create_certificates(str(out), args.name)
+    print(f"{public}\n{secret}")
+    return EXIT_OK
+
+
 # ---- parser -----------------------------------------------------------------------------------
 
 def _positive_float(text: str) -> float:
@@ -374,6 +384,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sensor-id", help="sensor id in topics (overrides sensor.id)")
     p.add_argument("--record", help="also keep every sample received and write it as a recording on exit (memory grows 80 kB/s)")
     p.set_defaults(handler=cmd_run)
+
+    p = sub.add_parser("curve-keys", help="create a ZeroMQ CURVE certificate pair (NAME.key, NAME.key_secret) in DIR")
+    p.add_argument("dir")
+    p.add_argument("name")
+    p.set_defaults(handler=cmd_curve_keys)
 
     p = sub.add_parser("monitor", help="terminal view of a running daemon")
     p.add_argument("--connect", help="daemon endpoint (default: publish.endpoint of --config or the default)")

@@ -176,8 +176,12 @@ class PublishConfig:
     endpoint: str = DEFAULT_ENDPOINT
     allow_remote: bool = False
     status_interval_s: float = 0.5
+    curve_secret_key_file: str = ""
+    curve_authorized_dir: str = ""
 
     def validate(self, p: str) -> None:
+        _check(bool(self.curve_secret_key_file) == bool(self.curve_authorized_dir), f"{p}.curve_authorized_dir",
+               f"must be set together with {p}.curve_secret_key_file")
         _check(self.endpoint.startswith(("tcp://", "ipc://", "inproc://")), f"{p}.endpoint", "must start with tcp://, ipc:// or inproc://")
         _check(0.01 <= self.status_interval_s <= 1.0, f"{p}.status_interval_s", "must be in [0.01, 1] s")
         _check(self.allow_remote or is_local_endpoint(self.endpoint), f"{p}.endpoint",

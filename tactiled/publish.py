@@ -29,6 +29,9 @@ class Publisher:
         self.socket = self.context.socket(zmq.PUB)
         self.socket.setsockopt(zmq.LINGER, 0)
         self.socket.setsockopt(zmq.SNDHWM, 10_000)
+        self.authenticator: Any = None
+        if config.curve_secret_key_file:
+            self._curve(config)
         try:
             self.socket.bind(config.endpoint)
         except zmq.ZMQError as exc:
@@ -38,6 +41,31 @@ class Publisher:
         self._seq: dict[str, int] = {}
         self.sent = 0
         self.dropped = 0
+
+    def _curve(self, config: PublishConfig) -> None:
+        """CURVE: encrypt, and admit only subscribers whose public certificate is in the authorised folder."""
+        import os
+
+        import zmq.auth
+        from zmq.auth.thread import ThreadAuthenticator
+
+        try:
+            public, secret = zmq.auth.load_certificate(config.curve_secret_key_file)
+        except (OSError, ValueError) as exc:
+            self.socket.close()
+            raise ConfigError(f"publish.curve_secret_key_file: cannot read {config.curve_secret_key_file}: {exc}") from None
+        if not secret:
+            self.socket.close()
+            raise ConfigError(f"publish.curve_secret_key_file: {config.curve_secret_key_file} holds no secret key")
+        if not os.path.isdir(config.curve_authorized_dir):
+            self.socket.close()
+            raise ConfigError(f"publish.curve_authorized_dir: {config.curve_authorized_dir} is not a folder")
+        self.authenticator = ThreadAuthenticator(self.context)
+        self.authenticator.start()
+        self.authenticator.configure_curve(domain="*", location=config.curve_authorized_dir)
+        self.socket.curve_secretkey = secret
+        self.socket.curve_publickey = public
+        self.socket.curve_server = True
 
     def send(self, kind: str, sensor: str, body: dict[str, Any]) -> dict[str, Any]:
         key = schema.topic(kind, sensor)
@@ -53,6 +81,8 @@ class Publisher:
 
     def close(self) -> None:
         self.socket.close(linger=0)
+        if self.authenticator is not None:
+            self.authenticator.stop()
 
     def publish_event(self, sensor: str, ev: PipelineEvent, fs: float, model: str, detected_at: float | None = None) -> None:
         """Publish one pipeline event; ``detected_at`` (perf_counter) is when its block was handed in."""

@@ -8,6 +8,7 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
 import zmq
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, Status
 
@@ -153,3 +154,36 @@ def test_replay_publishes_the_daemon_messages(tmp_path: Path) -> None:
     assert [(m.start - 1000, m.stop - 1000, m.label) for m in rough] == [(p["start"], p["stop"], p["label"]) for p in printed]
     assert [m.seq for m in rough] == [0, 1, 2] and all(m.model == load_model().fingerprint for m in rough)
     assert [m.event for m in got if isinstance(m, Slide)][:2] == ["start", "end"]
+
+
+def test_curve_subscriber_without_the_key_receives_nothing(tmp_path: Path) -> None:
+    import zmq.auth
+
+    keys, allowed = tmp_path / "keys", tmp_path / "allowed"
+    allowed.mkdir()
+    for name in ("daemon", "robot", "stranger"):
+        res = subprocess.run(tactiled_cmd("curve-keys", str(keys), name), capture_output=True, text=True, timeout=60)
+        assert res.returncode == 0, res.stderr
+    (allowed / "robot.key").write_bytes((keys / "robot.key").read_bytes())
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[publish]\nendpoint = "tcp://127.0.0.1:0"\ncurve_secret_key_file = "{keys / "daemon.key_secret"}"\n'
+                   f'curve_authorized_dir = "{allowed}"\nstatus_interval_s = 0.05\n')
+    proc = subprocess.Popen(tactiled_cmd("run", "--config", str(cfg), "--port", str(tmp_path / "none"), "--no-model"),
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        endpoint = line.rsplit("publishing on ", 1)[1].strip()
+        with BlockingSubscriber(endpoint, topics=["status"], timeout=10,
+                                curve=(str(keys / "daemon.key"), str(keys / "robot.key_secret"))) as good:
+            assert isinstance(good.receive(), Status)
+        with BlockingSubscriber(endpoint, topics=["status"], timeout=2.0,
+                                curve=(str(keys / "daemon.key"), str(keys / "stranger.key_secret"))) as stranger, pytest.raises(NoData):
+            stranger.receive()
+        with BlockingSubscriber(endpoint, topics=["status"], timeout=2.0) as plain, pytest.raises(NoData):
+            plain.receive()
+        assert zmq.auth.load_certificate(str(keys / "daemon.key"))[1] is None  # the public file holds no secret
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    assert proc.returncode == 0

@@ -12,7 +12,8 @@ Blocking (scripts)::
         for msg in sub:
             ...
 
-Every message is typed (:mod:`tactiled_client.schema`); ``msg.missed`` is how many
+``curve=(daemon_public_cert, my_secret_cert)`` connects to a daemon that requires ZeroMQ
+CURVE. Every message is typed (:mod:`tactiled_client.schema`); ``msg.missed`` is how many
 messages of that topic were lost just before it (from ``seq``); ``timeout`` (s) raises
 :class:`NoData` when nothing arrives for that long; :meth:`latest` returns the newest
 roughness label if it is younger than a given age.
@@ -77,12 +78,28 @@ def _endpoints(endpoints: str | Sequence[str]) -> list[str]:
     return [endpoints] if isinstance(endpoints, str) else list(endpoints)
 
 
+def _secure(sock: Any, curve: tuple[str, str] | None) -> None:
+    """CURVE: ``curve`` = (daemon's public certificate file, this client's secret certificate file)."""
+    if curve is None:
+        return
+    import zmq.auth
+
+    server_public, _ = zmq.auth.load_certificate(curve[0])
+    public, secret = zmq.auth.load_certificate(curve[1])
+    if not secret:
+        raise ValueError(f"{curve[1]}: holds no secret key")
+    sock.curve_serverkey = server_public
+    sock.curve_publickey = public
+    sock.curve_secretkey = secret
+
+
 class Subscriber(_Tracker):
     """Async subscriber: ``async with Subscriber(endpoint) as sub: async for msg in sub``."""
 
     def __init__(self, endpoints: str | Sequence[str], topics: Sequence[str] | None = None, sensor: str | None = None,
-                 timeout: float | None = None, context: zmq.asyncio.Context | None = None) -> None:
+                 timeout: float | None = None, context: zmq.asyncio.Context | None = None, curve: tuple[str, str] | None = None) -> None:
         super().__init__()
+        self.curve = curve
         self.endpoints = _endpoints(endpoints)
         self.prefixes = _prefixes(topics, sensor)
         self.timeout = timeout
@@ -92,6 +109,7 @@ class Subscriber(_Tracker):
     async def __aenter__(self) -> Subscriber:
         sock = self._context.socket(zmq.SUB)
         sock.setsockopt(zmq.LINGER, 0)
+        _secure(sock, self.curve)
         for p in self.prefixes:
             sock.setsockopt(zmq.SUBSCRIBE, p)
         for e in self.endpoints:
@@ -122,12 +140,13 @@ class BlockingSubscriber(_Tracker):
     """Blocking subscriber for scripts: ``with BlockingSubscriber(endpoint) as sub: for msg in sub``."""
 
     def __init__(self, endpoints: str | Sequence[str], topics: Sequence[str] | None = None, sensor: str | None = None,
-                 timeout: float | None = None, context: zmq.Context[Any] | None = None) -> None:
+                 timeout: float | None = None, context: zmq.Context[Any] | None = None, curve: tuple[str, str] | None = None) -> None:
         super().__init__()
         self.endpoints = _endpoints(endpoints)
         self.timeout = timeout
         self._socket = (context or zmq.Context.instance()).socket(zmq.SUB)
         self._socket.setsockopt(zmq.LINGER, 0)
+        _secure(self._socket, curve)
         for p in _prefixes(topics, sensor):
             self._socket.setsockopt(zmq.SUBSCRIBE, p)
         for e in self.endpoints:
