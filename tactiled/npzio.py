@@ -7,6 +7,7 @@ header asking for terabytes) is refused before anything is allocated.
 
 from __future__ import annotations
 
+import tokenize
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -29,7 +30,8 @@ def read_npz(path: str | Path) -> dict[str, npt.NDArray[Any]]:
         zf = zipfile.ZipFile(path)
     except FileNotFoundError:
         raise NpzError("", "no such file") from None
-    except (OSError, zipfile.BadZipFile, EOFError, ValueError) as exc:
+    except (OSError, zipfile.BadZipFile, EOFError, ValueError, NotImplementedError, RuntimeError) as exc:
+        # zipfile raises NotImplementedError for unknown versions and compressions, RuntimeError for encryption
         raise NpzError("", f"not a readable .npz file: {exc}") from None
     arrays: dict[str, npt.NDArray[Any]] = {}
     with zf:
@@ -51,6 +53,7 @@ def read_npz(path: str | Path) -> dict[str, npt.NDArray[Any]]:
                     arrays[key] = np.lib.format.read_array(fh, allow_pickle=False)
             except NpzError:
                 raise
-            except (ValueError, OSError, zipfile.BadZipFile, EOFError, KeyError, MemoryError) as exc:
+            except (ValueError, OSError, zipfile.BadZipFile, EOFError, KeyError, MemoryError, NotImplementedError, RuntimeError,
+                    SyntaxError, tokenize.TokenError) as exc:  # numpy parses the .npy header dict with tokenize
                 raise NpzError(key, f"corrupt array: {exc}") from None
     return arrays

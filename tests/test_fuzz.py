@@ -111,3 +111,17 @@ def test_config_values_of_any_type(tables: dict[str, dict[str, object]]) -> None
         parse_config(text, "x.toml")
     except ConfigError as exc:
         assert str(exc).startswith("x.toml: ")
+
+
+CASES = Path(__file__).parent / "fuzz_cases"
+
+
+def test_committed_fuzz_cases() -> None:
+    """Every input a fuzzer ever crashed on, replayed through its target."""
+    import runpy
+
+    targets = runpy.run_path(str(Path(__file__).parents[1] / "fuzz" / "fuzz_targets.py"), run_name="cases")["TARGETS"]
+    cases = sorted(p for p in CASES.glob("*/*") if p.is_file() and p.name != "README")
+    assert cases, "the regression cases are committed under tests/fuzz_cases/"
+    for case in cases:
+        targets[case.parent.name](case.read_bytes())
