@@ -100,13 +100,27 @@ def main() -> None:
     lazy.close(linger=0)
     last = statuses[-1] if statuses else None
     lat = np.array(latencies)
+    accounting = None
+    if last is not None:
+        # reconcile: samples the daemon counted lost against what the board says it did not deliver intact
+        first = last.index - last.samples - last.samples_lost
+        with open(log) as fh:
+            events = [json.loads(line) for line in fh if line.strip()]
+        inside = [e for e in events if first <= e.get("index", -1) < last.index]
+        faulty = sum(e.get("count", 20) for e in inside if e["event"] in ("drop", "corrupt")) + \
+            20 * sum(1 for e in inside if e["event"] == "overrun")
+        unplugged = sum(1 for e in inside if e["event"] == "unplug")
+        down = unplugged * (round(0.3 * 20_000) + 20)  # simulate serial's default --unplug-s 0.3, plus the frame at the unplug
+        accounting = {"first_index": first, "frames_dropped_or_corrupted_or_overrun_samples": faulty, "unplugs": unplugged,
+                      "unplug_down_samples": down, "daemon_samples_lost": last.samples_lost,
+                      "lost_beyond_injected": last.samples_lost - faulty - down}
     out = {
         "seconds": args.seconds, "cpu_share": round(cpu, 4), "labels": labels, "missed_messages": missed,
         "latency_ms_p50": round(float(np.percentile(lat, 50)), 3) if lat.size else None,
         "latency_ms_p99": round(float(np.percentile(lat, 99)), 3) if lat.size else None,
         "latency_ms_max": round(float(lat.max()), 3) if lat.size else None,
         "rss_mb": rss, "rss_mb_first_last_max": [rss[0][1], rss[-1][1], max(r for _, r in rss)] if rss else None,
-        "daemon_exit": daemon.returncode, "stop_s": round(stop_s, 3),
+        "daemon_exit": daemon.returncode, "stop_s": round(stop_s, 3), "loss_accounting": accounting,
         "status": None if last is None else {k: getattr(last, k) for k in ("samples", "samples_lost", "crc_errors", "bad_headers",
                                                                              "bytes_discarded", "reconnects", "slides", "labels")},
     }

