@@ -98,7 +98,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     from tactiled.errors import RecordingError
     from tactiled.recording import load_recording
-    from tactiled.replay import replay_recording, result_record
+    from tactiled.replay import BLOCK, replay_recording, result_record
 
     config = _config(args)
     failed = 0
@@ -119,7 +119,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
             on_event = None
             if publisher is not None:
                 on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""))
-            for r in replay_recording(rec, config, model, block=args.block, speed=args.speed, on_event=on_event):
+            for r in replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event):
                 obj = result_record(path, rec, r)
                 if args.json:
                     print(json.dumps(obj), flush=True)
@@ -410,7 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", help="model file (default: the shipped model, when it fits the recording)")
     p.add_argument("--no-model", action="store_true", help="no classification (labels are null)")
     p.add_argument("--publish", help="also publish the daemon's messages on this ZeroMQ endpoint")
-    p.add_argument("--block", type=int, default=65536, help="samples per block fed to the pipeline")
+    p.add_argument("--block", type=int, default=None, help="samples per block fed to the pipeline (default 65536)")
     p.set_defaults(handler=cmd_replay)
 
     p = sub.add_parser("features", help="feature vectors of every slide")

@@ -23,7 +23,7 @@ from tactiled_client import schema
 
 from tactiled import __version__
 from tactiled.config import Config
-from tactiled.frames import Frame, FrameDecoder
+from tactiled.frames import FrameDecoder
 from tactiled.model import Model
 from tactiled.pipeline import Pipeline, PipelineEvent
 from tactiled.publish import Publisher
@@ -64,10 +64,6 @@ def group_blocks(items: list[tuple[int, np.ndarray]]) -> list[tuple[int, np.ndar
         end = index + samples.shape[0]
     return [(i, np.concatenate(parts) if len(parts) > 1 else parts[0]) for i, parts in blocks]
 
-
-def group_frames(frames: list[Frame]) -> list[tuple[int, np.ndarray]]:
-    """Consecutive frames joined into (index, (n, C) samples) blocks."""
-    return group_blocks([(f.index, f.samples) for f in frames])
 
 
 @dataclass
@@ -160,20 +156,21 @@ class Daemon:
             if self.assembler is not None:
                 for frame in frames:
                     self.assembler.add(frame)
-            for index, samples in group_frames(frames):
-                if samples.shape[1] != sensor.channels:
+            for frame in frames:
+                if frame.samples.shape[1] != sensor.channels:
                     self.state.channel_errors += 1
                     continue
-                self._backlog.append((index, samples))
-                self._backlog_n += samples.shape[0]
-                sq = np.einsum("ij,ij->j", samples, samples, dtype=np.float64)
-                self.state.sumsq = sq if self.state.sumsq is None else self.state.sumsq + sq
-                self.state.samples_window += samples.shape[0]
-                self.state.last_index = index + samples.shape[0]
+                self._backlog.append((frame.index, frame.samples))
+                self._backlog_n += frame.samples.shape[0]
             # the port is read every serial.read_interval_s (the tty buffer is small); the pipeline
             # runs on batches of at least PROCESS_S of samples: half the CPU of per-read processing
             if self._backlog_n >= self._process_n:
                 blocks, self._backlog, self._backlog_n = group_blocks(self._backlog), [], 0
+                for index, samples in blocks:
+                    sq = np.einsum("ij,ij->j", samples, samples, dtype=np.float64)
+                    self.state.sumsq = sq if self.state.sumsq is None else self.state.sumsq + sq
+                    self.state.samples_window += samples.shape[0]
+                    self.state.last_index = index + samples.shape[0]
                 detected_at = time.perf_counter()
                 end = blocks[-1][0] + blocks[-1][1].shape[0]
                 if self.pipeline.will_analyse(end):  # feature extraction: off the event loop

@@ -28,7 +28,7 @@ from scipy import signal
 from tactiled.analysis import AnalysisSettings
 from tactiled.cluster import hungarian_accuracy, kmeans, som_clusters
 from tactiled.config import Config
-from tactiled.features import FeaturePlan, classifier_inputs, feature_names
+from tactiled.features import FeaturePlan, feature_names
 from tactiled.model import make_classifier
 from tactiled.recording import Recording
 from tactiled.train import SELECTION_HIDDEN, Folds, SlideSet, collect, forward_select, grouped_folds, measure_onset_lag, standardise
@@ -91,7 +91,7 @@ class Evaluator:
         m = max_features or self.max_features
         k = (key, m)
         if k not in self._selection:
-            xin = classifier_inputs(ds.x, ds.names)
+            xin = ds.inputs
             make = _mk("elm", {**CLASSIFIERS["ELM"][1], "n_hidden": SELECTION_HIDDEN}, self.seed)
             self._selection[k] = [forward_select(make, xin[tr], ds.y[tr], ds.groups[tr], m, None if max_features else 0.005, seed=self.seed)[0]
                                   for tr, _ in folds]
@@ -99,7 +99,7 @@ class Evaluator:
 
     def cv(self, ds: SlideSet, folds: Folds, sel: list[list[int]], kind: str, params: dict[str, Any]) -> dict[str, Any]:
         """Accuracy per fold of a classifier on each fold's selected features, and its inference time."""
-        xin = classifier_inputs(ds.x, ds.names)
+        xin = ds.inputs
         accs, infer = [], []
         for (tr, te), cols in zip(folds, sel, strict=True):
             mean, scale = standardise(xin[tr][:, cols])
@@ -191,7 +191,7 @@ class Evaluator:
     def unsupervised(self, repeats: int = 5) -> dict[str, Any]:
         st = self.settings(self.config.window.start_s, self.config.window.duration_s)
         ds = self.features(st)
-        xin = classifier_inputs(ds.x, ds.names)
+        xin = ds.inputs
         k = len(set(ds.y.tolist()))
         folds = self.folds(ds)
         sel = self.selections(ds, "base", folds)

@@ -17,6 +17,8 @@ from tactiled.config import Config
 from tactiled.pipeline import Pipeline, PipelineEvent, SlideResult
 from tactiled.recording import Recording
 
+BLOCK = 65536  # samples per block fed to the pipeline by default
+
 
 def result_record(file: str, rec: Recording, r: SlideResult) -> dict[str, Any]:
     """The JSON object of one slide (positions in the file)."""
@@ -31,7 +33,7 @@ def result_record(file: str, rec: Recording, r: SlideResult) -> dict[str, Any]:
             "duration_s": round((r.stop - r.start) / rec.fs, 4)}
 
 
-def replay_recording(rec: Recording, config: Config, model: Any | None, *, block: int = 65536, speed: float | None = None,
+def replay_recording(rec: Recording, config: Config, model: Any | None, *, block: int = BLOCK, speed: float | None = None,
                      on_event: Callable[[PipelineEvent], None] | None = None) -> list[SlideResult]:
     """Run ``rec`` through a fresh pipeline in blocks of ``block`` samples; returns the slide results.
 

@@ -9,6 +9,7 @@ added to ground-truth onsets.
 
 from __future__ import annotations
 
+import functools
 import logging
 import sys
 from collections.abc import Callable, Sequence
@@ -83,6 +84,11 @@ class SlideSet:
     starts: npt.NDArray[np.int64]
     stops: npt.NDArray[np.int64]
     skipped: dict[str, int]
+
+    @functools.cached_property
+    def inputs(self) -> npt.NDArray[np.float64]:
+        """``x`` as the classifiers see it (:func:`tactiled.features.classifier_inputs`), computed once."""
+        return classifier_inputs(self.x, self.names)
 
 
 def slide_windows(rec: Recording, config: Config) -> tuple[list[tuple[int, int, str | None]], bool]:
@@ -207,7 +213,7 @@ def fit_model(ds: SlideSet, settings: AnalysisSettings, kind: str, params: dict[
             est.set_params(calibrate=False)
         return est
 
-    xin = classifier_inputs(ds.x, ds.names)
+    xin = ds.inputs
     if str(features) == "all":
         cols = list(range(ds.x.shape[1]))
         history: list[float] = []

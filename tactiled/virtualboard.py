@@ -53,6 +53,12 @@ class VirtualBoard:
         self._slave = -1
         self._logged_slides = 0
         self.ready = threading.Event()
+        self._progress = threading.Condition()
+
+    def wait_sent(self, samples: int, timeout: float) -> bool:
+        """Block until at least ``samples`` have been sent (True) or ``timeout`` s pass (False)."""
+        with self._progress:
+            return self._progress.wait_for(lambda: self.sent_samples >= samples, timeout)
 
     def _event(self, event: str, **fields: Any) -> None:
         if self.log is not None:
@@ -145,6 +151,8 @@ class VirtualBoard:
                     self._event("garbage", index=index, bytes=len(junk))
                     frame = bytearray(junk) + frame
                 self._write(bytes(frame), index)
+                with self._progress:
+                    self._progress.notify_all()
         self._event("end", index=self.first_index + self.sent_samples)
 
 

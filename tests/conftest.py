@@ -15,7 +15,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def wait_for(predicate: Callable[[], object], timeout: float = 20.0, what: str = "condition") -> object:
-    """Poll ``predicate`` until it returns something truthy; fail after ``timeout`` seconds."""
+    """Call ``predicate`` until it returns something truthy; fail after ``timeout`` seconds.
+
+    ``predicate`` must itself wait for the next event (e.g. a subscriber's ``receive`` with a
+    timeout), so this loop never sleeps or spins.
+    """
     deadline = time.monotonic() + timeout
     while True:
         value = predicate()
@@ -23,7 +27,6 @@ def wait_for(predicate: Callable[[], object], timeout: float = 20.0, what: str =
             return value
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.01)  # polling interval of the wait, the event is the predicate
 
 
 def tactiled_cmd(*args: str) -> list[str]:

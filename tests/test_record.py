@@ -11,7 +11,7 @@ import numpy as np
 from tactiled.recording import load_recording
 from tactiled.sensor_model import SensorModel, SimParams, default_surfaces
 from tactiled.virtualboard import VirtualBoard, read_log
-from tests.conftest import run_cli, tactiled_cmd, wait_for
+from tests.conftest import run_cli, tactiled_cmd
 
 
 def test_record_keeps_every_intact_sample_through_faults_and_unplug(tmp_path: Path) -> None:
@@ -101,7 +101,7 @@ def test_record_ctrl_c_saves_what_was_captured(tmp_path: Path) -> None:
         assert proc.stderr is not None
         assert "recording" in proc.stderr.readline()
         started = board.sent_samples
-        wait_for(lambda: board.sent_samples > started + 4000, what="board streaming to the recorder")
+        assert board.wait_sent(started + 4000, timeout=20), "board streaming to the recorder"
         proc.send_signal(2)
         _stdout, stderr = proc.communicate(timeout=30)
     finally:
