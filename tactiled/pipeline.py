@@ -19,7 +19,7 @@ import numpy.typing as npt
 from tactiled.analysis import Analyser, AnalysisSettings, WindowResult
 from tactiled.config import Config
 from tactiled.detect import SlideDetector, SlideEnd, SlideStart
-from tactiled.errors import RingBufferError
+from tactiled.errors import OverwrittenError
 from tactiled.ringbuffer import RingBuffer
 
 
@@ -129,9 +129,12 @@ class Pipeline:
             self._pending = self._analyse(lo, hi)
 
     def _analyse(self, lo: int, hi: int) -> WindowResult:
+        if hi - lo < self.analyser.plan.min_samples():
+            # a slide that ended before (or soon after) its window began: nothing to read, whatever the block timing
+            return WindowResult(None, "window_too_short", {"samples": max(hi - lo, 0), "lost": 0, "saturated": 0.0, "spikes": 0})
         try:
             samples, valid = self.ring.read(lo, hi)
-        except RingBufferError:
+        except OverwrittenError:
             return WindowResult(None, "overwritten", {"samples": hi - lo, "lost": hi - lo, "saturated": 0.0, "spikes": 0})
         return self.analyser.analyse(samples, valid)
 
