@@ -62,6 +62,8 @@ class SlideResult:
     quality: dict[str, Any]
     features: npt.NDArray[np.float64] | None = field(default=None, repr=False)
     compute_ms: float = 0.0
+    final: bool = True  # False: a provisional label published while the slide goes on
+    used_s: float = 0.0  # seconds of the slide (from its start) the label is based on
 
 
 PipelineEvent = SlideStarted | SlideEnded | SlideResult
