@@ -13,17 +13,25 @@ import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.errors import WindowError
-from tactiled.features import FeaturePlan, feature_names
+from tactiled.features import FeaturePlan, family_names
 from tactiled.spikes import remove_spikes
 
 
 @dataclass(frozen=True)
 class AnalysisSettings:
-    """How a window is placed and turned into features (stored in model files)."""
+    """How windows are placed in a slide and turned into features (stored in model files).
 
-    start_s: float = 0.3
+    A slide [start, stop) is analysed as successive windows of ``duration_s``, the first
+    ``start_s`` after the slide's start, one every ``hop_s`` (``hop_s`` 0: = duration_s),
+    at most ``max_windows`` of them (0: as many as the slide holds). Their class scores are
+    combined into the slide's label (:meth:`tactiled.model.Model.fuse`). A slide too short
+    for one such window is analysed on its last ``duration_s`` (or all of it).
+    """
+
+    start_s: float = 0.0
     duration_s: float = 0.5
-    onset_lag_s: float = 0.0  # detector onset lag behind the true start of motion (measured in training)
+    hop_s: float = 0.0
+    max_windows: int = 0
     spikes: str = "mad"
     half_width: int = 5
     nsigma: float = 4.0
@@ -33,10 +41,11 @@ class AnalysisSettings:
     names: tuple[str, ...] = field(default_factory=tuple)
 
     @classmethod
-    def from_config(cls, config: Config, channels: int) -> AnalysisSettings:
+    def from_config(cls, config: Config, channels: int, fs: float = 20_000.0) -> AnalysisSettings:
         f = config.features
-        return cls(config.window.start_s, config.window.duration_s, 0.0, config.spikes.method, config.spikes.half_width,
-                   config.spikes.nsigma, f.wavelet, f.level, f.mode, tuple(feature_names(channels, f.level, f.domains, f.stats)))
+        names = tuple(n for fam in f.families for n in family_names(fam, channels, fs, f))
+        return cls(config.window.start_s, config.window.duration_s, config.window.hop_s, config.window.max_windows, config.spikes.method,
+                   config.spikes.half_width, config.spikes.nsigma, f.wavelet, f.level, f.mode, names)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -47,15 +56,32 @@ class AnalysisSettings:
     def from_dict(cls, d: dict[str, Any]) -> AnalysisSettings:
         return cls(**{**d, "names": tuple(d["names"])})
 
-    def window(self, onset: int, stop: int, fs: float, from_truth: bool = False) -> tuple[int, int]:
-        """[start, stop) of the analysis window of a slide with ``onset`` and end ``stop`` (sample positions).
+    def hop(self) -> float:
+        """Seconds between successive windows."""
+        return self.hop_s if self.hop_s > 0 else self.duration_s
 
-        ``from_truth``: the onset is the true start of motion, so the detector's lag is added
-        to land on the same signal as live use.
+    def spans(self, start: int, stop: int, fs: float, min_samples: int = 1) -> list[tuple[int, int]]:
+        """The windows [lo, hi) of a slide [start, stop) (sample positions), in time order.
+
+        Windows that fit entirely in the slide, from ``start + start_s`` every ``hop_s``; if
+        none fits, the slide's last ``duration_s`` (or the whole slide), when it holds at
+        least ``min_samples``; else none.
         """
-        lo = onset + round(((self.onset_lag_s if from_truth else 0.0) + self.start_s) * fs)
-        hi = min(lo + round(self.duration_s * fs), stop)
-        return lo, max(lo, hi)
+        n = max(1, round(self.duration_s * fs))
+        hop = max(1, round(self.hop() * fs))
+        lo = start + round(self.start_s * fs)
+        out: list[tuple[int, int]] = []
+        while lo + n <= stop and (self.max_windows <= 0 or len(out) < self.max_windows):
+            out.append((lo, lo + n))
+            lo += hop
+        if not out and stop - start >= min_samples:
+            out.append((max(start, stop - n), stop))
+        return out
+
+    def first_span(self, start: int, fs: float) -> tuple[int, int]:
+        """The first full window of a slide starting at ``start``."""
+        lo = start + round(self.start_s * fs)
+        return lo, lo + max(1, round(self.duration_s * fs))
 
 
 @dataclass
@@ -77,13 +103,39 @@ def fill_lost(volts: npt.NDArray[np.float64], valid: npt.NDArray[np.bool_]) -> n
     return out
 
 
+def clipped_fraction(samples: npt.NDArray[Any]) -> float:
+    """Fraction of rows of ``samples`` (n, C) where some channel sits at a rail.
+
+    A rail is the int16 limit, or a channel's own extreme value held for 3 or more
+    consecutive samples (an ADC or amplifier that clips at another level, int or float);
+    for integer samples such an extreme must be at least 1024 counts from zero, so the
+    quantisation steps of a quiet signal are not mistaken for clipping.
+    """
+    n = samples.shape[0]
+    if n < 3:
+        return 0.0
+    x = np.asarray(samples)
+    hits = np.zeros(n, dtype=bool)
+    if x.dtype == np.int16:
+        hits |= np.any((x >= 32767) | (x <= -32768), axis=1)
+    integer = np.issubdtype(x.dtype, np.integer)
+    for rail in (x.max(axis=0), x.min(axis=0)):
+        at = x == rail
+        held = at[:-2] & at[1:-1] & at[2:]  # three in a row
+        usable = held.any(axis=0) & (np.abs(rail.astype(np.float64)) >= (1024 if integer else 0)) & (x.max(axis=0) > x.min(axis=0))
+        if usable.any():
+            hits |= np.any(at[:, usable], axis=1)
+    return float(np.mean(hits))
+
+
 class Analyser:
     """Turns one window of samples into a feature vector, or a reason it cannot."""
 
-    def __init__(self, settings: AnalysisSettings, volts_per_count: float, integer: bool, max_saturated: float = 0.01,
+    def __init__(self, settings: AnalysisSettings, fs: float, volts_per_count: float, integer: bool, max_saturated: float = 1.0,
                  max_lost: float = 0.02) -> None:
         self.settings = settings
-        self.plan = FeaturePlan(settings.names, settings.wavelet, settings.mode)
+        self.fs = fs
+        self.plan = FeaturePlan(settings.names, settings.wavelet, settings.mode, fs=fs)
         self.volts_per_count = volts_per_count
         self.integer = integer
         self.max_saturated = max_saturated
@@ -93,12 +145,8 @@ class Analyser:
         """``samples`` (n, C): int16 counts (or float volts when not ``integer``); ``valid`` (n,)."""
         n = samples.shape[0]
         lost = 0 if valid is None else int(n - np.count_nonzero(valid))
-        if self.integer:
-            saturated = float(np.mean(np.any((samples >= 32767) | (samples <= -32768), axis=1))) if n else 0.0
-            volts = samples.astype(np.float64) * self.volts_per_count
-        else:
-            saturated = 0.0
-            volts = np.asarray(samples, dtype=np.float64)
+        saturated = clipped_fraction(samples)
+        volts = samples.astype(np.float64) * self.volts_per_count if self.integer else np.asarray(samples, dtype=np.float64)
         quality: dict[str, Any] = {"samples": n, "lost": lost, "saturated": round(saturated, 6), "spikes": 0}
         if lost > self.max_lost * n:
             return WindowResult(None, "samples_lost", quality)

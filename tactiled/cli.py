@@ -98,7 +98,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     from tactiled.errors import RecordingError
     from tactiled.recording import load_recording
-    from tactiled.replay import BLOCK, replay_recording, result_record
+    from tactiled.replay import BLOCK, replay_recording, result_record, summary_line
 
     config = _config(args)
     failed = 0
@@ -119,16 +119,24 @@ def cmd_replay(args: argparse.Namespace) -> int:
             on_event = None
             if publisher is not None:
                 on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""))
-            for r in replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event):
-                obj = result_record(path, rec, r)
+            results = replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event)
+            provisional: list = []  # type: ignore[type-arg]
+            for r in results:
+                if not r.final:
+                    provisional.append(r)
+                    continue
+                obj = result_record(path, rec, r, provisional)
+                provisional = []
                 if args.json:
                     print(json.dumps(obj), flush=True)
                 else:
                     conf = "" if r.confidence is None else f" ({r.confidence:.2f})"
                     why = f" [{r.reason}]" if r.reason else ""
                     truth = f" truth {obj['truth']}" if obj["truth"] else ""
-                    print(f"{path}: slide {r.slide_id}: {r.start}-{r.stop} ({obj['duration_s']:.2f} s) window {r.window[0]}-{r.window[1]}: "
-                          f"{r.label or '-'}{conf}{why} spikes {r.quality['spikes']}{truth}", flush=True)
+                    early = f", provisional {obj['provisional'][0]['label']} at {obj['provisional'][0]['used_s']:.2f} s" if obj["provisional"] else ""
+                    print(f"{path}: slide {r.slide_id}: {r.start}-{r.stop} ({obj['duration_s']:.2f} s), {r.quality.get('windows', 0)} windows: "
+                          f"{r.label or '-'}{conf}{why}{early}{truth}", flush=True)
+            print(f"{path}: {summary_line(results, rec)}", file=sys.stderr if args.json else sys.stdout, flush=True)
     finally:
         if publisher is not None:
             publisher.close()
@@ -136,52 +144,34 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_features(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from tactiled.analysis import AnalysisSettings
-    from tactiled.recording import atomic_savez
-    from tactiled.train import collect, load_recordings
+    from tactiled.dataset import load_recordings
+    from tactiled.features_file import write_features
 
     config = _config(args)
-    recs = load_recordings(args.files)
+    recs = load_recordings(args.files, _stderr)
     if not recs:
         raise TactiledError("no readable recordings")
-    channels = min(r.channels for _, r in recs)
-    ds = collect(recs, config, AnalysisSettings.from_config(config, channels), progress=lambda m: print(m, file=sys.stderr), require_labels=False)
-    atomic_savez(args.output, {"x": ds.x, "names": np.array(ds.names), "labels": ds.y, "groups": ds.groups, "files": np.array(ds.files, dtype=np.str_),
-                               "start": ds.starts, "stop": ds.stops})
-    print(f"{args.output}: {ds.x.shape[0]} slides x {ds.x.shape[1]} features" + (f" (skipped {ds.skipped})" if ds.skipped else ""))
+    ws = write_features(args.output, recs, config)
+    print(f"{args.output}: {ws.x.shape[0]} windows of {len(ws.slides)} slides x {ws.x.shape[1]} features"
+          + (f" (slides without a window: {ws.skipped})" if ws.skipped else ""))
     return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
 
 
-def cmd_train(args: argparse.Namespace) -> int:
-    from tactiled.analysis import AnalysisSettings
-    from tactiled.train import DEFAULT_PARAMS, collect, fit_model, load_recordings, measure_onset_lag
+def _stderr(msg: str) -> None:
+    print(f"tactiled: {msg}", file=sys.stderr, flush=True)
 
-    def progress(msg: str) -> None:
-        print(f"train: {msg}", file=sys.stderr, flush=True)
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from tactiled.train import train
 
     config = _config(args)
-    recs = load_recordings(args.files)
-    if len(recs) != len(args.files):
-        raise TactiledError("unreadable recordings (listed above); nothing written")
-    fs = {r.fs for _, r in recs}
-    channels = {r.channels for _, r in recs}
-    if len(fs) != 1 or len(channels) != 1:
-        raise TactiledError(f"recordings differ in fs {sorted(fs)} or channels {sorted(channels)}; train one rate at a time")
-    lag, lags = measure_onset_lag([r for _, r in recs], config)
-    progress(f"detector onset lag: median {lag * 1e3:.1f} ms over {lags.size} slides")
-    settings = AnalysisSettings.from_config(config, channels.pop())
-    settings = AnalysisSettings(**{**settings.__dict__, "onset_lag_s": lag})
-    ds = collect(recs, config, settings, progress)
-    progress(f"{len(ds.y)} slides, {len(set(ds.y.tolist()))} surfaces, {ds.x.shape[1]} candidate features")
-    params = dict(DEFAULT_PARAMS[args.classifier])
-    if args.hidden and args.classifier == "elm":
-        params["n_hidden"] = args.hidden
-    model = fit_model(ds, settings, args.classifier, params, args.features, args.seed, fs.pop(), recs[0][1].channels, progress)
-    model.summary["onset_lag_s"] = lag
-    fingerprint = model.save(args.output)
-    print(f"{args.output}: {args.classifier} on {len(model.names)} features ({', '.join(model.names)}), {len(model.classes)} classes, "
+    result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
+                   scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True))
+    print("leaderboard (slide accuracy, grouped by file: mean ± sd over folds):")
+    for row in result.leaderboard:
+        print(f"  {row['candidate']:<28s} {100 * row['mean']:5.1f} ± {100 * row['sd']:4.1f} %")
+    fingerprint = result.model.save(args.output)
+    print(f"{args.output}: {result.model.describe()}; nested CV {100 * result.nested['mean']:.1f} ± {100 * result.nested['sd']:.1f} %; "
           f"fingerprint {fingerprint}")
     return EXIT_OK
 
@@ -189,27 +179,30 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_score(args: argparse.Namespace) -> int:
     import json
 
+    from tactiled.dataset import load_recordings
     from tactiled.model import load_model
-    from tactiled.score import score_report
-    from tactiled.train import collect, load_recordings
+    from tactiled.score import score_recordings
 
     config = _config(args)
     model = load_model(args.model)
-    recs = load_recordings(args.files)
+    recs = load_recordings(args.files, _stderr)
     for name, rec in recs:
         model.check_stream(rec.fs, rec.channels, name)
-    truth_only = [(n, r) for n, r in recs if r.slides()]
-    ds = collect(truth_only, config, model.settings)
-    if not len(ds.y):
-        raise TactiledError("no ground-truth slides to score")
-    report = score_report(ds.y, model.predict(ds.x), model.classes)
-    report["skipped"] = ds.skipped
+    scored = [(n, r) for n, r in recs if r.slides() or r.label is not None]
+    if not scored:
+        raise TactiledError("no recording with ground truth (per-slide surfaces or a file label) to score")
+    report = score_recordings(scored, config, model)
     if args.json:
         print(json.dumps(report))
     else:
-        print(f"accuracy {report['accuracy']:.4f} over {report['n']} slides")
+        print(f"accuracy {report['accuracy']:.4f} ({report['correct']} of {report['n']} true slides); coverage {report['coverage']:.4f} "
+              f"({report['labelled']} labelled); accuracy of the labelled {report['accuracy_of_labelled']:.4f}")
+        if report["abstained"]:
+            print("no label: " + ", ".join(f"{k} {v}" for k, v in sorted(report["abstained"].items())))
+        if report["unpaired_detections"]:
+            print(f"detections outside any true slide: {report['unpaired_detections']}")
         for c, r in report["recall"].items():
-            print(f"  {c:>10s}: recall {r:.3f}")
+            print(f"  {c:>12s}: recall {r:.3f}")
     return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
 
 
@@ -279,18 +272,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from tactiled.dataset import load_recordings
     from tactiled.evaluate import run_evaluation
-    from tactiled.train import load_recordings
 
     config = _config(args)
-    recs = [(n, r) for n, r in load_recordings(args.files) if r.slides()]
+    recs = [(n, r) for n, r in load_recordings(args.files, _stderr) if r.slides()]
     if len(recs) < 2:
         raise TactiledError("evaluation needs at least two readable recordings with ground-truth slides")
     if len({(r.fs, r.channels) for _, r in recs}) != 1:
         raise TactiledError("recordings differ in fs or channels; evaluate one kind at a time")
     results = run_evaluation(recs, config, Path(args.report), experiments=args.experiments, folds=args.folds, quick=args.quick, seed=args.seed,
                              progress=lambda m: print(f"evaluate: {m}", file=sys.stderr, flush=True))
-    print(f"{args.report}/report.md: {len(recs)} recordings, {results['seconds']:.0f} s")
+    print(f"{Path(args.report) / 'report.md'}: {len(recs)} recordings, {results['seconds']:.0f} s")
     return EXIT_OK
 
 
@@ -419,22 +412,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config")
     p.set_defaults(handler=cmd_features)
 
-    p = sub.add_parser("train", help="train a model from labelled recordings")
-    p.add_argument("files", nargs="+")
-    p.add_argument("-o", "--output", required=True)
-    p.add_argument("--config")
-    p.add_argument("--classifier", choices=("elm", "knn", "svm"), default="elm")
-    p.add_argument("--features", default="auto", help="N to select, auto (stop when CV accuracy stops rising), or all")
-    p.add_argument("--hidden", type=int, default=None, help="ELM hidden units")
-    p.add_argument("--seed", type=int, default=0)
+    p = sub.add_parser("train", help="train a model from labelled recordings (finds what works on them)")
+    p.add_argument("files", nargs="+", help="labelled recordings (.npz): per-slide ground truth or a file-level label")
+    p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
+    p.add_argument("--config", help="config file (detector, spikes, feature settings)")
+    p.add_argument("--method", choices=("auto", "paper"), default="auto",
+                   help="auto: pick features, classifier and windows by nested grouped CV; paper: the papers' DWT + SFS + ELM (default: auto)")
+    p.add_argument("--folds", type=int, default=5, help="outer cross-validation folds, grouped by file (default: 5)")
+    p.add_argument("--min-slides", type=int, default=2, help="fewest slides a surface needs (default: 2)")
+    p.add_argument("--drop-rare", action="store_true", help="train without surfaces that have too few slides instead of stopping")
+    p.add_argument("--scheduler", help="dask.distributed scheduler address (tcp://host:port) to run the cross-validation on a cluster")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.set_defaults(handler=cmd_train)
 
     p = sub.add_parser("evaluate", help="the papers' experiments by grouped cross-validation")
     p.add_argument("files", nargs="+")
     p.add_argument("--report", required=True, help="output folder: report.md, report.json, PNG figures")
     p.add_argument("--config")
-    p.add_argument("--experiments", default="abcdef", help="a: classifiers, b: window grid, c: sampling rate, d: feature count, "
-                   "e: clustering, f: error against run time (default all)")
+    p.add_argument("--experiments", default="abcdefg", help="a: classifiers, b: window grid, c: sampling rate, d: feature count, "
+                   "e: clustering, f: error against run time, g: the default method against decision time (default: all)")
     p.add_argument("--folds", type=int, default=5)
     p.add_argument("--quick", action="store_true", help="small grids and fewer features (for tests)")
     p.add_argument("--seed", type=int, default=0)

@@ -101,14 +101,19 @@ class DetectorConfig:
 
 @dataclass(frozen=True)
 class WindowConfig:
-    """The analysis window: ``start_s`` after the slide's onset, ``duration_s`` long."""
+    """Analysis windows when no model is loaded (a model carries its own): ``duration_s`` long, the first
+    ``start_s`` after the slide's start, one every ``hop_s`` (0: back to back), at most ``max_windows`` (0: all)."""
 
-    start_s: float = 0.3
+    start_s: float = 0.0
     duration_s: float = 0.5
+    hop_s: float = 0.0
+    max_windows: int = 0
 
     def validate(self, p: str) -> None:
-        _check(self.start_s >= 0, f"{p}.start_s", "must be >= 0")
-        _check(self.duration_s > 0, f"{p}.duration_s", "must be > 0")
+        _check(0 <= self.start_s <= 60, f"{p}.start_s", "must be in [0, 60] s")
+        _check(0 < self.duration_s <= 60, f"{p}.duration_s", "must be in (0, 60] s")
+        _check(0 <= self.hop_s <= 60, f"{p}.hop_s", "must be in [0, 60] s (0: hop = duration_s)")
+        _check(0 <= self.max_windows <= 10_000, f"{p}.max_windows", "must be in 0..10000 (0: every window of the slide)")
 
 
 @dataclass(frozen=True)
@@ -134,6 +139,7 @@ class FeaturesConfig:
     mode: str = "symmetric"
     domains: tuple[str, ...] = ("time", "freq")
     stats: tuple[str, ...] = STAT_NAMES
+    families: tuple[str, ...] = ("dwt",)
 
     def validate(self, p: str) -> None:
         import pywt
@@ -147,13 +153,17 @@ class FeaturesConfig:
 
 @dataclass(frozen=True)
 class ClassifierConfig:
-    """When the daemon abstains instead of publishing a label."""
+    """When the daemon publishes a provisional label, and when it abstains instead of publishing a label.
+
+    ``max_saturated`` 1.0: clipped windows are labelled (their clipped fraction is in ``quality``)."""
 
     min_confidence: float = 0.0
-    max_saturated: float = 0.01
+    provisional_confidence: float = 0.9
+    max_saturated: float = 1.0
     max_lost: float = 0.02
 
     def validate(self, p: str) -> None:
+        _check(0.0 <= self.provisional_confidence <= 1.0, f"{p}.provisional_confidence", "must be in [0, 1] (1: no provisional labels)")
         _check(0.0 <= self.max_lost <= 0.5, f"{p}.max_lost", "must be in [0, 0.5]")
         _check(0.0 <= self.min_confidence <= 1.0, f"{p}.min_confidence", "must be in [0, 1]")
         _check(0.0 <= self.max_saturated <= 1.0, f"{p}.max_saturated", "must be in [0, 1]")

@@ -130,6 +130,13 @@ class SlideDetector:
         self._pending_index += hops * self.hop
         return events
 
+    def finish(self) -> list[Event]:
+        """End of stream: a slide in progress ends after the last sample fed (reason ``end_of_stream``)."""
+        if not self.sliding or self._pending_index is None:
+            return []
+        end = self._pending_index + self._pending.shape[0]
+        return self._finish(self._quiet_since if self._quiet_since is not None else end, "end_of_stream")
+
     def _step(self, at: int, env: float, valid: bool = True) -> list[Event]:
         c, hop = self.c, self.hop
         self.envelope = env

@@ -21,7 +21,8 @@ import numpy.typing as npt
 from scipy import linalg, optimize
 from sklearn.base import BaseEstimator, ClassifierMixin
 from sklearn.model_selection import StratifiedKFold
-from sklearn.utils.validation import check_is_fitted
+from sklearn.utils.multiclass import check_classification_targets
+from sklearn.utils.validation import check_is_fitted, validate_data
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -58,7 +59,12 @@ def ridge_solve(h: FloatArray, t: FloatArray, alpha: float) -> FloatArray:
 
 
 class ELMClassifier(ClassifierMixin, BaseEstimator):  # type: ignore[misc]
-    """Extreme learning machine: ``n_hidden`` sigmoid units, ridge ``alpha``, seeded ``random_state``."""
+    """Extreme learning machine: ``n_hidden`` sigmoid units, ridge ``alpha``, seeded ``random_state``.
+
+    Follows the scikit-learn estimator contract (``check_estimator`` passes): parameters
+    stored in ``__init__``, learned attributes ending in ``_``, ``fit`` returns self. For two
+    classes ``decision_function`` returns (n,) (positive means ``classes_[1]``), else (n, K).
+    """
 
     def __init__(self, n_hidden: int = 200, alpha: float = 1e-6, random_state: int = 0, calibrate: bool = True, init: str = "hpelm") -> None:
         self.n_hidden = n_hidden
@@ -85,18 +91,20 @@ class ELMClassifier(ClassifierMixin, BaseEstimator):  # type: ignore[misc]
         t[np.arange(x.shape[0]), y_idx] = 1.0
         self.beta_ = ridge_solve(self._hidden(x), t, self.alpha)
 
-    def fit(self, x: npt.ArrayLike, y: npt.ArrayLike) -> ELMClassifier:
-        x = np.asarray(x, dtype=np.float64)
-        y = np.asarray(y)
-        if x.ndim != 2 or x.shape[0] != y.shape[0] or x.shape[0] == 0:
-            raise ValueError(f"x must be (n, d) and y (n,); got {x.shape} and {y.shape}")
-        if not np.all(np.isfinite(x)):
-            raise ValueError("x contains NaN or Inf")
+    def fit(self, X: npt.ArrayLike, y: npt.ArrayLike) -> ELMClassifier:
+        if not (isinstance(self.n_hidden, (int, np.integer)) and 1 <= self.n_hidden <= 100_000):
+            raise ValueError(f"n_hidden must be an integer in 1..100000, got {self.n_hidden!r}")
+        if not (np.isfinite(self.alpha) and self.alpha >= 0):
+            raise ValueError(f"alpha must be finite and >= 0, got {self.alpha!r}")
+        if self.init not in ("hpelm", "huang"):
+            raise ValueError(f"init must be 'hpelm' or 'huang', got {self.init!r}")
+        x: FloatArray
+        x, y = validate_data(self, X, y, dtype=np.float64, y_numeric=False)
+        check_classification_targets(y)
         self.classes_, y_idx = np.unique(y, return_inverse=True)
-        self.n_features_in_ = x.shape[1]
-        k = len(self.classes_)
+        k = max(len(self.classes_), 2)  # one class: two outputs, so the solver and the softmax stay well defined
         self.temperature_ = 1.0
-        if self.calibrate and k > 1:
+        if self.calibrate and len(self.classes_) > 1:
             counts = np.bincount(y_idx)
             folds = min(5, int(counts.min()))
             if folds >= 2:
@@ -114,14 +122,27 @@ class ELMClassifier(ClassifierMixin, BaseEstimator):  # type: ignore[misc]
         self._fit_core(x, y_idx, k)
         return self
 
-    def decision_function(self, x: npt.ArrayLike) -> FloatArray:
+    def _scores(self, x: npt.ArrayLike) -> FloatArray:
+        """Decision values (n, K) for every class (K >= 2)."""
         check_is_fitted(self, "beta_")
-        out: FloatArray = self._hidden(np.asarray(x, dtype=np.float64)) @ self.beta_
+        z: FloatArray = validate_data(self, x, dtype=np.float64, reset=False)
+        out: FloatArray = self._hidden(z) @ self.beta_
         return out
 
+    def decision_function(self, x: npt.ArrayLike) -> FloatArray:
+        scores = self._scores(x)
+        if len(self.classes_) == 2:
+            binary: FloatArray = (scores[:, 1] - scores[:, 0]) / 2
+            return binary
+        return scores[:, : len(self.classes_)]
+
     def predict_proba(self, x: npt.ArrayLike) -> FloatArray:
-        return _softmax(self.decision_function(x) / self.temperature_)
+        scores = self._scores(x)
+        if len(self.classes_) == 1:
+            return np.ones((scores.shape[0], 1))
+        return _softmax(scores / self.temperature_)
 
     def predict(self, x: npt.ArrayLike) -> npt.NDArray[Any]:
-        out: npt.NDArray[Any] = self.classes_[np.argmax(self.decision_function(x), axis=1)]
+        scores = self._scores(x)
+        out: npt.NDArray[Any] = self.classes_[np.argmax(scores[:, : len(self.classes_)], axis=1)]
         return out

@@ -60,6 +60,19 @@ def band_stats(c: npt.NDArray[np.float64], stats: Iterable[str]) -> dict[str, fl
     return out
 
 
+FAMILIES = ("dwt",)
+
+
+def name_family(name: str) -> str:
+    """The family of a feature name (interim: the DWT family only)."""
+    return "dwt"
+
+
+def family_names(family: str, channels: int, fs: float, settings: object = None) -> list[str]:
+    """Every feature name of ``family`` (interim: the DWT family only)."""
+    return feature_names(channels) if family == "dwt" else []
+
+
 SCALE_STATS = ("sd", "energy", "rms")  # positive, spanning decades: classifiers see their log
 
 
@@ -101,7 +114,8 @@ def parse_name(name: str) -> ParsedName:
 class FeaturePlan:
     """What to compute for a list of feature names; :meth:`compute` returns them in that order."""
 
-    def __init__(self, names: Sequence[str], wavelet: str = "coif5", mode: str = "symmetric") -> None:
+    def __init__(self, names: Sequence[str], wavelet: str = "coif5", mode: str = "symmetric", fs: float = 20_000.0) -> None:
+        self.fs = fs
         self.names = list(names)
         self.wavelet = pywt.Wavelet(wavelet)
         self.mode = mode

@@ -1,19 +1,34 @@
-"""Model files: ``.npz`` of plain arrays plus a JSON header; never pickle.
+"""Models: a scikit-learn pipeline over window features, and its files (``.npz`` + JSON; never pickle).
 
-Arrays: ``header`` (0-d unicode, JSON), ``classes`` (K,) unicode, ``scaler_mean`` and
-``scaler_scale`` (F,) (of the classifier inputs: log10 of sd/energy/rms features), and per classifier: ELM ``weights`` (F, L), ``biases`` (L,),
-``beta`` (L, K), ``temperature`` (); kNN and SVM ``train_x`` (n, F) and ``train_y`` (n,)
-(libsvm and kNN are deterministic, so they are refit from their training set at load).
-The header carries the format and its version, the classifier and its parameters, the
-analysis settings (window, spikes, wavelet, feature names), fs, channels, a training
-summary, and ``fingerprint``: the SHA-256 (first 16 hex digits) of the header without it
-and of every array's bytes. Loading checks all of it and refuses a mismatch with one line.
+A model classifies windows of a slide and combines them (:meth:`Model.fuse`):
+
+    raw features (n, F) ─▶ log10 of scale features ─▶ StandardScaler ─▶ classifier ─▶ scores (n, K)
+    slide: mean of its windows' scores ─▶ softmax(mean / temperature) ─▶ probabilities (K,)
+
+``pipeline`` is a real :class:`sklearn.pipeline.Pipeline` (steps ``log``, ``scale``,
+``clf``), so scikit-learn's tools work on it. The classifier is one of ``elm`` (the
+papers' extreme learning machine), ``knn``, ``svm`` (RBF) or ``linear`` (L2-regularised
+multinomial logistic regression). Scores are the classifier's decision values (log
+probabilities for kNN); ``temperature`` is fitted on out-of-fold slides in training so
+that a slide's confidence is calibrated.
+
+File arrays: ``header`` (0-d unicode, JSON), ``classes`` (K,) unicode, ``scaler_mean`` and
+``scaler_scale`` (F,); per classifier: elm ``weights`` (F, L), ``biases`` (L,), ``beta``
+(L, K'), ``elm_temperature`` (); linear ``coef`` (K'', F), ``intercept`` (K'',); knn and
+svm ``train_x`` (n, F) standardised and ``train_y`` (n,) (both deterministic, refit at
+load; at most :data:`MAX_REFIT_ROWS` rows so a load never hangs). The header carries the
+format and its version, the method, the classifier and its parameters, the analysis
+settings (windows, spikes, feature names), fs, channels, temperature, a training summary
+(including the cross-validated accuracy), and ``fingerprint``: the SHA-256 (first 16 hex
+digits) of the header without it and of every array's bytes. Loading checks all of it,
+runs a probe prediction, and refuses anything wrong with one line naming file and part.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -23,15 +38,16 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.analysis import AnalysisSettings
-from tactiled.elm import ELMClassifier, _softmax
 from tactiled.errors import ModelError
-from tactiled.features import classifier_inputs
-from tactiled.npzio import NpzError, read_npz
+from tactiled.features import FeaturePlan, classifier_inputs
+from tactiled.npzio import NpzError, load_json_bounded, read_npz
 from tactiled.recording import atomic_savez
 
 FORMAT = "tactiled-model"
-FORMAT_VERSION = 1
-CLASSIFIERS = ("elm", "knn", "svm")
+FORMAT_VERSION = 2
+CLASSIFIERS = ("elm", "knn", "svm", "linear")
+MAX_REFIT_ROWS = 20_000
+MAX_FEATURES = 4096
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -41,62 +57,154 @@ def default_model_path() -> Path:
 
 
 def make_classifier(kind: str, params: dict[str, Any], seed: int = 0) -> Any:
-    """A fresh scikit-learn estimator of ``kind`` (elm, knn, svm) with ``params``."""
+    """A fresh scikit-learn estimator of ``kind`` (elm, knn, svm, linear) with ``params``."""
     if kind == "elm":
+        from tactiled.elm import ELMClassifier
+
         return ELMClassifier(n_hidden=int(params.get("n_hidden", 200)), alpha=float(params.get("alpha", 1e-6)), random_state=seed,
-                             init=str(params.get("init", "hpelm")))
+                             init=str(params.get("init", "hpelm")), calibrate=bool(params.get("calibrate", False)))
     if kind == "knn":
-        from sklearn.neighbors import KNeighborsClassifier  # imported on demand: the daemon with an ELM never needs it
+        from sklearn.neighbors import KNeighborsClassifier
 
         return KNeighborsClassifier(n_neighbors=int(params.get("n_neighbors", 9)))
     if kind == "svm":
         from sklearn.svm import SVC
 
         return SVC(kernel=str(params.get("kernel", "rbf")), C=float(params.get("C", 10.0)), gamma=params.get("gamma", "scale"), random_state=seed)
+    if kind == "linear":
+        from sklearn.linear_model import LogisticRegression
+
+        return LogisticRegression(C=float(params.get("C", 1.0)), max_iter=int(params.get("max_iter", 1000)))
     raise ModelError(f"unknown classifier {kind!r}; choose one of {', '.join(CLASSIFIERS)}")
+
+
+class LogFeatures:
+    """The pipeline's first step: :func:`tactiled.features.classifier_inputs` for ``names`` (stateless)."""
+
+    def __init__(self, names: tuple[str, ...] | list[str] = ()) -> None:
+        self.names = names
+
+    def fit(self, x: Any, y: Any = None) -> LogFeatures:
+        return self
+
+    def transform(self, x: Any) -> FloatArray:
+        return classifier_inputs(np.asarray(x, dtype=np.float64), list(self.names))
+
+    def get_params(self, deep: bool = True) -> dict[str, Any]:
+        return {"names": self.names}
+
+    def set_params(self, **params: Any) -> LogFeatures:
+        self.names = params.get("names", self.names)
+        return self
+
+
+def make_pipeline(names: tuple[str, ...] | list[str], kind: str, params: dict[str, Any], seed: int = 0) -> Any:
+    """An unfitted sklearn Pipeline: log of scale features → standardise → classifier."""
+    from sklearn.pipeline import Pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    return Pipeline([("log", LogFeatures(tuple(names))), ("scale", StandardScaler()), ("clf", make_classifier(kind, params, seed))])
+
+
+def decision_scores(clf: Any, z: FloatArray) -> FloatArray:
+    """Scores (n, K) of a fitted classifier, columns in ``clf.classes_`` order, higher is likelier.
+
+    Decision values where the classifier has them (a binary (n,) becomes ±d/2), else the log
+    of its probabilities (floored at 1e-3, so one window can never veto a class).
+    """
+    if hasattr(clf, "decision_function") and len(clf.classes_) > 1:
+        d = np.asarray(clf.decision_function(z), dtype=np.float64)
+        if d.ndim == 1:
+            d = np.stack([-d / 2, d / 2], axis=1)
+        return d
+    p = np.asarray(clf.predict_proba(z), dtype=np.float64)
+    return np.log(np.clip(p, 1e-3, None))
+
+
+def softmax(z: FloatArray, temperature: float = 1.0) -> FloatArray:
+    """Row-wise softmax of ``z / temperature`` (finite for any finite input)."""
+    z = np.asarray(z, dtype=np.float64) / temperature
+    z = z - z.max(axis=-1, keepdims=True)
+    e = np.exp(z)
+    out: FloatArray = e / e.sum(axis=-1, keepdims=True)
+    return out
+
+
+def fit_temperature(scores: FloatArray, y_idx: npt.NDArray[np.intp], smoothing: float = 0.02) -> float:
+    """Temperature T minimising the log loss of softmax(scores / T) against ``y_idx`` (rows = slides).
+
+    The targets are label-smoothed (``smoothing`` of the mass spread over the other classes),
+    so perfectly separated training slides do not drive T to zero and every confidence to 1.
+    Slides with no window, or whose true class the fold's model never saw, are ignored;
+    other classes it never saw count as far less likely than any seen one.
+    """
+    from scipy import optimize
+
+    ok = y_idx >= 0
+    ok[ok] = np.isfinite(scores[ok, y_idx[ok]])
+    if ok.sum() < 2 or scores.shape[1] < 2:
+        return 1.0
+    s, y = scores[ok], y_idx[ok]
+    low = np.where(np.isfinite(s), s, np.inf).min(axis=1, keepdims=True) - 20.0
+    s = np.where(np.isfinite(s), s, low)
+    k = s.shape[1]
+    target = np.full(s.shape, smoothing / (k - 1))
+    target[np.arange(len(y)), y] = 1.0 - smoothing
+
+    def nll(log_t: float) -> float:
+        p = softmax(s, math.exp(log_t))
+        return float(-np.mean(np.sum(target * np.log(np.clip(p, 1e-300, None)), axis=1)))
+
+    res = optimize.minimize_scalar(nll, bounds=(-8.0, 6.0), method="bounded")
+    return float(math.exp(res.x))
 
 
 @dataclass
 class Model:
-    """A trained classifier with everything needed to use it on a stream."""
+    """A trained window classifier with everything needed to use it on a stream."""
 
+    method: str
     kind: str
     params: dict[str, Any]
     classes: list[str]
     settings: AnalysisSettings
     fs: float
     channels: int
-    scaler_mean: FloatArray
-    scaler_scale: FloatArray
-    estimator: Any
+    pipeline: Any
+    temperature: float = 1.0
     seed: int = 0
     summary: dict[str, Any] = field(default_factory=dict)
     fingerprint: str = ""
-    train_x: FloatArray | None = None
-    train_y: npt.NDArray[np.str_] | None = None
+    refit: tuple[FloatArray, npt.NDArray[np.str_]] | None = None  # kNN/SVM: standardised training set and labels, stored in the file
 
     @property
     def names(self) -> tuple[str, ...]:
         return self.settings.names
 
-    def predict_proba(self, x: npt.ArrayLike) -> FloatArray:
-        """(n, K) class probabilities, columns in :attr:`classes` order, for raw features x (n, F)."""
-        z = (classifier_inputs(np.asarray(x, dtype=np.float64).reshape(-1, len(self.names)), self.names) - self.scaler_mean) / self.scaler_scale
-        if self.kind == "svm":
-            scores = self.estimator.decision_function(z)
-            if scores.ndim == 1:
-                scores = np.stack([-scores, scores], axis=1)
-            out: FloatArray = _softmax(np.asarray(scores, dtype=np.float64))
-        else:
-            out = np.asarray(self.estimator.predict_proba(z), dtype=np.float64)
-        full = np.zeros((out.shape[0], len(self.classes)))
+    def scores(self, x: npt.ArrayLike) -> FloatArray:
+        """Window scores (n, K), columns in :attr:`classes` order, for raw features x (n, F)."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, len(self.names))
+        z = self.pipeline[:-1].transform(x)
+        clf = self.pipeline[-1]
+        raw = decision_scores(clf, z)
+        if len(clf.classes_) == len(self.classes) and all(str(c) == k for c, k in zip(clf.classes_, self.classes, strict=True)):
+            return raw
+        full = np.full((raw.shape[0], len(self.classes)), raw.min() - 10.0 if raw.size else -10.0)
         index = {c: i for i, c in enumerate(self.classes)}
-        for j, c in enumerate(self.estimator.classes_):
-            full[:, index[str(c)]] = out[:, j]
+        for j, c in enumerate(clf.classes_):
+            full[:, index[str(c)]] = raw[:, j]
         return full
 
+    def fuse(self, scores: FloatArray) -> FloatArray:
+        """Probabilities (K,) of a slide from the scores (w, K) of its windows (w >= 1)."""
+        return softmax(np.asarray(scores, dtype=np.float64).mean(axis=0), self.temperature)
+
+    def predict_proba(self, x: npt.ArrayLike) -> FloatArray:
+        """(n, K) probabilities of single windows."""
+        return softmax(self.scores(x), self.temperature)
+
     def predict(self, x: npt.ArrayLike) -> npt.NDArray[np.str_]:
-        return np.asarray(self.classes)[np.argmax(self.predict_proba(x), axis=1)]
+        return np.asarray(self.classes)[np.argmax(self.scores(x), axis=1)]
 
     def check_stream(self, fs: float, channels: int, where: str = "stream") -> None:
         """Refuse a stream of another rate or channel count (one line)."""
@@ -105,23 +213,33 @@ class Model:
         if channels < self.channels:
             raise ModelError(f"model needs {self.channels} channels, {where} has {channels}")
 
+    def describe(self) -> str:
+        """One line: method, classifier, features, windows, cross-validated accuracy."""
+        cv = self.summary.get("cv_accuracy")
+        acc = f", CV accuracy {cv['mean']:.3f} ± {cv['sd']:.3f}" if isinstance(cv, dict) else ""
+        s = self.settings
+        return (f"{self.method}: {self.kind} on {len(self.names)} features, windows {s.duration_s:g} s every {s.hop():g} s from "
+                f"{s.start_s:g} s{' (at most ' + str(s.max_windows) + ')' if s.max_windows else ''}, {len(self.classes)} classes{acc}")
+
     # ---- persistence -------------------------------------------------------------------------
 
     def _arrays(self) -> dict[str, Any]:
-        arrays: dict[str, Any] = {"classes": np.array(self.classes, dtype=np.str_), "scaler_mean": self.scaler_mean,
-                                  "scaler_scale": self.scaler_scale}
+        scaler, clf = self.pipeline.named_steps["scale"], self.pipeline.named_steps["clf"]
+        arrays: dict[str, Any] = {"classes": np.array(self.classes, dtype=np.str_), "scaler_mean": np.asarray(scaler.mean_, dtype=np.float64),
+                                  "scaler_scale": np.asarray(scaler.scale_, dtype=np.float64)}
         if self.kind == "elm":
-            e = self.estimator
-            arrays.update(weights=e.weights_, biases=e.biases_, beta=e.beta_, temperature=np.float64(e.temperature_))
+            arrays.update(weights=clf.weights_, biases=clf.biases_, beta=clf.beta_, elm_temperature=np.float64(clf.temperature_))
+        elif self.kind == "linear":
+            arrays.update(coef=np.asarray(clf.coef_, dtype=np.float64), intercept=np.asarray(clf.intercept_, dtype=np.float64))
         else:
-            assert self.train_x is not None and self.train_y is not None
-            arrays.update(train_x=self.train_x, train_y=np.asarray(self.train_y, dtype=np.str_))
+            assert self.refit is not None, "a kNN or SVM model keeps its training set"
+            arrays.update(train_x=np.asarray(self.refit[0], dtype=np.float64), train_y=np.asarray(self.refit[1], dtype=np.str_))
         return arrays
 
     def _header(self) -> dict[str, Any]:
-        return {"format": FORMAT, "version": FORMAT_VERSION, "classifier": self.kind, "params": self.params, "seed": self.seed,
-                "classes": self.classes, "settings": self.settings.to_dict(), "fs": self.fs, "channels": self.channels,
-                "summary": self.summary}
+        return {"format": FORMAT, "version": FORMAT_VERSION, "method": self.method, "classifier": self.kind, "params": self.params,
+                "seed": self.seed, "classes": self.classes, "settings": self.settings.to_dict(), "fs": self.fs, "channels": self.channels,
+                "temperature": self.temperature, "summary": self.summary}
 
     def save(self, path: str | Path) -> str:
         """Write atomically; returns the fingerprint."""
@@ -131,6 +249,22 @@ class Model:
         header["fingerprint"] = self.fingerprint
         atomic_savez(path, {"header": np.str_(json.dumps(header, sort_keys=True)), **arrays})
         return self.fingerprint
+
+
+def fit_pipeline(x: FloatArray, y: npt.NDArray[Any], names: list[str] | tuple[str, ...], kind: str, params: dict[str, Any],
+                 seed: int = 0) -> tuple[Any, tuple[FloatArray, npt.NDArray[np.str_]] | None]:
+    """Fit :func:`make_pipeline` on raw features ``x`` (n, F).
+
+    Returns the pipeline and, for kNN and SVM (refit at load), their standardised training
+    set, at most :data:`MAX_REFIT_ROWS` rows (a seeded subsample beyond that).
+    """
+    pipe = make_pipeline(names, kind, params, seed)
+    if kind in ("svm", "knn") and x.shape[0] > MAX_REFIT_ROWS:
+        keep = np.sort(np.random.default_rng(seed).choice(x.shape[0], MAX_REFIT_ROWS, replace=False))
+        x, y = x[keep], y[keep]
+    pipe.fit(x, y)
+    refit = (pipe[:-1].transform(x), np.asarray(y, dtype=np.str_)) if kind in ("svm", "knn") else None
+    return pipe, refit
 
 
 def _fingerprint(header: dict[str, Any], arrays: dict[str, Any]) -> str:
@@ -156,17 +290,54 @@ def load_model(path: str | Path | None = None) -> Model:
         raise ModelError(f"{path}: array {exc.key}: {what}" if exc.key else f"{path}: {what}") from None
     _need("header" in arrays and arrays["header"].shape == () and arrays["header"].dtype.kind == "U", path, "header: missing or not a string")
     try:
-        header = json.loads(arrays.pop("header").item())
-    except json.JSONDecodeError as exc:
-        raise ModelError(f"{path}: header: not JSON: {exc}") from None
+        header = load_json_bounded(arrays.pop("header").item(), "header")
+    except ValueError as exc:
+        raise ModelError(f"{path}: {exc}") from None
     _need(isinstance(header, dict) and header.get("format") == FORMAT, path, f"header.format: not a {FORMAT} file")
-    _need(header.get("version") == FORMAT_VERSION, path, f"header.version: {header.get('version')!r} is not the supported {FORMAT_VERSION}")
+    _need(header.get("version") == FORMAT_VERSION, path,
+          f"header.version: {header.get('version')!r} is not the supported {FORMAT_VERSION} (retrain with this tactiled)")
     try:
         return _build(path, header, arrays)
-    except (KeyError, TypeError, ValueError) as exc:
-        if isinstance(exc, ModelError):
-            raise
+    except ModelError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
         raise ModelError(f"{path}: header or arrays inconsistent: {exc}") from None
+
+
+def _finite(a: Any) -> bool:
+    return bool(np.issubdtype(np.asarray(a).dtype, np.floating) and np.all(np.isfinite(a)))
+
+
+def _check_settings(path: Path, s: AnalysisSettings, fs: float) -> None:
+    _need(all(math.isfinite(v) for v in (s.start_s, s.duration_s, s.hop_s, s.nsigma)), path, "settings: times must be finite")
+    _need(0 <= s.start_s <= 60 and 0 < s.duration_s <= 60 and 0 <= s.hop_s <= 60, path, "settings: start_s, duration_s, hop_s out of range")
+    _need(0 <= s.max_windows <= 10_000, path, "settings.max_windows: out of range 0..10000")
+    _need(s.spikes in ("mad", "hampel", "none") and 1 <= s.half_width <= 1000 and 0 < s.nsigma <= 1000, path, "settings: spike removal out of range")
+    _need(1 <= s.level <= 8, path, "settings.level: must be in 1..8")
+    _need(0 < len(s.names) <= MAX_FEATURES, path, f"settings.names: 1..{MAX_FEATURES} features")
+    try:
+        plan = FeaturePlan(s.names, s.wavelet, s.mode, fs=fs)
+    except ValueError as exc:
+        raise ModelError(f"{path}: settings: {exc}") from None
+    _need(plan.min_samples() <= round(s.duration_s * fs), path,
+          f"settings.duration_s: {s.duration_s:g} s is shorter than the {plan.min_samples()} samples the features need")
+
+
+def _check_params(path: Path, kind: str, params: dict[str, Any]) -> None:
+    def num(key: str, lo: float, hi: float) -> None:
+        if key in params:
+            v = params[key]
+            _need(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and lo <= v <= hi, path,
+                  f"params.{key}: must be in [{lo:g}, {hi:g}]")
+
+    num("n_hidden", 1, 100_000)
+    num("alpha", 0, 1e6)
+    num("n_neighbors", 1, 1000)
+    num("C", 1e-9, 1e9)
+    num("max_iter", 1, 100_000)
+    if kind == "svm":
+        _need(params.get("kernel", "rbf") in ("rbf", "linear") and (params.get("gamma", "scale") in ("scale", "auto")
+              or isinstance(params.get("gamma"), (int, float))), path, "params: svm kernel must be rbf or linear, gamma scale, auto or a number")
 
 
 def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any]) -> Model:
@@ -174,35 +345,57 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any]) -> Model:
     _need(fingerprint == _fingerprint(header, arrays), path, "fingerprint does not match the contents (tampered or corrupt)")
     kind = header["classifier"]
     _need(kind in CLASSIFIERS, path, f"header.classifier: unknown {kind!r}")
+    fs, channels = float(header["fs"]), int(header["channels"])
+    _need(math.isfinite(fs) and 100 <= fs <= 1e6 and 1 <= channels <= 8, path, "header: fs must be in 100 Hz..1 MHz and channels in 1..8")
     settings = AnalysisSettings.from_dict(header["settings"])
+    _check_settings(path, settings, fs)
     f = len(settings.names)
     classes = [str(c) for c in header["classes"]]
-    _need(f > 0 and len(classes) >= 1, path, "header: no features or no classes")
+    _need(1 <= len(classes) <= 10_000 and len(set(classes)) == len(classes), path, "header.classes: 1..10000 distinct classes")
     _need(list(arrays["classes"]) == classes, path, "classes: differ from the header's")
-    for key in ("scaler_mean", "scaler_scale"):
-        a = arrays[key]
-        _need(a.shape == (f,) and a.dtype == np.float64 and bool(np.all(np.isfinite(a))), path, f"{key}: must be ({f},) finite float64")
-    _need(bool(np.all(arrays["scaler_scale"] > 0)), path, "scaler_scale: must be > 0")
-    fs, channels = float(header["fs"]), int(header["channels"])
-    _need(fs > 0 and 1 <= channels <= 8, path, "header: fs must be > 0 and channels in 1..8")
     params, seed = dict(header["params"]), int(header["seed"])
-    estimator = make_classifier(kind, params, seed)
-    train_x = train_y = None
+    _check_params(path, kind, params)
+    temperature = float(header.get("temperature", 1.0))
+    _need(math.isfinite(temperature) and 1e-6 <= temperature <= 1e6, path, "header.temperature: must be finite, in [1e-6, 1e6]")
+    mean, scale = arrays["scaler_mean"], arrays["scaler_scale"]
+    for key, a in (("scaler_mean", mean), ("scaler_scale", scale)):
+        _need(a.shape == (f,) and _finite(a), path, f"{key}: must be ({f},) finite floats")
+    _need(bool(np.all(scale > 0)), path, "scaler_scale: must be > 0")
+    pipe = make_pipeline(settings.names, kind, params, seed)
+    scaler, clf = pipe.named_steps["scale"], pipe.named_steps["clf"]
+    scaler.mean_, scaler.scale_, scaler.var_ = mean, scale, scale**2
+    scaler.n_features_in_, scaler.n_samples_seen_ = f, 1
     if kind == "elm":
         w, b, beta = arrays["weights"], arrays["biases"], arrays["beta"]
         hidden = int(params.get("n_hidden", 200))
-        _need(w.shape == (f, hidden) and b.shape == (hidden,) and beta.shape == (hidden, len(classes)), path,
+        _need(w.shape == (f, hidden) and b.shape == (hidden,) and beta.shape == (hidden, max(len(classes), 2)), path,
               "weights, biases, beta: shapes do not match the header")
-        _need(all(bool(np.all(np.isfinite(a))) for a in (w, b, beta)), path, "weights: not finite")
-        estimator.weights_, estimator.biases_, estimator.beta_ = w, b, beta
-        estimator.temperature_ = float(arrays["temperature"])
-        estimator.classes_ = np.array(classes)
-        estimator.n_features_in_ = f
+        _need(all(_finite(a) for a in (w, b, beta)), path, "weights, biases, beta: must be finite floats")
+        t = float(arrays["elm_temperature"])
+        _need(math.isfinite(t) and t > 0, path, "elm_temperature: must be finite and > 0")
+        clf.weights_, clf.biases_, clf.beta_, clf.temperature_ = w, b, beta, t
+        clf.classes_, clf.n_features_in_ = np.array(classes), f
+    elif kind == "linear":
+        coef, intercept = arrays["coef"], arrays["intercept"]
+        rows = 1 if len(classes) == 2 else len(classes)
+        _need(coef.shape == (rows, f) and intercept.shape == (rows,) and _finite(coef) and _finite(intercept), path,
+              "coef, intercept: shapes do not match the header or not finite")
+        clf.coef_, clf.intercept_, clf.classes_, clf.n_features_in_ = coef, intercept, np.array(classes), f
     else:
         train_x, train_y = arrays["train_x"], arrays["train_y"]
-        _need(train_x.ndim == 2 and train_x.shape[1] == f and train_y.shape == (train_x.shape[0],) and train_x.dtype == np.float64,
-              path, "train_x, train_y: shapes do not match the header")
-        _need(bool(np.all(np.isfinite(train_x))), path, "train_x: not finite")
-        estimator.fit(train_x, train_y)
-    return Model(kind, params, classes, settings, fs, channels, arrays["scaler_mean"], arrays["scaler_scale"], estimator, seed,
-                 dict(header.get("summary", {})), fingerprint or "", train_x, train_y)
+        _need(train_x.ndim == 2 and train_x.shape[1] == f and 1 <= train_x.shape[0] <= MAX_REFIT_ROWS and train_y.shape == (train_x.shape[0],),
+              path, f"train_x, train_y: shapes do not match the header (at most {MAX_REFIT_ROWS} rows)")
+        _need(_finite(train_x), path, "train_x: must be finite floats")
+        _need(set(map(str, train_y)) == set(classes), path, "train_y: classes differ from the header's")
+        if kind == "knn":
+            _need(int(params.get("n_neighbors", 9)) <= train_x.shape[0], path, "params.n_neighbors: more than the training rows")
+        clf.fit(train_x, train_y)
+    model = Model(str(header.get("method", kind)), kind, params, classes, settings, fs, channels, pipe, temperature, seed,
+                  dict(header.get("summary", {})), fingerprint or "", None if kind in ("elm", "linear") else (train_x, train_y))
+    probe = np.abs(np.random.default_rng(0).standard_normal((3, f))) * 0.01
+    try:
+        p = model.fuse(model.scores(probe))
+    except (ValueError, FloatingPointError, ArithmeticError) as exc:
+        raise ModelError(f"{path}: probe prediction failed: {exc}") from None
+    _need(bool(np.all(np.isfinite(p))) and abs(float(p.sum()) - 1.0) < 1e-6, path, "probe prediction is not a finite probability")
+    return model

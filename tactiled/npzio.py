@@ -50,10 +50,48 @@ def read_npz(path: str | Path) -> dict[str, npt.NDArray[Any]]:
                     if nbytes > info.file_size:
                         raise NpzError(key, f"declares shape {shape} ({nbytes} bytes) but stores {info.file_size} bytes")
                 with zf.open(info) as fh:
-                    arrays[key] = np.lib.format.read_array(fh, allow_pickle=False)
+                    arr = np.lib.format.read_array(fh, allow_pickle=False)
+                if arr.dtype.kind == "U" and arr.size and int(np.ascontiguousarray(arr).view(np.uint32).max()) > 0x10FFFF:
+                    raise NpzError(key, "invalid unicode (code point beyond U+10FFFF)")
+                arrays[key] = arr
             except NpzError:
                 raise
             except (ValueError, OSError, zipfile.BadZipFile, EOFError, KeyError, MemoryError, NotImplementedError, RuntimeError,
                     SyntaxError, tokenize.TokenError) as exc:  # numpy parses the .npy header dict with tokenize
                 raise NpzError(key, f"corrupt array: {exc}") from None
     return arrays
+
+
+def load_json_bounded(text: str, what: str, max_bytes: int = 1_000_000, max_depth: int = 32) -> Any:
+    """``json.loads`` of a string read from a file, refusing more than ``max_bytes`` or nesting deeper than ``max_depth``.
+
+    Raises ValueError naming ``what``; the depth is checked before parsing, so a deeply
+    nested document cannot exhaust the recursion limit.
+    """
+    import json
+
+    if len(text) > max_bytes:
+        raise ValueError(f"{what}: JSON larger than {max_bytes} bytes")
+    depth = deepest = 0
+    in_string = escaped = False
+    for ch in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == '"':
+                in_string = False
+        elif ch == '"':
+            in_string = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+            if deepest > max_depth:
+                raise ValueError(f"{what}: JSON nested deeper than {max_depth} levels")
+        elif ch in "]}":
+            depth -= 1
+    try:
+        return json.loads(text)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise ValueError(f"{what}: not JSON: {exc}") from None

@@ -1,15 +1,24 @@
-"""The streaming pipeline shared by the daemon and replay.
+"""The streaming pipeline shared by the daemon, replay, scoring and the demo.
 
-samples (index, (n, C), valid) → ring buffer → slide detector → analysis window → spike
-removal + features (only those the model uses) → model → events. Driven by the sample
-index only: the same samples in any block sizes give the same events. The window is
-analysed as soon as it is complete (usually before the slide ends), so the label is ready
-when the slide's end is detected.
+samples (index, (n, C), valid) → ring buffer → slide detector → windows of the slide →
+spike removal + features (only those the model uses) → model scores → events. Driven by
+the sample index only: the same samples in any block sizes give the same events.
+
+A slide is cut into successive windows (:meth:`AnalysisSettings.spans`); each is analysed
+as soon as the ring holds it, while the slide goes on. After each window the scores so
+far are fused (:meth:`Classifier.fuse`); when the fused confidence first reaches
+``classifier.provisional_confidence`` (and again whenever the leading label changes
+while above it), a provisional :class:`SlideResult` (``final=False``) is emitted. When
+the slide ends, the windows that lie inside it are fused into the final result. Windows
+that could not be analysed (lost samples, too short, ...) are skipped; a slide with
+none gets no label and the most common reason. :meth:`Pipeline.finish` ends the stream:
+a slide still running is analysed as far as it goes.
 """
 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -18,7 +27,7 @@ import numpy.typing as npt
 
 from tactiled.analysis import Analyser, AnalysisSettings, WindowResult
 from tactiled.config import Config
-from tactiled.detect import SlideDetector, SlideEnd, SlideStart
+from tactiled.detect import Event, SlideDetector, SlideEnd, SlideStart
 from tactiled.errors import OverwrittenError
 from tactiled.ringbuffer import RingBuffer
 
@@ -30,7 +39,9 @@ class Classifier(Protocol):
     fingerprint: str
     settings: AnalysisSettings
 
-    def predict_proba(self, x: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
+    def scores(self, x: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
+
+    def fuse(self, scores: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
 
 
 @dataclass
@@ -44,12 +55,17 @@ class SlideEnded:
     slide_id: int
     start: int
     stop: int
-    reason: str  # quiet | max_duration | too_short (too short is not a slide: no result follows)
+    reason: str  # quiet | max_duration | end_of_stream | too_short (too short is not a slide: no result follows)
 
 
 @dataclass
 class SlideResult:
-    """The outcome of one slide: label (None when abstaining, with ``reason``) and provenance."""
+    """The outcome of one slide (or, with ``final`` False, a provisional label while it goes on).
+
+    ``label`` is None when abstaining, with ``reason``; ``window`` spans the windows used;
+    ``quality`` sums their samples, lost samples and spikes, and gives the largest
+    clipped (saturated) fraction and the number of windows used.
+    """
 
     slide_id: int
     start: int
@@ -69,18 +85,28 @@ class SlideResult:
 PipelineEvent = SlideStarted | SlideEnded | SlideResult
 
 
+@dataclass
+class _Window:
+    span: tuple[int, int]
+    result: WindowResult
+    scores: npt.NDArray[np.float64] | None
+
+
 class Pipeline:
-    """Feed blocks in order with :meth:`feed`; it returns the events they complete."""
+    """Feed blocks in order with :meth:`feed`, end with :meth:`finish`; both return the events completed."""
 
     def __init__(self, config: Config, fs: float, channels: int, volts_per_count: float, integer: bool = True,
                  model: Classifier | None = None, settings: AnalysisSettings | None = None) -> None:
         self.fs = fs
         self.channels = channels
         self.model = model
-        self.settings = model.settings if model is not None else (settings or AnalysisSettings.from_config(config, channels))
+        self.settings = model.settings if model is not None else (settings or AnalysisSettings.from_config(config, channels, fs))
         self.min_confidence = config.classifier.min_confidence
-        self.analyser = Analyser(self.settings, volts_per_count, integer, config.classifier.max_saturated, config.classifier.max_lost)
-        capacity = max(round(config.ring.seconds * fs), round((config.detector.max_slide_s + 1.0) * fs))
+        self.provisional_confidence = config.classifier.provisional_confidence
+        self.analyser = Analyser(self.settings, fs, volts_per_count, integer, config.classifier.max_saturated, config.classifier.max_lost)
+        self.min_samples = self.analyser.plan.min_samples()
+        window = round(self.settings.duration_s * fs)
+        capacity = max(round(config.ring.seconds * fs), 2 * window + round(config.detector.off_hold_s * fs) + round(fs))
         self.ring = RingBuffer(capacity, channels, np.int16 if integer else np.float64)
         self.detector = SlideDetector(config.detector, fs, channels)
         self.volts_per_count = volts_per_count if integer else 1.0
@@ -88,16 +114,17 @@ class Pipeline:
         self.labels = 0
         self._slide_id = -1
         self._onset: int | None = None
-        self._pending: WindowResult | None = None  # analysed window of the slide in progress
-        self._pending_window: tuple[int, int] | None = None
+        self._windows: list[_Window] = []
+        self._next: tuple[int, int] | None = None  # the next window of the slide in progress
+        self._provisional: str | None = None
 
     @property
     def sliding(self) -> bool:
         return self._onset is not None
 
     def will_analyse(self, end: int) -> bool:
-        """True if feeding samples up to absolute index ``end`` completes the current slide's window (feature work)."""
-        return self._onset is not None and self._pending is None and self._pending_window is not None and end >= self._pending_window[1]
+        """True if feeding samples up to absolute index ``end`` completes a window of the slide in progress (feature work)."""
+        return self._onset is not None and self._next is not None and end >= self._next[1]
 
     def feed(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None = None) -> list[PipelineEvent]:
         """Process ``samples`` (n, C) whose first sample has absolute ``index`` (gaps are lost samples)."""
@@ -105,33 +132,62 @@ class Pipeline:
         volts = samples.astype(np.float64) * self.volts_per_count
         if valid is not None:
             volts[~valid] = 0.0
+        events = self._handle(self.detector.feed(index, volts, valid))  # the detector treats index gaps as lost itself
+        events += self._analyse_ready()
+        return events
+
+    def finish(self) -> list[PipelineEvent]:
+        """End of stream: a slide in progress ends at the last sample fed and gets its final result."""
+        return self._handle(self.detector.finish())
+
+    def _handle(self, detector_events: list[Event]) -> list[PipelineEvent]:
         events: list[PipelineEvent] = []
-        for ev in self.detector.feed(index, volts, valid):  # the detector treats index gaps as lost itself
+        for ev in detector_events:
             if isinstance(ev, SlideStart):
                 self._slide_id += 1
                 self._onset = ev.start
-                self._pending = None
-                self._pending_window = self.settings.window(ev.start, ev.start + 10**12, self.fs)
+                self._windows = []
+                self._provisional = None
+                self._next = self.settings.first_span(ev.start, self.fs)
                 events.append(SlideStarted(self._slide_id, ev.start))
+                events += self._analyse_ready(until=None)
             elif isinstance(ev, SlideEnd):
                 events.append(SlideEnded(self._slide_id, ev.start, ev.stop, ev.reason))
                 if ev.reason != "too_short":
-                    events.append(self._result(ev.start, ev.stop))
+                    events.append(self._final(ev.start, ev.stop))
                 self._onset = None
-                self._pending = None
-            self._analyse_if_complete()
-        self._analyse_if_complete()
+                self._next = None
+                self._windows = []
         return events
 
-    def _analyse_if_complete(self) -> None:
-        if self._onset is None or self._pending is not None or self._pending_window is None:
-            return
-        lo, hi = self._pending_window
-        if self.ring.end >= hi:
-            self._pending = self._analyse(lo, hi)
+    def _analyse_ready(self, until: int | None = None) -> list[PipelineEvent]:
+        """Analyse every window of the slide in progress that the ring now holds; provisional results."""
+        events: list[PipelineEvent] = []
+        s = self.settings
+        while self._onset is not None and self._next is not None and self.ring.end >= self._next[1]:
+            if s.max_windows and len(self._windows) >= s.max_windows:
+                self._next = None
+                break
+            t0 = time.perf_counter()
+            w = self._window(self._next)
+            self._windows.append(w)
+            hop = max(1, round(s.hop() * self.fs))
+            self._next = (self._next[0] + hop, self._next[1] + hop)
+            if w.scores is not None:
+                prov = self._provisional_result(t0)
+                if prov is not None:
+                    events.append(prov)
+        return events
 
-    def _analyse(self, lo: int, hi: int) -> WindowResult:
-        if hi - lo < self.analyser.plan.min_samples():
+    def _window(self, span: tuple[int, int]) -> _Window:
+        res = self._read(*span)
+        scores = None
+        if res.features is not None and self.model is not None:
+            scores = self.model.scores(res.features[None, :])[0]
+        return _Window(span, res, scores)
+
+    def _read(self, lo: int, hi: int) -> WindowResult:
+        if hi - lo < self.min_samples:
             # a slide that ended before (or soon after) its window began: nothing to read, whatever the block timing
             return WindowResult(None, "window_too_short", {"samples": max(hi - lo, 0), "lost": 0, "saturated": 0.0, "spikes": 0})
         try:
@@ -140,24 +196,51 @@ class Pipeline:
             return WindowResult(None, "overwritten", {"samples": hi - lo, "lost": hi - lo, "saturated": 0.0, "spikes": 0})
         return self.analyser.analyse(samples, valid)
 
-    def _result(self, start: int, stop: int) -> SlideResult:
+    def _provisional_result(self, t0: float) -> SlideResult | None:
+        if self.model is None or self._onset is None or self.provisional_confidence >= 1.0:
+            return None
+        used = [w for w in self._windows if w.scores is not None]
+        proba = self.model.fuse(np.stack([w.scores for w in used if w.scores is not None]))
+        best = int(np.argmax(proba))
+        label = self.model.classes[best]
+        if proba[best] < max(self.provisional_confidence, self.min_confidence) or label == self._provisional:
+            return None
+        self._provisional = label
+        return self._result(self._onset, used[-1].span[1], used, proba, t0, final=False)
+
+    def _final(self, start: int, stop: int) -> SlideResult:
         t0 = time.perf_counter()
-        window = self.settings.window(start, stop, self.fs)
-        analysed = self._pending if self._pending is not None and self._pending_window == window else self._analyse(*window)
         self.slides += 1
-        label, reason, confidence, top = None, analysed.reason, None, []
-        if analysed.features is not None:
-            if self.model is None:
-                reason = "no_model"
-            else:
-                proba = self.model.predict_proba(analysed.features[None, :])[0]
-                order = np.argsort(proba)[::-1][:3]
-                top = [(self.model.classes[i], round(float(proba[i]), 4)) for i in order]
-                confidence = float(proba[order[0]])
-                if confidence < self.min_confidence:
-                    reason = "low_confidence"
-                else:
-                    label = self.model.classes[order[0]]
-                    self.labels += 1
-        return SlideResult(self._slide_id, start, stop, window, label, reason, confidence, top, analysed.quality,
-                           analysed.features, (time.perf_counter() - t0) * 1e3)
+        spans = self.settings.spans(start, stop, self.fs, self.min_samples)
+        done = {w.span: w for w in self._windows}
+        windows = [done[sp] if sp in done else self._window(sp) for sp in spans]
+        used = [w for w in windows if w.scores is not None]
+        if not used:
+            reasons = [w.result.reason for w in windows if w.result.reason] or ["window_too_short"]
+            reason = "no_model" if self.model is None and any(w.result.features is not None for w in windows) else Counter(reasons).most_common(1)[0][0]
+            return SlideResult(self._slide_id, start, stop, (spans[0][0], spans[-1][1]) if spans else (start, start), None, reason, None, [],
+                               _quality(windows), None, (time.perf_counter() - t0) * 1e3, True, (stop - start) / self.fs)
+        assert self.model is not None
+        proba = self.model.fuse(np.stack([w.scores for w in used if w.scores is not None]))
+        return self._result(start, stop, used, proba, t0, final=True)
+
+    def _result(self, start: int, stop: int, used: list[_Window], proba: npt.NDArray[np.float64], t0: float, final: bool) -> SlideResult:
+        assert self.model is not None
+        order = np.argsort(proba)[::-1][:3]
+        top = [(self.model.classes[i], round(float(proba[i]), 4)) for i in order]
+        confidence = float(proba[order[0]])
+        label: str | None = self.model.classes[order[0]]
+        reason = None
+        if confidence < self.min_confidence:
+            label, reason = None, "low_confidence"
+        elif final:
+            self.labels += 1
+        feats = used[-1].result.features
+        return SlideResult(self._slide_id, start, stop, (used[0].span[0], used[-1].span[1]), label, reason, confidence, top, _quality(used),
+                           feats, (time.perf_counter() - t0) * 1e3, final, (used[-1].span[1] - start) / self.fs)
+
+
+def _quality(windows: list[_Window]) -> dict[str, Any]:
+    q = [w.result.quality for w in windows]
+    return {"samples": sum(x["samples"] for x in q), "lost": sum(x["lost"] for x in q), "saturated": max((x["saturated"] for x in q), default=0.0),
+            "spikes": sum(x["spikes"] for x in q), "windows": sum(w.scores is not None for w in windows)}

@@ -11,8 +11,6 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
-import numpy as np
-
 from tactiled.config import Config
 from tactiled.pipeline import Pipeline, PipelineEvent, SlideResult
 from tactiled.recording import Recording
@@ -20,22 +18,46 @@ from tactiled.recording import Recording
 BLOCK = 65536  # samples per block fed to the pipeline by default
 
 
-def result_record(file: str, rec: Recording, r: SlideResult) -> dict[str, Any]:
-    """The JSON object of one slide (positions in the file)."""
-    truth = None
-    for start, stop, surface in rec.slides():
-        if r.start < stop and r.stop > start:
-            truth = surface
-            break
+def truth_of(rec: Recording, start: int, stop: int) -> str | None:
+    """The surface of the true slide overlapping [start, stop) most (the file's label without per-slide truth)."""
+    best, overlap = None, 0
+    for a, b, surface in rec.slides():
+        o = min(b, stop) - max(a, start)
+        if o > overlap:
+            best, overlap = surface, o
+    return best if rec.slides() else rec.label
+
+
+def result_record(file: str, rec: Recording, r: SlideResult, provisional: list[SlideResult] | None = None) -> dict[str, Any]:
+    """The JSON object of one slide (positions in the file), its provisional labels in a list inside it."""
     return {"file": file, "slide": r.slide_id, "start": r.start, "stop": r.stop, "window": list(r.window),
             "label": r.label, "confidence": None if r.confidence is None else round(r.confidence, 4),
-            "top": [[c, p] for c, p in r.top], "reason": r.reason, "quality": r.quality, "truth": truth,
-            "duration_s": round((r.stop - r.start) / rec.fs, 4)}
+            "top": [[c, p] for c, p in r.top], "reason": r.reason, "quality": r.quality, "truth": truth_of(rec, r.start, r.stop),
+            "duration_s": round((r.stop - r.start) / rec.fs, 4), "used_s": round(r.used_s, 4),
+            "provisional": [{"label": p.label, "confidence": None if p.confidence is None else round(p.confidence, 4), "used_s": round(p.used_s, 4),
+                             "top": [[c, q] for c, q in p.top]} for p in (provisional or [])]}
+
+
+def summary_line(results: list[SlideResult], rec: Recording) -> str:
+    """``N slides, L labelled[, C of T true slides right]`` for one replayed recording."""
+    finals = [r for r in results if r.final]
+    labelled = sum(r.label is not None for r in finals)
+    line = f"{len(finals)} slides, {labelled} labelled"
+    truth = rec.slides()
+    if truth or rec.label is not None:
+        from tactiled.score import pair_results
+
+        t, paired, _ = pair_results(rec, results)
+        right = sum(p is not None and p.label == x for x, p in zip(t, paired, strict=True))
+        line += f", {right} of {len(t)} true slides right"
+    return line
 
 
 def replay_recording(rec: Recording, config: Config, model: Any | None, *, block: int = BLOCK, speed: float | None = None,
                      on_event: Callable[[PipelineEvent], None] | None = None) -> list[SlideResult]:
-    """Run ``rec`` through a fresh pipeline in blocks of ``block`` samples; returns the slide results.
+    """Run ``rec`` through a fresh pipeline in blocks of ``block`` samples, then end the stream; returns every slide result.
+
+    Provisional results (``final`` False) come before their slide's final one.
 
     Samples are fed at their sensor indices (``first_index + position``), exactly as the
     daemon saw them; results are converted back to positions in the file.
@@ -65,7 +87,5 @@ def replay_recording(rec: Recording, config: Config, model: Any | None, *, block
             if ahead > 0:
                 time.sleep(ahead)  # pacing the replay at --speed, not synchronisation
         handle(pipeline.feed(base + lo, rec.samples[lo:hi], None if all_valid else valid[lo:hi]))
-    # flush: a slide still in progress at the end of the file ends there
-    tail = round(max(config.detector.off_hold_s, 0.2) * rec.fs) + pipeline.detector.hop * 2
-    handle(pipeline.feed(base + n, np.zeros((tail, rec.channels), dtype=rec.samples.dtype), np.zeros(tail, dtype=bool)))
+    handle(pipeline.finish())  # a slide still in progress at the end of the file ends there
     return results

@@ -1,232 +1,80 @@
-"""Training: recordings → slides → windows → features → forward selection → model file.
+"""``tactiled train``: recordings → slides (the daemon's detector, paired with ground truth) → model search → model file.
 
-Slides come from ground truth (``slide_start``/``slide_stop``/``surface``) or, for files
-with only a file-level ``label``, from the daemon's own detector. Windows are placed where
-live use places them: the detector's onset lags the true start of motion, so the lag is
-measured on the training files (median over matched slides), stored in the model, and
-added to ground-truth onsets.
+:func:`train` is the whole command as a library call. Training never drops a surface
+silently: the slides of every surface are counted first, and a surface with fewer than
+``min_slides`` is an error naming it (``drop_rare`` proceeds without it, saying so).
 """
 
 from __future__ import annotations
 
-import functools
-import logging
-import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import numpy.typing as npt
-
-from tactiled.analysis import Analyser, AnalysisSettings
 from tactiled.config import Config
-from tactiled.detect import SlideDetector, SlideEnd
-from tactiled.errors import RecordingError, TactiledError
-from tactiled.features import classifier_inputs
-from tactiled.model import Model, make_classifier
-from tactiled.recording import Recording, load_recording
+from tactiled.dataset import Slide, SlideCounts, find_slides, load_recordings
+from tactiled.errors import TactiledError
+from tactiled.recording import Recording
+from tactiled.search import SearchResult, paper, search
 
-log = logging.getLogger(__name__)
 Progress = Callable[[str], None]
+METHODS = ("auto", "paper")
 
 
-def _stderr(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None:
+    """Every file readable, one rate and channel count."""
+    if len(recs) != wanted:
+        raise TactiledError("unreadable recordings (listed above); nothing written")
+    if not recs:
+        raise TactiledError("no recordings given")
+    fs = {r.fs for _, r in recs}
+    channels = {r.channels for _, r in recs}
+    if len(fs) != 1 or len(channels) != 1:
+        raise TactiledError(f"recordings differ in fs {sorted(fs)} or channels {sorted(channels)}; train one rate at a time")
 
 
-def load_recordings(paths: Sequence[str | Path], progress: Progress | None = None) -> list[tuple[str, Recording]]:
-    """Load every file; a malformed one is reported (one line) and skipped."""
-    out = []
-    for p in paths:
-        try:
-            out.append((str(p), load_recording(p)))
-        except RecordingError as exc:
-            (progress or _stderr)(f"tactiled: skipped: {exc}")
-    return out
-
-
-def detect_slides(rec: Recording, config: Config) -> list[tuple[int, int]]:
-    """(start, stop) positions of the slides the daemon's detector finds in ``rec``."""
-    det = SlideDetector(config.detector, rec.fs, rec.channels)
-    volts = rec.volts()
-    valid = rec.valid_mask()
-    volts[~valid] = 0.0
-    return [(e.start, e.stop) for e in det.feed(0, volts, valid) if isinstance(e, SlideEnd) and e.reason != "too_short"]
-
-
-def measure_onset_lag(recs: Sequence[Recording], config: Config) -> tuple[float, npt.NDArray[np.float64]]:
-    """Median lag (s) of detected onsets behind true starts, and every matched lag."""
-    lags = []
-    for rec in recs:
-        truth = rec.slides()
-        if not truth:
-            continue
-        for start, stop in detect_slides(rec, config):
-            for t_start, t_stop, _ in truth:
-                if start < t_stop and stop > t_start:
-                    lags.append((start - t_start) / rec.fs)
-                    break
-    arr = np.asarray(lags, dtype=np.float64)
-    return (float(np.median(arr)) if arr.size else 0.0), arr
-
-
-@dataclass
-class SlideSet:
-    """Features of every slide: X (k, F) in ``names`` order, labels, groups (file number), provenance."""
-
-    x: npt.NDArray[np.float64]
-    y: npt.NDArray[np.str_]
-    groups: npt.NDArray[np.int64]
-    names: list[str]
-    files: list[str]
-    starts: npt.NDArray[np.int64]
-    stops: npt.NDArray[np.int64]
-    skipped: dict[str, int]
-
-    @functools.cached_property
-    def inputs(self) -> npt.NDArray[np.float64]:
-        """``x`` as the classifiers see it (:func:`tactiled.features.classifier_inputs`), computed once."""
-        return classifier_inputs(self.x, self.names)
-
-
-def slide_windows(rec: Recording, config: Config) -> tuple[list[tuple[int, int, str | None]], bool]:
-    """The slides of ``rec`` (ground truth if present, else detected with the file label); and whether from truth."""
-    truth = rec.slides()
-    if truth:
-        return truth, True
-    return [(a, b, rec.label) for a, b in detect_slides(rec, config)], False
-
-
-def collect(recs: Sequence[tuple[str, Recording]], config: Config, settings: AnalysisSettings,
-            progress: Progress | None = None, require_labels: bool = True) -> SlideSet:
-    """Analyse every slide's window with ``settings`` (all of ``settings.names``)."""
-    rows, labels, groups, files, starts, stops = [], [], [], [], [], []
-    skipped: dict[str, int] = {}
-    for g, (name, rec) in enumerate(recs):
-        analyser = Analyser(settings, rec.volts_per_count, rec.is_integer, config.classifier.max_saturated, config.classifier.max_lost)
-        valid = rec.valid_mask()
-        slides, from_truth = slide_windows(rec, config)
-        for start, stop, label in slides:
-            if require_labels and label is None:
-                skipped["unlabelled"] = skipped.get("unlabelled", 0) + 1
+def class_table(per_file: list[list[Slide]]) -> dict[str, tuple[int, int, int]]:
+    """{surface: (slides, slides the detector found, files)}."""
+    out: dict[str, list[Any]] = {}
+    for slides in per_file:
+        for s in slides:
+            if s.label is None:
                 continue
-            lo, hi = settings.window(start, stop, rec.fs, from_truth=from_truth)
-            hi = min(hi, rec.samples.shape[0])
-            res = analyser.analyse(rec.samples[lo:hi], valid[lo:hi])
-            if res.features is None:
-                skipped[res.reason or "?"] = skipped.get(res.reason or "?", 0) + 1
-                continue
-            rows.append(res.features)
-            labels.append(label or "")
-            groups.append(g)
-            files.append(name)
-            starts.append(start)
-            stops.append(stop)
-        if progress and (g + 1) % 10 == 0:
-            progress(f"features: {g + 1}/{len(recs)} files, {len(rows)} slides")
-    f = len(settings.names)
-    return SlideSet(np.asarray(rows, dtype=np.float64).reshape(-1, f), np.asarray(labels, dtype=np.str_), np.asarray(groups, dtype=np.int64),
-                    list(settings.names), files, np.asarray(starts, dtype=np.int64), np.asarray(stops, dtype=np.int64), skipped)
+            row = out.setdefault(s.label, [0, 0, set()])
+            row[0] += 1
+            row[1] += s.source != "truth"
+            row[2].add(s.file)
+    return {k: (v[0], v[1], len(v[2])) for k, v in sorted(out.items())}
 
 
-Folds = list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]
-
-
-def grouped_folds(y: npt.NDArray[Any], groups: npt.NDArray[np.int64], n_splits: int, seed: int = 0) -> Folds:
-    """Folds that never split a recording; stratified by label where possible."""
-    from sklearn.model_selection import StratifiedGroupKFold
-
-    n_groups = len(np.unique(groups))
-    n = max(2, min(n_splits, n_groups))
-    if n_groups < 2:
-        raise TactiledError("cross-validation needs at least two recordings")
-    return list(StratifiedGroupKFold(n_splits=n, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, groups))
-
-
-def standardise(train: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """Mean and scale of the training rows; a constant column gets scale 1 (it becomes zeros)."""
-    mean = train.mean(axis=0)
-    scale = train.std(axis=0)
-    scale[scale < 1e-12 * (1.0 + np.abs(mean))] = 1.0
-    return mean, scale
-
-
-def cv_accuracy(make: Callable[[], Any], x: npt.NDArray[np.float64], y: npt.NDArray[Any],
-                folds: Sequence[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]) -> npt.NDArray[np.float64]:
-    """Accuracy per fold of ``make()`` with standardisation fitted on each training fold."""
-    scores = []
-    for tr, te in folds:
-        mean, scale = standardise(x[tr])
-        est = make().fit((x[tr] - mean) / scale, y[tr])
-        scores.append(float(np.mean(est.predict((x[te] - mean) / scale) == y[te])))
-    return np.asarray(scores)
-
-
-def forward_select(make: Callable[[], Any], x: npt.NDArray[np.float64], y: npt.NDArray[Any], groups: npt.NDArray[np.int64],
-                   max_features: int, tol: float | None, n_splits: int = 3, seed: int = 0,
-                   progress: Progress | None = None) -> tuple[list[int], list[float]]:
-    """Sequential forward selection by grouped cross-validated accuracy.
-
-    Starts empty, adds the feature that maximises the mean CV accuracy, and stops at
-    ``max_features`` or, with ``tol``, when the best gain is below ``tol``. Constant
-    columns are never candidates. Returns (column indices, score after each addition).
-    """
-    folds = grouped_folds(y, groups, n_splits, seed)
-    candidates = [j for j in range(x.shape[1]) if np.ptp(x[:, j]) > 1e-12 * (1 + np.abs(x[:, j]).max())]
-    selected: list[int] = []
-    history: list[float] = []
-    best = -np.inf
-    while len(selected) < max_features and candidates:
-        scores = [cv_accuracy(make, x[:, [*selected, j]], y, folds).mean() for j in candidates]
-        k = int(np.argmax(scores))
-        if tol is not None and selected and scores[k] - best < tol:
-            break
-        best = scores[k]
-        selected.append(candidates.pop(k))
-        history.append(float(best))
-        if progress:
-            progress(f"select: {len(selected)} features, CV accuracy {best:.3f}")
-    return selected, history
-
-
-SELECTION_HIDDEN = 50  # the ELM that ranks candidate features: 3x faster than 200 units, same ranking measured
-
-DEFAULT_PARAMS: dict[str, dict[str, Any]] = {
-    "elm": {"n_hidden": 200, "alpha": 1e-6},
-    "knn": {"n_neighbors": 9},
-    "svm": {"kernel": "rbf", "C": 10.0, "gamma": "scale"},
-}
-
-
-def fit_model(ds: SlideSet, settings: AnalysisSettings, kind: str, params: dict[str, Any], features: int | str, seed: int,
-              fs: float, channels: int, progress: Progress | None = None) -> Model:
-    """Select features on ``ds`` (grouped CV inside it only), fit, and return the model."""
-    if len(np.unique(ds.y)) < 2:
-        raise TactiledError(f"training needs at least two surfaces, got {sorted(set(ds.y.tolist()))}")
-    sel_params = {**params, "n_hidden": SELECTION_HIDDEN} if kind == "elm" else params
-
-    def make() -> Any:
-        est = make_classifier(kind, sel_params, seed)
-        if kind == "elm":
-            est.set_params(calibrate=False)
-        return est
-
-    xin = ds.inputs
-    if str(features) == "all":
-        cols = list(range(ds.x.shape[1]))
-        history: list[float] = []
-    else:
-        max_f, tol = (12, 0.005) if features == "auto" else (int(features), None)
-        cols, history = forward_select(make, xin, ds.y, ds.groups, max_f, tol, seed=seed, progress=progress)
-    x = xin[:, cols]
-    mean, scale = standardise(x)
-    est = make_classifier(kind, params, seed).fit((x - mean) / scale, ds.y)
-    used = replace(settings, names=tuple(ds.names[j] for j in cols))
-    summary = {"slides": len(ds.y), "files": len(set(ds.files)), "classes": sorted(set(ds.y.tolist())),
-               "selection_cv_accuracy": history, "skipped": ds.skipped}
-    classes = [str(c) for c in est.classes_]
-    train_x = (x - mean) / scale if kind != "elm" else None
-    train_y = ds.y if kind != "elm" else None
-    return Model(kind, params, classes, used, fs, channels, mean, scale, est, seed, summary, "", train_x, train_y)
+def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
+          drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None) -> SearchResult:
+    """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save)."""
+    say = progress or (lambda m: None)
+    if method not in METHODS:
+        raise TactiledError(f"--method: must be one of {', '.join(METHODS)}, got {method!r}")
+    if folds < 2:
+        raise TactiledError(f"--folds: must be >= 2, got {folds}")
+    recs = load_recordings(paths, say)
+    check_recordings(recs, len(paths))
+    per_file, counts = find_slides(recs, config)
+    table = class_table(per_file)
+    say(f"{len(recs)} files, {sum(len(s) for s in per_file)} slides ({counts.truth} in ground truth, {counts.detected} detected, "
+        f"{sum(counts.missed.values())} missed by the detector, {sum(counts.false.values())} detections outside any true slide)")
+    for name, n in counts.missed.items():
+        say(f"  detector missed {n} true slide(s) in {name}: used at their true bounds")
+    say("slides per surface (slides, found by the detector, files):")
+    for label, (n, det, files) in table.items():
+        say(f"  {label}: {n}, {det}, {files}")
+    rare = [k for k, (n, _, _) in table.items() if n < min_slides]
+    if rare and not drop_rare:
+        raise TactiledError(f"too few slides (< {min_slides}) for surface(s) {', '.join(rare)}; record more, or pass --drop-rare to train without them")
+    if rare:
+        say(f"training without {', '.join(rare)} (--drop-rare)")
+        per_file = [[s for s in slides if s.label not in rare] for slides in per_file]
+    found: tuple[list[list[Slide]], SlideCounts] = (per_file, counts)
+    run = paper if method == "paper" else search
+    result = run(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found)
+    result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
+    result.model.summary["dropped"] = rare
+    return result

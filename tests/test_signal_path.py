@@ -77,14 +77,21 @@ def test_one_sample_too_short_is_a_clear_reason() -> None:
     with pytest.raises(WindowError) as err:
         plan.compute(np.zeros((need - 1, 2)))
     assert err.value.reason == "window_too_short"
-    res = Analyser(AnalysisSettings(names=tuple(NAMES)), 1.0, False).analyse(np.zeros((need - 1, 2)))
+    res = Analyser(AnalysisSettings(names=tuple(NAMES)), 20000.0, 1.0, False).analyse(np.zeros((need - 1, 2)))
     assert res.features is None and res.reason == "window_too_short"
 
 
-def test_saturated_window_is_reported() -> None:
-    x = np.full((3000, 2), 32767, dtype=np.int16)
-    res = Analyser(AnalysisSettings(names=tuple(NAMES)), 5 / 32768, True).analyse(x)
-    assert res.reason == "saturated" and res.quality["saturated"] == 1.0
+def test_clipping_is_a_quality_figure_and_refusal_is_optional() -> None:
+    x = (np.sin(np.arange(3000) * 0.05)[:, None] * np.ones((1, 2)) * 60000).clip(-32768, 32767).astype(np.int16)
+    by_default = Analyser(AnalysisSettings(names=tuple(NAMES)), 20000.0, 5 / 32768, True).analyse(x)
+    assert by_default.features is not None and 0.3 < by_default.quality["saturated"] < 0.9
+    strict = Analyser(AnalysisSettings(names=tuple(NAMES)), 20000.0, 5 / 32768, True, max_saturated=0.01).analyse(x)
+    assert strict.reason == "saturated"
+    # clipping at another rail (a float signal, or an amplifier before a wider ADC) is seen too; a quiet quantised one is not
+    floats = np.clip(np.sin(np.arange(3000) * 0.05) * 2.0, -1.0, 1.0)[:, None]
+    assert 0.3 < Analyser(AnalysisSettings(names=(NAMES[0],)), 20000.0, 1.0, False).analyse(floats).quality["saturated"] < 0.9
+    quiet = np.round(np.random.default_rng(0).standard_normal((3000, 2)) * 2).astype(np.int16)
+    assert Analyser(AnalysisSettings(names=tuple(NAMES)), 20000.0, 5 / 32768, True).analyse(quiet).quality["saturated"] == 0.0
 
 
 def test_spike_removal_counts_and_replaces() -> None:
@@ -162,7 +169,8 @@ def test_replay_bad_inputs_exit_2_and_keep_good_files(tmp_path: Path, hand_files
     np.savez(pickled, samples=np.array([{"a": 1}], dtype=object), fs=np.float64(20000))
     res = run_cli("replay", "--json", "--no-model", str(nan), str(good), str(missing), str(pickled))
     assert res.returncode == 2
-    errors = res.stderr.strip().splitlines()
+    errors = [line for line in res.stderr.strip().splitlines() if line.startswith("tactiled: error")]
+    assert f"{good}: 2 slides, 0 labelled" in res.stderr  # the summary of the good file
     assert errors == [f"tactiled: error: {nan}: samples: contains NaN or Inf", f"tactiled: error: {missing}: fs: missing (required)",
                       f"tactiled: error: {pickled}: samples: cannot load without pickle (object array)"]
     lines = [json.loads(line) for line in res.stdout.splitlines()]

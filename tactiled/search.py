@@ -1,0 +1,440 @@
+"""Model selection: which features, classifier and windows work on the user's recordings.
+
+A candidate combines a feature family set (:data:`tactiled.features.FAMILIES`: the papers'
+DWT statistics, log band energies of the Welch PSD, texture descriptors), a classifier
+(ELM, kNN, SVM, regularised linear), a window placement (length, first window's offset
+from the slide's start, how many windows), and optionally forward feature selection. The
+papers' method (:data:`PAPER`: DWT statistics of one 0.5 s window 0.3 s after the start,
+sequential forward selection, ELM) is one of the candidates.
+
+Every candidate is scored by grouped cross-validation (folds never split a recording) at
+the level that matters: the label of each whole slide, from its windows' fused scores,
+over every slide (a slide with no usable window counts as wrong); selection and scaling
+are fitted inside each training fold only. The leaderboard lists mean ± sd over outer
+folds. The winner is the best mean; its accuracy is estimated honestly by nested
+cross-validation: in each outer fold, an inner grouped CV on the training files alone
+picks a candidate, which is then scored on the held-out files. The winner is refitted on
+every recording; its temperature is fitted on its out-of-fold slide scores.
+
+Work is spread over every core with joblib; ``scheduler`` (a dask.distributed address)
+sends it to a cluster through joblib's Dask backend instead.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from tactiled.analysis import AnalysisSettings
+from tactiled.config import Config
+from tactiled.dataset import Slide, SlideCounts, WindowSet, collect_windows, find_slides
+from tactiled.errors import TactiledError
+from tactiled.features import FeaturePlan, family_names, feature_names, name_family
+from tactiled.model import Model, decision_scores, fit_pipeline, fit_temperature
+from tactiled.recording import Recording
+
+Progress = Callable[[str], None]
+FloatArray = npt.NDArray[np.float64]
+
+PARAMS: dict[str, dict[str, Any]] = {
+    "elm": {"n_hidden": 200, "alpha": 1e-3},
+    "knn": {"n_neighbors": 9},
+    "svm": {"kernel": "rbf", "C": 10.0, "gamma": "scale"},
+    "linear": {"C": 1.0, "max_iter": 1000},
+}
+PAPER_PARAMS: dict[str, Any] = {"n_hidden": 200, "alpha": 1e-6}
+# (start_s, duration_s, max_windows): windows back to back from the slide's start, or from 0.3 s (after the onset transient)
+PLACEMENTS: tuple[tuple[float, float, int], ...] = ((0.0, 0.25, 0), (0.0, 0.5, 0), (0.0, 1.0, 0), (0.3, 0.25, 0), (0.3, 0.5, 0))
+# (families, classifier): cheap and robust first, so ties go to them
+COMBINATIONS: tuple[tuple[tuple[str, ...], str], ...] = (
+    (("psd",), "linear"), (("psd", "tex"), "linear"), (("psd",), "svm"), (("psd", "tex"), "svm"),
+    (("psd",), "knn"), (("psd",), "elm"), (("dwt",), "linear"), (("dwt",), "svm"), (("dwt",), "elm"),
+)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One way to build a model: feature families, classifier kind, window placement, and whether forward selection picks the features."""
+
+    families: tuple[str, ...]
+    kind: str
+    duration_s: float
+    start_s: float = 0.0
+    max_windows: int = 0
+    sfs: bool = False
+
+    @property
+    def name(self) -> str:
+        where = f" from {self.start_s:g} s" if self.start_s else ""
+        count = " x1" if self.max_windows == 1 else ""
+        return f"{'+'.join(self.families)}{'+sfs' if self.sfs else ''} / {self.kind} / {self.duration_s:g} s{where}{count}"
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return PAPER_PARAMS if self.sfs else PARAMS[self.kind]
+
+    @property
+    def placement(self) -> tuple[float, float, int]:
+        return self.start_s, self.duration_s, self.max_windows
+
+
+# the papers' method: DWT statistics of one 0.5 s window 0.3 s after the start, forward selection, ELM
+PAPER = Candidate(("dwt",), "elm", 0.5, 0.3, 1, True)
+
+
+def default_candidates() -> list[Candidate]:
+    """The search space of ``tactiled train``: every combination at every placement, and the papers' method."""
+    return [Candidate(fams, kind, d, start, n) for start, d, n in PLACEMENTS for fams, kind in COMBINATIONS] + [PAPER]
+
+
+@dataclass
+class SearchResult:
+    """The leaderboard (one row per candidate, best first), the winner, its nested CV accuracy and its model."""
+
+    leaderboard: list[dict[str, Any]]
+    winner: str
+    nested: dict[str, Any]
+    model: Model
+    slides: int
+    files: int
+    per_class: dict[str, tuple[int, int, int]]
+    counts: dict[str, Any]
+    seconds: float = 0.0
+    notes: list[str] = field(default_factory=list)
+
+
+# ---- folds and slide-level scoring ------------------------------------------------------------------------------
+
+
+def slide_folds(ws: WindowSet, n_splits: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
+    """Grouped (by file), label-stratified folds of the slides of ``ws`` (slide indices)."""
+    from sklearn.model_selection import StratifiedGroupKFold
+
+    files = np.array([s.file for s in ws.slides])
+    n_files = len(np.unique(files))
+    if n_files < 2:
+        raise TactiledError("cross-validation needs at least two recordings")
+    k = max(2, min(n_splits, n_files))
+    y = ws.slide_labels()
+    return list(StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, files))
+
+
+def _window_rows(ws: WindowSet, slides: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
+    return np.flatnonzero(np.isin(ws.slide, slides))
+
+
+def slide_scores(ws: WindowSet, pipe: Any, cols: Sequence[int], test: npt.NDArray[np.intp], classes: list[str]) -> FloatArray:
+    """Fused scores (len(test), K) of the slides ``test`` from a fitted pipeline: the mean of their windows' scores.
+
+    Columns follow ``classes``; classes the pipeline never saw and slides without windows get -inf.
+    """
+    out = np.full((len(test), len(classes)), -np.inf)
+    te = _window_rows(ws, test)
+    if not len(te):
+        return out
+    raw = decision_scores(pipe[-1], pipe[:-1].transform(ws.x[te][:, cols]))
+    where = {s: i for i, s in enumerate(test)}
+    sums = np.zeros((len(test), raw.shape[1]))
+    counts = np.zeros(len(test))
+    pos = np.array([where[s] for s in ws.slide[te]])
+    np.add.at(sums, pos, raw)
+    np.add.at(counts, pos, 1)
+    has = counts > 0
+    index = {c: i for i, c in enumerate(classes)}
+    for j, c in enumerate(pipe[-1].classes_):
+        out[has, index[str(c)]] = sums[has, j] / counts[has]
+    return out
+
+
+def fold_slide_scores(ws: WindowSet, cols: npt.NDArray[np.intp], kind: str, params: dict[str, Any], train: npt.NDArray[np.intp],
+                      test: npt.NDArray[np.intp], classes: list[str], seed: int) -> FloatArray:
+    """:func:`slide_scores` of the test slides from a pipeline fitted on the train slides' windows (columns ``cols``)."""
+    tr = _window_rows(ws, train)
+    if len(np.unique(ws.y[tr])) < 2:
+        return np.full((len(test), len(classes)), -np.inf)
+    pipe, _ = fit_pipeline(ws.x[tr][:, cols], ws.y[tr], [ws.names[j] for j in cols], kind, params, seed)
+    return slide_scores(ws, pipe, list(cols), test, classes)
+
+
+def accuracy_of(scores: FloatArray, y_idx: npt.NDArray[np.intp]) -> float:
+    """Slide accuracy: argmax of each row against ``y_idx``; a row with no finite score is wrong."""
+    decided = np.isfinite(scores).any(axis=1)
+    pred = np.where(decided, np.argmax(np.where(np.isfinite(scores), scores, -np.inf), axis=1), -1)
+    return float(np.mean(pred == y_idx)) if len(y_idx) else 0.0
+
+
+# ---- parallel execution -----------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def parallel_backend(scheduler: str | None) -> Iterator[None]:
+    """joblib on every local core, or on a dask.distributed cluster at ``scheduler`` (``tcp://host:port``)."""
+    import joblib
+
+    if not scheduler:
+        with joblib.parallel_config(n_jobs=-1):
+            yield
+        return
+    try:
+        from dask.distributed import Client
+    except ImportError:
+        raise TactiledError("--scheduler needs dask.distributed: pip install 'tactiled[cluster]'") from None
+    try:
+        client = Client(scheduler, timeout="10s")
+    except (OSError, TimeoutError) as exc:
+        raise TactiledError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
+    try:
+        with joblib.parallel_config(backend="dask"):
+            yield
+    finally:
+        client.close()
+
+
+def run_parallel(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]]) -> list[Any]:
+    """Run ``fn(*args)`` for every task with joblib in the active backend; results in order."""
+    from joblib import Parallel, delayed
+
+    return list(Parallel()(delayed(fn)(*args) for fn, args in tasks))
+
+
+# ---- the search ---------------------------------------------------------------------------------------------------
+
+
+def dwt_level(channels: int, fs: float, duration_s: float, config: Config) -> int:
+    """The most DWT levels (at most ``features.level``) whose bands fit in a window of ``duration_s``; 0 if none."""
+    n = round(duration_s * fs)
+    f = config.features
+    for level in range(f.level, 0, -1):
+        if FeaturePlan(feature_names(channels, level, f.domains, f.stats), f.wavelet, f.mode, fs=fs).min_samples() <= n:
+            return level
+    return 0
+
+
+def window_settings(config: Config, channels: int, fs: float, duration_s: float, families: Sequence[str], start_s: float = 0.0,
+                    max_windows: int = 0) -> AnalysisSettings | None:
+    """Settings computing every name of ``families`` on windows of ``duration_s``; None if a family cannot fit such a window."""
+    names: list[str] = []
+    level = config.features.level
+    for fam in families:
+        if fam == "dwt":
+            level = dwt_level(channels, fs, duration_s, config)
+            if level == 0:
+                return None
+            names += feature_names(channels, level, config.features.domains, config.features.stats)
+        else:
+            names += family_names(fam, channels, fs, config.features)
+    s = config.spikes
+    st = AnalysisSettings(start_s, duration_s, 0.0, max_windows, s.method, s.half_width, s.nsigma, config.features.wavelet, level,
+                          config.features.mode, tuple(names))
+    plan = FeaturePlan(st.names, st.wavelet, st.mode, fs=fs)
+    return st if plan.min_samples() <= round(duration_s * fs) else None
+
+
+def _columns(ws: WindowSet, families: Sequence[str]) -> npt.NDArray[np.intp]:
+    return np.array([j for j, n in enumerate(ws.names) if name_family(n) in families], dtype=np.intp)
+
+
+def fit_candidate(ws: WindowSet, rows: npt.NDArray[np.intp], c: Candidate, seed: int, inner_folds: int = 3) -> tuple[list[int], Any, Any]:
+    """(columns, fitted pipeline, refit data) of candidate ``c`` on the windows ``rows``; forward selection first if ``c.sfs``."""
+    cols = [int(j) for j in _columns(ws, c.families)]
+    if c.sfs:
+        cols = [cols[j] for j in sfs_columns(_restrict(ws, cols), rows, seed, inner_folds)]
+    pipe, refit = fit_pipeline(ws.x[rows][:, cols], ws.y[rows], [ws.names[j] for j in cols], c.kind, c.params, seed)
+    return cols, pipe, refit
+
+
+def _restrict(ws: WindowSet, cols: list[int]) -> WindowSet:
+    if len(cols) == len(ws.names):
+        return ws
+    return replace(ws, x=ws.x[:, cols], names=[ws.names[j] for j in cols])
+
+
+def candidate_fold(ws: WindowSet, c: Candidate, train: npt.NDArray[np.intp], test: npt.NDArray[np.intp], classes: list[str], seed: int,
+                   inner_folds: int) -> FloatArray:
+    """Fused scores of the test slides from candidate ``c`` fitted on the train slides (selection inside them only)."""
+    tr = _window_rows(ws, train)
+    if len(np.unique(ws.y[tr])) < 2:
+        return np.full((len(test), len(classes)), -np.inf)
+    cols, pipe, _ = fit_candidate(ws, tr, c, seed, inner_folds)
+    return slide_scores(ws, pipe, cols, test, classes)
+
+
+def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
+           candidates: Sequence[Candidate] | None = None, progress: Progress | None = None, scheduler: str | None = None,
+           found: tuple[list[list[Slide]], SlideCounts] | None = None, method: str = "search") -> SearchResult:
+    """Score every candidate, pick and refit the winner (see the module docstring)."""
+    say = progress or (lambda m: None)
+    t0 = time.perf_counter()
+    fs, channels = recs[0][1].fs, recs[0][1].channels
+    found = found or find_slides(recs, config)
+    wanted = list(candidates if candidates is not None else default_candidates())
+    sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]] = {}
+    usable: list[Candidate] = []
+    for c in wanted:
+        key = (*c.placement, c.families)
+        fams = sorted({f for w in wanted if w.placement == c.placement for f in w.families})
+        full = (*c.placement, tuple(fams))
+        if full not in sets:
+            st = window_settings(config, channels, fs, c.duration_s, fams, start_s=c.start_s, max_windows=c.max_windows)
+            if st is None and "dwt" in fams:  # the DWT does not fit such windows: the other families alone
+                st = window_settings(config, channels, fs, c.duration_s, [f for f in fams if f != "dwt"], c.start_s, c.max_windows)
+            if st is not None:
+                say(f"features of {c.duration_s:g} s windows from {c.start_s:g} s ({len(st.names)} features)")
+                sets[full] = (st, collect_windows(recs, config, st, progress, found=found))
+        if full in sets and all(any(name_family(n) == f for n in sets[full][1].names) for f in c.families):
+            sets[key] = sets[full]
+            usable.append(c)
+    if not usable:
+        raise TactiledError(f"no candidate fits: windows too short for the feature families at {fs:g} Hz; record longer slides")
+    first = sets[(*usable[0].placement, usable[0].families)][1]
+    classes = sorted({s.label for s in first.slides if s.label is not None})
+    if len(classes) < 2:
+        raise TactiledError(f"training needs at least two surfaces, got {classes}")
+    y_idx = np.array([classes.index(s.label) if s.label in classes else -1 for s in first.slides])
+    outer = slide_folds(first, folds, seed)
+    nested_on = len(usable) > 1
+    # every window set has the same slides in the same order (detection does not depend on the window)
+    tasks = []
+    for c in usable:
+        ws = sets[(*c.placement, c.families)][1]
+        for tr, te in outer:
+            tasks.append((candidate_fold, (ws, c, tr, te, classes, seed, inner_folds)))
+            for itr, ite in _inner_folds(ws, tr, inner_folds, seed) if nested_on else []:
+                tasks.append((candidate_fold, (ws, c, itr, ite, classes, seed, inner_folds)))
+    say(f"cross-validating {len(usable)} candidate(s) over {len(outer)} outer" + (f" x {inner_folds} inner" if nested_on else "")
+        + f" folds: {len(tasks)} fits")
+    results = iter(_run_with_progress(tasks, say, scheduler))
+    board: list[dict[str, Any]] = []
+    oof: dict[str, FloatArray] = {}
+    inner_acc: dict[str, list[float]] = {}
+    for c in usable:
+        ws = sets[(*c.placement, c.families)][1]
+        scores = np.full((len(ws.slides), len(classes)), -np.inf)
+        accs, per_outer_inner = [], []
+        for tr, te in outer:
+            sc = next(results)
+            scores[te] = sc
+            accs.append(accuracy_of(sc, y_idx[te]))
+            hits = total = 0.0
+            for _itr, ite in _inner_folds(ws, tr, inner_folds, seed) if nested_on else []:
+                hits += accuracy_of(next(results), y_idx[ite]) * len(ite)
+                total += len(ite)
+            per_outer_inner.append(hits / max(1.0, total))
+        oof[c.name] = scores
+        inner_acc[c.name] = per_outer_inner
+        board.append({"candidate": c.name, "families": list(c.families), "classifier": c.kind, "start_s": c.start_s, "duration_s": c.duration_s,
+                      "max_windows": c.max_windows, "sfs": c.sfs, "mean": float(np.mean(accs)), "sd": float(np.std(accs)), "folds": accs})
+    means = [float(r["mean"]) for r in board]
+    order = sorted(range(len(board)), key=lambda i: -means[i])  # stable: ties keep the cheaper candidate
+    leaderboard = [board[i] for i in order]
+    best = usable[order[0]]
+    # nested: per outer fold, the candidate with the best inner score, scored on that fold
+    nested_accs, picks = [], []
+    for o in range(len(outer)):
+        pick = max(range(len(usable)), key=lambda i: (inner_acc[usable[i].name][o], -i)) if nested_on else 0
+        picks.append(usable[pick].name)
+        nested_accs.append(float(board[pick]["folds"][o]))
+    nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks}
+    st, ws = sets[(*best.placement, best.families)]
+    temperature = fit_temperature(oof[best.name], y_idx)
+    say(f"winner {best.name}: {leaderboard[0]['mean']:.3f} ± {leaderboard[0]['sd']:.3f}; nested CV {nested['mean']:.3f}; fitting on every slide")
+    rows = np.flatnonzero(ws.y != "")
+    cols, pipe, refit = fit_candidate(ws, rows, best, seed, inner_folds)
+    names = [ws.names[j] for j in cols]
+    settings = replace(st, names=tuple(names), level=st.level if "dwt" in best.families else config.features.level)
+    summary = {"cv_accuracy": nested, "winner": best.name, "leaderboard": leaderboard[:12], "slides": len(ws.slides), "files": len(recs),
+               "windows": len(rows), "classes": classes, "per_class": {k: list(v) for k, v in ws.per_class().items()}, "skipped": ws.skipped,
+               "detector": _counts(ws)}
+    model = Model(method, best.kind, best.params, [str(c) for c in pipe[-1].classes_], settings, fs, channels, pipe, temperature,
+                  seed, summary, "", refit)
+    return SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
+                        time.perf_counter() - t0)
+
+
+def _counts(ws: WindowSet) -> dict[str, Any]:
+    c = ws.counts
+    return {"truth": c.truth, "detected": c.detected, "missed": sum(c.missed.values()), "missed_by_file": c.missed,
+            "false": sum(c.false.values())}
+
+
+def _inner_folds(ws: WindowSet, train: npt.NDArray[np.intp], n: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
+    """Grouped folds of the slides ``train`` (indices into ws.slides), as indices into ws.slides; [] if fewer than 2 files."""
+    from sklearn.model_selection import GroupKFold
+
+    files = np.array([ws.slides[i].file for i in train])
+    k = min(n, len(np.unique(files)))
+    if k < 2:
+        return []
+    return [(train[a], train[b]) for a, b in GroupKFold(n_splits=k).split(train, groups=files)]
+
+
+def _run_with_progress(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]], say: Progress, scheduler: str | None) -> list[Any]:
+    out: list[Any] = []
+    chunk = max(1, math.ceil(len(tasks) / 20))
+    with parallel_backend(scheduler):
+        for i in range(0, len(tasks), chunk):
+            out += run_parallel(tasks[i:i + chunk])
+            done = min(len(tasks), i + chunk)
+            bar = "#" * round(20 * done / len(tasks))
+            say(f"[{bar:<20s}] {done}/{len(tasks)} fits")
+    return out
+
+
+# ---- the papers' method ----------------------------------------------------------------------------------------------------
+
+
+def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_folds: int = 3, n_features: int | str = "auto") -> list[int]:
+    """Forward selection (scikit-learn's SequentialFeatureSelector, ELM criterion, grouped CV) on the windows ``rows``.
+
+    ``n_features`` "auto": add features while the CV accuracy rises by at least 0.005.
+    Constant columns are never candidates. Returns column indices into ``ws.names``.
+    """
+    from sklearn.feature_selection import SequentialFeatureSelector
+    from sklearn.model_selection import StratifiedGroupKFold
+    from sklearn.pipeline import Pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    from tactiled.elm import ELMClassifier
+    from tactiled.model import LogFeatures
+
+    x, y, g = ws.x[rows], ws.y[rows], ws.groups[rows]
+    k = max(2, min(inner_folds, len(np.unique(g))))
+    cv = list(StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=seed).split(x, y, g))
+    z = Pipeline([("log", LogFeatures(tuple(ws.names))), ("scale", StandardScaler())]).fit_transform(x)
+    varying = np.flatnonzero(np.ptp(z, axis=0) > 1e-12)
+    n: int | str = n_features if n_features == "auto" else min(int(n_features), len(varying) - 1)
+    sfs = SequentialFeatureSelector(ELMClassifier(n_hidden=50, calibrate=False, random_state=seed), n_features_to_select=n,
+                                    tol=0.005 if n == "auto" else None, direction="forward", scoring="accuracy", cv=cv)
+    sfs.fit(z[:, varying], y)
+    return [int(varying[j]) for j in np.flatnonzero(sfs.get_support())]
+
+
+def window_oof(ws: WindowSet, cols: npt.NDArray[np.intp], kind: str, params: dict[str, Any],
+               folds: list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]], classes: list[str], seed: int) -> FloatArray:
+    """Out-of-fold scores (w, K) of every window, each from the fold model that did not see its slide (-inf: class unseen)."""
+    out = np.full((len(ws.y), len(classes)), -np.inf)
+    index = {c: i for i, c in enumerate(classes)}
+    for train, test in folds:
+        tr, te = _window_rows(ws, train), _window_rows(ws, test)
+        if len(np.unique(ws.y[tr])) < 2 or not len(te):
+            continue
+        pipe, _ = fit_pipeline(ws.x[tr][:, cols], ws.y[tr], [ws.names[j] for j in cols], kind, params, seed)
+        raw = decision_scores(pipe[-1], pipe[:-1].transform(ws.x[te][:, cols]))
+        for j, c in enumerate(pipe[-1].classes_):
+            out[te, index[str(c)]] = raw[:, j]
+    return out
+
+
+def paper(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
+          progress: Progress | None = None, scheduler: str | None = None,
+          found: tuple[list[list[Slide]], SlideCounts] | None = None) -> SearchResult:
+    """The papers' DWT + SFS + ELM (:data:`PAPER`), cross-validated the same way as :func:`search`, then fitted on everything."""
+    return search(recs, config, folds=folds, inner_folds=inner_folds, seed=seed, candidates=[PAPER], progress=progress, scheduler=scheduler,
+                  found=found, method="paper")
