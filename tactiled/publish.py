@@ -110,4 +110,4 @@ def roughness_body(r: SlideResult, fs: float, model: str, latency_ms: float) -> 
     return {"label": r.label, "reason": r.reason, "confidence": r.confidence, "top": [[c, p] for c, p in r.top], "slide_id": r.slide_id,
             "start": r.start, "stop": r.stop, "window": [r.window[0], r.window[1]], "t_start": r.start / fs, "t_stop": r.stop / fs,
             "latency_ms": round(latency_ms, 3), "model": model, "quality": {**r.quality, "compute_ms": round(r.compute_ms, 3)},
-            "version": __version__}
+            "version": __version__, "final": r.final, "used_s": round(r.used_s, 4)}

@@ -35,16 +35,18 @@ def test_daemon_labels_every_slide_like_replay_through_faults(tmp_path: Path) ->
         lazy = ctx.socket(zmq.SUB)  # a subscriber that never reads
         lazy.setsockopt(zmq.SUBSCRIBE, b"")
         lazy.connect(endpoint)
-        proc = subprocess.Popen(tactiled_cmd("run", "--port", link, "--publish", endpoint, "--record", str(tmp_path / "got.npz")),
-                                stderr=subprocess.PIPE, text=True)
+        config = tmp_path / "c.toml"
+        config.write_text("[classifier]\nprovisional_confidence = 0.0\n")  # a provisional label after the first window of every slide
+        proc = subprocess.Popen(tactiled_cmd("run", "--port", link, "--publish", endpoint, "--record", str(tmp_path / "got.npz"),
+                                             "--config", str(config)), stderr=subprocess.PIPE, text=True)
         messages: list[object] = []
         try:
             with BlockingSubscriber(endpoint, timeout=20) as sub:
                 def enough() -> bool:
                     messages.append(sub.receive())
                     unplugged = any(isinstance(m, Status) and m.reconnects >= 1 for m in messages)
-                    after = [m for m in messages if isinstance(m, Roughness)]
-                    return unplugged and len(after) >= 6 and isinstance(messages[-1], Roughness) and \
+                    after = [m for m in messages if isinstance(m, Roughness) and m.final]
+                    return unplugged and len(after) >= 6 and isinstance(messages[-1], Roughness) and messages[-1].final and \
                         any(isinstance(m, Status) and m.reconnects >= 1 for m in messages[: messages.index(after[-1])])
                 wait_for(enough, timeout=120, what="six labels and a reconnect")
                 t0 = time.monotonic()
@@ -64,26 +66,31 @@ def test_daemon_labels_every_slide_like_replay_through_faults(tmp_path: Path) ->
                 proc.kill()
     assert proc.returncode == 0, proc.stderr.read() if proc.stderr else ""
     assert elapsed < 2.0
-    rough = [m for m in messages if isinstance(m, Roughness)]
+    every_label = [m for m in messages if isinstance(m, Roughness)]
+    rough = [m for m in every_label if m.final]
     statuses = [m for m in messages if isinstance(m, Status)]
     slides = [m for m in messages if isinstance(m, Slide)]
     # no message lost between daemon and subscriber; seq consecutive per topic
     assert all(m.missed == 0 for m in messages)  # type: ignore[attr-defined]
-    for kind in (rough, statuses, slides):
+    for kind in (every_label, statuses, slides):
         seqs = [m.seq for m in kind]
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
     # status at least once a second
     times = [m.time_unix for m in statuses]
     assert max(b - a for a, b in itertools.pairwise(times)) <= 1.0
-    # every ended slide has exactly one roughness message
+    # every ended slide has exactly one final roughness message, after its end; provisional ones come before the end
     ended = {m.slide_id for m in slides if m.event == "end"}
     assert sorted(m.slide_id for m in rough) == sorted(ended)
+    end_at = {m.slide_id: i for i, m in enumerate(messages) if isinstance(m, Slide) and m.event == "end"}
+    early = [(i, m) for i, m in enumerate(messages) if isinstance(m, Roughness) and not m.final and m.slide_id in end_at]
+    assert early and all(i < end_at[m.slide_id] and m.label and 0 < m.used_s <= (m.stop - m.start) / 20_000 + 1e-9 for i, m in early)
+    assert all(messages.index(m) > end_at[m.slide_id] for m in rough)
     labelled = [m for m in rough if m.label is not None]
     assert len(labelled) >= 4
     assert all(m.model == load_model().fingerprint and m.latency_ms >= 0 for m in rough)
     # the labels replay gives on the very samples the daemon received
     got = load_recording(tmp_path / "got.npz")
-    replayed = {r.start + got.first_index: r for r in replay_recording(got, Config(), load_model())}
+    replayed = {r.start + got.first_index: r for r in replay_recording(got, Config(), load_model()) if r.final}
     for m in rough:
         r = replayed[m.start]
         assert (r.stop + got.first_index, r.label, r.reason) == (m.stop, m.label, m.reason)

@@ -16,7 +16,7 @@ from typing import Any, TypeVar
 
 import msgpack
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 ROUGHNESS, SLIDE, STATUS = "roughness", "slide", "status"
 TOPICS = (ROUGHNESS, SLIDE, STATUS)
 
@@ -77,7 +77,7 @@ class Message:
 
 @dataclass
 class Roughness(Message):
-    """One per slide: the label (None when abstaining, with ``reason``) and its provenance."""
+    """A label for a slide (None when abstaining, with ``reason``) and its provenance: one final per slide, provisional ones before it."""
 
     label: str | None = None
     reason: str | None = None
@@ -93,6 +93,8 @@ class Roughness(Message):
     model: str = ""  # model fingerprint
     quality: dict[str, Any] = field(default_factory=dict)
     time_unix: float = 0.0
+    final: bool = True  # v2: False for a provisional label published while the slide goes on
+    used_s: float = 0.0  # v2: seconds of the slide (from its start) the label is based on
 
 
 @dataclass
