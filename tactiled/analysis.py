@@ -5,6 +5,7 @@ window samples → volts (float64) → quality (lost, saturated) → spike remov
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -13,7 +14,7 @@ import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.errors import WindowError
-from tactiled.features import FeaturePlan, family_names
+from tactiled.features import FeaturePlan, family_names, feature_names
 from tactiled.spikes import remove_spikes
 
 
@@ -42,10 +43,14 @@ class AnalysisSettings:
 
     @classmethod
     def from_config(cls, config: Config, channels: int, fs: float = 20_000.0) -> AnalysisSettings:
-        f = config.features
-        names = tuple(n for fam in f.families for n in family_names(fam, channels, fs, f))
-        return cls(config.window.start_s, config.window.duration_s, config.window.hop_s, config.window.max_windows, config.spikes.method,
-                   config.spikes.half_width, config.spikes.nsigma, f.wavelet, f.level, f.mode, names)
+        """The config's windows and feature families (the DWT with fewer levels, or left out, when the windows are too short for it)."""
+        w, fams = config.window, list(config.features.families)
+        st = window_settings(config, channels, fs, w.duration_s, fams, w.start_s, w.max_windows, w.hop_s)
+        if st is None and "dwt" in fams and len(fams) > 1:
+            st = window_settings(config, channels, fs, w.duration_s, [f for f in fams if f != "dwt"], w.start_s, w.max_windows, w.hop_s)
+        if st is None:
+            raise WindowError("window_too_short", f"window.duration_s = {w.duration_s:g} s is too short for the feature families at {fs:g} Hz")
+        return st
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -82,6 +87,36 @@ class AnalysisSettings:
         """The first full window of a slide starting at ``start``."""
         lo = start + round(self.start_s * fs)
         return lo, lo + max(1, round(self.duration_s * fs))
+
+
+def dwt_level(channels: int, fs: float, duration_s: float, config: Config) -> int:
+    """The most DWT levels (at most ``features.level``) whose bands fit in a window of ``duration_s``; 0 if none."""
+    n = round(duration_s * fs)
+    f = config.features
+    for level in range(f.level, 0, -1):
+        if FeaturePlan(feature_names(channels, level, f.domains, f.stats), f.wavelet, f.mode, fs=fs).min_samples() <= n:
+            return level
+    return 0
+
+
+def window_settings(config: Config, channels: int, fs: float, duration_s: float, families: Sequence[str], start_s: float = 0.0,
+                    max_windows: int = 0, hop_s: float = 0.0) -> AnalysisSettings | None:
+    """Settings computing every name of ``families`` on windows of ``duration_s``; None if a family cannot fit such a window."""
+    names: list[str] = []
+    level = config.features.level
+    for fam in families:
+        if fam == "dwt":
+            level = dwt_level(channels, fs, duration_s, config)
+            if level == 0:
+                return None
+            names += feature_names(channels, level, config.features.domains, config.features.stats)
+        else:
+            names += family_names(fam, channels, fs, config.features)
+    s = config.spikes
+    st = AnalysisSettings(start_s, duration_s, hop_s, max_windows, s.method, s.half_width, s.nsigma, config.features.wavelet, level,
+                          config.features.mode, tuple(names))
+    plan = FeaturePlan(st.names, st.wavelet, st.mode, fs=fs)
+    return st if plan.min_samples() <= round(duration_s * fs) else None
 
 
 @dataclass

@@ -132,14 +132,17 @@ class SpikesConfig:
 
 @dataclass(frozen=True)
 class FeaturesConfig:
-    """DWT features: wavelet, levels, extension mode, domains and statistics."""
+    """Feature families (dwt, psd, tex) computed without a model, and their settings (docs/features.md)."""
 
     wavelet: str = "coif5"
     level: int = 4
     mode: str = "symmetric"
     domains: tuple[str, ...] = ("time", "freq")
     stats: tuple[str, ...] = STAT_NAMES
-    families: tuple[str, ...] = ("dwt",)
+    families: tuple[str, ...] = ("dwt", "psd", "tex")
+    psd_low_hz: float = 20.0
+    psd_high_frac: float = 0.45
+    psd_bands_per_octave: float = 3.0
 
     def validate(self, p: str) -> None:
         import pywt
@@ -149,6 +152,10 @@ class FeaturesConfig:
         _check(self.mode in pywt.Modes.modes, f"{p}.mode", f"must be one of {', '.join(pywt.Modes.modes)}")
         _check(bool(self.domains) and set(self.domains) <= {"time", "freq"}, f"{p}.domains", "must be a non-empty subset of time, freq")
         _check(bool(self.stats) and set(self.stats) <= set(STAT_NAMES), f"{p}.stats", f"must be a non-empty subset of {', '.join(STAT_NAMES)}")
+        _check(bool(self.families) and set(self.families) <= {"dwt", "psd", "tex"}, f"{p}.families", "must be a non-empty subset of dwt, psd, tex")
+        _check(0.1 <= self.psd_low_hz <= 10_000, f"{p}.psd_low_hz", "must be in [0.1, 10000] Hz")
+        _check(0.05 <= self.psd_high_frac <= 0.5, f"{p}.psd_high_frac", "must be in [0.05, 0.5] (a fraction of fs)")
+        _check(0.5 <= self.psd_bands_per_octave <= 24, f"{p}.psd_bands_per_octave", "must be in [0.5, 24]")
 
 
 @dataclass(frozen=True)

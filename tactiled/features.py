@@ -1,14 +1,32 @@
-"""DWT features of analysis windows: pure functions, float64, finite on any input.
+"""Features of analysis windows: pure functions, float64, finite on any input, any channel count and rate.
 
-A feature is named ``film<c>.<domain>.<band>.<stat>``, e.g. ``film1.time.D3.energy``:
-``c`` counts channels from 1; ``domain`` is ``time`` (the window's samples, V) or ``freq``
-(the magnitude of its real FFT, V); ``band`` is a DWT approximation ``A1``… or detail
-``D1``… (coif5, 4 levels by default; A_j and D_j come from iterating ``pywt.dwt`` on
-A_{j-1}); ``stat`` is one of mean, sd (ddof 1), energy (Σc²), rms, skew, kurt (Pearson's,
-3 for a Gaussian). A constant band has sd 0, skew 0 and kurt 0.
+Three families; a feature's name says everything needed to compute it, and
+:class:`FeaturePlan` computes only what the names of a model ask for.
 
-:class:`FeaturePlan` is derived from the names a model asks for and computes only what they
-need: fewer channels, domains, levels or statistics.
+``dwt``, the papers' statistics: ``film<c>.<domain>.<band>.<stat>``, e.g.
+``film1.time.D3.energy``: ``c`` counts channels from 1; ``domain`` is ``time`` (the
+window's samples, V) or ``freq`` (the magnitude of its real FFT, V); ``band`` is a DWT
+approximation ``A1``… or detail ``D1``… (coif5, 4 levels by default; A_j and D_j come
+from iterating ``pywt.dwt`` on A_{j-1}); ``stat`` is one of mean, sd (ddof 1), energy (Σc²),
+rms, skew, kurt (Pearson's, 3 for a Gaussian). A constant band has sd 0, skew 0 and kurt 0.
+
+``psd``, log band energies: ``film<c>.psd.<lo>-<hi>Hz.power`` (numbers with ``p`` for the
+decimal point, e.g. ``film1.psd.20-25p2Hz.power``): the power (V²) of the window in
+[lo, hi) Hz from its Welch PSD (Hann segments of ~50 ms, half overlapping, each segment's
+mean removed), integrated with fractional bins so that any band width works at any
+resolution. Bands are log-spaced, ``psd_bands_per_octave`` per octave from
+``psd_low_hz`` to ``psd_high_frac``·fs (:func:`psd_bands`).
+
+``tex``, texture descriptors: ``film<c>.tex.<name>``: ``centroid``, ``spread`` (Hz: mean
+and standard deviation of frequency under the Welch PSD), ``rolloff`` (Hz below which 85 %
+of the power lies), ``flatness`` (geometric / arithmetic mean of the PSD, 0..1), ``slope``
+(of log10 PSD against log10 f, least squares over the psd band range), ``kurtosis``
+(Pearson's, of the samples), ``crest`` (peak |x − mean| / RMS), ``zcr`` (zero crossings of
+x − mean per second), ``rms`` (V). A silent window gives 0 for every descriptor.
+
+Classifiers see log10 of the positive, decade-spanning features (:func:`is_log_feature`:
+DWT sd/energy/rms, psd power, tex rms/centroid/spread/rolloff), floored at 1e-30; the
+rest as they are (:func:`classifier_inputs`).
 """
 
 from __future__ import annotations
@@ -16,10 +34,12 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 import pywt
+from scipy import signal
 
 from tactiled.config import STAT_NAMES
 from tactiled.errors import WindowError
@@ -60,37 +80,92 @@ def band_stats(c: npt.NDArray[np.float64], stats: Iterable[str]) -> dict[str, fl
     return out
 
 
-FAMILIES = ("dwt",)
+FAMILIES = ("dwt", "psd", "tex")
+TEX_NAMES = ("centroid", "spread", "rolloff", "flatness", "slope", "kurtosis", "crest", "zcr", "rms")
+SEGMENT_S = 0.05  # Welch segment length, s (a power of two samples near it)
+MIN_PSD_SAMPLES = 64  # the shortest window the psd and tex families analyse
+
+
+def _num(x: float) -> str:
+    return f"{x:.4g}".replace(".", "p")
+
+
+def _unnum(text: str) -> float:
+    return float(text.replace("p", "."))
+
+
+def psd_bands(fs: float, low_hz: float = 20.0, high_frac: float = 0.45, per_octave: float = 3.0) -> list[tuple[float, float]]:
+    """Log-spaced [lo, hi) bands in Hz, ``per_octave`` per octave from ``low_hz`` to ``high_frac``·fs.
+
+    A band narrower than the Welch resolution of a ~50 ms segment is merged into the next,
+    so the lowest bands hold at least one frequency bin. Raises ValueError for an empty range.
+    """
+    high = high_frac * fs
+    if not (0 < low_hz < high <= fs / 2):
+        raise ValueError(f"psd bands: need 0 < low ({low_hz:g} Hz) < high ({high:g} Hz) <= fs/2")
+    n = max(1, round(math.log2(high / low_hz) * per_octave))
+    edges = [float(f"{e:.4g}") for e in np.geomspace(low_hz, high, n + 1)]
+    resolution = fs / welch_segment(fs, 1 << 30)
+    bands: list[tuple[float, float]] = []
+    lo = edges[0]
+    for hi in edges[1:]:
+        if hi - lo >= resolution or hi == edges[-1]:
+            bands.append((lo, hi))
+            lo = hi
+    return bands
+
+
+def welch_segment(fs: float, n: int) -> int:
+    """Welch segment length (samples): the power of two nearest :data:`SEGMENT_S`·fs, at most ``n``, at least 8."""
+    return int(max(8, min(n, 1 << max(3, round(math.log2(max(SEGMENT_S * fs, 8)))))))
+
+
+def family_names(family: str, channels: int, fs: float, settings: Any = None) -> list[str]:
+    """Every feature name of ``family`` for ``channels`` films at ``fs`` Hz.
+
+    ``settings``: a :class:`tactiled.config.FeaturesConfig` (or anything with its attributes);
+    None takes the defaults.
+    """
+    get = (lambda key, default: getattr(settings, key, default)) if settings is not None else (lambda key, default: default)
+    if family == "dwt":
+        return feature_names(channels, get("level", 4), get("domains", DOMAINS), get("stats", STAT_NAMES))
+    if family == "psd":
+        bands = psd_bands(fs, get("psd_low_hz", 20.0), get("psd_high_frac", 0.45), get("psd_bands_per_octave", 3.0))
+        return [f"film{c + 1}.psd.{_num(lo)}-{_num(hi)}Hz.power" for c in range(channels) for lo, hi in bands]
+    if family == "tex":
+        return [f"film{c + 1}.tex.{t}" for c in range(channels) for t in TEX_NAMES]
+    raise ValueError(f"unknown feature family {family!r}; known: {', '.join(FAMILIES)}")
 
 
 def name_family(name: str) -> str:
-    """The family of a feature name (interim: the DWT family only)."""
-    return "dwt"
+    """The family of a feature name: dwt, psd or tex."""
+    part = name.split(".")[1] if name.count(".") >= 2 else ""
+    return part if part in ("psd", "tex") else "dwt"
 
 
-def family_names(family: str, channels: int, fs: float, settings: object = None) -> list[str]:
-    """Every feature name of ``family`` (interim: the DWT family only)."""
-    return feature_names(channels) if family == "dwt" else []
-
-
-SCALE_STATS = ("sd", "energy", "rms")  # positive, spanning decades: classifiers see their log
-
-
-def log_mask(names: Sequence[str]) -> npt.NDArray[np.bool_]:
-    """True for the features whose logarithm the classifiers see (scale statistics)."""
-    return np.array([n.rsplit(".", 1)[-1] in SCALE_STATS for n in names], dtype=bool)
+def is_log_feature(name: str) -> bool:
+    """True for the features whose logarithm the classifiers see (positive, spanning decades)."""
+    fam = name_family(name)
+    last = name.rsplit(".", 1)[-1]
+    if fam == "psd":
+        return True
+    if fam == "tex":
+        return last in ("rms", "centroid", "spread", "rolloff")
+    return last in ("sd", "energy", "rms")
 
 
 def classifier_inputs(x: npt.NDArray[np.float64], names: Sequence[str]) -> npt.NDArray[np.float64]:
-    """Features (n, F) as classifiers see them: log10 of scale statistics (floored at 1e-30), others as they are."""
+    """Features (n, F) as classifiers see them: log10 of :func:`is_log_feature` ones (floored at 1e-30), others as they are."""
     out = np.array(x, dtype=np.float64, copy=True)
-    mask = log_mask(names)
+    mask = np.array([is_log_feature(n) for n in names], dtype=bool)
     out[:, mask] = np.log10(np.maximum(out[:, mask], 1e-30))
     return out
 
 
 @dataclass(frozen=True)
 class ParsedName:
+    """A DWT feature name, parsed."""
+
     channel: int  # 0-based
     domain: str
     kind: str  # "A" or "D"
@@ -99,7 +174,7 @@ class ParsedName:
 
 
 def parse_name(name: str) -> ParsedName:
-    """Parse ``film<c>.<domain>.<band>.<stat>``; ValueError naming the part that is wrong."""
+    """Parse a DWT name ``film<c>.<domain>.<band>.<stat>``; ValueError naming the part that is wrong."""
     parts = name.split(".")
     if len(parts) != 4 or not parts[0].startswith("film") or not parts[0][4:].isdigit():
         raise ValueError(f"feature {name!r}: expected film<c>.<domain>.<band>.<stat>")
@@ -111,29 +186,123 @@ def parse_name(name: str) -> ParsedName:
     return ParsedName(channel, domain, band[0], int(band[1:]), stat)
 
 
+def _channel(name: str) -> int:
+    head = name.split(".", 1)[0]
+    if not head.startswith("film") or not head[4:].isdigit() or int(head[4:]) < 1:
+        raise ValueError(f"feature {name!r}: expected film<c>.…")
+    return int(head[4:]) - 1
+
+
+def parse_psd(name: str, fs: float) -> tuple[int, float, float]:
+    """(channel, lo Hz, hi Hz) of ``film<c>.psd.<lo>-<hi>Hz.power``; ValueError if malformed or beyond fs/2."""
+    parts = name.split(".")
+    try:
+        if len(parts) != 4 or parts[3] != "power" or not parts[2].endswith("Hz"):
+            raise ValueError
+        lo, hi = (_unnum(v) for v in parts[2][:-2].split("-"))
+    except ValueError:
+        raise ValueError(f"feature {name!r}: expected film<c>.psd.<lo>-<hi>Hz.power") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo < hi <= fs / 2):
+        raise ValueError(f"feature {name!r}: band must satisfy 0 <= lo < hi <= fs/2 = {fs / 2:g} Hz")
+    return _channel(name), lo, hi
+
+
+def psd_of(x: npt.NDArray[np.float64], fs: float) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """(f (m,) Hz, Welch PSD (m,) V²/Hz) of one channel ``x`` (n,): Hann segments of ~50 ms, half overlapping, mean removed."""
+    nper = welch_segment(fs, x.shape[0])
+    f, p = signal.welch(x, fs=fs, window="hann", nperseg=nper, noverlap=nper // 2, detrend="constant")
+    return np.asarray(f, dtype=np.float64), np.asarray(p, dtype=np.float64)
+
+
+def band_powers(f: npt.NDArray[np.float64], p: npt.NDArray[np.float64], bands: Sequence[tuple[float, float]]) -> npt.NDArray[np.float64]:
+    """Power (V²) of each [lo, hi) band: the integral of the PSD, linear between bins (fractional bins at the edges)."""
+    df = f[1] - f[0] if f.size > 1 else 1.0
+    cum = np.concatenate(([0.0], np.cumsum(p) * df))  # power below each bin's upper edge
+    edges = np.concatenate((f - df / 2, [f[-1] + df / 2])).clip(min=0.0)
+    lo = np.interp([b[0] for b in bands], edges, cum)
+    hi = np.interp([b[1] for b in bands], edges, cum)
+    return np.maximum(hi - lo, 0.0)
+
+
+def texture(x: npt.NDArray[np.float64], f: npt.NDArray[np.float64], p: npt.NDArray[np.float64], fs: float,
+            wanted: Iterable[str], slope_range: tuple[float, float]) -> dict[str, float]:
+    """The asked texture descriptors (see the module docstring) of one channel ``x`` (n,) V with its PSD."""
+    out: dict[str, float] = {}
+    total = float(p.sum())
+    d = x - x.mean()
+    m2 = float(np.dot(d, d)) / max(1, d.size)
+    silent = total <= 0.0 or m2 <= (1e-12 * max(float(np.max(np.abs(x))), 1e-300)) ** 2
+    for name in wanted:
+        if silent:
+            out[name] = 0.0
+        elif name in ("centroid", "spread"):
+            c = float(np.dot(f, p)) / total
+            out[name] = c if name == "centroid" else math.sqrt(max(float(np.dot((f - c) ** 2, p)) / total, 0.0))
+        elif name == "rolloff":
+            out[name] = float(f[min(int(np.searchsorted(np.cumsum(p), 0.85 * total)), f.size - 1)])
+        elif name == "flatness":
+            q = p[1:] if p.size > 1 else p
+            out[name] = float(np.exp(np.mean(np.log(np.maximum(q, 1e-300)))) / max(float(q.mean()), 1e-300))
+        elif name == "slope":
+            keep = (f >= slope_range[0]) & (f <= slope_range[1]) & (p > 0)
+            if keep.sum() >= 2:
+                out[name] = float(np.polyfit(np.log10(f[keep]), np.log10(p[keep]), 1)[0])
+            else:
+                out[name] = 0.0
+        elif name == "kurtosis":
+            out[name] = float(np.mean(d**4)) / (m2 * m2)
+        elif name == "crest":
+            out[name] = float(np.max(np.abs(d))) / math.sqrt(m2)
+        elif name == "zcr":
+            out[name] = float(np.count_nonzero(np.signbit(d[1:]) != np.signbit(d[:-1]))) * fs / max(1, d.size)
+        elif name == "rms":
+            out[name] = math.sqrt(m2)
+        else:
+            raise ValueError(f"unknown texture descriptor {name!r}")
+    return out
+
+
 class FeaturePlan:
-    """What to compute for a list of feature names; :meth:`compute` returns them in that order."""
+    """What to compute for a list of feature names (any mix of families); :meth:`compute` returns them in that order."""
 
     def __init__(self, names: Sequence[str], wavelet: str = "coif5", mode: str = "symmetric", fs: float = 20_000.0) -> None:
+        if not (math.isfinite(fs) and fs > 0):
+            raise ValueError(f"fs must be finite and > 0, got {fs}")
         self.fs = fs
         self.names = list(names)
         self.wavelet = pywt.Wavelet(wavelet)
         self.mode = mode
-        parsed = [parse_name(n) for n in self.names]
-        # (channel, domain) -> max level needed; (channel, domain, band) -> stats
+        # dwt: (channel, domain) -> max level needed; (channel, domain, band) -> stats
         self._levels: dict[tuple[int, str], int] = {}
         self._stats: dict[tuple[int, str, str], list[str]] = {}
-        for p in parsed:
-            key = (p.channel, p.domain)
-            self._levels[key] = max(self._levels.get(key, 0), p.level)
-            self._stats.setdefault((p.channel, p.domain, f"{p.kind}{p.level}"), [])
-            if p.stat not in self._stats[(p.channel, p.domain, f"{p.kind}{p.level}")]:
-                self._stats[(p.channel, p.domain, f"{p.kind}{p.level}")].append(p.stat)
-        self.channels_needed = 1 + max((p.channel for p in parsed), default=-1)
+        self._psd: dict[int, list[tuple[str, float, float]]] = {}  # channel -> (name, lo, hi)
+        self._tex: dict[int, list[str]] = {}  # channel -> descriptors
+        channels = []
+        for n in self.names:
+            fam = name_family(n)
+            if fam == "psd":
+                c, lo, hi = parse_psd(n, fs)
+                self._psd.setdefault(c, []).append((n, lo, hi))
+            elif fam == "tex":
+                c, last = _channel(n), n.split(".")
+                if len(last) != 3 or last[2] not in TEX_NAMES:
+                    raise ValueError(f"feature {n!r}: expected film<c>.tex.<one of {', '.join(TEX_NAMES)}>")
+                self._tex.setdefault(c, []).append(last[2])
+            else:
+                p = parse_name(n)
+                c = p.channel
+                key = (p.channel, p.domain)
+                self._levels[key] = max(self._levels.get(key, 0), p.level)
+                stats = self._stats.setdefault((p.channel, p.domain, f"{p.kind}{p.level}"), [])
+                if p.stat not in stats:
+                    stats.append(p.stat)
+            channels.append(c)
+        self.channels_needed = 1 + max(channels, default=-1)
+        self._slope_range = (20.0, 0.45 * fs)
 
     def min_samples(self) -> int:
-        """The shortest window every band of the plan can be computed on without boundary-only coefficients."""
-        need = 0
+        """The shortest window every feature of the plan can be computed on (DWT: no boundary-only coefficients)."""
+        need = MIN_PSD_SAMPLES if (self._psd or self._tex) else 0
         for (_, domain), level in self._levels.items():
             n = (self.wavelet.dec_len - 1) * 2 ** level
             need = max(need, n if domain == "time" else 2 * (n - 1))
@@ -163,6 +332,15 @@ class FeaturePlan:
                     if stats:
                         for stat, value in band_stats(coeffs, stats).items():
                             values[f"film{channel + 1}.{domain}.{kind}{j}.{stat}"] = value
+        for channel in sorted(set(self._psd) | set(self._tex)):
+            f, p = psd_of(x[:, channel], self.fs)
+            if channel in self._psd:
+                bands = self._psd[channel]
+                for (name, _, _), power in zip(bands, band_powers(f, p, [(lo, hi) for _, lo, hi in bands]), strict=True):
+                    values[name] = float(power)
+            if channel in self._tex:
+                for t, value in texture(x[:, channel], f, p, self.fs, self._tex[channel], self._slope_range).items():
+                    values[f"film{channel + 1}.tex.{t}"] = value
         out = np.array([values[n] for n in self.names], dtype=np.float64)
         # energies of a saturated window reach ~1e9; anything non-finite would be a bug upstream
         if not np.all(np.isfinite(out)):

@@ -258,6 +258,8 @@ def fit_pipeline(x: FloatArray, y: npt.NDArray[Any], names: list[str] | tuple[st
     Returns the pipeline and, for kNN and SVM (refit at load), their standardised training
     set, at most :data:`MAX_REFIT_ROWS` rows (a seeded subsample beyond that).
     """
+    if kind == "knn":  # never more neighbours than training rows
+        params = {**params, "n_neighbors": max(1, min(int(params.get("n_neighbors", 9)), x.shape[0]))}
     pipe = make_pipeline(names, kind, params, seed)
     if kind in ("svm", "knn") and x.shape[0] > MAX_REFIT_ROWS:
         keep = np.sort(np.random.default_rng(seed).choice(x.shape[0], MAX_REFIT_ROWS, replace=False))

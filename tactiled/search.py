@@ -32,11 +32,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from tactiled.analysis import AnalysisSettings
+from tactiled.analysis import AnalysisSettings, window_settings
 from tactiled.config import Config
 from tactiled.dataset import Slide, SlideCounts, WindowSet, collect_windows, find_slides
 from tactiled.errors import TactiledError
-from tactiled.features import FeaturePlan, family_names, feature_names, name_family
+from tactiled.features import name_family
 from tactiled.model import Model, decision_scores, fit_pipeline, fit_temperature
 from tactiled.recording import Recording
 
@@ -207,36 +207,6 @@ def run_parallel(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]]) -> lis
 # ---- the search ---------------------------------------------------------------------------------------------------
 
 
-def dwt_level(channels: int, fs: float, duration_s: float, config: Config) -> int:
-    """The most DWT levels (at most ``features.level``) whose bands fit in a window of ``duration_s``; 0 if none."""
-    n = round(duration_s * fs)
-    f = config.features
-    for level in range(f.level, 0, -1):
-        if FeaturePlan(feature_names(channels, level, f.domains, f.stats), f.wavelet, f.mode, fs=fs).min_samples() <= n:
-            return level
-    return 0
-
-
-def window_settings(config: Config, channels: int, fs: float, duration_s: float, families: Sequence[str], start_s: float = 0.0,
-                    max_windows: int = 0) -> AnalysisSettings | None:
-    """Settings computing every name of ``families`` on windows of ``duration_s``; None if a family cannot fit such a window."""
-    names: list[str] = []
-    level = config.features.level
-    for fam in families:
-        if fam == "dwt":
-            level = dwt_level(channels, fs, duration_s, config)
-            if level == 0:
-                return None
-            names += feature_names(channels, level, config.features.domains, config.features.stats)
-        else:
-            names += family_names(fam, channels, fs, config.features)
-    s = config.spikes
-    st = AnalysisSettings(start_s, duration_s, 0.0, max_windows, s.method, s.half_width, s.nsigma, config.features.wavelet, level,
-                          config.features.mode, tuple(names))
-    plan = FeaturePlan(st.names, st.wavelet, st.mode, fs=fs)
-    return st if plan.min_samples() <= round(duration_s * fs) else None
-
-
 def _columns(ws: WindowSet, families: Sequence[str]) -> npt.NDArray[np.intp]:
     return np.array([j for j, n in enumerate(ws.names) if name_family(n) in families], dtype=np.intp)
 
@@ -352,7 +322,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     summary = {"cv_accuracy": nested, "winner": best.name, "leaderboard": leaderboard[:12], "slides": len(ws.slides), "files": len(recs),
                "windows": len(rows), "classes": classes, "per_class": {k: list(v) for k, v in ws.per_class().items()}, "skipped": ws.skipped,
                "detector": _counts(ws)}
-    model = Model(method, best.kind, best.params, [str(c) for c in pipe[-1].classes_], settings, fs, channels, pipe, temperature,
+    params = {**best.params, "n_neighbors": int(pipe[-1].n_neighbors)} if best.kind == "knn" else best.params
+    model = Model(method, best.kind, params, [str(c) for c in pipe[-1].classes_], settings, fs, channels, pipe, temperature,
                   seed, summary, "", refit)
     return SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
                         time.perf_counter() - t0)
