@@ -52,7 +52,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 def cmd_simulate_dataset(args: argparse.Namespace) -> int:
     from tactiled.simulate import write_dataset
 
-    paths = write_dataset(Path(args.out), seed=args.seed, surfaces=args.surfaces, files_per_surface=args.files_per_surface,
+    paths = write_dataset(Path(args.out), scene=args.scene, seed=args.seed, surfaces=args.surfaces, files_per_surface=args.files_per_surface,
                           slides_per_file=args.slides_per_file, mode=args.mode, fs=args.fs, channels=args.channels,
                           progress=lambda msg: print(msg, file=sys.stderr))
     print(f"{args.out}: wrote {len(paths)} recordings")
@@ -313,6 +313,10 @@ def _probability(text: str) -> float:
     return value
 
 
+SCENE_HELP = ("scene, or scenes joined by commas: hand (default), robot, continuous, fluctuating, hot-gain, one-channel, grating "
+              "(docs/simulator.md), e.g. continuous,one-channel")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tactiled", description="Tactile roughness sensing daemon and toolkit.")
     parser.add_argument("--version", action="version", version=f"tactiled {__version__}")
@@ -337,13 +341,14 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("simulate", help="the simulated fingertip").add_subparsers(dest="what", required=True, metavar="WHAT")
     p = sim.add_parser("dataset", help="write labelled recordings")
     p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--scene", default=None, help=SCENE_HELP)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--surfaces", default=None, help="N, or names Ra0.44,Ra1.04,… (default all 15)")
+    p.add_argument("--surfaces", default=None, help="N spread over the range, or names such as Ra0.44,Ra4.43 (grating: G0.10mm,…) (default: all 15)")
     p.add_argument("--files-per-surface", type=int, default=4)
-    p.add_argument("--slides-per-file", type=int, default=5)
-    p.add_argument("--mode", choices=("manual", "robot"), default="manual")
-    p.add_argument("--fs", type=_positive_float, default=20_000.0)
-    p.add_argument("--channels", type=int, default=2)
+    p.add_argument("--slides-per-file", type=int, default=5, help="slides per file (continuous scenes: one)")
+    p.add_argument("--mode", choices=("manual", "robot"), default=None, help="older spelling of --scene hand / --scene robot")
+    p.add_argument("--fs", type=_positive_float, default=None, help="sample rate, Hz (default: the scene's, 20000 or 2200)")
+    p.add_argument("--channels", type=int, default=None, help="channels (default: the scene's, 2 or 1)")
     p.set_defaults(handler=cmd_simulate_dataset)
 
     p = sim.add_parser("figure", help="PNG of one slide per surface class: signal and spectrum")
@@ -354,8 +359,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sim.add_parser("serial", help="a virtual board streaming frames on a pty")
     p.add_argument("--link", help="keep this symlink pointing at the pty")
-    p.add_argument("--surfaces", default=None, help="N, or names (default all 15)")
-    p.add_argument("--mode", choices=("manual", "robot"), default="manual")
+    p.add_argument("--scene", default=None, help=SCENE_HELP)
+    p.add_argument("--surfaces", default=None, help="N spread over the range, or names such as Ra0.44,Ra4.43 (default: all 15)")
+    p.add_argument("--mode", choices=("manual", "robot"), default=None, help="older spelling of --scene hand / --scene robot")
     p.add_argument("--speed", type=_positive_float, default=1.0, help="times real time")
     p.add_argument("--corrupt", type=_probability, default=0.0, help="probability a frame is corrupted")
     p.add_argument("--drop", type=_probability, default=0.0, help="probability a frame is dropped")
@@ -364,8 +370,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--unplug-s", type=_positive_float, default=0.3)
     p.add_argument("--seconds", type=_positive_float, default=None, help="stop after this much sensor time")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--fs", type=_positive_float, default=20_000.0)
-    p.add_argument("--channels", type=int, default=2)
+    p.add_argument("--fs", type=_positive_float, default=None, help="sample rate, Hz (default: the scene's)")
+    p.add_argument("--channels", type=int, default=None, help="channels (default: the scene's)")
     p.add_argument("--log", help="write one JSON line per event sent (slides, faults) to this file")
     p.set_defaults(handler=cmd_simulate_serial)
     p = sub.add_parser("run", help="the daemon: serial port -> roughness labels over ZeroMQ")

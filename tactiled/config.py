@@ -73,30 +73,49 @@ class RingConfig:
 
 @dataclass(frozen=True)
 class DetectorConfig:
-    """Online slide detector: hysteresis on a short-time energy envelope over a tracked noise floor."""
+    """Online slide detector: hysteresis on a short-time energy envelope over a tracked noise floor (tactiled/detect.py).
+
+    Every threshold is a ratio of energies or a time; sample counts are derived from fs."""
 
     hop_ms: float = 5.0
+    hop_min_samples: int = 32
     band_low_hz: float = 60.0
+    band_high_hz: float = 4000.0
+    band_high_frac: float = 0.45
     mains_hz: float = 50.0
+    notch_q: float = 5.0
+    clamp_mads: float = 6.0
     on_factor: float = 6.0
-    off_factor: float = 2.0
-    off_hold_s: float = 0.08
+    off_factor: float = 3.0
+    off_hold_s: float = 0.3
     min_slide_s: float = 0.15
-    max_slide_s: float = 6.0
+    max_slide_s: float = 0.0
     holdoff_s: float = 0.1
     floor_tau_s: float = 2.0
+    initial_s: float = 0.2
+    lookback_s: float = 0.2
+    settle_s: float = 0.02
 
     def validate(self, p: str) -> None:
-        _check(self.hop_ms > 0, f"{p}.hop_ms", "must be > 0")
-        _check(self.band_low_hz > 0, f"{p}.band_low_hz", "must be > 0 Hz")
+        _check(0.5 <= self.hop_ms <= 100, f"{p}.hop_ms", "must be in [0.5, 100] ms")
+        _check(1 <= self.hop_min_samples <= 4096, f"{p}.hop_min_samples", "must be in 1..4096")
+        _check(0.1 <= self.band_low_hz <= 10_000, f"{p}.band_low_hz", "must be in [0.1, 10000] Hz")
+        _check(self.band_high_hz > self.band_low_hz and self.band_high_hz <= 1e6, f"{p}.band_high_hz", f"must be > {p}.band_low_hz")
+        _check(0.05 <= self.band_high_frac <= 0.49, f"{p}.band_high_frac", "must be in [0.05, 0.49] (a fraction of fs)")
         _check(self.mains_hz == 0 or 40 <= self.mains_hz <= 70, f"{p}.mains_hz", "must be 0 (off) or in 40..70 Hz")
-        _check(self.off_factor > 1.0, f"{p}.off_factor", "must be > 1")
-        _check(self.on_factor > self.off_factor, f"{p}.on_factor", f"must be > {p}.off_factor")
-        _check(self.off_hold_s >= 0, f"{p}.off_hold_s", "must be >= 0")
-        _check(self.min_slide_s > 0, f"{p}.min_slide_s", "must be > 0")
-        _check(self.max_slide_s > self.min_slide_s, f"{p}.max_slide_s", f"must be > {p}.min_slide_s")
-        _check(self.holdoff_s >= 0, f"{p}.holdoff_s", "must be >= 0")
-        _check(self.floor_tau_s > 0, f"{p}.floor_tau_s", "must be > 0")
+        _check(0.5 <= self.notch_q <= 100, f"{p}.notch_q", "must be in [0.5, 100]")
+        _check(2 <= self.clamp_mads <= 100, f"{p}.clamp_mads", "must be in [2, 100]")
+        _check(1.0 < self.off_factor <= 1e6, f"{p}.off_factor", "must be in (1, 1e6]")
+        _check(self.off_factor < self.on_factor <= 1e6, f"{p}.on_factor", f"must be > {p}.off_factor (and <= 1e6)")
+        _check(0 <= self.off_hold_s <= 60, f"{p}.off_hold_s", "must be in [0, 60] s")
+        _check(0 < self.min_slide_s <= 60, f"{p}.min_slide_s", "must be in (0, 60] s")
+        _check(self.max_slide_s == 0 or self.min_slide_s < self.max_slide_s <= 86_400, f"{p}.max_slide_s",
+               f"must be 0 (no limit) or in ({p}.min_slide_s, 86400] s")
+        _check(0 <= self.holdoff_s <= 60, f"{p}.holdoff_s", "must be in [0, 60] s")
+        _check(0.01 <= self.floor_tau_s <= 3600, f"{p}.floor_tau_s", "must be in [0.01, 3600] s")
+        _check(0.005 <= self.initial_s <= 60, f"{p}.initial_s", "must be in [0.005, 60] s")
+        _check(0 <= self.lookback_s <= 10, f"{p}.lookback_s", "must be in [0, 10] s")
+        _check(0 <= self.settle_s <= 10, f"{p}.settle_s", "must be in [0, 10] s")
 
 
 @dataclass(frozen=True)

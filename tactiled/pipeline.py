@@ -143,6 +143,8 @@ class Pipeline:
     def _handle(self, detector_events: list[Event]) -> list[PipelineEvent]:
         events: list[PipelineEvent] = []
         for ev in detector_events:
+            # windows the ring held when the detector decided come first: the same order whatever the block size
+            events += self._analyse_ready(until=ev.at if ev.at >= 0 else None)
             if isinstance(ev, SlideStart):
                 self._slide_id += 1
                 self._onset = ev.start
@@ -150,7 +152,7 @@ class Pipeline:
                 self._provisional = None
                 self._next = self.settings.first_span(ev.start, self.fs)
                 events.append(SlideStarted(self._slide_id, ev.start))
-                events += self._analyse_ready(until=None)
+                events += self._analyse_ready(until=ev.at if ev.at >= 0 else None)
             elif isinstance(ev, SlideEnd):
                 events.append(SlideEnded(self._slide_id, ev.start, ev.stop, ev.reason))
                 if ev.reason != "too_short":
@@ -161,10 +163,11 @@ class Pipeline:
         return events
 
     def _analyse_ready(self, until: int | None = None) -> list[PipelineEvent]:
-        """Analyse every window of the slide in progress that the ring now holds; provisional results."""
+        """Analyse every window of the slide in progress that the ring holds (up to ``until``); provisional results."""
         events: list[PipelineEvent] = []
         s = self.settings
-        while self._onset is not None and self._next is not None and self.ring.end >= self._next[1]:
+        limit = self.ring.end if until is None else min(until, self.ring.end)
+        while self._onset is not None and self._next is not None and limit >= self._next[1]:
             if s.max_windows and len(self._windows) >= s.max_windows:
                 self._next = None
                 break

@@ -115,7 +115,7 @@ class SearchResult:
 
 def slide_folds(ws: WindowSet, n_splits: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
     """Grouped (by file), label-stratified folds of the slides of ``ws`` (slide indices)."""
-    from sklearn.model_selection import StratifiedGroupKFold
+    from sklearn.model_selection import GroupKFold, StratifiedGroupKFold
 
     files = np.array([s.file for s in ws.slides])
     n_files = len(np.unique(files))
@@ -123,6 +123,8 @@ def slide_folds(ws: WindowSet, n_splits: int, seed: int) -> list[tuple[npt.NDArr
         raise TactiledError("cross-validation needs at least two recordings")
     k = max(2, min(n_splits, n_files))
     y = ws.slide_labels()
+    if np.unique(y, return_counts=True)[1].min() < k:  # a surface with fewer slides than folds: grouped, not stratified
+        return list(GroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, files))
     return list(StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, files))
 
 

@@ -38,12 +38,18 @@ FloatArray = npt.NDArray[np.float64]
 
 @dataclass(frozen=True)
 class Surface:
-    """A specimen: name, arithmetic roughness Ra (µm), lateral correlation length ℓc (µm), Hurst H."""
+    """A specimen: name, arithmetic roughness Ra (µm), lateral correlation length ℓc (µm), Hurst H.
+
+    A grating (``period_um`` > 0) is a sinusoid of that spatial period carrying ``grating_share``
+    of the roughness power, on a random self-affine background carrying the rest.
+    """
 
     name: str
     ra_um: float
     corr_um: float
     hurst: float
+    period_um: float = 0.0
+    grating_share: float = 0.0
 
 
 def default_surfaces() -> list[Surface]:
@@ -55,9 +61,23 @@ def default_surfaces() -> list[Surface]:
     return [Surface(f"Ra{ra:.2f}", float(ra), float(c), float(h)) for ra, c, h in zip(ras, corr, hurst, strict=True)]
 
 
-def pick_surfaces(spec: str | int | None) -> list[Surface]:
-    """``None``: all 15; an int N (or "N"): N spread over the Ra range; else names ``Ra0.44,Ra1.04``."""
-    surfaces = default_surfaces()
+def grating_surfaces() -> list[Surface]:
+    """15 gratings: spatial periods 100 µm … 1 mm (geometric), Ra 1 … 3 µm, on a weak random background; named ``G0.10mm`` …."""
+    periods = np.geomspace(100.0, 1000.0, 15)
+    rng = np.random.default_rng(20171211)
+    ras = rng.uniform(1.0, 3.0, periods.size)
+    corr = rng.uniform(20.0, 60.0, periods.size)
+    return [Surface(f"G{p / 1000:.2f}mm", float(ra), float(c), 0.8, float(p), 0.8) for p, ra, c in zip(periods, ras, corr, strict=True)]
+
+
+def family_surfaces(family: str) -> list[Surface]:
+    """The 15 specimens of a surface family (self-affine: :func:`default_surfaces`; grating: :func:`grating_surfaces`)."""
+    return grating_surfaces() if family == "grating" else default_surfaces()
+
+
+def pick_surfaces(spec: str | int | None, family: str = "self-affine") -> list[Surface]:
+    """``None``: all 15 of ``family``; an int N (or "N"): N spread over the range; else names, e.g. ``Ra0.44,Ra4.43``."""
+    surfaces = family_surfaces(family)
     if spec is None or spec == "":
         return surfaces
     if isinstance(spec, int) or str(spec).isdigit():
@@ -69,7 +89,7 @@ def pick_surfaces(spec: str | int | None) -> list[Surface]:
     out = []
     for name in str(spec).split(","):
         if name.strip() not in by_name:
-            raise ValueError(f"--surfaces: unknown surface {name!r}; known: {', '.join(by_name)}")
+            raise ValueError(f"--surfaces: unknown surface {name.strip()!r}; known: {', '.join(by_name)}")
         out.append(by_name[name.strip()])
     return out
 
@@ -111,6 +131,17 @@ class SimParams:
     drift_v: float = 0.003
     spike_rate_hz: float = 2.0
     spike_v: tuple[float, float] = (0.5, 2.0)
+    # scenes (docs/simulator.md)
+    continuous: bool = False  # one slide from before the first sample to after the last
+    continuous_s: tuple[float, float] = (6.0, 8.0)
+    dips_db: tuple[float, float] = (0.0, 0.0)  # fluctuating: level dips of this depth (dB) inside slides
+    dip_s: tuple[float, float] = (0.1, 0.3)  # ... lasting this long
+    dips_per_s: float = 0.0  # ... this often
+    extra_gain: float = 1.0  # hot-gain: this file's gain factor (set per surface by the dataset writer)
+    float_output: bool = False  # float32 volts (no ADC), with an offset and a wander
+    dc_offset_v: tuple[float, float] = (0.0, 0.0)
+    wander_v: float = 0.0  # slow baseline wander (RMS, V), below ~1 Hz
+    family: str = "self-affine"  # surface family: self-affine | grating
 
     def for_channel(self, values: tuple[float, ...], c: int, step: float) -> float:
         return values[c] if c < len(values) else values[-1] * step ** (c - len(values) + 1)
@@ -141,7 +172,12 @@ def _self_affine_profile(n: int, dx: float, surface: Surface, rng: np.random.Gen
     # the specimen has this Rq, each finite track fluctuates around it as a measured track would
     expected_var = 4.0 * float(shape[1:].sum()) / n**2
     rq = math.sqrt(math.pi / 2) * surface.ra_um * 1e-6
-    scaled = np.asarray(spec * (rq / math.sqrt(expected_var)), dtype=np.complex128)
+    random_share = 1.0 - surface.grating_share if surface.period_um > 0 else 1.0
+    scaled = np.asarray(spec * (rq * math.sqrt(random_share) / math.sqrt(expected_var)), dtype=np.complex128)
+    if surface.period_um > 0:  # a sinusoid of the grating's period with the rest of the power, random phase
+        k = max(1, round(n * dx / (surface.period_um * 1e-6)))
+        amplitude = math.sqrt(2 * surface.grating_share) * rq  # a sine of amplitude A has variance A²/2
+        scaled[k] += amplitude * n / 2 * np.exp(1j * rng.uniform(0, 2 * np.pi))
     return scaled, q
 
 
@@ -154,6 +190,8 @@ class SensorModel:
     """
 
     def __init__(self, params: SimParams, seed: int = 0) -> None:
+        if params.family not in ("self-affine", "grating"):
+            raise ValueError(f"family must be self-affine or grating, got {params.family!r}")
         if params.mode not in ("manual", "robot"):
             raise ValueError(f"mode must be manual or robot, got {params.mode!r}")
         if params.channels < 1 or params.fs <= 0:
@@ -182,6 +220,9 @@ class SensorModel:
         self._zi_drift = [np.zeros(1) for _ in range(c)]
         self._gains: list[FloatArray] = []
         self._mains_phase = self.rng.uniform(0, 2 * np.pi, 2)
+        # a DC offset and a slow baseline wander (a few sub-Hz sinusoids), one per channel (one-channel scene)
+        self._offset = self.rng.uniform(*params.dc_offset_v, c) * self.rng.choice((-1.0, 1.0), c)
+        self._wander = [(self.rng.uniform(0.02, 0.5, 4), self.rng.uniform(0, 2 * np.pi, 4)) for _ in range(c)]
 
     # ---- scheduling -------------------------------------------------------------------------
 
@@ -216,6 +257,8 @@ class SensorModel:
         v = v_max * ramp * tremor * np.clip((dur - t) / stop_s, 0.0, 1.0)
         v[0] = 0.0
         v = np.maximum(v, 0.0)
+        level = self._dips(t, dur)  # fluctuating contact: the vibration level dips (speed and force each take half, in dB)
+        v = v * np.sqrt(level)
         x = np.concatenate(([0.0], np.cumsum(v[:-1]) / fs))
         dx = p.dx_um * 1e-6
         m = int(x[-1] / dx) + 64
@@ -240,8 +283,23 @@ class SensorModel:
         moving = np.flatnonzero(v > 0)
         truth = SlideTruth(self._scheduled_n + int(moving[0]), self._scheduled_n + int(moving[-1]) + 1, surface, float(v_max), float(force))
         self.truth.append(truth)
-        self._push(exc, np.full(n, force))
+        self._push(exc, force * p.extra_gain * np.sqrt(level))
         return truth
+
+    def _dips(self, t: FloatArray, dur: float) -> FloatArray:
+        """Amplitude factor (n,) of a slide: 1, with smooth dips of ``dips_db`` lasting ``dip_s`` (fluctuating scene)."""
+        p, rng = self.p, self.rng
+        level = np.ones(t.size)
+        if p.dips_per_s <= 0 or dur < 0.8:
+            return level
+        for _ in range(max(1, int(rng.poisson(p.dips_per_s * dur)))):
+            width = rng.uniform(*p.dip_s)
+            centre = rng.uniform(0.3 + width / 2, max(0.3 + width / 2, dur - 0.3 - width / 2))
+            floor = 10 ** (-rng.uniform(*p.dips_db) / 20)
+            # a raised-cosine dip: full depth over its middle, 25 % of its width to get there on each side
+            u = np.clip((np.abs(t - centre) - 0.25 * width) / (0.25 * width), 0.0, 1.0)
+            level = np.minimum(level, floor + (1 - floor) * (0.5 - 0.5 * np.cos(np.pi * u)))
+        return level
 
     def schedule_random(self, surfaces: Sequence[Surface], until: int) -> None:
         """Rest and slide over randomly chosen ``surfaces`` until ``until`` samples are scheduled."""
@@ -285,6 +343,10 @@ class SensorModel:
             y, self._zi_hp[k] = signal.lfilter(self._hp[0], self._hp[1], y, zi=self._zi_hp[k])
             drift, self._zi_drift[k] = signal.lfilter(drift_b, drift_a, drift_in[:, k], zi=self._zi_drift[k])
             out[:, k] = y + mains * (1.0 - 0.3 * k) + white[:, k] + p.drift_v * 22.0 * drift + spikes[:, k]
+            if p.wander_v > 0 or self._offset[k] != 0:
+                f, phase = self._wander[k]
+                wander = np.sin(2 * np.pi * f[:, None] * t_abs[None, :] + phase[:, None]).sum(axis=0) * (p.wander_v / math.sqrt(2))
+                out[:, k] += self._offset[k] + wander
         self._pos += n
         return out
 
@@ -321,18 +383,97 @@ def adc(volts: FloatArray, volts_per_count: float, full_scale_v: float = 5.0) ->
 
 @dataclass
 class SimulatedFile:
-    samples: npt.NDArray[np.int16]
+    samples: npt.NDArray[Any]  # (n, C) int16 counts, or float32 volts
     truth: list[SlideTruth] = field(default_factory=list)
 
 
 def simulate_file(params: SimParams, surface: Surface, slides: int, seed: int) -> SimulatedFile:
-    """One recording: ``slides`` slides over one surface, rests between and around them."""
+    """One recording: ``slides`` slides over one surface, rests between and around them.
+
+    ``params.continuous``: one slide under way before the first sample and after the last
+    (``continuous_s`` long, cut from the middle of a longer slide), ground truth the whole file.
+    ``params.float_output``: float32 volts (clipped at the rails, not quantised), else int16 counts.
+    """
     model = SensorModel(params, seed)
-    for _ in range(slides):
-        model.add_rest(model.rng.uniform(*params.rest_s))
-        model.add_slide(surface)
-    model.add_rest(0.4)
-    return SimulatedFile(model.read(model.scheduled_end), model.truth)
+    lead = 0
+    if params.continuous:
+        keep = round(model.rng.uniform(*params.continuous_s) * params.fs)
+        lead = round(1.0 * params.fs)
+        truth = model.add_slide(surface, (keep + 2 * lead) / params.fs)
+    else:
+        for _ in range(slides):
+            model.add_rest(model.rng.uniform(*params.rest_s))
+            model.add_slide(surface)
+        model.add_rest(0.4)
+    volts = model.read_volts(model.scheduled_end)
+    if params.continuous:
+        volts = volts[lead:lead + keep]
+        model.truth = [replace(truth, start=0, stop=keep)]
+    if params.float_output:
+        return SimulatedFile(np.clip(volts, -params.full_scale_v, params.full_scale_v).astype(np.float32), model.truth)
+    return SimulatedFile(adc(volts, params.volts_per_count, params.full_scale_v), model.truth)
+
+
+SCENES = ("hand", "robot", "continuous", "fluctuating", "hot-gain", "one-channel", "grating")
+_EXCLUSIVE = (("hand", "robot"),)
+_SCENE_CHANGES: dict[str, dict[str, Any]] = {
+    "hand": {"mode": "manual"},
+    "robot": {"mode": "robot"},
+    "continuous": {"continuous": True},
+    "fluctuating": {"dips_db": (10.0, 20.0), "dip_s": (0.1, 0.3), "dips_per_s": 1.0, "slide_s": (1.8, 3.0), "force_sigma": 0.1},
+    "hot-gain": {},  # the dataset writer raises the gain of the roughest third of the surfaces (extra_gain)
+    "one-channel": {"fs": 2200.0, "channels": 1, "float_output": True, "dc_offset_v": (0.1, 1.0), "wander_v": 0.03, "volts_per_count": 1.0},
+    "grating": {"family": "grating"},
+}
+
+
+def parse_scene(spec: str) -> list[str]:
+    """The scene names of a comma list (``continuous,one-channel``); ValueError for unknown or contradictory ones."""
+    names = [n.strip() for n in spec.split(",") if n.strip()]
+    if not names:
+        raise ValueError(f"--scene: empty; choose from {', '.join(SCENES)}")
+    for n in names:
+        if n not in SCENES:
+            raise ValueError(f"--scene: unknown scene {n!r}; known: {', '.join(SCENES)}")
+    for group in _EXCLUSIVE:
+        both = [n for n in names if n in group]
+        if len(both) > 1:
+            raise ValueError(f"--scene: {' and '.join(both)} contradict each other")
+    if "continuous" in names and "fluctuating" in names:
+        pass  # a continuous slide with dips: allowed
+    return names
+
+
+def scene_params(spec: str, base: SimParams | None = None) -> SimParams:
+    """The simulator parameters of a scene spec (comma list); ``robot`` kinematics unless ``hand`` is named, except
+    that the default (no kinematics named, not continuous) is ``hand``."""
+    names = parse_scene(spec)
+    params = base or SimParams()
+    changes: dict[str, Any] = {}
+    if not {"hand", "robot"} & set(names):
+        changes["mode"] = "robot" if "continuous" in names else "manual"
+    for n in names:
+        changes.update(_SCENE_CHANGES[n])
+    return replace(params, **changes)
+
+
+def hot_gain(surfaces: Sequence[Surface], surface: Surface, params: SimParams, seed: int = 0) -> float:
+    """The hot-gain scene's gain factor for ``surface``: 1, except for the roughest third of ``surfaces``, whose gain
+    is raised so that 5 % (the least rough of them) to 40 % (the roughest) of a slide's samples clip.
+
+    Measured on a pilot slide: a Gaussian signal of RMS σ clipped at ±V exceeds it with probability
+    2·(1 − Φ(V/σ)), so the gain sets V/σ from 1.96 (5 %) down to 0.84 (40 %)."""
+    order = sorted(surfaces, key=lambda s: s.ra_um)
+    hot = order[len(order) - max(1, len(order) // 3):] if len(order) >= 3 else order[-1:]
+    if surface not in hot:
+        return 1.0
+    rank = hot.index(surface) / max(1, len(hot) - 1) if len(hot) > 1 else 1.0
+    k = 1.96 + (0.84 - 1.96) * rank
+    pilot = SensorModel(replace(params, extra_gain=1.0, dips_per_s=0.0, spike_rate_hz=0.0), seed)
+    truth = pilot.add_slide(surface, 1.5)
+    volts = pilot.read_volts(pilot.scheduled_end)[truth.start + round(0.4 * params.fs):truth.stop]
+    sigma = float(np.sqrt(np.mean(np.var(volts, axis=0))))
+    return params.full_scale_v / (k * max(sigma, 1e-9))
 
 
 def with_mode(params: SimParams, mode: str | None, fs: float | None, channels: int | None = None) -> SimParams:

@@ -50,4 +50,4 @@ def test_check_config_cli(tmp_path: Path) -> None:
     bad.write_text("[detector]\nmin_slide_s = 0\n")
     res = run_cli("check-config", str(bad))
     assert res.returncode == 2
-    assert res.stderr.strip().splitlines() == [f"tactiled: error: {bad}: detector.min_slide_s: must be > 0"]
+    assert res.stderr.strip().splitlines() == [f"tactiled: error: {bad}: detector.min_slide_s: must be in (0, 60] s"]

@@ -1,0 +1,63 @@
+"""Detection on simulated scenes: recall, precision and boundary errors of the daemon's detector.
+
+Usage: python bench/detection.py [--scenes hand,robot,...] [--files-per-surface 2] [--slides-per-file 3] [--out DIR]
+Prints one row per scene (markdown). Recordings are simulated into --out (a temporary folder by default).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from tactiled.config import Config
+from tactiled.dataset import detect_slides
+from tactiled.matching import match_slides
+from tactiled.recording import load_recording
+from tactiled.sensor_model import SCENES
+from tactiled.simulate import write_dataset
+
+DEFAULT = ",".join(SCENES) + ";continuous,one-channel;fluctuating,one-channel;robot,hot-gain"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scenes", default=DEFAULT, help="scene specs separated by ';' (each may join scenes with ',')")
+    ap.add_argument("--files-per-surface", type=int, default=2)
+    ap.add_argument("--slides-per-file", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    specs = [s for part in args.scenes.split(";") for s in ([part] if "," in part and part not in DEFAULT.split(";")[0] else part.split(","))]
+    specs = [s for s in args.scenes.replace(";", "|").split("|")]
+    specs = [x for s in specs for x in (s.split(",") if s == DEFAULT.split(";")[0] else [s])]
+    config = Config()
+    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-detect-"))
+    print("| scene | true slides | detections | recall | precision | start error median / p90, s | end error median / p90, s |")
+    print("|---|---|---|---|---|---|---|")
+    for spec in specs:
+        paths = write_dataset(root / spec.replace(",", "+"), scene=spec, seed=args.seed, files_per_surface=args.files_per_surface,
+                              slides_per_file=args.slides_per_file)
+        n_true = n_det = paired = 0
+        starts, ends = [], []
+        for p in paths:
+            rec = load_recording(p)
+            truth = [(a, b) for a, b, _ in rec.slides()]
+            det = detect_slides(rec, config)
+            pairs = match_slides(det, truth)
+            n_true += len(truth)
+            n_det += len(det)
+            for j, i in enumerate(pairs):
+                if i is not None:
+                    paired += 1
+                    starts.append(abs(det[i][0] - truth[j][0]) / rec.fs)
+                    ends.append(abs(det[i][1] - truth[j][1]) / rec.fs)
+        s, e = np.array(starts), np.array(ends)
+        print(f"| {spec} | {n_true} | {n_det} | {paired / n_true:.3f} | {paired / max(1, n_det):.3f} | "
+              f"{np.median(s):.3f} / {np.percentile(s, 90):.3f} | {np.median(e):.3f} / {np.percentile(e, 90):.3f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
