@@ -24,8 +24,10 @@ class AnalysisSettings:
 
     A slide [start, stop) is analysed as successive windows of ``duration_s``, the first
     ``start_s`` after the slide's start, one every ``hop_s`` (``hop_s`` 0: = duration_s),
-    at most ``max_windows`` of them (0: as many as the slide holds). Their class scores are
-    combined into the slide's label (:meth:`tactiled.model.Model.fuse`). A slide too short
+    at most ``max_windows`` of them (0: as many as the slide holds). ``fusion`` says how they
+    make the slide's label (:meth:`tactiled.model.Model.slide_proba`): ``scores`` averages the
+    windows' class scores, ``features`` classifies the average of their features (a
+    whole-slide spectrum, for the psd family). A slide too short
     for one such window is analysed on its last ``duration_s`` (or all of it).
     """
 
@@ -40,6 +42,7 @@ class AnalysisSettings:
     level: int = 4
     mode: str = "symmetric"
     names: tuple[str, ...] = field(default_factory=tuple)
+    fusion: str = "scores"  # scores: average the windows' class scores; features: classify the average of their features
 
     @classmethod
     def from_config(cls, config: Config, channels: int, fs: float = 20_000.0) -> AnalysisSettings:

@@ -138,6 +138,18 @@ class WindowSet:
             out[s.label] = (n + 1, ok + (why is None), len(files[s.label]))
         return dict(sorted(out.items()))
 
+    def averaged(self) -> WindowSet:
+        """One row per slide with windows: the mean of its windows' raw features (a whole-slide representation)."""
+        order = np.unique(self.slide)
+        counts = np.bincount(self.slide, minlength=len(self.slides))[order]
+        sums = np.zeros((len(self.slides), self.x.shape[1]))
+        np.add.at(sums, self.slide, self.x)
+        first = {int(k): int(i) for i, k in reversed(list(enumerate(self.slide)))}
+        last = {int(k): int(i) for i, k in enumerate(self.slide)}
+        spans = np.array([[self.spans[first[k], 0], self.spans[last[k], 1]] for k in order], dtype=np.int64).reshape(-1, 2)
+        return WindowSet(sums[order] / counts[:, None], self.y[[first[k] for k in order]], self.groups[[first[k] for k in order]],
+                         order.astype(np.int64), spans, self.names, self.files, self.slides, self.reasons, self.counts, self.skipped)
+
     def subset_slides(self, keep: npt.NDArray[np.bool_]) -> WindowSet:
         """Only the slides where ``keep`` (per slide) is True, renumbered."""
         new_index = np.cumsum(keep) - 1

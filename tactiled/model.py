@@ -3,7 +3,7 @@
 A model classifies windows of a slide and combines them (:meth:`Model.fuse`):
 
     raw features (n, F) ─▶ log10 of scale features ─▶ StandardScaler ─▶ classifier ─▶ scores (n, K)
-    slide: mean of its windows' scores ─▶ softmax(mean / temperature) ─▶ probabilities (K,)
+    slide: mean of its windows' scores (or the scores of the mean of their features) ─▶ softmax(· / temperature) ─▶ probabilities (K,)
 
 ``pipeline`` is a real :class:`sklearn.pipeline.Pipeline` (steps ``log``, ``scale``,
 ``clf``), so scikit-learn's tools work on it. The classifier is one of ``elm`` (the
@@ -99,11 +99,17 @@ class LogFeatures:
 
 
 def make_pipeline(names: tuple[str, ...] | list[str], kind: str, params: dict[str, Any], seed: int = 0) -> Any:
-    """An unfitted sklearn Pipeline: log of scale features → standardise → classifier."""
+    """An unfitted sklearn Pipeline: log of scale features → standardise → [the ``kbest`` best by ANOVA F] → classifier."""
     from sklearn.pipeline import Pipeline
     from sklearn.preprocessing import StandardScaler
 
-    return Pipeline([("log", LogFeatures(tuple(names))), ("scale", StandardScaler()), ("clf", make_classifier(kind, params, seed))])
+    steps: list[tuple[str, Any]] = [("log", LogFeatures(tuple(names))), ("scale", StandardScaler())]
+    k = int(params.get("kbest", 0))
+    if 0 < k < len(names):
+        from sklearn.feature_selection import SelectKBest, f_classif
+
+        steps.append(("select", SelectKBest(f_classif, k=k)))
+    return Pipeline([*steps, ("clf", make_classifier(kind, params, seed))])
 
 
 def decision_scores(clf: Any, z: FloatArray) -> FloatArray:
@@ -198,6 +204,13 @@ class Model:
     def fuse(self, scores: FloatArray) -> FloatArray:
         """Probabilities (K,) of a slide from the scores (w, K) of its windows (w >= 1)."""
         return softmax(np.asarray(scores, dtype=np.float64).mean(axis=0), self.temperature)
+
+    def slide_proba(self, features: FloatArray) -> FloatArray:
+        """Probabilities (K,) of a slide from the raw features (w, F) of its windows (w >= 1), by the settings' ``fusion``."""
+        x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
+        if self.settings.fusion == "features":
+            return softmax(self.scores(x.mean(axis=0, keepdims=True))[0], self.temperature)
+        return self.fuse(self.scores(x))
 
     def predict_proba(self, x: npt.ArrayLike) -> FloatArray:
         """(n, K) probabilities of single windows."""
@@ -314,6 +327,7 @@ def _check_settings(path: Path, s: AnalysisSettings, fs: float) -> None:
     _need(all(math.isfinite(v) for v in (s.start_s, s.duration_s, s.hop_s, s.nsigma)), path, "settings: times must be finite")
     _need(0 <= s.start_s <= 60 and 0 < s.duration_s <= 60 and 0 <= s.hop_s <= 60, path, "settings: start_s, duration_s, hop_s out of range")
     _need(0 <= s.max_windows <= 10_000, path, "settings.max_windows: out of range 0..10000")
+    _need(s.fusion in ("scores", "features"), path, "settings.fusion: must be scores or features")
     _need(s.spikes in ("mad", "hampel", "none") and 1 <= s.half_width <= 1000 and 0 < s.nsigma <= 1000, path, "settings: spike removal out of range")
     _need(1 <= s.level <= 8, path, "settings.level: must be in 1..8")
     _need(0 < len(s.names) <= MAX_FEATURES, path, f"settings.names: 1..{MAX_FEATURES} features")
@@ -396,7 +410,7 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any]) -> Model:
                   dict(header.get("summary", {})), fingerprint or "", None if kind in ("elm", "linear") else (train_x, train_y))
     probe = np.abs(np.random.default_rng(0).standard_normal((3, f))) * 0.01
     try:
-        p = model.fuse(model.scores(probe))
+        p = model.slide_proba(probe)
     except (ValueError, FloatingPointError, ArithmeticError) as exc:
         raise ModelError(f"{path}: probe prediction failed: {exc}") from None
     _need(bool(np.all(np.isfinite(p))) and abs(float(p.sum()) - 1.0) < 1e-6, path, "probe prediction is not a finite probability")

@@ -6,7 +6,7 @@ the sample index only: the same samples in any block sizes give the same events.
 
 A slide is cut into successive windows (:meth:`AnalysisSettings.spans`); each is analysed
 as soon as the ring holds it, while the slide goes on. After each window the scores so
-far are fused (:meth:`Classifier.fuse`); when the fused confidence first reaches
+far are combined (:meth:`Classifier.slide_proba`); when the fused confidence first reaches
 ``classifier.provisional_confidence`` (and again whenever the leading label changes
 while above it), a provisional :class:`SlideResult` (``final=False``) is emitted. When
 the slide ends, the windows that lie inside it are fused into the final result. Windows
@@ -39,9 +39,7 @@ class Classifier(Protocol):
     fingerprint: str
     settings: AnalysisSettings
 
-    def scores(self, x: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
-
-    def fuse(self, scores: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
+    def slide_proba(self, features: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
 
 
 @dataclass
@@ -89,7 +87,10 @@ PipelineEvent = SlideStarted | SlideEnded | SlideResult
 class _Window:
     span: tuple[int, int]
     result: WindowResult
-    scores: npt.NDArray[np.float64] | None
+
+    @property
+    def usable(self) -> bool:
+        return self.result.features is not None
 
 
 class Pipeline:
@@ -176,18 +177,18 @@ class Pipeline:
             self._windows.append(w)
             hop = max(1, round(s.hop() * self.fs))
             self._next = (self._next[0] + hop, self._next[1] + hop)
-            if w.scores is not None:
+            if w.usable:
                 prov = self._provisional_result(t0)
                 if prov is not None:
                     events.append(prov)
         return events
 
     def _window(self, span: tuple[int, int]) -> _Window:
-        res = self._read(*span)
-        scores = None
-        if res.features is not None and self.model is not None:
-            scores = self.model.scores(res.features[None, :])[0]
-        return _Window(span, res, scores)
+        return _Window(span, self._read(*span))
+
+    def _proba(self, used: list[_Window]) -> npt.NDArray[np.float64]:
+        assert self.model is not None
+        return self.model.slide_proba(np.stack([w.result.features for w in used if w.result.features is not None]))
 
     def _read(self, lo: int, hi: int) -> WindowResult:
         if hi - lo < self.min_samples:
@@ -202,8 +203,8 @@ class Pipeline:
     def _provisional_result(self, t0: float) -> SlideResult | None:
         if self.model is None or self._onset is None or self.provisional_confidence >= 1.0:
             return None
-        used = [w for w in self._windows if w.scores is not None]
-        proba = self.model.fuse(np.stack([w.scores for w in used if w.scores is not None]))
+        used = [w for w in self._windows if w.usable]
+        proba = self._proba(used)
         best = int(np.argmax(proba))
         label = self.model.classes[best]
         if proba[best] < max(self.provisional_confidence, self.min_confidence) or label == self._provisional:
@@ -217,15 +218,13 @@ class Pipeline:
         spans = self.settings.spans(start, stop, self.fs, self.min_samples)
         done = {w.span: w for w in self._windows}
         windows = [done[sp] if sp in done else self._window(sp) for sp in spans]
-        used = [w for w in windows if w.scores is not None]
+        used = [w for w in windows if w.usable] if self.model is not None else []
         if not used:
             reasons = [w.result.reason for w in windows if w.result.reason] or ["window_too_short"]
             reason = "no_model" if self.model is None and any(w.result.features is not None for w in windows) else Counter(reasons).most_common(1)[0][0]
             return SlideResult(self._slide_id, start, stop, (spans[0][0], spans[-1][1]) if spans else (start, start), None, reason, None, [],
                                _quality(windows), None, (time.perf_counter() - t0) * 1e3, True, (stop - start) / self.fs)
-        assert self.model is not None
-        proba = self.model.fuse(np.stack([w.scores for w in used if w.scores is not None]))
-        return self._result(start, stop, used, proba, t0, final=True)
+        return self._result(start, stop, used, self._proba(used), t0, final=True)
 
     def _result(self, start: int, stop: int, used: list[_Window], proba: npt.NDArray[np.float64], t0: float, final: bool) -> SlideResult:
         assert self.model is not None
@@ -246,4 +245,4 @@ class Pipeline:
 def _quality(windows: list[_Window]) -> dict[str, Any]:
     q = [w.result.quality for w in windows]
     return {"samples": sum(x["samples"] for x in q), "lost": sum(x["lost"] for x in q), "saturated": max((x["saturated"] for x in q), default=0.0),
-            "spikes": sum(x["spikes"] for x in q), "windows": sum(w.scores is not None for w in windows)}
+            "spikes": sum(x["spikes"] for x in q), "windows": sum(w.usable for w in windows)}

@@ -23,7 +23,6 @@ sends it to a cluster through joblib's Dask backend instead.
 from __future__ import annotations
 
 import contextlib
-import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -47,15 +46,22 @@ PARAMS: dict[str, dict[str, Any]] = {
     "elm": {"n_hidden": 200, "alpha": 1e-3},
     "knn": {"n_neighbors": 9},
     "svm": {"kernel": "rbf", "C": 10.0, "gamma": "scale"},
-    "linear": {"C": 1.0, "max_iter": 1000},
+    "linear": {"C": 10.0, "max_iter": 2000},
 }
 PAPER_PARAMS: dict[str, Any] = {"n_hidden": 200, "alpha": 1e-6}
 # (start_s, duration_s, max_windows): windows back to back from the slide's start, or from 0.3 s (after the onset transient)
-PLACEMENTS: tuple[tuple[float, float, int], ...] = ((0.0, 0.25, 0), (0.0, 0.5, 0), (0.0, 1.0, 0), (0.3, 0.25, 0), (0.3, 0.5, 0))
-# (families, classifier): cheap and robust first, so ties go to them
-COMBINATIONS: tuple[tuple[tuple[str, ...], str], ...] = (
-    (("psd",), "linear"), (("psd", "tex"), "linear"), (("psd",), "svm"), (("psd", "tex"), "svm"),
-    (("psd",), "knn"), (("psd",), "elm"), (("dwt",), "linear"), (("dwt",), "svm"), (("dwt",), "elm"),
+PLACEMENTS: tuple[tuple[float, float, int], ...] = ((0.0, 0.25, 0), (0.3, 0.25, 0), (0.0, 0.5, 0))
+# (families, classifier): cheap and robust first, so ties go to them; each window classified, scores averaged
+# (families, classifier, k): k > 0 keeps the k features with the largest ANOVA F (fitted in each training fold)
+COMBINATIONS: tuple[tuple[tuple[str, ...], str, int], ...] = (
+    (("psd",), "linear", 0), (("psd", "tex"), "linear", 0), (("psd",), "svm", 0), (("psd", "tex"), "svm", 0),
+    (("psd", "tex"), "svm", 8), (("psd", "tex"), "knn", 4), (("psd",), "elm", 0), (("dwt",), "svm", 8), (("dwt",), "linear", 0),
+)
+# whole-slide representations: the mean of the windows' features (for psd: the slide's spectrum), one row per slide
+SLIDE_PLACEMENTS: tuple[tuple[float, float, int], ...] = ((0.0, 0.25, 0), (0.3, 0.25, 0))
+SLIDE_COMBINATIONS: tuple[tuple[tuple[str, ...], str, int], ...] = (
+    (("psd",), "linear", 0), (("psd",), "svm", 0), (("psd", "tex"), "linear", 0), (("psd", "tex"), "svm", 8), (("psd", "tex"), "knn", 4),
+    (("dwt",), "svm", 8),
 )
 
 
@@ -69,16 +75,21 @@ class Candidate:
     start_s: float = 0.0
     max_windows: int = 0
     sfs: bool = False
+    fusion: str = "scores"  # scores: average the windows' scores; features: classify the slide's average features
+    kbest: int = 0  # keep the k features with the largest ANOVA F (0: all)
 
     @property
     def name(self) -> str:
         where = f" from {self.start_s:g} s" if self.start_s else ""
         count = " x1" if self.max_windows == 1 else ""
-        return f"{'+'.join(self.families)}{'+sfs' if self.sfs else ''} / {self.kind} / {self.duration_s:g} s{where}{count}"
+        whole = " / slide mean" if self.fusion == "features" else ""
+        chosen = f"+best{self.kbest}" if self.kbest else "+sfs" if self.sfs else ""
+        return f"{'+'.join(self.families)}{chosen} / {self.kind} / {self.duration_s:g} s{where}{count}{whole}"
 
     @property
     def params(self) -> dict[str, Any]:
-        return PAPER_PARAMS if self.sfs else PARAMS[self.kind]
+        base = PAPER_PARAMS if self.sfs else PARAMS[self.kind]
+        return {**base, "kbest": self.kbest} if self.kbest else base
 
     @property
     def placement(self) -> tuple[float, float, int]:
@@ -91,7 +102,9 @@ PAPER = Candidate(("dwt",), "elm", 0.5, 0.3, 1, True)
 
 def default_candidates() -> list[Candidate]:
     """The search space of ``tactiled train``: every combination at every placement, and the papers' method."""
-    return [Candidate(fams, kind, d, start, n) for start, d, n in PLACEMENTS for fams, kind in COMBINATIONS] + [PAPER]
+    return ([Candidate(fams, kind, d, start, n, kbest=k) for start, d, n in PLACEMENTS for fams, kind, k in COMBINATIONS]
+            + [Candidate(fams, kind, d, start, n, fusion="features", kbest=k) for start, d, n in SLIDE_PLACEMENTS for fams, kind, k in SLIDE_COMBINATIONS]
+            + [PAPER])
 
 
 @dataclass
@@ -199,14 +212,12 @@ def parallel_backend(scheduler: str | None) -> Iterator[None]:
         client.close()
 
 
-def run_parallel(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]]) -> list[Any]:
-    """Run ``fn(*args)`` for every task with joblib in the active backend; results in order."""
-    from joblib import Parallel, delayed
-
-    return list(Parallel()(delayed(fn)(*args) for fn, args in tasks))
-
-
 # ---- the search ---------------------------------------------------------------------------------------------------
+
+
+def _key(c: Candidate) -> tuple[Any, ...]:
+    key = (*c.placement, c.families)
+    return (*key, "features") if c.fusion == "features" else key
 
 
 def _columns(ws: WindowSet, families: Sequence[str]) -> npt.NDArray[np.intp]:
@@ -219,6 +230,10 @@ def fit_candidate(ws: WindowSet, rows: npt.NDArray[np.intp], c: Candidate, seed:
     if c.sfs:
         cols = [cols[j] for j in sfs_columns(_restrict(ws, cols), rows, seed, inner_folds)]
     pipe, refit = fit_pipeline(ws.x[rows][:, cols], ws.y[rows], [ws.names[j] for j in cols], c.kind, c.params, seed)
+    if "select" in pipe.named_steps:  # bake the selection into the columns: the model then computes only those features
+        cols = [cols[j] for j in np.flatnonzero(pipe.named_steps["select"].get_support())]
+        params = {k: v for k, v in c.params.items() if k != "kbest"}
+        pipe, refit = fit_pipeline(ws.x[rows][:, cols], ws.y[rows], [ws.names[j] for j in cols], c.kind, params, seed)
     return cols, pipe, refit
 
 
@@ -238,6 +253,13 @@ def candidate_fold(ws: WindowSet, c: Candidate, train: npt.NDArray[np.intp], tes
     return slide_scores(ws, pipe, cols, test, classes)
 
 
+def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, list[tuple[Any, Any]]]], classes: list[str], seed: int,
+                    inner_folds: int) -> list[tuple[FloatArray, list[FloatArray]]]:
+    """:func:`candidate_fold` on every (outer train, outer test, inner folds) split: the outer scores and each inner fold's."""
+    return [(candidate_fold(ws, c, tr, te, classes, seed, inner_folds),
+             [candidate_fold(ws, c, itr, ite, classes, seed, inner_folds) for itr, ite in inner]) for tr, te, inner in splits]
+
+
 def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
            candidates: Sequence[Candidate] | None = None, progress: Progress | None = None, scheduler: str | None = None,
            found: tuple[list[list[Slide]], SlideCounts] | None = None, method: str = "search") -> SearchResult:
@@ -250,7 +272,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]] = {}
     usable: list[Candidate] = []
     for c in wanted:
-        key = (*c.placement, c.families)
+        key: tuple[Any, ...] = (*c.placement, c.families)
         fams = sorted({f for w in wanted if w.placement == c.placement for f in w.families})
         full = (*c.placement, tuple(fams))
         if full not in sets:
@@ -261,11 +283,16 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
                 say(f"features of {c.duration_s:g} s windows from {c.start_s:g} s ({len(st.names)} features)")
                 sets[full] = (st, collect_windows(recs, config, st, progress, found=found))
         if full in sets and all(any(name_family(n) == f for n in sets[full][1].names) for f in c.families):
-            sets[key] = sets[full]
+            if c.fusion == "features":
+                key = (*key, "features")
+                if key not in sets:
+                    sets[key] = (sets[full][0], sets[full][1].averaged())
+            else:
+                sets[key] = sets[full]
             usable.append(c)
     if not usable:
         raise TactiledError(f"no candidate fits: windows too short for the feature families at {fs:g} Hz; record longer slides")
-    first = sets[(*usable[0].placement, usable[0].families)][1]
+    first = sets[_key(usable[0])][1]
     classes = sorted({s.label for s in first.slides if s.label is not None})
     if len(classes) < 2:
         raise TactiledError(f"training needs at least two surfaces, got {classes}")
@@ -274,35 +301,34 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     nested_on = len(usable) > 1
     # every window set has the same slides in the same order (detection does not depend on the window)
     tasks = []
-    for c in usable:
-        ws = sets[(*c.placement, c.families)][1]
-        for tr, te in outer:
-            tasks.append((candidate_fold, (ws, c, tr, te, classes, seed, inner_folds)))
-            for itr, ite in _inner_folds(ws, tr, inner_folds, seed) if nested_on else []:
-                tasks.append((candidate_fold, (ws, c, itr, ite, classes, seed, inner_folds)))
+    for c in usable:  # one task per candidate (its data crosses to a worker once); per outer fold for the slow forward selection
+        splits = [(tr, te, _inner_folds(sets[_key(c)][1], tr, inner_folds, seed) if nested_on else []) for tr, te in outer]
+        parts = [[sp] for sp in splits] if c.sfs else [splits]
+        tasks += [(candidate_folds, (sets[_key(c)][1], c, part, classes, seed, inner_folds)) for part in parts]
+    n_fits = sum(len(outer) * (1 + (inner_folds if nested_on else 0)) for _ in usable)
     say(f"cross-validating {len(usable)} candidate(s) over {len(outer)} outer" + (f" x {inner_folds} inner" if nested_on else "")
-        + f" folds: {len(tasks)} fits")
-    results = iter(_run_with_progress(tasks, say, scheduler))
+        + f" folds: about {n_fits} fits")
+    results = iter(_run_with_progress(tasks, say, scheduler, [t[1][1].sfs for t in tasks]))
     board: list[dict[str, Any]] = []
     oof: dict[str, FloatArray] = {}
     inner_acc: dict[str, list[float]] = {}
     for c in usable:
-        ws = sets[(*c.placement, c.families)][1]
+        ws = sets[_key(c)][1]
         scores = np.full((len(ws.slides), len(classes)), -np.inf)
         accs, per_outer_inner = [], []
-        for tr, te in outer:
-            sc = next(results)
+        per_fold = [r for _ in range(len(outer) if c.sfs else 1) for r in next(results)]
+        for (tr, te), (sc, inner_scores) in zip(outer, per_fold, strict=True):
             scores[te] = sc
             accs.append(accuracy_of(sc, y_idx[te]))
             hits = total = 0.0
-            for _itr, ite in _inner_folds(ws, tr, inner_folds, seed) if nested_on else []:
-                hits += accuracy_of(next(results), y_idx[ite]) * len(ite)
+            for (_itr, ite), isc in zip(_inner_folds(ws, tr, inner_folds, seed) if nested_on else [], inner_scores, strict=True):
+                hits += accuracy_of(isc, y_idx[ite]) * len(ite)
                 total += len(ite)
             per_outer_inner.append(hits / max(1.0, total))
         oof[c.name] = scores
         inner_acc[c.name] = per_outer_inner
         board.append({"candidate": c.name, "families": list(c.families), "classifier": c.kind, "start_s": c.start_s, "duration_s": c.duration_s,
-                      "max_windows": c.max_windows, "sfs": c.sfs, "mean": float(np.mean(accs)), "sd": float(np.std(accs)), "folds": accs})
+                      "max_windows": c.max_windows, "sfs": c.sfs, "fusion": c.fusion, "mean": float(np.mean(accs)), "sd": float(np.std(accs)), "folds": accs})
     means = [float(r["mean"]) for r in board]
     order = sorted(range(len(board)), key=lambda i: -means[i])  # stable: ties keep the cheaper candidate
     leaderboard = [board[i] for i in order]
@@ -314,17 +340,19 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         picks.append(usable[pick].name)
         nested_accs.append(float(board[pick]["folds"][o]))
     nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks}
-    st, ws = sets[(*best.placement, best.families)]
+    st, ws = sets[_key(best)]
     temperature = fit_temperature(oof[best.name], y_idx)
     say(f"winner {best.name}: {leaderboard[0]['mean']:.3f} ± {leaderboard[0]['sd']:.3f}; nested CV {nested['mean']:.3f}; fitting on every slide")
     rows = np.flatnonzero(ws.y != "")
     cols, pipe, refit = fit_candidate(ws, rows, best, seed, inner_folds)
     names = [ws.names[j] for j in cols]
-    settings = replace(st, names=tuple(names), level=st.level if "dwt" in best.families else config.features.level)
+    settings = replace(st, names=tuple(names), level=st.level if "dwt" in best.families else config.features.level, fusion=best.fusion)
     summary = {"cv_accuracy": nested, "winner": best.name, "leaderboard": leaderboard[:12], "slides": len(ws.slides), "files": len(recs),
                "windows": len(rows), "classes": classes, "per_class": {k: list(v) for k, v in ws.per_class().items()}, "skipped": ws.skipped,
                "detector": _counts(ws)}
-    params = {**best.params, "n_neighbors": int(pipe[-1].n_neighbors)} if best.kind == "knn" else best.params
+    params = {k: v for k, v in best.params.items() if k != "kbest"}
+    if best.kind == "knn":
+        params["n_neighbors"] = int(pipe[-1].n_neighbors)
     model = Model(method, best.kind, params, [str(c) for c in pipe[-1].classes_], settings, fs, channels, pipe, temperature,
                   seed, summary, "", refit)
     return SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
@@ -348,15 +376,20 @@ def _inner_folds(ws: WindowSet, train: npt.NDArray[np.intp], n: int, seed: int) 
     return [(train[a], train[b]) for a, b in GroupKFold(n_splits=k).split(train, groups=files)]
 
 
-def _run_with_progress(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]], say: Progress, scheduler: str | None) -> list[Any]:
-    out: list[Any] = []
-    chunk = max(1, math.ceil(len(tasks) / 20))
+def _run_with_progress(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]], say: Progress, scheduler: str | None,
+                       first: Sequence[bool] | None = None) -> list[Any]:
+    """Results of ``tasks`` in order; the ``first`` ones are started first (the slowest), progress reported as they finish."""
+    from joblib import Parallel, delayed
+
+    order = sorted(range(len(tasks)), key=lambda i: not (first[i] if first is not None else False))
+    out: list[Any] = [None] * len(tasks)
+    step = max(1, len(tasks) // 20)
     with parallel_backend(scheduler):
-        for i in range(0, len(tasks), chunk):
-            out += run_parallel(tasks[i:i + chunk])
-            done = min(len(tasks), i + chunk)
-            bar = "#" * round(20 * done / len(tasks))
-            say(f"[{bar:<20s}] {done}/{len(tasks)} fits")
+        results = Parallel(return_as="generator")(delayed(tasks[i][0])(*tasks[i][1]) for i in order)
+        for done, (i, result) in enumerate(zip(order, results, strict=True), 1):
+            out[i] = result
+            if done % step == 0 or done == len(tasks):
+                say(f"[{'#' * round(20 * done / len(tasks)):<20s}] {done}/{len(tasks)} tasks")
     return out
 
 
