@@ -2,7 +2,7 @@
 
 Usage: python bench/bench_daemon.py [--seconds 600] [--corrupt 0.01 --drop 0.005 --garbage 0.01]
                                     [--unplugs 3] [--subscribers 5]
-One of the subscribers never reads. Budgets (shared/DESIGN.md): <= 5 % of one core; end of
+One of the subscribers never reads. Budgets (docs/benchmarks.md): <= 5 % of one core; end of
 slide -> label published <= 20 ms at p99; resident memory <= 150 MB and flat over 10 minutes.
 """
 

@@ -1,7 +1,7 @@
 """Frame decoder throughput, MB/s on one core, with 1 % corrupted frames.
 
 Usage: python bench/bench_decoder.py [--seconds-of-stream 60] [--chunk 4096]
-Budget (shared/DESIGN.md): >= 9.4 MB/s (100x the fingertip's line rate).
+Budget (docs/benchmarks.md): >= 9.4 MB/s (100x the fingertip's line rate).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Replay throughput (multiples of real time, one core) and feature time per window.
 
 Usage: python bench/bench_pipeline.py [--seconds 120]
-Budget (shared/DESIGN.md): replay >= 300x real time for 2-channel 20 kHz recordings.
+Budget (docs/benchmarks.md): replay >= 1000x real time for 2-channel 20 kHz recordings.
 """
 
 from __future__ import annotations

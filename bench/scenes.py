@@ -57,7 +57,8 @@ def main() -> None:
     config = Config()
     root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-scenes-"))
     rows = []
-    print("| scene | detection recall / precision | default: winner | default: accuracy (coverage) | papers' method: accuracy (coverage) | train s (default / paper) |")
+    print("| scene | detection recall / precision | default: winner | default: accuracy (coverage) | papers' method: accuracy (coverage) "
+          "| train s (default / paper) |")
     print("|---|---|---|---|---|---|", flush=True)
     for spec in args.scenes.split(";"):
         name = spec.replace(",", "+")

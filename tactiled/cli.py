@@ -237,38 +237,67 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Virtual board on a pty + daemon with the shipped model + monitor, in one command."""
+    """Virtual board on a pty + daemon with the shipped model + monitor (or, headless, label lines for ``--seconds``)."""
     import subprocess
     import tempfile
 
     from tactiled.monitor import run_monitor
 
+    if args.seconds is not None and not args.headless:
+        raise TactiledError("--seconds needs --headless")
     with tempfile.TemporaryDirectory(prefix="tactiled-demo-") as tmp:
-        link = f"{tmp}/tty"
+        link, board_log = f"{tmp}/tty", f"{tmp}/board.jsonl"
         endpoint = args.publish or f"ipc://{tmp}/pub"
         exe = [sys.executable, "-m", "tactiled"]
-        board = subprocess.Popen([*exe, "simulate", "serial", "--link", link, "--mode", args.mode, "--seed", str(args.seed)],
+        board = subprocess.Popen([*exe, "simulate", "serial", "--link", link, "--scene", args.scene, "--seed", str(args.seed), "--log", board_log],
                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         assert board.stdout is not None
         board.stdout.readline()  # the device path: the pty exists from here on
         daemon = subprocess.Popen([*exe, "run", "--port", link, "--publish", endpoint], stderr=open(f"{tmp}/daemon.log", "w"))  # noqa: SIM115
         try:
             if args.headless:
-                from tactiled_client import BlockingSubscriber, NoData, Roughness
-
-                with BlockingSubscriber(endpoint, topics=["roughness"], timeout=args.headless) as sub:
-                    try:
-                        for msg in sub:
-                            if isinstance(msg, Roughness):
-                                print(f"slide {msg.slide_id}: {msg.label or '-'} ({msg.confidence or 0:.2f}) {msg.reason or ''}", flush=True)
-                    except NoData:
-                        print(f"tactiled: no label for {args.headless} s; daemon log: {tmp}/daemon.log", file=sys.stderr)
-                        return EXIT_FAIL
+                return _headless(endpoint, args.seconds if args.seconds is not None else 20.0, board_log, f"{tmp}/daemon.log")
             return run_monitor(endpoint)
         finally:
             for proc in (daemon, board):
                 proc.terminate()
                 proc.wait(5)
+
+
+def _headless(endpoint: str, seconds: float, board_log: str, daemon_log: str) -> int:
+    """Print one line per label for ``seconds`` (wall time), with the true surface from the virtual board's log; 0 if labels came."""
+    import time
+
+    from tactiled_client import BlockingSubscriber, NoData, Roughness
+
+    from tactiled.virtualboard import read_log
+
+    def truth(start: int, stop: int) -> str:
+        best, overlap = "?", 0
+        for e in read_log(board_log):
+            if e.get("event") == "slide" and min(stop, e["stop"]) - max(start, e["start"]) > overlap:
+                best, overlap = e["surface"], min(stop, e["stop"]) - max(start, e["start"])
+        return best
+
+    labels = 0
+    deadline = time.monotonic() + seconds
+    with BlockingSubscriber(endpoint, topics=["roughness"], timeout=1.0) as sub:
+        while time.monotonic() < deadline:
+            try:
+                msg = sub.receive(timeout=min(1.0, max(0.01, deadline - time.monotonic())))
+            except NoData:
+                continue
+            if not isinstance(msg, Roughness):
+                continue
+            kind = "final" if msg.final else f"provisional after {msg.used_s:.2f} s"
+            why = f" [{msg.reason}]" if msg.reason else ""
+            print(f"slide {msg.slide_id}: {msg.label or '-'} ({msg.confidence or 0:.2f}, {kind}){why}, true surface {truth(msg.start, msg.stop)}",
+                  flush=True)
+            labels += bool(msg.final and msg.label)
+    if not labels:
+        print(f"tactiled: no label in {seconds:g} s; daemon log: {daemon_log}", file=sys.stderr)
+        return EXIT_FAIL
+    return EXIT_OK
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -395,10 +424,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_monitor)
 
     p = sub.add_parser("demo", help="simulated sensor + daemon + monitor")
-    p.add_argument("--mode", choices=("manual", "robot"), default="manual")
+    p.add_argument("--scene", default="hand", help="the simulated sensor's scene (docs/simulator.md; the shipped model knows hand and robot sliding)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--publish", help="endpoint for the demo daemon (default: an ipc socket in a temporary folder)")
-    p.add_argument("--headless", type=float, default=None, metavar="TIMEOUT", help="print labels instead of the monitor; stop after TIMEOUT s of silence")
+    p.add_argument("--headless", action="store_true", help="print one line per label (with the true surface) instead of the monitor")
+    p.add_argument("--seconds", type=_positive_float, default=None, help="with --headless: run this long, s (wall time; default 20); exit 0 if labels came")
     p.set_defaults(handler=cmd_demo)
 
     p = sub.add_parser("replay", help="run recordings through the daemon's pipeline")

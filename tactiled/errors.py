@@ -4,7 +4,7 @@
 
     TactiledError (Exception)
      ├── ConfigError (ValueError)        a config file or flag value is wrong
-     ├── RecordingError (ValueError)     a .npz recording breaks shared/specs/recordings.md
+     ├── RecordingError (ValueError)     a .npz recording breaks docs/recordings.md
      ├── ModelError (ValueError)         a model file is malformed or does not fit the stream
      ├── WindowError (ValueError)        an analysis window cannot be analysed (too short, ...)
      ├── RingBufferError (LookupError)   a sample range is not in the ring buffer

@@ -1,4 +1,4 @@
-"""The fingertip ADC's serial frames (shared/specs/sensor-frames.md), sans-IO.
+"""The fingertip ADC's serial frames (docs/sensor-frames.md), sans-IO.
 
 :class:`FrameDecoder` takes bytes and returns frames; it does no I/O, so serial, replay
 and tests only hand it bytes. It never trusts a sync word without the CRC: a frame whose

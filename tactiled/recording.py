@@ -1,4 +1,4 @@
-"""Recording files (.npz), per shared/specs/recordings.md.
+"""Recording files (.npz), per docs/recordings.md.
 
 :func:`load_recording` validates everything the spec lists and raises one
 :class:`~tactiled.errors.RecordingError` naming the file and the key; it never loads

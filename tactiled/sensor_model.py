@@ -1,4 +1,4 @@
-"""A physically grounded model of the fingertip (shared/notes/methods.md, sections C and D).
+"""A physically grounded model of the fingertip (docs/simulator.md).
 
 Causes → effects, per slide:
 

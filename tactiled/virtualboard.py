@@ -1,7 +1,7 @@
 """A virtual sensor board: the simulator's samples as frames on a pseudo-terminal.
 
 It opens a pty, keeps an optional symlink pointing at it, and streams frames per
-shared/specs/sensor-frames.md in real time (or ``speed`` times faster). It can corrupt,
+docs/sensor-frames.md in real time (or ``speed`` times faster). It can corrupt,
 drop and garble frames, and unplug (close the pty, keep sampling, open a new pty behind
 the same symlink). With a log it writes one JSON line per event (slides scheduled,
 frames dropped or corrupted, garbage, unplugs, overruns) so tests can check what arrived.

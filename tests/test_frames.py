@@ -19,6 +19,22 @@ def test_spec_example_bytes() -> None:
     (decoded,) = FrameDecoder().feed(frame)
     assert decoded.index == 7
     assert decoded.samples.tolist() == [[1, -1], [256, -256]]
+    one_at_a_time = FrameDecoder()  # docs/sensor-frames.md: the same bytes, one at a time
+    got = [f for b in bytes.fromhex("a55a010202000700000001 00ffff000100ff7d11".replace(" ", "")) for f in one_at_a_time.feed(bytes([b]))]
+    assert len(got) == 1 and got[0].samples.tolist() == [[1, -1], [256, -256]]
+
+
+def test_no_file_refers_outside_the_repository() -> None:
+    """The project's docs stand alone: no tracked file points into a shared/ folder beside the repository."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    files = subprocess.run(["git", "ls-files"], cwd=root, capture_output=True, text=True, check=True).stdout.split()
+    bad = [f for f in files if f.endswith((".py", ".md", ".toml", ".service", ".cfg", ".txt"))
+           and ("shared/" + "specs" in (root / f).read_text(errors="replace") or "shared/" + "notes" in (root / f).read_text(errors="replace")
+                or "shared/" + "DESIGN" in (root / f).read_text(errors="replace"))]
+    assert not bad
 
 
 def _stream(n_frames: int, channels: int = 2, count: int = 20, first: int = 0, seed: int = 0) -> tuple[list[bytes], np.ndarray]:

@@ -217,6 +217,13 @@ def test_training_on_a_local_dask_cluster(tmp_path: Path) -> None:
     assert bad.returncode == 2 and "cannot connect" in bad.stderr
 
 
+def test_headless_demo_prints_labels_with_the_truth_and_stops() -> None:
+    res = run_cli("demo", "--headless", "--seconds", "25", "--scene", "robot", timeout=120)
+    assert res.returncode == 0, res.stderr
+    finals = [line for line in res.stdout.splitlines() if "final" in line]
+    assert finals and all("true surface Ra" in line for line in finals)
+
+
 def test_monitor_shows_live_labels_in_a_terminal(tmp_path: Path) -> None:
     from tactiled.model import load_model as _lm
     from tactiled.sensor_model import SimParams
@@ -224,7 +231,7 @@ def test_monitor_shows_live_labels_in_a_terminal(tmp_path: Path) -> None:
     assert _lm().fs == SimParams().fs
     master, slave = pty.openpty()
     env = {**os.environ, "TERM": "xterm", "COLUMNS": "100", "LINES": "30"}
-    proc = subprocess.Popen(tactiled_cmd("demo", "--mode", "robot"), stdin=slave, stdout=slave, stderr=slave, env=env, close_fds=True)
+    proc = subprocess.Popen(tactiled_cmd("demo", "--scene", "robot"), stdin=slave, stdout=slave, stderr=slave, env=env, close_fds=True)
     os.close(slave)
     screen = b""
     try:
