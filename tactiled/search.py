@@ -126,19 +126,22 @@ class SearchResult:
 # ---- folds and slide-level scoring ------------------------------------------------------------------------------
 
 
-def slide_folds(ws: WindowSet, n_splits: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
-    """Grouped (by file), label-stratified folds of the slides of ``ws`` (slide indices)."""
+def grouped_splits(y: npt.NDArray[Any], groups: npt.NDArray[Any], n_splits: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
+    """Folds that never split a group (a recording), stratified by ``y`` when every class has enough members, else grouped only."""
     from sklearn.model_selection import GroupKFold, StratifiedGroupKFold
 
-    files = np.array([s.file for s in ws.slides])
-    n_files = len(np.unique(files))
-    if n_files < 2:
+    n_groups = len(np.unique(groups))
+    if n_groups < 2:
         raise TactiledError("cross-validation needs at least two recordings")
-    k = max(2, min(n_splits, n_files))
-    y = ws.slide_labels()
-    if np.unique(y, return_counts=True)[1].min() < k:  # a surface with fewer slides than folds: grouped, not stratified
-        return list(GroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, files))
-    return list(StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, files))
+    k = max(2, min(n_splits, n_groups))
+    if np.unique(y, return_counts=True)[1].min() < k:  # a class with fewer members than folds: grouped, not stratified
+        return list(GroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, groups))
+    return list(StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, groups))
+
+
+def slide_folds(ws: WindowSet, n_splits: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
+    """Grouped (by file), label-stratified where possible folds of the slides of ``ws`` (slide indices)."""
+    return grouped_splits(ws.slide_labels(), np.array([s.file for s in ws.slides]), n_splits, seed)
 
 
 def _window_rows(ws: WindowSet, slides: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
@@ -403,7 +406,6 @@ def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_fold
     Constant columns are never candidates. Returns column indices into ``ws.names``.
     """
     from sklearn.feature_selection import SequentialFeatureSelector
-    from sklearn.model_selection import StratifiedGroupKFold
     from sklearn.pipeline import Pipeline
     from sklearn.preprocessing import StandardScaler
 
@@ -411,8 +413,7 @@ def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_fold
     from tactiled.model import LogFeatures
 
     x, y, g = ws.x[rows], ws.y[rows], ws.groups[rows]
-    k = max(2, min(inner_folds, len(np.unique(g))))
-    cv = list(StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=seed).split(x, y, g))
+    cv = grouped_splits(y, g, inner_folds, seed)
     z = Pipeline([("log", LogFeatures(tuple(ws.names))), ("scale", StandardScaler())]).fit_transform(x)
     varying = np.flatnonzero(np.ptp(z, axis=0) > 1e-12)
     n: int | str = n_features if n_features == "auto" else min(int(n_features), len(varying) - 1)
