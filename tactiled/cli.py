@@ -98,7 +98,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     from tactiled.errors import RecordingError
     from tactiled.recording import load_recording
-    from tactiled.replay import BLOCK, replay_recording, result_record
+    from tactiled.replay import BLOCK, by_slide, replay_recording, result_record
 
     config = _config(args)
     failed = 0
@@ -118,17 +118,19 @@ def cmd_replay(args: argparse.Namespace) -> int:
             model = _model_for(args.model, rec.fs, rec.channels, path, explicit=args.no_model)
             on_event = None
             if publisher is not None:
-                on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""))
-            for r in replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event):
-                obj = result_record(path, rec, r)
+                on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""), args.speed)
+            results = replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event)
+            for r, provisional in by_slide(results):
+                obj = result_record(path, rec, r, provisional, config.sensor.id, getattr(model, "fingerprint", ""))
                 if args.json:
-                    print(json.dumps(obj), flush=True)
+                    print(json.dumps(obj.to_map()), flush=True)
                 else:
                     conf = "" if r.confidence is None else f" ({r.confidence:.2f})"
                     why = f" [{r.reason}]" if r.reason else ""
-                    truth = f" truth {obj['truth']}" if obj["truth"] else ""
-                    print(f"{path}: slide {r.slide_id}: {r.start}-{r.stop} ({obj['duration_s']:.2f} s) window {r.window[0]}-{r.window[1]}: "
-                          f"{r.label or '-'}{conf}{why} spikes {r.quality['spikes']}{truth}", flush=True)
+                    truth = f" truth {obj.truth}" if obj.truth else ""
+                    early = "".join(f" {p.label or '-'}@{p.used_s:.2f}s" for p in provisional)
+                    print(f"{path}: slide {r.slide_id}: {r.start}-{r.stop} ({obj.duration_s:.2f} s) window {r.window[0]}-{r.window[1]}: "
+                          f"{r.label or '-'}{conf}{why} spikes {r.quality['spikes']}{truth}" + (f" provisional{early}" if early else ""), flush=True)
     finally:
         if publisher is not None:
             publisher.close()
@@ -219,7 +221,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from tactiled.daemon import Daemon
 
     config = _config(args, {"sensor.port": args.port, "sensor.id": args.sensor_id, "publish.endpoint": args.publish,
-                            "model.path": args.model})
+                            "model.path": args.model, "publish.samples": True if args.samples else None})
     model = None
     if not args.no_model:
         model = _model_for(config.model.path or None, config.sensor.fs, config.sensor.channels, f"sensor {config.sensor.id}",
@@ -383,6 +385,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--publish", help="ZeroMQ endpoint to bind (overrides publish.endpoint)")
     p.add_argument("--sensor-id", help="sensor id in topics (overrides sensor.id)")
     p.add_argument("--record", help="also keep every sample received and write it as a recording on exit (memory grows 80 kB/s)")
+    p.add_argument("--samples", action="store_true", help="also publish the raw samples on samples/<id> (sets publish.samples)")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("curve-keys", help="create a ZeroMQ CURVE certificate pair (NAME.key, NAME.key_secret) in DIR")
