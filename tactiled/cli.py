@@ -42,10 +42,36 @@ def cmd_record(args: argparse.Namespace) -> int:
                             "sensor.channels": args.channels})
     if args.seconds <= 0:
         raise TactiledError("--seconds: must be > 0")
-    summary = record(config.sensor.port, args.seconds, args.output, fs=config.sensor.fs, channels=config.sensor.channels,
+    # --format mcap: record the .npz as usual beside the output, then convert it (the same as tactiled export)
+    npz = args.output if args.format == "npz" else f"{args.output}.npz"
+    summary = record(config.sensor.port, args.seconds, npz, fs=config.sensor.fs, channels=config.sensor.channels,
                      volts_per_count=config.sensor.volts_per_count, label=args.label, baudrate=config.sensor.baudrate,
                      retry_max_s=config.serial.retry_max_s, meta={"sensor": config.sensor.id})
+    if args.format == "mcap":
+        import os
+
+        _export(npz, args.output, config, None, explicit_model=True)
+        os.unlink(npz)
     print(f"{args.output}: {summary.line()}")
+    return EXIT_OK
+
+
+def _export(path: str, output: str, config: Config, model_path: str | None, explicit_model: bool, batch: int | None = None) -> dict[str, int]:
+    """Recording ``path`` → MCAP ``output``, with the pipeline's results (by the model that fits, unless ``explicit_model`` and none given)."""
+    from tactiled.mcap_export import BATCH, export_mcap
+    from tactiled.recording import load_recording
+    from tactiled.replay import replay_recording
+
+    rec = load_recording(path)
+    model = _model_for(model_path, rec.fs, rec.channels, path, explicit=explicit_model)
+    results = replay_recording(rec, config, model)
+    return export_mcap(rec, output, sensor=str(rec.meta.get("sensor", config.sensor.id)), results=results,
+                       model=getattr(model, "fingerprint", ""), batch=batch or BATCH)
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    counts = _export(args.file, args.output, _config(args), args.model, explicit_model=args.no_model, batch=args.batch)
+    print(f"{args.output}: {counts['samples']} samples, {counts['slides']} slides, {counts['roughness']} roughness messages")
     return EXIT_OK
 
 
@@ -341,7 +367,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fs", type=_positive_float, help="sample rate, Hz (overrides sensor.fs)")
     p.add_argument("--channels", type=int, help="channels (overrides sensor.channels)")
     p.add_argument("--volts-per-count", type=_positive_float, help="ADC scale (overrides sensor.volts_per_count)")
+    p.add_argument("--format", choices=("npz", "mcap"), default="npz", help="npz recording (default) or MCAP (converted at the end, as export)")
     p.set_defaults(handler=cmd_record)
+
+    p = sub.add_parser("export", help="a recording as an MCAP file (samples, ground-truth slides, labels) for Foxglove / PlotJuggler")
+    p.add_argument("file", help="recording .npz")
+    p.add_argument("-o", "--output", required=True, help="output .mcap")
+    p.add_argument("--config")
+    p.add_argument("--model", help="model file for the labels (default: the shipped model, when it fits)")
+    p.add_argument("--no-model", action="store_true", help="slides only, no classification")
+    p.add_argument("--batch", type=int, default=None, help="samples per message (default 20: one board frame)")
+    p.set_defaults(handler=cmd_export)
 
     sim = sub.add_parser("simulate", help="the simulated fingertip").add_subparsers(dest="what", required=True, metavar="WHAT")
     p = sim.add_parser("dataset", help="write labelled recordings")
