@@ -271,6 +271,36 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     return run_monitor(endpoint)
 
 
+def _bridge(args: argparse.Namespace, make_sink: Callable[[str], object]) -> int:
+    import signal
+    import threading
+
+    from tactiled.bridges import run_bridge
+
+    config = _config(args)
+    endpoint = args.connect or config.publish.endpoint
+    sensor = args.sensor_id or config.sensor.id
+    sink = make_sink(sensor)
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    print(f"tactiled: {args.command} bridge for sensor {sensor} from {endpoint}", file=sys.stderr, flush=True)
+    run_bridge(endpoint, sink, stop, sensor)  # type: ignore[arg-type]
+    return EXIT_OK
+
+
+def cmd_lsl(args: argparse.Namespace) -> int:
+    from tactiled.bridges.lsl import LslSink
+
+    return _bridge(args, LslSink)
+
+
+def cmd_ros2(args: argparse.Namespace) -> int:
+    from tactiled.bridges.ros2 import Ros2Sink
+
+    return _bridge(args, Ros2Sink)
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """Virtual board on a pty + daemon with the shipped model + monitor, in one command."""
     import subprocess
@@ -433,6 +463,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--connect", help="daemon endpoint (default: publish.endpoint of --config or the default)")
     p.add_argument("--config")
     p.set_defaults(handler=cmd_monitor)
+
+    for name, help_, handler in (("lsl", "Lab Streaming Layer outlets of a daemon's raw samples and labels (tactiled[lsl])", cmd_lsl),
+                                 ("ros2", "ROS 2 topics of a daemon's labels, status and raw samples (tactiled[ros2])", cmd_ros2)):
+        p = sub.add_parser(name, help=help_)
+        p.add_argument("--connect", help="daemon endpoint (default: publish.endpoint of --config or the default)")
+        p.add_argument("--config")
+        p.add_argument("--sensor-id", help="sensor to bridge (default: sensor.id of --config)")
+        p.set_defaults(handler=handler)
 
     p = sub.add_parser("demo", help="simulated sensor + daemon + monitor")
     p.add_argument("--mode", choices=("manual", "robot"), default="manual")
