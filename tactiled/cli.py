@@ -268,7 +268,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     from tactiled.monitor import run_monitor
 
     endpoint = args.connect or _config(args).publish.endpoint
-    return run_monitor(endpoint)
+    return run_monitor(endpoint, args.truth)
 
 
 def _bridge(args: argparse.Namespace, make_sink: Callable[[str], object]) -> int:
@@ -312,11 +312,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
         link = f"{tmp}/tty"
         endpoint = args.publish or f"ipc://{tmp}/pub"
         exe = [sys.executable, "-m", "tactiled"]
-        board = subprocess.Popen([*exe, "simulate", "serial", "--link", link, "--mode", args.mode, "--seed", str(args.seed)],
+        board = subprocess.Popen([*exe, "simulate", "serial", "--link", link, "--mode", args.mode, "--seed", str(args.seed), "--log", f"{tmp}/board.jsonl"],
                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         assert board.stdout is not None
         board.stdout.readline()  # the device path: the pty exists from here on
-        daemon = subprocess.Popen([*exe, "run", "--port", link, "--publish", endpoint], stderr=open(f"{tmp}/daemon.log", "w"))  # noqa: SIM115
+        daemon = subprocess.Popen([*exe, "run", "--port", link, "--publish", endpoint, "--samples"], stderr=open(f"{tmp}/daemon.log", "w"))  # noqa: SIM115
         try:
             if args.headless:
                 from tactiled_client import BlockingSubscriber, NoData, Roughness
@@ -329,7 +329,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                     except NoData:
                         print(f"tactiled: no label for {args.headless} s; daemon log: {tmp}/daemon.log", file=sys.stderr)
                         return EXIT_FAIL
-            return run_monitor(endpoint)
+            return run_monitor(endpoint, f"{tmp}/board.jsonl")  # the simulator's log: the true surface of every slide
         finally:
             for proc in (daemon, board):
                 proc.terminate()
@@ -462,6 +462,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("monitor", help="terminal view of a running daemon")
     p.add_argument("--connect", help="daemon endpoint (default: publish.endpoint of --config or the default)")
     p.add_argument("--config")
+    p.add_argument("--truth", help="a virtual board's log (simulate serial --log): show the true surface of each slide")
     p.set_defaults(handler=cmd_monitor)
 
     for name, help_, handler in (("lsl", "Lab Streaming Layer outlets of a daemon's raw samples and labels (tactiled[lsl])", cmd_lsl),
