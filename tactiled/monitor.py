@@ -165,9 +165,10 @@ def render(model: MonitorModel, endpoint: str) -> Any:
         spec.append(f"0 Hz{'':{max(len(db) - 12, 1)}}{hz * len(db):.0f} Hz   ({hz:.0f} Hz per column, top {db.max():.0f} dB, 60 dB span)")
     else:
         spec.append("(waiting for raw samples)")
-    labels = Table(title="labels (newest first)", expand=True, title_justify="left")
+    labels = Table(title="last labels (newest first)", expand=True, title_justify="left")
     for col, just in (("slide", "right"), ("kind", "left"), ("label", "left"), ("confidence", "right"), ("used, s", "right"),
-                      ("duration, s", "right"), ("truth", "left"), ("abstained: reason", "left")):
+                      ("duration, s", "right"), ("latency, ms", "right"), ("truth", "left"),
+                      ("abstained: reason", "left")):
         labels.add_column(col, justify=just)  # type: ignore[arg-type]
     fs = s.fs_nominal or 1.0
     for r in model.labels:
@@ -175,7 +176,7 @@ def render(model: MonitorModel, endpoint: str) -> Any:
         style = "bold red" if r.label is None else ("dim" if not r.final else ("green" if truth in (None, r.label) else "yellow"))
         labels.add_row(str(r.slide_id), "final" if r.final else "provisional", r.label or "-",
                        "" if r.confidence is None else f"{r.confidence:.2f}", f"{r.used_s:.2f}", f"{(r.stop - r.start) / fs:.2f}",
-                       truth or "", r.reason or "", style=style)
+                       f"{r.latency_ms:.1f}", truth or "", r.reason or "", style=style)
     return Group(Panel(head), levels, Panel(spec, title="spectrum of the raw samples (films summed)", title_align="left"), labels)
 
 

@@ -43,7 +43,7 @@ def test_monitor_shows_state_traces_spectrum_and_labels_with_truth(tmp_path: Pat
     screen = console.export_text()
     assert "sensor fingertip0" in screen and any(state in screen for state in (" IDLE ", " SLIDING "))
     for header in ("film levels (RMS per 10 ms, mV)", "now, mV", "trace (newest right)", "spectrum of the raw samples", "Hz per column",
-                   "slide", "kind", "label", "confidence", "used, s", "duration, s", "truth", "abstained: reason"):
+                   "slide", "kind", "label", "confidence", "used, s", "duration, s", "latency, ms", "truth", "abstained: reason"):
         assert header in screen, header
     traces = [line for line in screen.splitlines() if line.strip().startswith(("│ film1", "│ film2", "film1", "film2"))]
     assert len(traces) == 2 and all(sum(ch in SPARK for ch in line) >= 50 for line in traces)  # moving traces of both films
