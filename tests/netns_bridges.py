@@ -158,7 +158,11 @@ class Ros2Consumer:
     def collect(self, state: Any) -> dict[str, Any]:
         node, got = state
         deadline = time.monotonic() + 30
-        while (len(got["samples"]) < BATCHES - 1 or len(got["stamp"]) < BATCHES - 1 or len(got["detail"]) < 3) and time.monotonic() < deadline:
+        def done() -> bool:  # the last batch (array and stamp, in pairs) and the three roughness messages are in
+            last = bool(got["stamp"]) and got["stamp"][-1][0] == str((BATCHES - 1) * N)
+            return last and len(got["samples"]) == len(got["stamp"]) and len(got["detail"]) >= 3
+
+        while not done() and time.monotonic() < deadline:
             self.rclpy.spin_once(node, timeout_sec=0.05)
         node.destroy_node()
         return got
