@@ -42,10 +42,36 @@ def cmd_record(args: argparse.Namespace) -> int:
                             "sensor.channels": args.channels})
     if args.seconds <= 0:
         raise TactiledError("--seconds: must be > 0")
-    summary = record(config.sensor.port, args.seconds, args.output, fs=config.sensor.fs, channels=config.sensor.channels,
+    # --format mcap: record the .npz as usual beside the output, then convert it (the same as tactiled export)
+    npz = args.output if args.format == "npz" else f"{args.output}.npz"
+    summary = record(config.sensor.port, args.seconds, npz, fs=config.sensor.fs, channels=config.sensor.channels,
                      volts_per_count=config.sensor.volts_per_count, label=args.label, baudrate=config.sensor.baudrate,
                      retry_max_s=config.serial.retry_max_s, meta={"sensor": config.sensor.id})
+    if args.format == "mcap":
+        import os
+
+        _export(npz, args.output, config, None, explicit_model=True)
+        os.unlink(npz)
     print(f"{args.output}: {summary.line()}")
+    return EXIT_OK
+
+
+def _export(path: str, output: str, config: Config, model_path: str | None, explicit_model: bool, batch: int | None = None) -> dict[str, int]:
+    """Recording ``path`` → MCAP ``output``, with the pipeline's results (by the model that fits, unless ``explicit_model`` and none given)."""
+    from tactiled.mcap_export import BATCH, export_mcap
+    from tactiled.recording import load_recording
+    from tactiled.replay import replay_recording
+
+    rec = load_recording(path)
+    model = _model_for(model_path, rec.fs, rec.channels, path, explicit=explicit_model)
+    results = replay_recording(rec, config, model)
+    return export_mcap(rec, output, sensor=str(rec.meta.get("sensor", config.sensor.id)), results=results,
+                       model=getattr(model, "fingerprint", ""), batch=batch or BATCH)
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    counts = _export(args.file, args.output, _config(args), args.model, explicit_model=args.no_model, batch=args.batch)
+    print(f"{args.output}: {counts['samples']} samples, {counts['slides']} slides, {counts['roughness']} roughness messages")
     return EXIT_OK
 
 
@@ -98,7 +124,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     from tactiled.errors import RecordingError
     from tactiled.recording import load_recording
-    from tactiled.replay import BLOCK, replay_recording, result_record, summary_line
+    from tactiled.replay import BLOCK, by_slide, replay_recording, result_record, summary_line
 
     config = _config(args)
     failed = 0
@@ -118,23 +144,18 @@ def cmd_replay(args: argparse.Namespace) -> int:
             model = _model_for(args.model, rec.fs, rec.channels, path, explicit=args.no_model)
             on_event = None
             if publisher is not None:
-                on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""))
+                on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""), args.speed)
             results = replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event)
-            provisional: list = []  # type: ignore[type-arg]
-            for r in results:
-                if not r.final:
-                    provisional.append(r)
-                    continue
-                obj = result_record(path, rec, r, provisional)
-                provisional = []
+            for r, provisional in by_slide(results):
+                obj = result_record(path, rec, r, provisional, config.sensor.id, getattr(model, "fingerprint", ""))
                 if args.json:
-                    print(json.dumps(obj), flush=True)
+                    print(json.dumps(obj.to_map()), flush=True)
                 else:
                     conf = "" if r.confidence is None else f" ({r.confidence:.2f})"
                     why = f" [{r.reason}]" if r.reason else ""
-                    truth = f" truth {obj['truth']}" if obj["truth"] else ""
-                    early = f", provisional {obj['provisional'][0]['label']} at {obj['provisional'][0]['used_s']:.2f} s" if obj["provisional"] else ""
-                    print(f"{path}: slide {r.slide_id}: {r.start}-{r.stop} ({obj['duration_s']:.2f} s), {r.quality.get('windows', 0)} windows: "
+                    truth = f" truth {obj.truth}" if obj.truth else ""
+                    early = f", provisional {provisional[0].label or '-'} at {provisional[0].used_s:.2f} s" if provisional else ""
+                    print(f"{path}: slide {r.slide_id}: {r.start}-{r.stop} ({obj.duration_s:.2f} s), {r.quality.get('windows', 0)} windows: "
                           f"{r.label or '-'}{conf}{why}{early}{truth}", flush=True)
             print(f"{path}: {summary_line(results, rec)}", file=sys.stderr if args.json else sys.stdout, flush=True)
     finally:
@@ -212,7 +233,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from tactiled.daemon import Daemon
 
     config = _config(args, {"sensor.port": args.port, "sensor.id": args.sensor_id, "publish.endpoint": args.publish,
-                            "model.path": args.model})
+                            "model.path": args.model, "publish.samples": True if args.samples else None})
     model = None
     if not args.no_model:
         model = _model_for(config.model.path or None, config.sensor.fs, config.sensor.channels, f"sensor {config.sensor.id}",
@@ -233,7 +254,37 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     from tactiled.monitor import run_monitor
 
     endpoint = args.connect or _config(args).publish.endpoint
-    return run_monitor(endpoint)
+    return run_monitor(endpoint, args.truth)
+
+
+def _bridge(args: argparse.Namespace, make_sink: Callable[[str], object]) -> int:
+    import signal
+    import threading
+
+    from tactiled.bridges import run_bridge
+
+    config = _config(args)
+    endpoint = args.connect or config.publish.endpoint
+    sensor = args.sensor_id or config.sensor.id
+    sink = make_sink(sensor)
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    print(f"tactiled: {args.command} bridge for sensor {sensor} from {endpoint}", file=sys.stderr, flush=True)
+    run_bridge(endpoint, sink, stop, sensor)  # type: ignore[arg-type]
+    return EXIT_OK
+
+
+def cmd_lsl(args: argparse.Namespace) -> int:
+    from tactiled.bridges.lsl import LslSink
+
+    return _bridge(args, LslSink)
+
+
+def cmd_ros2(args: argparse.Namespace) -> int:
+    from tactiled.bridges.ros2 import Ros2Sink
+
+    return _bridge(args, Ros2Sink)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -253,11 +304,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         assert board.stdout is not None
         board.stdout.readline()  # the device path: the pty exists from here on
-        daemon = subprocess.Popen([*exe, "run", "--port", link, "--publish", endpoint], stderr=open(f"{tmp}/daemon.log", "w"))  # noqa: SIM115
+        daemon = subprocess.Popen([*exe, "run", "--port", link, "--publish", endpoint, "--samples"], stderr=open(f"{tmp}/daemon.log", "w"))  # noqa: SIM115
         try:
             if args.headless:
                 return _headless(endpoint, args.seconds if args.seconds is not None else 20.0, board_log, f"{tmp}/daemon.log")
-            return run_monitor(endpoint)
+            return run_monitor(endpoint, board_log)  # the simulator's log: the true surface of every slide
         finally:
             for proc in (daemon, board):
                 proc.terminate()
@@ -365,7 +416,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fs", type=_positive_float, help="sample rate, Hz (overrides sensor.fs)")
     p.add_argument("--channels", type=int, help="channels (overrides sensor.channels)")
     p.add_argument("--volts-per-count", type=_positive_float, help="ADC scale (overrides sensor.volts_per_count)")
+    p.add_argument("--format", choices=("npz", "mcap"), default="npz", help="npz recording (default) or MCAP (converted at the end, as export)")
     p.set_defaults(handler=cmd_record)
+
+    p = sub.add_parser("export", help="a recording as an MCAP file (samples, ground-truth slides, labels) for Foxglove / PlotJuggler")
+    p.add_argument("file", help="recording .npz")
+    p.add_argument("-o", "--output", required=True, help="output .mcap")
+    p.add_argument("--config")
+    p.add_argument("--model", help="model file for the labels (default: the shipped model, when it fits)")
+    p.add_argument("--no-model", action="store_true", help="slides only, no classification")
+    p.add_argument("--batch", type=int, default=None, help="samples per message (default 20: one board frame)")
+    p.set_defaults(handler=cmd_export)
 
     sim = sub.add_parser("simulate", help="the simulated fingertip").add_subparsers(dest="what", required=True, metavar="WHAT")
     p = sim.add_parser("dataset", help="write labelled recordings")
@@ -411,6 +472,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--publish", help="ZeroMQ endpoint to bind (overrides publish.endpoint)")
     p.add_argument("--sensor-id", help="sensor id in topics (overrides sensor.id)")
     p.add_argument("--record", help="also keep every sample received and write it as a recording on exit (memory grows 80 kB/s)")
+    p.add_argument("--samples", action="store_true", help="also publish the raw samples on samples/<id> (sets publish.samples)")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("curve-keys", help="create a ZeroMQ CURVE certificate pair (NAME.key, NAME.key_secret) in DIR")
@@ -421,7 +483,16 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("monitor", help="terminal view of a running daemon")
     p.add_argument("--connect", help="daemon endpoint (default: publish.endpoint of --config or the default)")
     p.add_argument("--config")
+    p.add_argument("--truth", help="a virtual board's log (simulate serial --log): show the true surface of each slide")
     p.set_defaults(handler=cmd_monitor)
+
+    for name, help_, handler in (("lsl", "Lab Streaming Layer outlets of a daemon's raw samples and labels (tactiled[lsl])", cmd_lsl),
+                                 ("ros2", "ROS 2 topics of a daemon's labels, status and raw samples (tactiled[ros2])", cmd_ros2)):
+        p = sub.add_parser(name, help=help_)
+        p.add_argument("--connect", help="daemon endpoint (default: publish.endpoint of --config or the default)")
+        p.add_argument("--config")
+        p.add_argument("--sensor-id", help="sensor to bridge (default: sensor.id of --config)")
+        p.set_defaults(handler=handler)
 
     p = sub.add_parser("demo", help="simulated sensor + daemon + monitor")
     p.add_argument("--scene", default="hand", help="the simulated sensor's scene (docs/simulator.md; the shipped model knows hand and robot sliding)")

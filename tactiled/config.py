@@ -214,6 +214,7 @@ class PublishConfig:
     status_interval_s: float = 0.5
     curve_secret_key_file: str = ""
     curve_authorized_dir: str = ""
+    samples: bool = False
 
     def validate(self, p: str) -> None:
         _check(bool(self.curve_secret_key_file) == bool(self.curve_authorized_dir), f"{p}.curve_authorized_dir",

@@ -16,17 +16,18 @@ import signal
 import socket
 import time
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from tactiled_client import schema
 
 from tactiled import __version__
+from tactiled.clockmap import ClockMap
 from tactiled.config import Config
 from tactiled.frames import FrameDecoder
 from tactiled.model import Model
 from tactiled.pipeline import Pipeline, PipelineEvent
 from tactiled.publish import Publisher
+from tactiled.rawbatch import raw_batches
 from tactiled.record import FrameAssembler
 from tactiled.recording import Recording, save_recording
 from tactiled.serialsource import CONNECTED, SerialSource
@@ -95,6 +96,9 @@ class Daemon:
         self._backlog_n = 0
         self._process_n = round(PROCESS_S * s.fs)
         self.assembler = FrameAssembler(config.sensor.channels) if record_to else None
+        self.clock = ClockMap(s.fs)  # sample index -> host time
+        self._arrival = 0.0  # host monotonic time of the newest bytes read (reader thread)
+        self._raw_next: int | None = None  # next index of the samples topic
 
     @property
     def endpoint(self) -> str:
@@ -106,6 +110,7 @@ class Daemon:
         s = self.config.sensor
 
         def on_bytes(data: bytes) -> None:
+            self._arrival = time.monotonic()  # every sample queued so far had arrived by then
             loop.call_soon_threadsafe(queue.put_nowait, data)
 
         def on_state(state: str, detail: str) -> None:
@@ -129,7 +134,7 @@ class Daemon:
         finally:
             sd_notify("STOPPING=1")
             self.source.stop()
-            self.publisher.send(schema.STATUS, s.id, self._status_body(stopping=True))
+            self.publisher.publish(self._status_message(stopping=True))
             self.publisher.close()
             if self.assembler is not None and self.record_to:
                 self._save_recording(self.record_to)
@@ -144,6 +149,7 @@ class Daemon:
             while not queue.empty():
                 chunks.append(queue.get_nowait())
             data = bytearray()
+            arrival = self._arrival
             for chunk in chunks:
                 if isinstance(chunk, tuple):
                     self.state.connected = chunk[0] == CONNECTED
@@ -153,6 +159,8 @@ class Daemon:
             if not data:
                 continue
             frames = self.decoder.feed(bytes(data))
+            if frames:
+                self.clock.observe(frames[-1].index + frames[-1].samples.shape[0], arrival)
             if self.assembler is not None:
                 for frame in frames:
                     self.assembler.add(frame)
@@ -172,13 +180,27 @@ class Daemon:
                     self.state.samples_window += samples.shape[0]
                     self.state.last_index = index + samples.shape[0]
                 detected_at = time.perf_counter()
+                if self.config.publish.samples:
+                    self._publish_samples(blocks)
                 end = blocks[-1][0] + blocks[-1][1].shape[0]
                 if self.pipeline.will_analyse(end):  # feature extraction: off the event loop
                     events = await asyncio.to_thread(self._feed_blocks, blocks)
                 else:  # detection only: cheaper than a thread hop
                     events = self._feed_blocks(blocks)
+                to_host = self.clock.host if self.clock.ready else None
                 for ev in events:
-                    self.publisher.publish_event(sensor.id, ev, sensor.fs, self.fingerprint, detected_at)
+                    self.publisher.publish_event(sensor.id, ev, sensor.fs, self.fingerprint, detected_at, to_host)
+
+    def _publish_samples(self, blocks: list[tuple[int, np.ndarray]]) -> None:
+        """The batch's raw samples on ``samples/<id>``: every index from the last batch's end on, lost ones as zero rows."""
+        s = self.config.sensor
+        to_host = self.clock.host if self.clock.ready else None
+        for b in raw_batches(blocks, self._raw_next, max_fill=round(s.fs)):
+            n = b.samples.shape[0]
+            self.publisher.publish(schema.samples(s.id, b.index, b.samples.astype("<i2", copy=False).tobytes(), n, s.channels, fs=s.fs,
+                                                  volts_per_count=s.volts_per_count, lost=b.lost, lost_before=b.lost_before,
+                                                  to_host=to_host, fs_clock=round(self.clock.fs, 3)))
+            self._raw_next = b.index + n
 
     def _save_recording(self, path: str) -> None:
         assert self.assembler is not None
@@ -194,10 +216,10 @@ class Daemon:
             events += self.pipeline.feed(index, samples)
         return events
 
-    def _status_body(self, interval: float = 0.0, stopping: bool = False) -> dict[str, Any]:
+    def _status_message(self, interval: float = 0.0, stopping: bool = False) -> schema.Status:
         st, stats = self.state, self.decoder.stats
         if stopping:
-            state = "stopping"
+            state = schema.STATE_STOPPING
         elif not (self.source and self.source.connected):
             state = schema.STATE_DISCONNECTED
         elif self.pipeline.sliding:
@@ -209,13 +231,18 @@ class Daemon:
         level = []
         if st.sumsq is not None and st.samples_window:
             level = [round(float(np.sqrt(v / st.samples_window)) * self.config.sensor.volts_per_count, 6) for v in st.sumsq]
-        return {"state": state, "samples": stats.samples, "samples_lost": stats.samples_lost, "crc_errors": stats.crc_errors,
-                "bytes_discarded": stats.bytes_discarded, "bad_headers": stats.bad_headers,
-                "reconnects": self.source.reconnects if self.source else 0, "restarts": stats.restarts,
-                "slides": self.pipeline.slides, "labels": self.pipeline.labels, "fs_nominal": self.config.sensor.fs,
-                "fs_measured": round(st.samples_window / interval, 1) if interval > 0 else 0.0, "model": self.fingerprint,
-                "uptime_s": round(time.monotonic() - st.started, 3), "index": st.last_index, "level": level, "version": __version__,
-                "dropped_messages": self.publisher.dropped, "channel_errors": st.channel_errors}
+        clock_index = clock_mono = clock_unix = None
+        if self.clock.ready and st.last_index:
+            clock_index = st.last_index
+            clock_mono, clock_unix = (round(t, 6) for t in self.clock.host(clock_index))
+        return schema.status(self.config.sensor.id, state=state, samples=stats.samples, samples_lost=stats.samples_lost, crc_errors=stats.crc_errors,
+                             bytes_discarded=stats.bytes_discarded, bad_headers=stats.bad_headers,
+                             reconnects=self.source.reconnects if self.source else 0, restarts=stats.restarts,
+                             slides=self.pipeline.slides, labels=self.pipeline.labels, fs_nominal=self.config.sensor.fs,
+                             fs_measured=round(st.samples_window / interval, 1) if interval > 0 else 0.0, model=self.fingerprint,
+                             uptime_s=round(time.monotonic() - st.started, 3), index=st.last_index, level=level, version=__version__,
+                             dropped_messages=self.publisher.dropped, channel_errors=st.channel_errors, clock_index=clock_index,
+                             clock_mono=clock_mono, clock_unix=clock_unix, fs_clock=round(self.clock.fs, 3))
 
     async def _status(self) -> None:
         interval = self.config.publish.status_interval_s
@@ -224,7 +251,7 @@ class Daemon:
         while True:
             await asyncio.sleep(interval)  # the status period itself, not synchronisation
             now = time.monotonic()
-            self.publisher.send(schema.STATUS, self.config.sensor.id, self._status_body(now - last))
+            self.publisher.publish(self._status_message(now - last))
             self.state.samples_window = 0
             self.state.sumsq = None
             last = now

@@ -1,28 +1,73 @@
-"""``tactiled monitor``: a terminal view of a running daemon (curses).
+"""``tactiled monitor``: a live terminal view of a running daemon (rich).
 
-State, both films' live level, the slide in progress, the last labels with confidence,
-rates and loss counters. ``q`` quits.
+Up front the device and connection state; then both films' levels as moving traces, a live
+spectrum of the raw samples (the daemon must publish them: ``publish.samples`` or ``run
+--samples``), and the label history: provisional and final labels with their confidence,
+abstentions highlighted with their reason, and the true surface when a virtual board's log
+is given (``--truth``: the simulator knows it, a real board does not). ``q`` or Ctrl-C quits.
+
+rich rather than Textual: the screen is redrawn from one model at a fixed rate, which rich's
+``Live`` does with no application framework or event loop of its own to combine with the
+ZeroMQ subscriber, and the same renderable prints to a string for headless tests.
 """
 
 from __future__ import annotations
 
-import curses
+import itertools
+import json
+import os
+import select
+import sys
 import time
 from collections import deque
+from pathlib import Path
 from typing import Any
 
-from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, Status
+import numpy as np
+from tactiled_client import BlockingSubscriber, NoData, Roughness, Samples, Slide, Status, schema
+
+TRACE_LEN = 120  # points per film trace (one per 10 ms of signal)
+SPECTRUM_N = 4096  # samples per spectrum
+SPARK = "▁▂▃▄▅▆▇█"
+
+
+def sparkline(values: np.ndarray, top: float) -> str:
+    """One character per value, 8 levels from 0 to ``top``."""
+    if values.size == 0 or top <= 0:
+        return ""
+    idx = np.clip((values / top * (len(SPARK) - 1)).round().astype(int), 0, len(SPARK) - 1)
+    return "".join(SPARK[i] for i in idx)
+
+
+def read_truth(path: str | Path) -> list[tuple[int, int, str]]:
+    """(start, stop, surface) of the slides in a virtual board's log (``simulate serial --log``)."""
+    out = []
+    try:
+        with open(path, encoding="utf-8") as fh:
+            for line in fh:
+                ev = json.loads(line) if line.strip() else {}
+                if ev.get("event") == "slide":
+                    out.append((int(ev["start"]), int(ev["stop"]), str(ev["surface"])))
+    except FileNotFoundError:
+        pass
+    return out
 
 
 class MonitorModel:
     """What the screen shows, updated from messages (kept apart from drawing, for tests)."""
 
-    def __init__(self) -> None:
+    def __init__(self, truth_log: str | None = None) -> None:
         self.status: Status | None = None
         self.slide: Slide | None = None
         self.labels: deque[Roughness] = deque(maxlen=12)
         self.missed = 0
         self.last_message = 0.0
+        self.traces: list[deque[float]] = []
+        self.raw: deque[np.ndarray] = deque()
+        self.raw_n = 0
+        self.fs = 0.0
+        self.truth_log = truth_log
+        self._truth: list[tuple[int, int, str]] = []
 
     def update(self, msg: Any) -> None:
         self.last_message = time.monotonic()
@@ -30,60 +75,141 @@ class MonitorModel:
         if isinstance(msg, Status):
             self.status = msg
         elif isinstance(msg, Slide):
-            self.slide = msg if msg.event == "start" else None
+            self.slide = msg if msg.event == schema.SLIDE_START else None
         elif isinstance(msg, Roughness):
             self.labels.appendleft(msg)
+        elif isinstance(msg, Samples):
+            self._samples(msg)
 
-    def lines(self, endpoint: str, width: int = 80) -> list[str]:
-        s = self.status
-        out = [f"tactiled monitor  {endpoint}  (q quits)"]
-        if s is None:
-            out.append("waiting for the daemon's status ...")
-            return out
-        out.append(f"sensor {s.sensor}  state {s.state.upper():12s} uptime {s.uptime_s:8.1f} s  model {s.model or '-'}")
-        out.append(f"rate {s.fs_measured:9.1f} Hz (nominal {s.fs_nominal:g})  samples {s.samples}  index {s.index}")
-        out.append(f"lost {s.samples_lost} samples  crc errors {s.crc_errors}  bytes discarded {s.bytes_discarded}  "
-                   f"reconnects {s.reconnects}  missed msgs {self.missed}")
-        out.append(f"slides {s.slides}  labels {s.labels}")
+    def _samples(self, msg: Samples) -> None:
+        volts = msg.counts().astype(np.float64) * msg.volts_per_count
+        self.fs = msg.fs
+        if len(self.traces) != msg.channels:
+            self.traces = [deque(maxlen=TRACE_LEN) for _ in range(msg.channels)]
+        step = max(1, round(msg.fs / 100))
+        for lo in range(0, msg.n - step + 1, step):
+            rms = np.sqrt(np.mean(volts[lo:lo + step] ** 2, axis=0))
+            for k, trace in enumerate(self.traces):
+                trace.append(float(rms[k]))
+        self.raw.append(volts)
+        self.raw_n += msg.n
+        while self.raw_n - self.raw[0].shape[0] >= SPECTRUM_N:
+            self.raw_n -= self.raw.popleft().shape[0]
+
+    def spectrum(self, bars: int = 48, max_hz: float = 5000.0) -> tuple[np.ndarray, float]:
+        """(dB per band (bars,) of film 1 + 2 summed power, Hz per band) of the newest SPECTRUM_N samples."""
+        if self.raw_n < SPECTRUM_N or not self.fs:
+            return np.zeros(0), 0.0
+        x = np.concatenate(list(self.raw))[-SPECTRUM_N:]
+        x = x - x.mean(axis=0)
+        power = (np.abs(np.fft.rfft(x * np.hanning(SPECTRUM_N)[:, None], axis=0)) ** 2).sum(axis=1)
+        freqs = np.fft.rfftfreq(SPECTRUM_N, 1 / self.fs)
+        hi = min(max_hz, self.fs / 2)
+        edges = np.linspace(0, hi, bars + 1)
+        band = np.array([power[(freqs >= a) & (freqs < b)].sum() for a, b in itertools.pairwise(edges)])
+        return 10 * np.log10(band + 1e-20), hi / bars
+
+    def truth_for(self, start: int, stop: int) -> str | None:
+        if self.truth_log is None:
+            return None
+        if not self._truth or self._truth[-1][1] < stop:
+            self._truth = read_truth(self.truth_log)
+        best = max(((min(stop, b) - max(start, a), s) for a, b, s in self._truth), default=(0, None))
+        return best[1] if best[0] > 0 else None
+
+
+def render(model: MonitorModel, endpoint: str) -> Any:
+    """The whole screen as one rich renderable."""
+    from rich.console import Group
+    from rich.panel import Panel
+    from rich.table import Table
+    from rich.text import Text
+
+    s = model.status
+    head = Text()
+    head.append("tactiled monitor  ", style="bold")
+    head.append(f"{endpoint}   (q quits)\n")
+    if s is None:
+        head.append("waiting for the daemon's status ...", style="yellow")
+        return Panel(head)
+    colour = {schema.STATE_DISCONNECTED: "bold red", schema.STATE_SLIDING: "bold green", "no data": "bold red"}.get(s.state, "bold cyan")
+    head.append(f"sensor {s.sensor}  ")
+    head.append(f" {s.state.upper()} ", style=f"reverse {colour}")
+    head.append(f"  uptime {s.uptime_s:.1f} s  model {s.model or '-'}  v{s.version}\n")
+    head.append(f"rate {s.fs_measured:.1f} Hz (clock {s.fs_clock:.1f} Hz, nominal {s.fs_nominal:g} Hz)  samples {s.samples}  index {s.index}\n")
+    head.append(f"lost {s.samples_lost} samples  crc errors {s.crc_errors}  bytes discarded {s.bytes_discarded}  reconnects {s.reconnects}  "
+                f"missed msgs {model.missed}")
+    if model.slide is not None:
+        head.append(f"\nSLIDING: slide {model.slide.slide_id} since sample {model.slide.start}", style="bold green")
+    levels = Table(title="film levels (RMS per 10 ms, mV)", expand=True, title_justify="left")
+    levels.add_column("film")
+    levels.add_column("now, mV", justify="right")
+    levels.add_column("max, mV", justify="right")
+    levels.add_column("trace (newest right)", ratio=1)
+    if model.traces:
+        for k, trace in enumerate(model.traces):
+            values = np.array(trace)
+            top = max(float(values.max()), 1e-6)
+            levels.add_row(f"film{k + 1}", f"{values[-1] * 1e3:.2f}", f"{top * 1e3:.2f}", sparkline(values, top))
+    else:
         for k, v in enumerate(s.level):
-            bar = "#" * min(40, int(40 * min(v, 1.0) ** 0.5))
-            out.append(f"film{k + 1} {v * 1e3:8.1f} mV rms |{bar:<40s}|")
-        if self.slide is not None:
-            out.append(f"SLIDING: slide {self.slide.slide_id} since sample {self.slide.start}")
-        else:
-            out.append("")
-        out.append("last labels:")
-        for r in self.labels:
-            label = r.label if r.label is not None else f"- ({r.reason})"
-            conf = "" if r.confidence is None else f"{r.confidence:5.2f}"
-            out.append(f"  slide {r.slide_id:4d}  {label:24s} {conf:5s}  {(r.stop - r.start) / max(s.fs_nominal, 1):5.2f} s  "
-                       f"latency {r.latency_ms:6.2f} ms")
-        return [line[: width - 1] for line in out]
+            levels.add_row(f"film{k + 1}", f"{v * 1e3:.2f}", "", "(no samples topic: run the daemon with --samples)")
+    db, hz = model.spectrum()
+    spec = Text()
+    if db.size:
+        floor = float(db.max()) - 60
+        rows = 6
+        height = np.clip((db - floor) / 60 * rows * 8, 0, rows * 8)
+        for row in range(rows - 1, -1, -1):
+            spec.append("".join(" " if h <= row * 8 else SPARK[min(int(h - row * 8), 8) - 1] for h in height) + "\n", style="magenta")
+        spec.append(f"0 Hz{'':{max(len(db) - 12, 1)}}{hz * len(db):.0f} Hz   ({hz:.0f} Hz per column, top {db.max():.0f} dB, 60 dB span)")
+    else:
+        spec.append("(waiting for raw samples)")
+    labels = Table(title="last labels (newest first)", expand=True, title_justify="left")
+    for col, just in (("slide", "right"), ("kind", "left"), ("label", "left"), ("confidence", "right"), ("used, s", "right"),
+                      ("duration, s", "right"), ("latency, ms", "right"), ("truth", "left"),
+                      ("abstained: reason", "left")):
+        labels.add_column(col, justify=just)  # type: ignore[arg-type]
+    fs = s.fs_nominal or 1.0
+    for r in model.labels:
+        truth = model.truth_for(r.start, r.stop)
+        style = "bold red" if r.label is None else ("dim" if not r.final else ("green" if truth in (None, r.label) else "yellow"))
+        labels.add_row(str(r.slide_id), "final" if r.final else "provisional", r.label or "-",
+                       "" if r.confidence is None else f"{r.confidence:.2f}", f"{r.used_s:.2f}", f"{(r.stop - r.start) / fs:.2f}",
+                       f"{r.latency_ms:.1f}", truth or "", r.reason or "", style=style)
+    return Group(Panel(head), levels, Panel(spec, title="spectrum of the raw samples (films summed)", title_align="left"), labels)
 
 
-def run_monitor(endpoint: str) -> int:
-    model = MonitorModel()
-    with BlockingSubscriber(endpoint, timeout=0.2) as sub:
+def run_monitor(endpoint: str, truth_log: str | None = None) -> int:
+    from rich.live import Live
 
-        def loop(screen: Any) -> None:
-            curses.curs_set(0)
-            screen.nodelay(True)
+    model = MonitorModel(truth_log)
+    tty = sys.stdin.isatty()
+    old = None
+    if tty:
+        import termios
+        import tty as ttymod
+
+        old = termios.tcgetattr(sys.stdin)
+        ttymod.setcbreak(sys.stdin.fileno())
+    try:
+        with BlockingSubscriber(endpoint) as sub, Live(render(model, endpoint), auto_refresh=False, screen=True) as live:
             while True:
+                deadline = time.monotonic() + 0.1  # redraw period
                 try:
-                    while True:
-                        model.update(sub.receive(timeout=0.0 if model.last_message else 0.2))
+                    while time.monotonic() < deadline:
+                        model.update(sub.receive(timeout=max(deadline - time.monotonic(), 0.0)))
                 except NoData:
                     pass
                 if model.last_message and time.monotonic() - model.last_message > 3 and model.status is not None:
                     model.status.state = "no data"
-                height, width = screen.getmaxyx()
-                screen.erase()
-                for y, line in enumerate(model.lines(endpoint, width)[: height - 1]):
-                    screen.addstr(y, 0, line)
-                screen.refresh()
-                if screen.getch() in (ord("q"), ord("Q")):
-                    return
-                curses.napms(100)  # redraw period
+                live.update(render(model, endpoint), refresh=True)
+                if tty and select.select([sys.stdin], [], [], 0)[0] and os.read(sys.stdin.fileno(), 1) in (b"q", b"Q"):
+                    return 0
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        if old is not None:
+            import termios
 
-        curses.wrapper(loop)
-    return 0
+            termios.tcsetattr(sys.stdin, termios.TCSADRAIN, old)

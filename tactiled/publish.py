@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 import zmq
 from tactiled_client import schema
@@ -20,9 +20,11 @@ from tactiled.errors import ConfigError
 from tactiled.pipeline import PipelineEvent, SlideEnded, SlideResult, SlideStarted
 from tactiled.recording import Recording
 
+M = TypeVar("M", bound=schema.Message)
+
 
 class Publisher:
-    """Binds ``config.endpoint``; :meth:`send` stamps v, seq, sensor, type and time_unix."""
+    """Binds ``config.endpoint``; :meth:`publish` stamps seq and time_unix on schema messages and sends them."""
 
     def __init__(self, config: PublishConfig, context: zmq.Context[Any] | None = None) -> None:
         self.context = context or zmq.Context.instance()
@@ -67,47 +69,48 @@ class Publisher:
         self.socket.curve_publickey = public
         self.socket.curve_server = True
 
-    def send(self, kind: str, sensor: str, body: dict[str, Any]) -> dict[str, Any]:
-        key = schema.topic(kind, sensor)
-        seq = self._seq.get(key, 0)
-        self._seq[key] = seq + 1
-        full = {"v": schema.SCHEMA_VERSION, "seq": seq, "sensor": sensor, "type": kind, "time_unix": time.time(), **body}
+    def publish(self, msg: M) -> M:
+        """Send ``msg`` (built by a :mod:`tactiled_client.schema` builder) with the next ``seq`` of its topic and ``time_unix`` now."""
+        key = schema.topic(msg.type, msg.sensor)
+        msg.seq = self._seq.get(key, 0)
+        self._seq[key] = msg.seq + 1
+        msg.time_unix = time.time()
         try:
-            self.socket.send_multipart(schema.encode(kind, sensor, full), flags=zmq.NOBLOCK)
+            self.socket.send_multipart(schema.encode(msg.type, msg.sensor, msg.to_map()), flags=zmq.NOBLOCK)
             self.sent += 1
         except zmq.Again:
             self.dropped += 1
-        return full
+        return msg
 
     def close(self) -> None:
         self.socket.close(linger=0)
         if self.authenticator is not None:
             self.authenticator.stop()
 
-    def publish_event(self, sensor: str, ev: PipelineEvent, fs: float, model: str, detected_at: float | None = None) -> None:
-        """Publish one pipeline event; ``detected_at`` (perf_counter) is when its block was handed in."""
+    def publish_event(self, sensor: str, ev: PipelineEvent, fs: float, model: str, detected_at: float | None = None,
+                      to_host: schema.HostTime | None = None) -> None:
+        """Publish one pipeline event; ``detected_at`` (perf_counter) is when its block was handed in; ``to_host`` maps indices to host times."""
         if isinstance(ev, SlideStarted):
-            self.send(schema.SLIDE, sensor, {"event": "start", "slide_id": ev.slide_id, "start": ev.start, "t_start": ev.start / fs})
+            self.publish(schema.slide_start(sensor, ev.slide_id, ev.start, fs, to_host))
         elif isinstance(ev, SlideEnded):
-            self.send(schema.SLIDE, sensor, {"event": "end" if ev.reason != "too_short" else "cancelled", "slide_id": ev.slide_id,
-                                             "start": ev.start, "stop": ev.stop, "t_start": ev.start / fs, "t_stop": ev.stop / fs,
-                                             "reason": ev.reason})
+            self.publish(schema.slide_end(sensor, ev.slide_id, ev.start, ev.stop, ev.reason, fs, to_host))
         elif isinstance(ev, SlideResult):
             latency = 0.0 if detected_at is None else (time.perf_counter() - detected_at) * 1e3
-            self.send(schema.ROUGHNESS, sensor, roughness_body(ev, fs, model, latency))
+            self.publish(schema.roughness(sensor, ev, fs=fs, model=model, version=__version__, latency_ms=latency, to_host=to_host))
 
-    def replay_handler(self, sensor: str, rec: Recording, model: str) -> Callable[[PipelineEvent], None]:
-        """An ``on_event`` callback for replay (events carry sensor indices, as live)."""
+    def replay_handler(self, sensor: str, rec: Recording, model: str, speed: float | None = None) -> Callable[[PipelineEvent], None]:
+        """An ``on_event`` callback for replay (events carry sensor indices, as live).
+
+        Paced (``speed``), host times are when the replay reached each sample; as fast as possible they are nil.
+        """
+        t0 = time.monotonic()
+        to_host = None
+        if speed:
+            def to_host(index: int) -> tuple[float, float]:
+                mono = t0 + (index - rec.first_index) / rec.fs / speed
+                return mono, mono + (time.time() - time.monotonic())
 
         def handle(ev: PipelineEvent) -> None:
-            self.publish_event(sensor, ev, rec.fs, model, time.perf_counter())
+            self.publish_event(sensor, ev, rec.fs, model, time.perf_counter(), to_host)
 
         return handle
-
-
-def roughness_body(r: SlideResult, fs: float, model: str, latency_ms: float) -> dict[str, Any]:
-    """The fields of a roughness message (see docs/messages.md)."""
-    return {"label": r.label, "reason": r.reason, "confidence": r.confidence, "top": [[c, p] for c, p in r.top], "slide_id": r.slide_id,
-            "start": r.start, "stop": r.stop, "window": [r.window[0], r.window[1]], "t_start": r.start / fs, "t_stop": r.stop / fs,
-            "latency_ms": round(latency_ms, 3), "model": model, "quality": {**r.quality, "compute_ms": round(r.compute_ms, 3)},
-            "version": __version__, "final": r.final, "used_s": round(r.used_s, 4)}

@@ -7,10 +7,13 @@ indices, lost rows marked) and runs through :class:`~tactiled.pipeline.Pipeline`
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any
 
+from tactiled_client import schema
+
+from tactiled import __version__
 from tactiled.config import Config
 from tactiled.pipeline import Pipeline, PipelineEvent, SlideResult
 from tactiled.recording import Recording
@@ -28,14 +31,25 @@ def truth_of(rec: Recording, start: int, stop: int) -> str | None:
     return best if rec.slides() else rec.label
 
 
-def result_record(file: str, rec: Recording, r: SlideResult, provisional: list[SlideResult] | None = None) -> dict[str, Any]:
-    """The JSON object of one slide (positions in the file), its provisional labels in a list inside it."""
-    return {"file": file, "slide": r.slide_id, "start": r.start, "stop": r.stop, "window": list(r.window),
-            "label": r.label, "confidence": None if r.confidence is None else round(r.confidence, 4),
-            "top": [[c, p] for c, p in r.top], "reason": r.reason, "quality": r.quality, "truth": truth_of(rec, r.start, r.stop),
-            "duration_s": round((r.stop - r.start) / rec.fs, 4), "used_s": round(r.used_s, 4),
-            "provisional": [{"label": p.label, "confidence": None if p.confidence is None else round(p.confidence, 4), "used_s": round(p.used_s, 4),
-                             "top": [[c, q] for c, q in p.top]} for p in (provisional or [])]}
+def result_record(file: str, rec: Recording, r: SlideResult, provisional: Sequence[SlideResult] = (), sensor: str = "",
+                  model: str = "") -> schema.ReplaySlide:
+    """The ``replay --json`` line of one slide (positions in the file): its final roughness message, the truth, the provisional labels."""
+    msg = schema.roughness(sensor, r, fs=rec.fs, model=model, version=__version__)
+    return schema.ReplaySlide(**msg.to_map(), file=file, slide=r.slide_id, truth=truth_of(rec, r.start, r.stop),
+                              duration_s=round((r.stop - r.start) / rec.fs, 4),
+                              provisional=[schema.provisional_label(p).to_map() for p in provisional])
+
+
+def by_slide(results: Sequence[SlideResult]) -> list[tuple[SlideResult, list[SlideResult]]]:
+    """(final result, the provisional results before it) per slide, in order; provisional ones of a slide that never ended are dropped."""
+    out: list[tuple[SlideResult, list[SlideResult]]] = []
+    pending: dict[int, list[SlideResult]] = {}
+    for r in results:
+        if r.final:
+            out.append((r, pending.pop(r.slide_id, [])))
+        else:
+            pending.setdefault(r.slide_id, []).append(r)
+    return out
 
 
 def summary_line(results: list[SlideResult], rec: Recording) -> str:

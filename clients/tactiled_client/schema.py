@@ -1,24 +1,31 @@
-"""The wire schema of tactiled, shared by the daemon and every client (docs/messages.md).
+"""The wire schema of tactiled, shared by the daemon, its tools and every client (docs/messages.md).
 
 Each message is a two-part ZeroMQ message ``[topic, msgpack map]`` with topic
-``roughness/<sensor>``, ``slide/<sensor>`` or ``status/<sensor>``. Every map carries ``v``
-(schema version), ``seq`` (per topic and sensor, consecutive from 0), ``sensor`` and
-``type``. Fields are only ever added (``v`` goes up when they are); readers ignore
-fields they do not know. Times are on the sensor's sample clock (sample indices and
-seconds since the sensor's index 0) unless named ``*_unix`` (host wall clock, s).
+``roughness/<sensor>``, ``slide/<sensor>``, ``status/<sensor>`` or ``samples/<sensor>``.
+Every map carries ``v`` (schema version), ``seq`` (per topic and sensor, consecutive from
+0), ``sensor``, ``type`` and ``time_unix``. Fields are only ever added (``v`` goes up when
+they are); readers ignore fields they do not know. Times are on the sensor's sample clock
+(sample indices and seconds since the sensor's index 0) unless named ``*_mono`` (host
+monotonic clock, s) or ``*_unix`` (host wall clock, s).
+
+This module is both the reader's and the writer's side: the dataclasses are the messages,
+and the builder functions (:func:`roughness`, :func:`slide_start`, :func:`slide_end`,
+:func:`samples`) are the only place their bodies are made. The daemon, ``tactiled replay``
+and the bridges all build through them.
 """
 
 from __future__ import annotations
 
 import builtins
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
-from typing import Any, TypeVar
+from typing import Any, ClassVar, Protocol, TypeVar
 
 import msgpack
 
 SCHEMA_VERSION = 2
-ROUGHNESS, SLIDE, STATUS = "roughness", "slide", "status"
-TOPICS = (ROUGHNESS, SLIDE, STATUS)
+ROUGHNESS, SLIDE, STATUS, SAMPLES = "roughness", "slide", "status", "samples"
+TOPICS = (ROUGHNESS, SLIDE, STATUS, SAMPLES)
 
 # abstain reasons of a roughness message whose label is None
 REASON_WINDOW_TOO_SHORT = "window_too_short"
@@ -27,9 +34,18 @@ REASON_SATURATED = "saturated"
 REASON_LOW_CONFIDENCE = "low_confidence"
 REASON_OVERWRITTEN = "overwritten"
 REASON_NO_MODEL = "no_model"
+REASONS = (REASON_WINDOW_TOO_SHORT, REASON_SAMPLES_LOST, REASON_SATURATED, REASON_LOW_CONFIDENCE, REASON_OVERWRITTEN, REASON_NO_MODEL)
 
 # status states
-STATE_CONNECTED, STATE_DISCONNECTED, STATE_IDLE, STATE_SLIDING = "connected", "disconnected", "idle", "sliding"
+STATE_CONNECTED, STATE_DISCONNECTED, STATE_IDLE, STATE_SLIDING, STATE_STOPPING = "connected", "disconnected", "idle", "sliding", "stopping"
+STATES = (STATE_DISCONNECTED, STATE_CONNECTED, STATE_IDLE, STATE_SLIDING, STATE_STOPPING)
+
+# slide events, and why a slide ended
+SLIDE_START, SLIDE_END, SLIDE_CANCELLED = "start", "end", "cancelled"
+END_QUIET, END_MAX_DURATION, END_TOO_SHORT = "quiet", "max_duration", "too_short"
+
+HostTime = Callable[[int], tuple[float, float]]
+"""Sensor sample index → (host monotonic time, host unix time) of that sample, s."""
 
 
 def topic(kind: str, sensor: str) -> str:
@@ -63,21 +79,41 @@ class Message:
     seq: int
     sensor: str
     type: str
+    time_unix: float = 0.0  # host wall clock when the message was sent, s
     extra: dict[str, Any] = field(default_factory=dict, repr=False)
     missed: int = field(default=0, compare=False)  # set by the subscriber from seq, never on the wire
+
+    ABSENT_IF_NONE: ClassVar[frozenset[str]] = frozenset()  # fields left out of the map (not nil) when None
 
     @classmethod
     def from_map(cls: builtins.type[T], body: dict[str, Any]) -> T:
         """Build from a decoded map; unknown fields go to ``extra``, missing optional ones default."""
-        names = {f.name for f in fields(cls)} - {"extra", "missed"}
+        names = cls.wire_fields()
         known = {k: v for k, v in body.items() if k in names}
         extra = {k: v for k, v in body.items() if k not in names}
         return cls(**known, extra=extra)
 
+    @classmethod
+    def wire_fields(cls) -> set[str]:
+        """The names of every field this message has on the wire."""
+        return {f.name for f in fields(cls)} - {"extra", "missed"}
+
+    def to_map(self) -> dict[str, Any]:
+        """The msgpack map of this message (what the daemon sends)."""
+        out = {}
+        for f in fields(self):
+            if f.name in ("extra", "missed"):
+                continue
+            value = getattr(self, f.name)
+            if value is None and f.name in self.ABSENT_IF_NONE:
+                continue
+            out[f.name] = value
+        return out
+
 
 @dataclass
 class Roughness(Message):
-    """A label for a slide (None when abstaining, with ``reason``) and its provenance: one final per slide, provisional ones before it."""
+    """One per slide (and, when the pipeline makes them, provisional ones while it goes on): the label and its provenance."""
 
     label: str | None = None
     reason: str | None = None
@@ -85,21 +121,27 @@ class Roughness(Message):
     top: list[list[Any]] = field(default_factory=list)  # [[label, probability], ...] best first
     slide_id: int = 0
     start: int = 0  # sensor sample index of the slide's onset
-    stop: int = 0  # sensor sample index one past the slide's end
+    stop: int = 0  # sensor sample index one past the slide's end (provisional: one past the samples used)
     window: list[int] = field(default_factory=list)  # [start, stop) sensor sample indices analysed
     t_start: float = 0.0  # s on the sensor clock
     t_stop: float = 0.0
     latency_ms: float = 0.0  # from the slide's end being detected to publication
     model: str = ""  # model fingerprint
     quality: dict[str, Any] = field(default_factory=dict)
-    time_unix: float = 0.0
-    final: bool = True  # v2: False for a provisional label published while the slide goes on
-    used_s: float = 0.0  # v2: seconds of the slide (from its start) the label is based on
+    version: str = ""
+    final: bool = True  # False: a provisional label published while the slide goes on
+    used_s: float = 0.0  # seconds of the slide (from its onset) the label is based on
+    start_mono: float | None = None  # host time of sample `start`, monotonic clock, s (nil if unknown)
+    start_unix: float | None = None
+    stop_mono: float | None = None  # host time of sample `stop`
+    stop_unix: float | None = None
 
 
 @dataclass
 class Slide(Message):
-    """A slide started (``event`` = "start") or ended ("end")."""
+    """A slide started (``event`` = "start"), ended ("end") or was too short to be one ("cancelled")."""
+
+    ABSENT_IF_NONE: ClassVar[frozenset[str]] = frozenset({"stop", "t_stop", "reason", "stop_mono", "stop_unix"})
 
     event: str = ""
     slide_id: int = 0
@@ -107,12 +149,16 @@ class Slide(Message):
     stop: int | None = None
     t_start: float = 0.0
     t_stop: float | None = None
-    time_unix: float = 0.0
+    reason: str | None = None
+    start_mono: float | None = None
+    start_unix: float | None = None
+    stop_mono: float | None = None
+    stop_unix: float | None = None
 
 
 @dataclass
 class Status(Message):
-    """At least once a second: state, counters, rate, model and uptime."""
+    """At least once a second: state, counters, rate, model, uptime and the sample-clock mapping."""
 
     state: str = ""
     samples: int = 0
@@ -133,10 +179,82 @@ class Status(Message):
     version: str = ""
     dropped_messages: int = 0
     channel_errors: int = 0
-    time_unix: float = 0.0
+    clock_index: int | None = None  # a sample index ...
+    clock_mono: float | None = None  # ... its host monotonic time, s ...
+    clock_unix: float | None = None  # ... and its host unix time, s (nil until samples arrive)
+    fs_clock: float = 0.0  # sample indices per second of host monotonic time (the measured rate), Hz
+
+    def host_mono(self, index: int) -> float | None:
+        """Host monotonic time of sensor sample ``index`` by this status's clock mapping (None before samples)."""
+        if self.clock_index is None or self.clock_mono is None or not self.fs_clock:
+            return None
+        return self.clock_mono + (index - self.clock_index) / self.fs_clock
+
+    def host_unix(self, index: int) -> float | None:
+        """Host unix time of sensor sample ``index`` (None before samples)."""
+        if self.clock_index is None or self.clock_unix is None or not self.fs_clock:
+            return None
+        return self.clock_unix + (index - self.clock_index) / self.fs_clock
 
 
-MESSAGE_TYPES: dict[str, builtins.type[Message]] = {ROUGHNESS: Roughness, SLIDE: Slide, STATUS: Status}
+@dataclass
+class Samples(Message):
+    """One processing batch of raw samples (opt-in: ``publish.samples``), every index exactly once."""
+
+    index: int = 0  # sensor index of the first row
+    n: int = 0  # rows (samples per channel)
+    channels: int = 0
+    fs: float = 0.0  # nominal rate, Hz
+    volts_per_count: float = 0.0
+    data: bytes = b""  # n x channels int16 little-endian, interleaved by sample; lost samples are zero rows
+    lost: list[list[int]] = field(default_factory=list)  # [[position, count], ...] rows lost, relative to index
+    lost_before: int = 0  # samples lost just before index, not sent as rows (a gap longer than 1 s)
+    index_mono: float | None = None  # host monotonic time of sample `index`, s
+    index_unix: float | None = None  # host unix time of sample `index`, s
+    fs_clock: float = 0.0  # rows per second of host time (add k / fs_clock for row k), Hz
+
+    def counts(self) -> Any:
+        """The rows as a numpy (n, channels) int16 array (needs numpy)."""
+        import numpy as np
+
+        return np.frombuffer(self.data, dtype="<i2").reshape(self.n, self.channels)
+
+    def valid(self) -> Any:
+        """(n,) numpy bool array, False on lost rows."""
+        import numpy as np
+
+        mask = np.ones(self.n, dtype=bool)
+        for pos, count in self.lost:
+            mask[pos:pos + count] = False
+        return mask
+
+
+@dataclass
+class ProvisionalLabel:
+    """A label given while the slide was still going on (in ``tactiled replay --json`` lines)."""
+
+    label: str | None
+    confidence: float | None
+    used_s: float
+    top: list[list[Any]]
+    reason: str | None = None
+
+    def to_map(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@dataclass
+class ReplaySlide(Roughness):
+    """One line of ``tactiled replay --json``: the final roughness message of a slide (positions in the file) and more."""
+
+    file: str = ""
+    slide: int = 0  # = slide_id
+    truth: str | None = None  # the recording's ground-truth surface overlapping the slide
+    duration_s: float = 0.0
+    provisional: list[dict[str, Any]] = field(default_factory=list)  # ProvisionalLabel maps, in order
+
+
+MESSAGE_TYPES: dict[str, builtins.type[Message]] = {ROUGHNESS: Roughness, SLIDE: Slide, STATUS: Status, SAMPLES: Samples}
 
 
 def parse(topic_: str, body: dict[str, Any]) -> Message:
@@ -144,3 +262,82 @@ def parse(topic_: str, body: dict[str, Any]) -> Message:
     kind = topic_.split("/", 1)[0]
     cls = MESSAGE_TYPES.get(kind, Message)
     return cls.from_map(body)
+
+
+# ---- writer side -----------------------------------------------------------------------------
+
+class SlideOutcome(Protocol):
+    """What :func:`roughness` needs of a slide's result (``tactiled.pipeline.SlideResult`` is one)."""
+
+    slide_id: int
+    start: int
+    stop: int
+    window: tuple[int, int]
+    label: str | None
+    reason: str | None
+    confidence: float | None
+    top: list[tuple[str, float]]
+    quality: dict[str, Any]
+    compute_ms: float
+    final: bool
+    used_s: float
+
+
+def _head(kind: str, sensor: str) -> dict[str, Any]:
+    return {"v": SCHEMA_VERSION, "seq": 0, "sensor": sensor, "type": kind}
+
+
+def _host(to_host: HostTime | None, index: int | None) -> tuple[float | None, float | None]:
+    if to_host is None or index is None:
+        return None, None
+    mono, unix = to_host(index)
+    return round(mono, 6), round(unix, 6)
+
+
+def roughness(sensor: str, r: SlideOutcome, *, fs: float, model: str, version: str, latency_ms: float = 0.0,
+              to_host: HostTime | None = None) -> Roughness:
+    """The roughness message of slide result ``r`` (sensor indices; ``seq`` and ``time_unix`` are set when sent)."""
+    start_mono, start_unix = _host(to_host, r.start)
+    stop_mono, stop_unix = _host(to_host, r.stop)
+    return Roughness(**_head(ROUGHNESS, sensor), label=r.label, reason=r.reason, confidence=r.confidence,
+                     top=[[c, p] for c, p in r.top], slide_id=r.slide_id, start=r.start, stop=r.stop, window=[r.window[0], r.window[1]],
+                     t_start=r.start / fs, t_stop=r.stop / fs, latency_ms=round(latency_ms, 3), model=model,
+                     quality={**r.quality, "compute_ms": round(r.compute_ms, 3)}, version=version, final=r.final,
+                     used_s=round(r.used_s, 6), start_mono=start_mono, start_unix=start_unix, stop_mono=stop_mono, stop_unix=stop_unix)
+
+
+def provisional_label(r: SlideOutcome) -> ProvisionalLabel:
+    """The short form of a provisional result kept inside a replay line."""
+    return ProvisionalLabel(r.label, r.confidence, round(r.used_s, 6), [[c, p] for c, p in r.top], r.reason)
+
+
+def slide_start(sensor: str, slide_id: int, start: int, fs: float, to_host: HostTime | None = None) -> Slide:
+    """A slide began at sample ``start``."""
+    start_mono, start_unix = _host(to_host, start)
+    return Slide(**_head(SLIDE, sensor), event=SLIDE_START, slide_id=slide_id, start=start, t_start=start / fs,
+                 start_mono=start_mono, start_unix=start_unix)
+
+
+def slide_end(sensor: str, slide_id: int, start: int, stop: int, reason: str, fs: float, to_host: HostTime | None = None) -> Slide:
+    """A slide ended at ``stop`` (``reason`` too_short: cancelled, it was no slide)."""
+    start_mono, start_unix = _host(to_host, start)
+    stop_mono, stop_unix = _host(to_host, stop)
+    return Slide(**_head(SLIDE, sensor), event=SLIDE_CANCELLED if reason == END_TOO_SHORT else SLIDE_END, slide_id=slide_id,
+                 start=start, stop=stop, t_start=start / fs, t_stop=stop / fs, reason=reason,
+                 start_mono=start_mono, start_unix=start_unix, stop_mono=stop_mono, stop_unix=stop_unix)
+
+
+def status(sensor: str, **values: Any) -> Status:
+    """A status message with ``values`` (field names of :class:`Status`)."""
+    return Status(**_head(STATUS, sensor), **values)
+
+
+def samples(sensor: str, index: int, data: bytes, n: int, channels: int, *, fs: float, volts_per_count: float,
+            lost: Sequence[Sequence[int]] = (), lost_before: int = 0, to_host: HostTime | None = None, fs_clock: float = 0.0) -> Samples:
+    """A raw batch: ``data`` = n x channels int16 LE interleaved rows whose first has sensor index ``index``."""
+    if len(data) != 2 * n * channels:
+        raise ValueError(f"samples: {len(data)} bytes for {n} rows x {channels} channels")
+    index_mono, index_unix = _host(to_host, index)
+    return Samples(**_head(SAMPLES, sensor), index=index, n=n, channels=channels, fs=fs, volts_per_count=volts_per_count, data=data,
+                   lost=[[int(p), int(c)] for p, c in lost], lost_before=lost_before, index_mono=index_mono, index_unix=index_unix,
+                   fs_clock=fs_clock or fs)

@@ -1,0 +1,71 @@
+"""MCAP export: every sample, the ground-truth slides and the labels read back with the mcap reader."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import threading
+from pathlib import Path
+
+import numpy as np
+from mcap.reader import make_reader
+
+from tactiled.mcap_export import read_mcap_samples
+from tactiled.recording import Recording, save_recording
+from tactiled.sensor_model import SensorModel, SimParams, default_surfaces, pick_surfaces, simulate_file
+from tactiled.virtualboard import VirtualBoard
+from tests.conftest import run_cli, tactiled_cmd
+
+
+def test_export_round_trips_every_sample_slide_and_label(tmp_path: Path) -> None:
+    params = SimParams()
+    sim = simulate_file(params, pick_surfaces("Ra2.29")[0], 3, 7)
+    lost = np.array([[1000, 37], [50_000, 20]])
+    samples = sim.samples.copy()
+    for p, c in lost:
+        samples[p:p + c] = 0
+    rec = Recording(samples, params.fs, params.volts_per_count, slide_start=np.array([t.start for t in sim.truth]),
+                    slide_stop=np.array([t.stop for t in sim.truth]), surface=np.array([t.surface.name for t in sim.truth]),
+                    first_index=123_456, lost=lost)
+    save_recording(tmp_path / "r.npz", rec)
+    res = run_cli("export", str(tmp_path / "r.npz"), "-o", str(tmp_path / "r.mcap"), "--batch", "64")
+    assert res.returncode == 0, res.stderr
+    volts, valid, first, fs = read_mcap_samples(tmp_path / "r.mcap")
+    assert (first, fs) == (123_456, params.fs)
+    assert np.array_equal(valid, rec.valid_mask())
+    assert np.array_equal(np.rint(volts / params.volts_per_count).astype(np.int16), rec.samples)  # every sample, exactly
+    by_topic: dict[str, list[tuple[int, dict]]] = {}
+    with open(tmp_path / "r.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None and {s.encoding for s in summary.schemas.values()} == {"jsonschema"}
+        assert {c.message_encoding for c in summary.channels.values()} == {"json"}
+        for _schema, channel, message in reader.iter_messages():
+            by_topic.setdefault(channel.topic, []).append((message.log_time, json.loads(message.data)))
+    assert set(by_topic) == {"/tactiled/fingertip0/samples", "/tactiled/fingertip0/slides", "/tactiled/fingertip0/roughness"}
+    slides = by_topic["/tactiled/fingertip0/slides"]
+    assert [(b["start"], b["stop"], b["surface"]) for _, b in slides] == rec.slides()
+    assert slides[0][0] == round((123_456 + rec.slides()[0][0]) / params.fs * 1e9)
+    labels = [b for _, b in by_topic["/tactiled/fingertip0/roughness"]]
+    assert len(labels) == 3 and all(b["final"] for b in labels) and sum(b["label"] == "Ra2.29" for b in labels) >= 2
+    assert f"{res.stdout}".strip().endswith("3 slides, 3 roughness messages")
+
+
+def test_record_format_mcap(tmp_path: Path) -> None:
+    link = str(tmp_path / "tty")
+    board = VirtualBoard(SensorModel(SimParams(), seed=2), default_surfaces()[:2], link=link, speed=2.0, seed=2)
+    board.open()
+    stop = threading.Event()
+    proc = subprocess.Popen(tactiled_cmd("record", "--port", link, "--seconds", "1", "--format", "mcap", "-o", str(tmp_path / "r.mcap")),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        _, err = proc.communicate(timeout=60)
+    finally:
+        stop.set()
+        thread.join(10)
+    assert proc.returncode == 0, err
+    volts, valid, _, _ = read_mcap_samples(tmp_path / "r.mcap")
+    assert volts.shape == (20_000, 2) and valid.all() and np.abs(volts).max() > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.mcap", "tty"]  # the intermediate .npz is gone

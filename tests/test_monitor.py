@@ -1,0 +1,72 @@
+"""The monitor, headless: a real daemon on a virtual board's pty, its messages rendered by rich to a string."""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import threading
+from pathlib import Path
+
+from rich.console import Console
+from tactiled_client import BlockingSubscriber, Roughness
+
+from tactiled.monitor import SPARK, MonitorModel, render
+from tactiled.sensor_model import SensorModel, SimParams, pick_surfaces
+from tactiled.virtualboard import VirtualBoard
+from tests.conftest import tactiled_cmd, wait_for
+
+
+def test_monitor_shows_state_traces_spectrum_and_labels_with_truth(tmp_path: Path) -> None:
+    link, log_path, endpoint = str(tmp_path / "tty"), tmp_path / "board.jsonl", f"ipc://{tmp_path}/pub"
+    stop = threading.Event()
+    model = MonitorModel(str(log_path))
+    with open(log_path, "w") as log:
+        board = VirtualBoard(SensorModel(SimParams(), seed=4), pick_surfaces(4), link=link, speed=3.0, seed=4, drop=0.01, log=log)
+        board.open()
+        thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
+        thread.start()
+        proc = subprocess.Popen(tactiled_cmd("run", "--port", link, "--publish", endpoint, "--samples"), stderr=subprocess.PIPE, text=True)
+        try:
+            with BlockingSubscriber(endpoint, timeout=30) as sub:
+                def enough() -> bool:
+                    model.update(sub.receive())
+                    finals = [r for r in model.labels if r.final and r.label]
+                    return len(finals) >= 2 and model.status is not None and model.raw_n >= 4096
+                wait_for(enough, timeout=120, what="two labels, a status and raw samples")
+        finally:
+            proc.terminate()
+            proc.wait(10)
+            stop.set()
+            thread.join(10)
+    console = Console(file=io.StringIO(), width=140, record=True, color_system=None)
+    console.print(render(model, endpoint))
+    screen = console.export_text()
+    assert "sensor fingertip0" in screen and any(state in screen for state in (" IDLE ", " SLIDING "))
+    for header in ("film levels (RMS per 10 ms, mV)", "now, mV", "trace (newest right)", "spectrum of the raw samples", "Hz per column",
+                   "slide", "kind", "label", "confidence", "used, s", "duration, s", "latency, ms", "truth", "abstained: reason"):
+        assert header in screen, header
+    traces = [line for line in screen.splitlines() if line.strip().startswith(("│ film1", "│ film2", "film1", "film2"))]
+    assert len(traces) == 2 and all(sum(ch in SPARK for ch in line) >= 50 for line in traces)  # moving traces of both films
+    assert sum(ch in SPARK for ch in screen.split("spectrum of the raw samples")[1].split("Hz per column")[0]) >= 40  # spectrum bars
+    finals = [r for r in model.labels if r.final and r.label]
+    truths = [model.truth_for(r.start, r.stop) for r in finals]
+    assert all(truths) and all(t in screen for t in truths)  # the simulator's true surface of each labelled slide
+    assert all(r.label in screen for r in finals) and isinstance(finals[0], Roughness)
+
+
+def test_monitor_highlights_abstentions_and_provisional_labels() -> None:
+    from tactiled_client import schema
+
+    from tactiled.pipeline import SlideResult
+
+    model = MonitorModel()
+    model.update(schema.status("s", state=schema.STATE_DISCONNECTED, fs_nominal=20_000.0))
+    for final, label, reason in ((False, "Ra1.00", None), (True, None, "samples_lost")):
+        r = SlideResult(1, 0, 20_000, (6000, 16_000), label, reason, 0.4, [], {}, final=final, used_s=0.5)
+        model.update(schema.roughness("s", r, fs=20_000.0, model="m", version="t"))
+    console = Console(file=io.StringIO(), width=140, record=True, force_terminal=True, color_system="standard")
+    console.print(render(model, "ipc://x"))
+    text = console.export_text(clear=False)
+    assert " DISCONNECTED " in text and "provisional" in text and "samples_lost" in text and "(waiting for raw samples)" in text
+    styled = console.export_text(styles=True)
+    assert "\x1b[1;31m" in styled  # bold red: the abstention and the disconnected state

@@ -1,0 +1,113 @@
+"""The raw samples topic: a faulty stream on a real pty, reconstructed by a subscriber, against what the board sent."""
+
+from __future__ import annotations
+
+import itertools
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from tactiled_client import BlockingSubscriber, Samples, Status
+
+from tactiled.clockmap import ClockMap
+from tactiled.rawbatch import raw_batches
+from tactiled.sensor_model import SensorModel, SimParams, pick_surfaces
+from tactiled.virtualboard import VirtualBoard, read_log
+from tests.conftest import tactiled_cmd, wait_for
+
+
+def test_every_intact_sample_once_at_its_index_and_every_lost_one_listed(tmp_path: Path) -> None:
+    link, log_path, endpoint = str(tmp_path / "tty"), tmp_path / "board.jsonl", f"ipc://{tmp_path}/pub"
+    stop = threading.Event()
+    sent: list[np.ndarray] = []
+    first_index = 2**32 - 40_000  # the board's 32-bit counter wraps during the test
+    with open(log_path, "w") as log:
+        model = SensorModel(SimParams(), seed=3)
+        read = model.read
+
+        def recording_read(n: int) -> np.ndarray:
+            block = read(n)
+            sent.append(block.copy())
+            return block
+
+        model.read = recording_read  # type: ignore[method-assign]
+        board = VirtualBoard(model, pick_surfaces(3), link=link, speed=2.0, corrupt=0.01, drop=0.01, garbage=0.01, seed=3, log=log,
+                             first_index=first_index)
+        proc = subprocess.Popen(tactiled_cmd("run", "--port", link, "--publish", endpoint, "--no-model", "--samples"),
+                                stderr=subprocess.PIPE, text=True)
+        thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
+        got: list[tuple[Samples, float]] = []
+        statuses: list[Status] = []
+        try:
+            with BlockingSubscriber(endpoint, topics=["samples", "status"], timeout=30) as sub:
+                assert isinstance(sub.receive(), Status)  # the daemon is up (waiting for the port): the board starts now
+                board.open()
+                thread.start()
+                def enough() -> bool:
+                    msg = sub.receive()
+                    if isinstance(msg, Samples):
+                        got.append((msg, time.monotonic()))
+                    elif isinstance(msg, Status):
+                        statuses.append(msg)
+                    return sum(m.n for m, _ in got) >= 6 * 20_000 and bool(statuses) and statuses[-1].clock_index is not None
+                wait_for(enough, timeout=120, what="six seconds of raw samples")
+        finally:
+            proc.terminate()
+            proc.wait(10)
+            stop.set()
+            thread.join(10)
+    assert proc.returncode == 0
+    msgs = [m for m, _ in got]
+    assert all(m.missed == 0 and m.extra == {} for m in msgs)
+    assert [m.seq for m in msgs] == list(range(msgs[0].seq, msgs[0].seq + len(msgs)))
+    # contiguous: every index from the first message on exactly once
+    for a, b in itertools.pairwise(msgs):
+        assert b.index == a.index + a.n + b.lost_before
+    lo, hi = msgs[0].index, msgs[-1].index + msgs[-1].n
+    truth = np.concatenate(sent)[lo - first_index:hi - first_index]
+    rows = np.concatenate([m.counts() for m in msgs])
+    valid = np.concatenate([m.valid() for m in msgs])
+    assert lo - first_index < 20_000 and hi > 2**32 + 20_000  # from the board's first second, across the wrap
+    assert rows.shape == truth.shape and not any(m.lost_before for m in msgs)
+    assert np.array_equal(rows[valid], truth[valid])  # every intact sample, at its index
+    assert not rows[~valid].any()  # lost rows are zero
+    # the samples lost are exactly the frames the board dropped, corrupted or could not write
+    expected = np.ones(hi - lo, dtype=bool)
+    events = [e for e in read_log(log_path) if e["event"] in ("drop", "corrupt", "overrun") and lo <= e["index"] < hi]
+    for e in events:
+        expected[e["index"] - lo:e["index"] - lo + 20] = False
+    assert sum(e["event"] == "drop" for e in events) > 0 and sum(e["event"] == "corrupt" for e in events) > 0
+    assert np.array_equal(valid, expected)
+    # time mapping: host times advance with the board's pace (speed 2: 40 000 indices per host second) and never lie after arrival
+    later = [(m, t) for m, t in got if m.index_mono is not None and m.index - lo > 5 * 20_000]  # 2.5 s of host time
+    assert later and all(abs(m.fs_clock - 40_000) < 4_000 for m, _ in later)
+    assert all(m.index_mono + (m.n - 1) / m.fs_clock <= t + 0.005 for m, t in later)  # type: ignore[operator]
+    s = statuses[-1]
+    m = later[-1][0]
+    assert abs(s.host_mono(m.index) - m.index_mono) < 0.01  # type: ignore[operator]
+    assert abs((s.host_unix(m.index) - s.host_mono(m.index)) - (m.index_unix - m.index_mono)) < 0.01  # type: ignore[operator]
+
+
+def test_raw_batches_fill_short_gaps_and_split_long_ones() -> None:
+    def block(i: int, n: int) -> tuple[int, np.ndarray]:
+        return i, np.full((n, 2), i % 1000, dtype=np.int16)
+
+    out = raw_batches([block(100, 10), block(115, 5), block(200, 4)], expected=95, max_fill=50)
+    assert [(b.index, b.samples.shape[0], b.lost, b.lost_before) for b in out] == [(95, 25, [[0, 5], [15, 5]], 0), (200, 4, [], 80)]
+    assert not out[0].samples[:5].any() and (out[0].samples[5:15] == 100).all()
+    assert raw_batches([block(7, 3)], expected=None, max_fill=1)[0].index == 7
+
+
+def test_clock_map_follows_the_earliest_arrivals() -> None:
+    rng = np.random.default_rng(0)
+    clock = ClockMap(20_000.0)
+    true_fs, t0 = 20_010.0, 100.0  # the board's crystal is 0.05 % fast
+    for k in range(1, 600):
+        end = k * 400
+        clock.observe(end, t0 + end / true_fs + 0.002 + rng.uniform(0, 0.01))  # 2 ms transport + up to 10 ms read jitter
+    assert abs(clock.fs - true_fs) < 2.0
+    assert 0.0 <= clock.mono(200_000) - (t0 + 200_000 / true_fs) <= 0.0025
+    clock.observe(600 * 400, t0 + 50.0)  # a board restart: the index no longer fits the host clock
+    assert clock.resets == 1 and clock.mono(600 * 400) == t0 + 50.0

@@ -1,0 +1,76 @@
+"""The wire schema: every field a writer can send is in the schema module and documented in docs/messages.md."""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import fields
+from pathlib import Path
+
+from tactiled_client import schema
+
+from tactiled.config import Config
+from tactiled.model import load_model
+from tactiled.pipeline import SlideResult
+from tactiled.recording import Recording, save_recording
+from tactiled.replay import by_slide, replay_recording, result_record
+from tactiled.sensor_model import SimParams, pick_surfaces, simulate_file
+from tests.conftest import REPO, run_cli
+
+
+def documented_fields() -> set[str]:
+    """Backquoted names in the first column of every table of docs/messages.md."""
+    names: set[str] = set()
+    for line in (REPO / "docs" / "messages.md").read_text().splitlines():
+        if line.startswith("| `"):
+            names.update(re.findall(r"`([a-z_]+)`", line.split("|")[1]))
+    return names
+
+
+def test_every_wire_field_is_documented() -> None:
+    documented = documented_fields()
+    for cls in (*schema.MESSAGE_TYPES.values(), schema.ReplaySlide, schema.ProvisionalLabel):
+        names = {f.name for f in fields(cls)} - {"extra", "missed"}
+        assert names <= documented, f"{cls.__name__}: undocumented {sorted(names - documented)}"
+
+
+def test_builders_write_only_schema_fields() -> None:
+    r = SlideResult(3, 1000, 9000, (7000, 9000), None, "low_confidence", 0.3, [("a", 0.3)], {"samples": 2000}, final=False, used_s=0.4)
+
+    def host(i: int) -> tuple[float, float]:
+        return i / 20_000, 1e9 + i / 20_000
+
+    built = [schema.roughness("s", r, fs=20_000.0, model="m", version="0", to_host=host), schema.slide_start("s", 3, 1000, 20_000.0),
+             schema.slide_end("s", 3, 1000, 9000, schema.END_QUIET, 20_000.0, host), schema.status("s", state=schema.STATE_IDLE),
+             schema.samples("s", 5, b"\0" * 8, 2, 2, fs=20_000.0, volts_per_count=1.0, lost=[[1, 1]], to_host=host)]
+    for msg in built:
+        body = msg.to_map()
+        assert set(body) <= msg.wire_fields() and msg.type in schema.TOPICS
+        back = schema.parse(schema.topic(msg.type, "s"), body)
+        assert back == msg and back.extra == {}
+    start = built[1].to_map()
+    assert "stop" not in start and "reason" not in start  # absent on start, as documented
+    rough = built[0]
+    assert isinstance(rough, schema.Roughness) and rough.final is False and rough.used_s == 0.4 and rough.stop_mono == 9000 / 20_000
+
+
+def test_replay_json_is_one_line_per_slide_with_its_provisional_labels(tmp_path: Path) -> None:
+    params = SimParams()
+    sim = simulate_file(params, pick_surfaces("Ra2.29")[0], 2, 4)
+    rec = Recording(sim.samples, params.fs, params.volts_per_count)
+    save_recording(tmp_path / "r.npz", rec)
+    res = run_cli("replay", "--json", str(tmp_path / "r.npz"))
+    assert res.returncode == 0, res.stderr
+    lines = [json.loads(line) for line in res.stdout.splitlines()]
+    assert len(lines) == 2
+    for obj in lines:
+        assert set(obj) <= schema.ReplaySlide.wire_fields() and obj["final"] is True and obj["file"].endswith("r.npz")
+    # provisional results (the pipeline's, while a slide goes on) fold into their slide's line
+    finals = replay_recording(rec, Config(), load_model())
+    early = [SlideResult(**{**f.__dict__, "final": False, "used_s": 0.25, "label": "x"}) for f in finals]
+    grouped = by_slide([early[0], early[1], finals[0], finals[1]])
+    assert [(r.slide_id, [p.used_s for p in ps]) for r, ps in grouped] == [(0, [0.25]), (1, [0.25])]
+    line = result_record("r.npz", rec, grouped[0][0], grouped[0][1]).to_map()
+    assert line["provisional"] == [{"label": "x", "confidence": early[0].confidence, "used_s": 0.25, "top": [list(t) for t in early[0].top],
+                                    "reason": early[0].reason}]
+    assert json.loads(json.dumps(line))["provisional"][0]["label"] == "x"
