@@ -523,8 +523,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("files", nargs="+", help="labelled recordings (.npz): per-slide ground truth or a file-level label")
     p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     p.add_argument("--config", help="config file (detector, spikes, feature settings)")
-    p.add_argument("--method", choices=("auto", "paper"), default="auto",
-                   help="auto: pick features, classifier and windows by nested grouped CV; paper: the papers' DWT + SFS + ELM (default: auto)")
+    p.add_argument("--method", choices=("auto", "quick", "paper"), default="auto",
+                   help="auto: pick features, classifier and windows by nested grouped CV; quick: a small search for a first model in "
+                        "seconds (band energies and texture, linear and kNN); paper: the papers' DWT + SFS + ELM (default: auto)")
     p.add_argument("--folds", type=int, default=5, help="outer cross-validation folds, grouped by file (default: 5)")
     p.add_argument("--min-slides", type=int, default=2, help="fewest slides a surface needs (default: 2)")
     p.add_argument("--drop-rare", action="store_true", help="train without surfaces that have too few slides instead of stopping")

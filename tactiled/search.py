@@ -107,6 +107,11 @@ def default_candidates() -> list[Candidate]:
             + [PAPER])
 
 
+def quick_candidates() -> list[Candidate]:
+    """``tactiled train --method quick``: a first model in seconds (log band energies and texture, linear and kNN, 0.5 s windows)."""
+    return [Candidate(("psd", "tex"), "linear", 0.5), Candidate(("psd", "tex"), "knn", 0.5, kbest=8)]
+
+
 @dataclass
 class SearchResult:
     """The leaderboard (one row per candidate, best first), the winner, its nested CV accuracy and its model."""

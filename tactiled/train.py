@@ -15,10 +15,10 @@ from tactiled.config import Config
 from tactiled.dataset import Slide, SlideCounts, find_slides, load_recordings
 from tactiled.errors import TactiledError
 from tactiled.recording import Recording
-from tactiled.search import Candidate, SearchResult, paper, search
+from tactiled.search import Candidate, SearchResult, paper, quick_candidates, search
 
 Progress = Callable[[str], None]
-METHODS = ("auto", "paper")
+METHODS = ("auto", "quick", "paper")
 
 
 def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None:
@@ -80,6 +80,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     if method == "paper":
         result = paper(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found)
     else:
+        if method == "quick" and candidates is None:
+            candidates = quick_candidates()
         result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
     result.model.summary["dropped"] = rare
