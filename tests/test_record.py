@@ -366,3 +366,23 @@ def test_full_tmpfs_stops_record_cleanly_and_the_journal_recovers(tmp_path: Path
     n = rec.samples.shape[0]
     assert n >= 20000 and keep.stat().st_size <= 160 * 1024
     assert np.array_equal(rec.samples[rec.valid_mask()], board_truth(6, SURFACES, rec.first_index, n)[rec.valid_mask()])
+
+
+def test_run_record_streams_to_the_journal_and_sighup_saves(tmp_path: Path) -> None:
+    out = tmp_path / "d.npz"
+    with running_board(tmp_path, seed=8) as board:
+        proc = subprocess.Popen(tactiled_cmd("run", "--no-model", "--port", board.link or "", "--publish", f"ipc://{tmp_path}/pub",
+                                             "--record", str(out)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            wait_journal(board, tmp_path / "d.npz.journal", 40000)  # on disk while the daemon runs
+            proc.send_signal(signal.SIGHUP)
+            _stdout, stderr = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, stderr
+    rec = load_recording(out)
+    n = rec.samples.shape[0]
+    assert n >= 10000 and rec.meta["source"] == "tactiled run --record"
+    assert np.array_equal(rec.samples[rec.valid_mask()], board_truth(8, SURFACES, rec.first_index, n)[rec.valid_mask()])
+    assert not (tmp_path / "d.npz.journal").exists()
