@@ -69,8 +69,10 @@ def test_record_keeps_every_intact_sample_through_faults_and_unplug(tmp_path: Pa
         board.open()
         stop = threading.Event()
         out = tmp_path / "rec.npz"
-        proc = subprocess.Popen(tactiled_cmd("record", "--port", link, "--seconds", "2.5", "-o", str(out)),
+        proc = subprocess.Popen(tactiled_cmd("-v", "record", "--port", link, "--seconds", "2.5", "-o", str(out)),
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert proc.stderr is not None
+        assert "recording" in proc.stderr.readline()  # the port checked and open: the unplug cannot come before
         thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
         thread.start()
         try:
