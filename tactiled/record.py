@@ -1,10 +1,9 @@
 """``tactiled record``: serial frames → a recording file, with every lost sample listed, streamed to disk.
 
 :class:`RecordingSink` (used by ``record`` and ``run --record``) writes the samples to a journal beside the output
-(tactiled/journal.py) as they come, committed (written and fsynced) at least every :data:`COMMIT_S` of wall time
-or of sensor time, whichever comes first, from a writer thread so the caller never waits on the disk. Memory stays
-bounded. On a clean stop the journal becomes the ``.npz`` and is removed; after a kill or a power cut
-``tactiled recover`` turns it into the ``.npz``.
+(tactiled/journal.py) as they come, committed (written and fsynced) every :data:`COMMIT_S` of wall time by a
+writer thread, so the caller never waits on the disk. Memory stays bounded. On a clean stop the journal becomes
+the ``.npz`` and is removed; after a kill or a power cut ``tactiled recover`` turns it into the ``.npz``.
 """
 
 from __future__ import annotations
@@ -31,10 +30,9 @@ from tactiled.serialsource import DISCONNECTED, SerialSource, check_port
 
 log = logging.getLogger(__name__)
 
-COMMIT_S = 0.5  # the most that a kill or a power cut can lose, in wall time or sensor time (s)
+COMMIT_S = 0.5  # the commit period, s of wall time: about what a kill or a power cut can lose
 MAX_CHUNK_BYTES = 4 << 20  # a chunk is committed at this size at the latest
-QUEUE_FRAMES = 8192  # frames waiting for the writer (8 s of 20-sample frames at 20 kHz); beyond, frames are lost, counted
-_TICK = object()
+QUEUE_BYTES = 64 << 20  # samples waiting for the writer (a disk stalled 13 min at 20 kHz x 2 channels); beyond, frames are lost, counted
 
 
 def check_output(out: str | Path, force: bool) -> None:
@@ -81,11 +79,12 @@ class SinkResult:
 class RecordingSink:
     """Decoded frames → the journal of ``out``, then ``out`` itself at :meth:`finish`.
 
-    :meth:`add` only queues the frame (cheap, any thread, never blocks); a writer thread places it at its
-    position (``frame.index`` - the first frame's index: gaps become lost ranges, never stored), and commits a
-    chunk every :data:`COMMIT_S`. With ``limit``, rows from position ``limit`` on are ignored and :attr:`done`
-    turns True. A write error (a full disk) stops the writing: :attr:`error` says so in one line, the journal
-    keeps every chunk committed before, ``on_error`` is called with the line.
+    :meth:`add` only queues the frame (cheap: a lock and an append; never blocks); every :data:`COMMIT_S` a
+    writer thread takes what is queued, places each frame at its position (``frame.index`` - the first frame's
+    index: gaps become lost ranges, never stored) and commits it as chunks of at most ``commit_s`` of sensor
+    time. With ``limit``, rows from position ``limit`` on are ignored and :attr:`done` turns True. A write error
+    (a full disk) stops the writing: :attr:`error` says so in one line, the journal keeps every chunk committed
+    before, ``on_error`` is called with the line.
     """
 
     def __init__(self, out: str | Path, *, fs: float, channels: int, volts_per_count: float, label: str | None = None,
@@ -115,7 +114,10 @@ class RecordingSink:
             self._writer = JournalWriter(self.journal, header)
         except OSError as exc:
             raise OutputError(f"{self.journal}: cannot create: {exc.strerror or exc}") from None
-        self._queue: queue.Queue[tuple[int, npt.NDArray[np.int16]] | None] = queue.Queue(QUEUE_FRAMES)
+        self._batch: list[tuple[int, npt.NDArray[np.int16]]] = []  # (position, samples) the writer has not taken yet
+        self._queued = 0  # their bytes (bounded by QUEUE_BYTES)
+        self._lock = threading.Lock()
+        self._finishing = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"journal:{self.journal.name}", daemon=True)
         self._thread.start()
 
@@ -146,70 +148,67 @@ class RecordingSink:
             samples = samples[: max(0, self.limit - position)]
         if not samples.shape[0]:
             return
-        try:
-            self._queue.put_nowait((position, samples))
-        except queue.Full:
-            self.queue_dropped += samples.shape[0]
-            return
+        with self._lock:
+            if self._queued + samples.nbytes > QUEUE_BYTES:
+                self.queue_dropped += samples.shape[0]
+                return
+            self._queued += samples.nbytes
+            self._batch.append((position, samples))
         self._end = position + samples.shape[0]
 
     def _run(self) -> None:
+        start = end = 0  # the next chunk's first row; the row after the newest placed
         pending: list[npt.NDArray[np.int16]] = []
         lost: list[tuple[int, int]] = []
-        start = end = nbytes = 0
-        opened = 0.0
-        while True:
-            timeout = None if not pending and not lost else max(0.0, opened + self._commit_s - time.monotonic())
-            try:
-                item: object = self._queue.get(timeout=timeout)
-            except queue.Empty:
-                item = _TICK
-            if self.error is not None:
-                if item is None:
-                    return
-                continue
-            if isinstance(item, tuple):
-                position, samples = item
+        nbytes = 0
+        final = False
+        while not final and self.error is None:
+            final = self._finishing.wait(self._commit_s)  # the commit period (wall time), not synchronisation
+            with self._lock:
+                batch, self._batch, self._queued = self._batch, [], 0
+            for position, samples in batch:
                 if position < end:  # never happens with the decoder's indices; keep positions increasing anyway
                     samples, position = samples[end - position:], end
-                if samples.shape[0]:
-                    if not pending and not lost:
-                        opened = time.monotonic()
-                    if position > end:
-                        lost.append((end, position - end))
-                    pending.append(samples)
-                    nbytes += samples.nbytes
-                    end = position + samples.shape[0]
-            due = item is None or time.monotonic() >= opened + self._commit_s or end - start >= self._commit_rows or nbytes >= MAX_CHUNK_BYTES
-            if end > start and due:
-                received = np.concatenate(pending) if pending else np.zeros((0, self.channels), dtype=np.int16)
-                counters = {**self._counters(), "restarts": self.restarts, "channel_errors": self.channel_errors,
-                            "samples_dropped_writer_behind": self.queue_dropped}
-                assert self.first_index is not None
-                chunk = encode_chunk(start, self.first_index + start, end - start, lost, counters, received)
-                try:
-                    self._writer.append(chunk)
-                except OSError as exc:
-                    self.error = (f"{self.journal}: {exc.strerror or exc}: capture stopped after {self._rows / self.fs:.3f} s, "
-                                  f"kept in the journal: tactiled recover {self.journal} -o {self.out}")
-                    if self._on_error is not None:
-                        self._on_error(self.error)
-                    pending, lost = [], []
-                    if item is None:
-                        return
+                if not samples.shape[0]:
                     continue
-                self._rows = end
-                self._lost += sum(n for _, n in lost)
-                start, pending, lost, nbytes = end, [], [], 0
-            if item is None:
-                return
+                if position > end:
+                    lost.append((end, position - end))
+                pending.append(samples)
+                nbytes += samples.nbytes
+                end = position + samples.shape[0]
+                if end - start >= self._commit_rows or nbytes >= MAX_CHUNK_BYTES:  # bounded chunks, even after a burst
+                    start = self._commit(start, end, pending, lost)
+                    pending, lost, nbytes = [], [], 0
+            if end > start:
+                start = self._commit(start, end, pending, lost)
+                pending, lost, nbytes = [], [], 0
+
+    def _commit(self, start: int, end: int, pending: list[npt.NDArray[np.int16]], lost: list[tuple[int, int]]) -> int:
+        """Append rows ``start .. end`` as one chunk; returns where the next chunk starts (``end``, or ``start`` after an error)."""
+        if self.error is not None:
+            return start
+        received = np.concatenate(pending) if pending else np.zeros((0, self.channels), dtype=np.int16)
+        counters = {**self._counters(), "restarts": self.restarts, "channel_errors": self.channel_errors,
+                    "samples_dropped_writer_behind": self.queue_dropped}
+        assert self.first_index is not None
+        try:
+            self._writer.append(encode_chunk(start, self.first_index + start, end - start, lost, counters, received))
+        except OSError as exc:
+            self.error = (f"{self.journal}: {exc.strerror or exc}: capture stopped after {self._rows / self.fs:.3f} s, "
+                          f"kept in the journal: tactiled recover {self.journal} -o {self.out}")
+            if self._on_error is not None:
+                self._on_error(self.error)
+            return start
+        self._rows = end
+        self._lost += sum(n for _, n in lost)
+        return end
 
     def finish(self, extra_meta: dict[str, Any] | None = None) -> SinkResult:
         """Commit what is queued, then write ``out`` from the journal and remove the journal.
 
         On a write error (now or before) the journal is kept and :attr:`SinkResult.error` says how to recover it.
         """
-        self._queue.put(None)
+        self._finishing.set()
         self._thread.join()
         self._writer.close()
         if self.error is not None:
