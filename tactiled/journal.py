@@ -287,7 +287,7 @@ def _chunk_at(fh: IO[bytes], pos: int, channels: int) -> tuple[Chunk, int] | Non
     at = _body.size + 16 * g
     try:
         counters = json.loads(body[at:at + s])
-    except ValueError:
+    except (ValueError, RecursionError):
         return None
     stored = rows - sum(c for _, c in lost)
     end = position
