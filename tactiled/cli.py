@@ -44,15 +44,32 @@ def cmd_record(args: argparse.Namespace) -> int:
         raise TactiledError("--seconds: must be > 0")
     # --format mcap: record the .npz as usual beside the output, then convert it (the same as tactiled export)
     npz = args.output if args.format == "npz" else f"{args.output}.npz"
+    if args.format == "mcap":
+        from tactiled.record import check_output
+
+        check_output(args.output, args.force)
     summary = record(config.sensor.port, args.seconds, npz, fs=config.sensor.fs, channels=config.sensor.channels,
                      volts_per_count=config.sensor.volts_per_count, label=args.label, baudrate=config.sensor.baudrate,
-                     retry_max_s=config.serial.retry_max_s, meta={"sensor": config.sensor.id})
+                     retry_max_s=config.serial.retry_max_s, meta={"sensor": config.sensor.id}, force=args.force)
+    if summary.error is not None:  # a full disk: the capture stopped, the journal keeps what was written
+        print(f"tactiled: error: {summary.error}", file=sys.stderr)
+        return EXIT_FAIL
     if args.format == "mcap":
         import os
 
         _export(npz, args.output, config, None, explicit_model=True)
         os.unlink(npz)
     print(f"{args.output}: {summary.line()}")
+    return EXIT_OK
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    from tactiled.journal import recover
+    from tactiled.record import check_output
+
+    check_output(args.output, args.force)
+    result = recover(args.journal, args.output, {"recovered_from": str(args.journal)})
+    print(f"{args.output}: {result.line()}")
     return EXIT_OK
 
 
@@ -417,7 +434,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--channels", type=int, help="channels (overrides sensor.channels)")
     p.add_argument("--volts-per-count", type=_positive_float, help="ADC scale (overrides sensor.volts_per_count)")
     p.add_argument("--format", choices=("npz", "mcap"), default="npz", help="npz recording (default) or MCAP (converted at the end, as export)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.set_defaults(handler=cmd_record)
+
+    p = sub.add_parser("recover", help="turn the journal a killed recorder left (OUTPUT.journal) into a .npz recording")
+    p.add_argument("journal", help="the journal (what record -o OUT.npz or run --record OUT.npz leave as OUT.npz.journal)")
+    p.add_argument("-o", "--output", required=True, help="output .npz")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    p.set_defaults(handler=cmd_recover)
 
     p = sub.add_parser("export", help="a recording as an MCAP file (samples, ground-truth slides, labels) for Foxglove / PlotJuggler")
     p.add_argument("file", help="recording .npz")
@@ -471,7 +495,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-model", action="store_true", help="publish slides and status only")
     p.add_argument("--publish", help="ZeroMQ endpoint to bind (overrides publish.endpoint)")
     p.add_argument("--sensor-id", help="sensor id in topics (overrides sensor.id)")
-    p.add_argument("--record", help="also keep every sample received and write it as a recording on exit (memory grows 80 kB/s)")
+    p.add_argument("--record", help="also write every sample received to this .npz, streamed to disk as OUT.npz.journal (tactiled recover) "
+                   "and converted on exit; overwrites")
     p.add_argument("--samples", action="store_true", help="also publish the raw samples on samples/<id> (sets publish.samples)")
     p.set_defaults(handler=cmd_run)
 

@@ -3,7 +3,7 @@
 Tasks in one TaskGroup: ``ingest`` (serial bytes → decoder → pipeline → publisher; blocks
 that complete an analysis window run in a worker thread so feature extraction never
 stalls the loop, detection-only blocks run inline, cheaper than a thread hop), ``status`` (at
-least once a second, and the systemd watchdog), ``stop`` (SIGTERM / SIGINT). The serial
+least once a second, and the systemd watchdog), ``stop`` (SIGTERM, SIGINT, SIGHUP). The serial
 source is a reader thread (tactiled.serialsource) that survives unplugs.
 """
 
@@ -28,8 +28,7 @@ from tactiled.model import Model
 from tactiled.pipeline import Pipeline, PipelineEvent
 from tactiled.publish import Publisher
 from tactiled.rawbatch import raw_batches
-from tactiled.record import FrameAssembler
-from tactiled.recording import Recording, save_recording
+from tactiled.record import RecordingSink
 from tactiled.serialsource import CONNECTED, SerialSource
 
 log = logging.getLogger(__name__)
@@ -95,7 +94,9 @@ class Daemon:
         self._backlog: list[tuple[int, np.ndarray]] = []
         self._backlog_n = 0
         self._process_n = round(PROCESS_S * s.fs)
-        self.assembler = FrameAssembler(config.sensor.channels) if record_to else None
+        self.recorder = RecordingSink(record_to, fs=s.fs, channels=s.channels, volts_per_count=s.volts_per_count, force=True,
+                                      meta={"sensor": s.id, "port": s.port, "source": "tactiled run --record"}, counters=self._record_counters,
+                                      on_error=log.error) if record_to else None  # streams to record_to's journal (tactiled/journal.py)
         self.clock = ClockMap(s.fs)  # sample index -> host time
         self._arrival = 0.0  # host monotonic time of the newest bytes read (reader thread)
         self._raw_next: int | None = None  # next index of the samples topic
@@ -119,7 +120,7 @@ class Daemon:
         self.source = SerialSource(s.port, on_bytes, on_state, baudrate=s.baudrate,
                                    retry_initial_s=self.config.serial.retry_initial_s, retry_max_s=self.config.serial.retry_max_s,
                                    read_interval_s=self.config.serial.read_interval_s)
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             loop.add_signal_handler(sig, self.stop_event.set)
         self.source.start()
         log.info("tactiled %s: sensor %s on %s, publishing on %s, model %s", __version__, s.id, s.port, self.endpoint, self.fingerprint or "none")
@@ -136,9 +137,9 @@ class Daemon:
             self.source.stop()
             self.publisher.publish(self._status_message(stopping=True))
             self.publisher.close()
-            if self.assembler is not None and self.record_to:
-                self._save_recording(self.record_to)
-            for sig in (signal.SIGTERM, signal.SIGINT):
+            if self.recorder is not None:
+                self._save_recording()
+            for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
                 loop.remove_signal_handler(sig)
 
     async def _ingest(self, queue: asyncio.Queue[bytes | tuple[str, str]]) -> None:
@@ -161,9 +162,9 @@ class Daemon:
             frames = self.decoder.feed(bytes(data))
             if frames:
                 self.clock.observe(frames[-1].index + frames[-1].samples.shape[0], arrival)
-            if self.assembler is not None:
+            if self.recorder is not None:
                 for frame in frames:
-                    self.assembler.add(frame)
+                    self.recorder.add(frame)
             for frame in frames:
                 if frame.samples.shape[1] != sensor.channels:
                     self.state.channel_errors += 1
@@ -202,13 +203,17 @@ class Daemon:
                                                   to_host=to_host, fs_clock=round(self.clock.fs, 3)))
             self._raw_next = b.index + n
 
-    def _save_recording(self, path: str) -> None:
-        assert self.assembler is not None
-        s = self.config.sensor
-        rec = Recording(samples=self.assembler.samples(), fs=s.fs, volts_per_count=s.volts_per_count, first_index=self.assembler.first_index or 0,
-                        lost=self.assembler.lost(), meta={"sensor": s.id, "port": s.port, "source": "tactiled run --record"})
-        save_recording(path, rec)
-        log.info("%s: saved %d samples received", path, rec.samples.shape[0])
+    def _record_counters(self) -> dict[str, int]:
+        st = self.decoder.stats
+        return {"crc_errors": st.crc_errors, "bytes_discarded": st.bytes_discarded, "reconnects": self.source.reconnects if self.source else 0}
+
+    def _save_recording(self) -> None:
+        assert self.recorder is not None
+        result = self.recorder.finish(self._record_counters())
+        if result.error is None:
+            log.info("%s: saved %d samples (%d lost)", self.recorder.out, result.samples, result.samples_lost)
+        elif not self.recorder.error:  # a failure while capturing was logged when it happened
+            log.error("%s", result.error)
 
     def _feed_blocks(self, blocks: list[tuple[int, np.ndarray]]) -> list[PipelineEvent]:
         events: list[PipelineEvent] = []
