@@ -16,7 +16,7 @@ from tactiled.cli import EXAMPLES, build_parser, main, subcommands
 from tactiled.clidoc import REGENERATE, cli_markdown
 from tactiled.errors import TactiledError
 from tactiled.sensor_model import pick_surfaces
-from tests.conftest import REPO, run_cli, tactiled_cmd
+from tests.conftest import REPO, tactiled_cmd
 
 COMMANDS = subcommands(build_parser())
 
@@ -122,15 +122,16 @@ def test_simulate_serial_removes_its_link_on_exit(tmp_path: Path, sig: signal.Si
     assert not os.path.lexists(link)
 
 
-def test_train_gives_the_same_fingerprint_in_another_process(tmp_path: Path) -> None:
-    """The documented command is reproducible: two processes (with different hash seeds) write the same model file."""
-    data = tmp_path / "d"
-    res = run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "2", "--files-per-surface", "2", "--slides-per-file", "2",
-                  "--mode", "robot", "--fs", "2200", "--channels", "1")
-    assert res.returncode == 0, res.stderr
-    files = sorted(str(p) for p in data.glob("*.npz"))
-    procs = [subprocess.Popen(tactiled_cmd("train", *files, "-o", str(tmp_path / f"m{i}.npz"), "--folds", "2"), stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONHASHSEED": str(i)}) for i in (1, 2)]
+def test_simulate_and_train_give_the_same_fingerprint_in_another_process(tmp_path: Path) -> None:
+    """The documented commands are reproducible: two processes (with different hash seeds) simulate and train the same model."""
+    def commands(i: int) -> str:
+        data, env = tmp_path / f"d{i}", f"PYTHONHASHSEED={i}"
+        simulate = shlex.join(tactiled_cmd("simulate", "dataset", "--out", str(data), "--surfaces", "2", "--files-per-surface", "2",
+                                           "--slides-per-file", "2", "--mode", "robot", "--fs", "2200", "--channels", "1"))
+        train = shlex.join(tactiled_cmd("train", "-o", str(tmp_path / f"m{i}.npz"), "--folds", "2"))
+        return f"{env} {simulate} && {env} {train} {shlex.quote(str(data))}/*.npz"
+
+    procs = [subprocess.Popen(["sh", "-c", commands(i)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO) for i in (1, 2)]
     outs = [p.communicate(timeout=600) for p in procs]
     assert all(p.returncode == 0 for p in procs), [err for _, err in outs]
     fingerprints = [re.findall(r"fingerprint ([0-9a-f]{16})", out) for out, _ in outs]
