@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -447,21 +446,6 @@ def _int_at_least(low: int) -> Callable[[str], int]:
     return parse
 
 
-def _output_file(text: str) -> str:
-    """A file to write: its folder exists and is writable (checked before any work, not after minutes of it)."""
-    path = Path(text)
-    if not text:
-        raise argparse.ArgumentTypeError("empty file name")
-    if path.is_dir():
-        raise argparse.ArgumentTypeError(f"{text!r} is a folder, not a file name")
-    folder = path.parent
-    if not folder.is_dir():
-        raise argparse.ArgumentTypeError(f"folder {str(folder)!r} does not exist")
-    if not os.access(folder, os.W_OK):
-        raise argparse.ArgumentTypeError(f"folder {str(folder)!r} is not writable")
-    return text
-
-
 def _experiments(text: str) -> str:
     unknown = sorted(set(text) - set(EXPERIMENTS))
     if unknown or not text:
@@ -472,7 +456,6 @@ def _experiments(text: str) -> str:
 _positive_float.__name__ = "number > 0"
 _probability.__name__ = "probability"
 _experiments.__name__ = "experiment letters"
-_output_file.__name__ = "output file"
 _count, _seed = _int_at_least(1), _int_at_least(0)
 
 CONFIG_HELP = "TOML config file (every key is explained in configs/tactiled.toml; default: the built-in defaults)"
@@ -522,7 +505,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--port", help="serial device path (overrides sensor.port)")
     p.add_argument("--seconds", type=_positive_float, required=True, help="sensor time to record, s")
-    p.add_argument("-o", "--output", required=True, type=_output_file, help="recording file to write (.npz, or .mcap with --format mcap)")
+    p.add_argument("-o", "--output", required=True, help="recording file to write (.npz, or .mcap with --format mcap)")
     p.add_argument("--label", help="surface of the whole file (its ground truth for train and score)")
     p.add_argument("--fs", type=_positive_float, help="sample rate, Hz (overrides sensor.fs)")
     p.add_argument("--channels", type=int, help="channels (overrides sensor.channels)")
@@ -532,7 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("export", help="a recording as an MCAP file (samples, ground-truth slides, labels) for Foxglove / PlotJuggler")
     p.add_argument("file", help="recording .npz")
-    p.add_argument("-o", "--output", required=True, type=_output_file, help="output .mcap")
+    p.add_argument("-o", "--output", required=True, help="output .mcap")
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--model", help=MODEL_HELP)
     p.add_argument("--no-model", action="store_true", help="slides only, no classification")
@@ -554,7 +537,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_simulate_dataset)
 
     p = sim.add_parser("figure", help="PNG of one slide per surface class: signal and spectrum")
-    p.add_argument("-o", "--output", required=True, type=_output_file, help="PNG file to write")
+    p.add_argument("-o", "--output", required=True, help="PNG file to write")
     p.add_argument("--mode", choices=("manual", "robot"), default="manual", help="hand (manual) or robot sliding")
     p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
     p.set_defaults(handler=cmd_simulate_figure)
@@ -627,13 +610,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("features", help="feature vectors of every slide")
     p.add_argument("files", nargs="+", help="recordings (.npz) whose slides to analyse")
-    p.add_argument("-o", "--output", required=True, type=_output_file, help="features file to write (.npz: one row per window, docs/features.md)")
+    p.add_argument("-o", "--output", required=True, help="features file to write (.npz: one row per window, docs/features.md)")
     p.add_argument("--config", help=CONFIG_HELP)
     p.set_defaults(handler=cmd_features)
 
     p = sub.add_parser("train", help="train a model from labelled recordings (finds what works on them)")
     p.add_argument("files", nargs="+", help="labelled recordings (.npz): per-slide ground truth or a file-level label")
-    p.add_argument("-o", "--output", required=True, type=_output_file, help="model file to write (.npz)")
+    p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     p.add_argument("--config", help="config file (detector, spikes, feature settings; default: the built-in defaults)")
     p.add_argument("--method", choices=("auto", "paper"), default="auto",
                    help="auto: pick features, classifier and windows by nested grouped CV; paper: the papers' DWT + SFS + ELM")

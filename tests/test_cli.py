@@ -69,18 +69,13 @@ def test_argument_types_reject_bad_values_by_name_not_function(capsys: pytest.Ca
     for words, p in COMMANDS.items():
         for action in p._actions:
             if callable(action.type) and action.type not in (int, float, str):
-                rejected = 0
-                for bad in ("?x", "", "/no/such/folder/x"):
-                    try:
-                        action.type(bad)
-                    except argparse.ArgumentTypeError:  # never ValueError: argparse would print the function's name
-                        rejected += 1
-                assert rejected and not action.type.__name__.startswith("_"), f"tactiled {words} {action.dest}"
+                with pytest.raises(argparse.ArgumentTypeError):  # never ValueError: argparse would print the function's name
+                    action.type("?x")
+                assert not action.type.__name__.startswith("_"), f"tactiled {words} {action.dest}"
     for argv, what in ((["record", "--seconds", "abc", "-o", "x.npz"], "argument --seconds: not a number: 'abc'"),
                        (["record", "--seconds", "-1", "-o", "x.npz"], "argument --seconds: must be > 0, got -1"),
                        (["simulate", "serial", "--drop", "2"], "argument --drop: must be in [0, 1], got 2"),
-                       (["evaluate", "a.npz", "--report", "r", "--experiments", "az"], "argument --experiments: letters from abcdefg"),
-                       (["train", "a.npz", "-o", "/no/such/folder/m.npz"], "argument -o/--output: folder '/no/such/folder' does not exist")):
+                       (["evaluate", "a.npz", "--report", "r", "--experiments", "az"], "argument --experiments: letters from abcdefg")):
         with pytest.raises(SystemExit) as exit_:
             main(argv)
         err = capsys.readouterr().err
