@@ -472,6 +472,7 @@ EXAMPLES: dict[str, str] = {
     "": "tactiled demo --headless --seconds 20",
     "check-config": "tactiled check-config configs/tactiled.toml",
     "record": "tactiled record --port /dev/ttyACM0 --seconds 60 --label P120 -o p120_01.npz",
+    "recover": "tactiled recover p120_01.npz.journal -o p120_01.npz",
     "export": "tactiled export p120_01.npz -o p120_01.mcap",
     "simulate": "tactiled simulate dataset --out data/sim --surfaces 5",
     "simulate dataset": "tactiled simulate dataset --scene robot --out data/sim --surfaces Ra0.44,Ra1.00,Ra4.43 --files-per-surface 2",
