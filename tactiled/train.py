@@ -59,6 +59,10 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         raise TactiledError(f"--method: must be one of {', '.join(METHODS)}, got {method!r}")
     if folds < 2:
         raise TactiledError(f"--folds: must be >= 2, got {folds}")
+    if min_slides < 1:
+        raise TactiledError(f"--min-slides: must be >= 1, got {min_slides}")
+    if seed < 0:
+        raise TactiledError(f"--seed: must be >= 0, got {seed}")
     recs = load_recordings(paths, say)
     check_recordings(recs, len(paths))
     per_file, counts = find_slides(recs, config)

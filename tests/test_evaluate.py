@@ -27,8 +27,9 @@ def test_evaluate_writes_all_six_experiments(tmp_path: Path) -> None:
     res = run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "3", "--slides-per-file", "3", "--mode", "robot")
     assert res.returncode == 0, res.stderr
     report = tmp_path / "r"
-    res = run_cli("evaluate", *sorted(str(p) for p in data.glob("*.npz")), "--report", str(report), "--quick", "--folds", "3", timeout=300)
+    res = run_cli("evaluate", *sorted(str(p) for p in data.glob("*.npz")), "--report", f"{report}/", "--quick", "--folds", "3", timeout=300)
     assert res.returncode == 0, res.stderr
+    assert res.stdout.startswith(f"{report}/report.md: 9 recordings")  # a clean path, whatever the folder's spelling
     out = json.loads((report / "report.json").read_text())
     assert set(out) >= {"classifiers", "window_grid", "sampling_rate", "feature_count", "unsupervised"}
     acc = out["classifiers"]["results"]
