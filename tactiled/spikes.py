@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 import numpy.typing as npt
-from scipy.ndimage import median_filter
 
 MAD_SCALE = 1.4826
 
@@ -24,6 +23,8 @@ def remove_spikes(x: npt.NDArray[np.float64], method: str = "mad", half_width: i
     if method == "none" or x.shape[0] == 0:
         return x.copy(), 0
     if method == "hampel":
+        from scipy.ndimage import median_filter  # SciPy only for the method that needs it (it costs ~70 MB resident)
+
         size = (2 * half_width + 1, 1)
         med = median_filter(x, size=size, mode="nearest")
         mad = median_filter(np.abs(x - med), size=size, mode="nearest")
