@@ -191,7 +191,7 @@ class SlideDetector:
             used = hops * self.hop
             ext = np.concatenate([self._history, buf[:used]])
             energy = envelope(ext, self.front).tolist()
-            hop_valid = vbuf[:used].reshape(hops, self.hop).all(axis=1).tolist()
+            hop_valid: list[bool] = np.asarray(vbuf[:used]).reshape(hops, self.hop).all(axis=1).tolist()
             at = self._pending_index
             unsettled = self._first + self.front.history  # type: ignore[operator]
             for h in range(hops):
