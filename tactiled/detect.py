@@ -51,6 +51,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, replace
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
@@ -191,7 +192,7 @@ class SlideDetector:
             used = hops * self.hop
             ext = np.concatenate([self._history, buf[:used]])
             energy = envelope(ext, self.front).tolist()
-            hop_valid: list[bool] = np.asarray(vbuf[:used]).reshape(hops, self.hop).all(axis=1).tolist()
+            hop_valid = cast(list[bool], np.asarray(vbuf[:used]).reshape(hops, self.hop).all(axis=1).tolist())
             at = self._pending_index
             unsettled = self._first + self.front.history  # type: ignore[operator]
             for h in range(hops):

@@ -218,8 +218,7 @@ def psd_of(x: npt.NDArray[np.float64], fs: float) -> tuple[npt.NDArray[np.float6
     spec = np.fft.rfft((segments - segments.mean(axis=1, keepdims=True)) * window, axis=1)
     p = (spec.real**2 + spec.imag**2).mean(axis=0) / (fs * float(np.dot(window, window)))
     p[1:-1 if nper % 2 == 0 else None] *= 2  # one-sided: every bin but DC (and Nyquist) holds both signs
-    f: npt.NDArray[np.float64] = np.fft.rfftfreq(nper, 1.0 / fs)
-    return f, np.asarray(p, dtype=np.float64)
+    return np.asarray(np.fft.rfftfreq(nper, 1.0 / fs), dtype=np.float64), np.asarray(p, dtype=np.float64)
 
 
 def band_powers(f: npt.NDArray[np.float64], p: npt.NDArray[np.float64], bands: Sequence[tuple[float, float]]) -> npt.NDArray[np.float64]:
