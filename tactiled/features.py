@@ -333,11 +333,20 @@ class FeaturePlan:
                 sig = np.abs(np.fft.rfft(sig))
             approx = sig
             for j in range(1, level + 1):
-                approx, detail = pywt.dwt(approx, self.wavelet, mode=self.mode)
-                for kind, coeffs in (("A", approx), ("D", detail)):
-                    stats = self._stats.get((channel, domain, f"{kind}{j}"))
+                want = {kind: self._stats.get((channel, domain, f"{kind}{j}")) for kind in "AD"}
+                # only the half of the transform the plan needs: pywt.downcoef gives dwt's coefficients exactly, at half the cost
+                if want["D"] and (want["A"] or j < level):
+                    approx, detail = pywt.dwt(approx, self.wavelet, mode=self.mode)
+                    coeffs = {"A": approx, "D": detail}
+                elif want["D"]:
+                    coeffs = {"D": pywt.downcoef("d", approx, self.wavelet, mode=self.mode, level=1)}
+                else:
+                    approx = pywt.downcoef("a", approx, self.wavelet, mode=self.mode, level=1)
+                    coeffs = {"A": approx}
+                for kind, band in coeffs.items():
+                    stats = want[kind]
                     if stats:
-                        for stat, value in band_stats(coeffs, stats).items():
+                        for stat, value in band_stats(band, stats).items():
                             values[f"film{channel + 1}.{domain}.{kind}{j}.{stat}"] = value
         for channel in sorted(set(self._psd) | set(self._tex)):
             f, p = psd_of(x[:, channel], self.fs)
