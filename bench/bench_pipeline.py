@@ -13,7 +13,6 @@ Budgets (docs/benchmarks.md): replay of a 5-minute 2-channel 20 kHz recording >=
 from __future__ import annotations
 
 import argparse
-import os
 import resource
 import subprocess
 import sys
@@ -43,15 +42,29 @@ def simulate(seconds: float, seed: int = 0) -> Recording:
     return Recording(m.read(n), p.fs, p.volts_per_count)
 
 
-def peak_kb(cmd: list[str]) -> tuple[float, int]:
-    """(wall s, peak resident KB) of one run of ``cmd``, output discarded."""
+def wall_s(cmd: list[str]) -> float:
+    """Wall time (s) of one run of ``cmd``, output discarded."""
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    _, status, usage = os.wait4(proc.pid, 0)
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    if proc.returncode:
-        raise SystemExit(f"{' '.join(cmd)}: exit {proc.returncode}")
-    return time.perf_counter() - t0, int(usage.ru_maxrss)
+    subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=True)
+    return time.perf_counter() - t0
+
+
+# the tactiled command, then its own peak resident memory (VmHWM: per process image; a child's ru_maxrss would
+# include this benchmark's own memory at fork)
+PEAK = """
+import sys
+from tactiled.cli import main
+try:
+    sys.exit(main(sys.argv[1:]))
+finally:  # also after --help, which exits from argparse
+    print(next(line for line in open("/proc/self/status") if line.startswith("VmHWM:")).split()[1], file=sys.stderr)
+"""
+
+
+def peak_kb(args: list[str]) -> int:
+    """Peak resident memory (VmHWM, kB) of ``tactiled ARGS``."""
+    out = subprocess.run([sys.executable, "-c", PEAK, *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=True)
+    return int(out.stderr.split()[-1])
 
 
 def vm_kb(pid: int, key: str) -> int:
@@ -127,12 +140,11 @@ def main() -> None:
     if args.startup > 0:
         short = tmp / "short.npz"
         save_recording(short, Recording(rec.samples[: round(2 * rec.fs)], rec.fs, rec.volts_per_count))
-        for label, cmd in (("tactiled --help", [*EXE, "--help"]), ("tactiled replay (2 s recording)", [*EXE, "replay", str(short)])):
-            runs = [peak_kb(cmd) for _ in range(args.startup)]
-            print(f"start-up, {label}: best {min(w for w, _ in runs):.3f} s, median {float(np.median([w for w, _ in runs])):.3f} s "
-                  f"of {args.startup}; peak resident {max(k for _, k in runs) / 1024:.1f} MB")
-        w, kb = peak_kb([*EXE, "replay", str(path)])
-        print(f"tactiled replay ({seconds:.0f} s recording): {w:.2f} s wall, peak resident (VmHWM) {kb / 1024:.1f} MB")
+        for label, cmd in (("tactiled --help", ["--help"]), ("tactiled replay (2 s recording)", ["replay", str(short)])):
+            runs = [wall_s([*EXE, *cmd]) for _ in range(args.startup)]
+            print(f"start-up, {label}: best {min(runs):.3f} s, median {float(np.median(runs)):.3f} s of {args.startup}; "
+                  f"peak resident {peak_kb(cmd) / 1024:.1f} MB")
+        print(f"tactiled replay ({seconds:.0f} s recording): peak resident (VmHWM) {peak_kb(['replay', str(path)]) / 1024:.1f} MB")
     if args.daemon_seconds > 0:
         hwm, rss = daemon_memory(args.daemon_seconds)
         print(f"daemon after {args.daemon_seconds:g} s at 20 kHz, shipped model: VmHWM {hwm / 1024:.1f} MB, VmRSS {rss / 1024:.1f} MB")
