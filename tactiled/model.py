@@ -16,7 +16,10 @@ File arrays: ``header`` (0-d unicode, JSON), ``classes`` (K,) unicode, ``scaler_
 ``scaler_scale`` (F,); per classifier: elm ``weights`` (F, L), ``biases`` (L,), ``beta``
 (L, K'), ``elm_temperature`` (); linear ``coef`` (K'', F), ``intercept`` (K'',); knn and
 svm ``train_x`` (n, F) standardised and ``train_y`` (n,) (both deterministic, refit at
-load; at most :data:`MAX_REFIT_ROWS` rows so a load never hangs). The header carries the
+load; at most :data:`MAX_REFIT_ROWS` rows so a load never hangs); svm also the fitted
+``svm_support``, ``svm_dual_coef``, ``svm_intercept``, ``svm_n_support``, ``svm_gamma``
+(optional: :mod:`tactiled.infer` evaluates the model with numpy alone, no refit, no
+scikit-learn import; ``load_model(lean=False)`` takes the scikit-learn path). The header carries the
 format and its version, the method, the classifier and its parameters, the analysis
 settings (windows, spikes, feature names), fs, channels, temperature, a training summary
 (including the cross-validated accuracy), and ``fingerprint``: the SHA-256 (first 16 hex
