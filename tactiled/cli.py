@@ -151,7 +151,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.publish:
         from tactiled.publish import Publisher
 
-        publisher = Publisher(config.override({"publish.endpoint": args.publish}).publish)
+        publisher = Publisher(config.override({"publish.endpoint": args.publish}).publish, see_subscribers=True)
+        publisher.wait_subscriber(args.wait_subscriber)
     try:
         for path in args.files:
             try:
@@ -631,6 +632,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", help=MODEL_HELP)
     p.add_argument("--no-model", action="store_true", help="no classification (labels are null)")
     p.add_argument("--publish", help="also publish the daemon's messages on this ZeroMQ endpoint")
+    p.add_argument("--wait-subscriber", type=_float, default=1.0, metavar="S",
+                   help="with --publish: wait up to S s for a first subscriber before sending, so that one already started misses "
+                        "nothing (0: send at once)")
     p.add_argument("--block", type=int, default=None, help="samples per block fed to the pipeline (default 65536)")
     p.set_defaults(handler=cmd_replay)
 

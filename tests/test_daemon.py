@@ -146,7 +146,8 @@ def test_replay_publishes_the_daemon_messages(tmp_path: Path) -> None:
     save_recording(path, Recording(sim.samples, params.fs, params.volts_per_count, first_index=1000))
     endpoint = f"ipc://{tmp_path}/replay"
     with BlockingSubscriber(endpoint, topics=["roughness", "slide"], timeout=30) as sub:
-        proc = subprocess.Popen(tactiled_cmd("replay", "--json", "--speed", "4", "--publish", endpoint, str(path)),
+        proc = subprocess.Popen(tactiled_cmd("replay", "--json", "--speed", "4", "--publish", endpoint, "--wait-subscriber", "30",
+                                             str(path)),
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         got = []
         while len([m for m in got if isinstance(m, Roughness)]) < 3:
