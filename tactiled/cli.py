@@ -471,6 +471,7 @@ def _experiments(text: str) -> str:
     return text
 
 
+_float.__name__ = "number"
 _positive_float.__name__ = "number > 0"
 _probability.__name__ = "probability"
 _experiments.__name__ = "experiment letters"
