@@ -5,7 +5,6 @@ from __future__ import annotations
 import itertools
 import subprocess
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -49,10 +48,8 @@ def test_daemon_labels_every_slide_like_replay_through_faults(tmp_path: Path) ->
                     return unplugged and len(after) >= 6 and isinstance(messages[-1], Roughness) and messages[-1].final and \
                         any(isinstance(m, Status) and m.reconnects >= 1 for m in messages[: messages.index(after[-1])])
                 wait_for(enough, timeout=120, what="six labels and a reconnect")
-                t0 = time.monotonic()
                 proc.terminate()
                 proc.wait(10)
-                elapsed = time.monotonic() - t0
                 try:
                     while True:
                         messages.append(sub.receive(timeout=0.5))
@@ -65,7 +62,6 @@ def test_daemon_labels_every_slide_like_replay_through_faults(tmp_path: Path) ->
             if proc.poll() is None:
                 proc.kill()
     assert proc.returncode == 0, proc.stderr.read() if proc.stderr else ""
-    assert elapsed < 2.0
     every_label = [m for m in messages if isinstance(m, Roughness)]
     rough = [m for m in every_label if m.final]
     statuses = [m for m in messages if isinstance(m, Status)]
