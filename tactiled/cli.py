@@ -120,7 +120,7 @@ def _model_for(path: str | None, fs: float, channels: int, where: str, explicit:
     return None
 
 
-def _replay_capture(path: str, config: Config, args: argparse.Namespace, publisher: Any) -> tuple[list[Any], Any]:
+def _replay_capture(path: str, config: Config, args: argparse.Namespace, publisher: Any) -> tuple[list[Any], Any, Any]:
     """``replay x.bin``: raw serial bytes through the daemon's ingest core (config.sensor: fs, channels, scale)."""
     from tactiled.player import capture_recording_stub, read_chunks
     from tactiled.replay import replay_bytes
@@ -132,9 +132,10 @@ def _replay_capture(path: str, config: Config, args: argparse.Namespace, publish
         stub = capture_recording_stub(path, s.fs, s.channels, s.volts_per_count)
         on_event = publisher.replay_handler(s.id, stub, getattr(model, "fingerprint", ""), args.speed)
     try:
-        return replay_bytes(read_chunks(path), config, model, speed=args.speed, on_event=on_event, meta={"capture": path})
+        results, rec = replay_bytes(read_chunks(path), config, model, speed=args.speed, on_event=on_event, meta={"capture": path})
     except OSError as exc:
         raise TactiledError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    return results, rec, model
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -160,7 +161,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 failed += 1
                 continue
             if rec is None:  # a raw capture: through the decoder, as the daemon read it
-                results, rec = _replay_capture(path, config, args, publisher)
+                results, rec, model = _replay_capture(path, config, args, publisher)
             else:
                 model = _model_for(args.model, rec.fs, rec.channels, path, explicit=args.no_model)
                 on_event = None
