@@ -1,8 +1,8 @@
 """``tactiled run``: one asyncio daemon per sensor.
 
-Tasks in one TaskGroup: ``reader`` (the serial port's fd read from the event loop once per
-``serial.read_interval_s``, tactiled.serialsource; it survives unplugs and any exception),
-whose bytes go through the ingest core (tactiled.ingest: decoder, channel and gap policies,
+Tasks in one TaskGroup: ``reader`` (tactiled.serialsource: a thread reads the port once per
+``serial.read_interval_s`` and hands the loop its bytes once per ``serial.batch_s``; it
+survives unplugs and any exception), whose bytes go through the ingest core (tactiled.ingest: decoder, channel and gap policies,
 batches of ``serial.batch_s``) into the pipeline and the publisher: batches that complete an
 analysis window run in a worker thread so feature extraction never stalls the loop,
 detection-only batches run inline, cheaper than a thread hop; ``status`` (at least once a
@@ -111,7 +111,7 @@ class Daemon:
             return self._source_factory(self._on_bytes, self._on_state)
         s, c = self.config.sensor, self.config.serial
         return SerialSource(s.port, self._on_bytes, self._on_state, baudrate=s.baudrate, retry_initial_s=c.retry_initial_s,
-                            retry_max_s=c.retry_max_s, read_interval_s=c.read_interval_s, tee=tee)
+                            retry_max_s=c.retry_max_s, read_interval_s=c.read_interval_s, tee=tee, hand_over_s=c.batch_s)
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()

@@ -129,14 +129,30 @@ def _pty_frames(n_frames: int, first: int = 0) -> bytes:
     return _frames(first, n_frames)
 
 
-def test_serial_source_survives_a_failing_consumer_and_counts_it(tmp_path: Path) -> None:
+class _FailingTee:
+    """A capture file whose first write fails: an exception inside the reader thread itself."""
+
+    def __init__(self) -> None:
+        self.writes = 0
+
+    def write(self, data: bytes) -> int:
+        self.writes += 1
+        if self.writes == 1:
+            raise RuntimeError("tee broke")
+        return len(data)
+
+    def flush(self) -> None:
+        pass
+
+
+def test_serial_source_survives_reader_and_consumer_failures_and_counts_them() -> None:
     master, slave = os.openpty()
     tty.setraw(slave)
     path = os.ttyname(slave)
     got: list[bytes] = []
     states: list[tuple[str, str]] = []
 
-    async def main() -> None:
+    async def main() -> SerialSource:
         more = asyncio.Event()
         calls = 0
 
@@ -144,14 +160,15 @@ def test_serial_source_survives_a_failing_consumer_and_counts_it(tmp_path: Path)
             nonlocal calls
             calls += 1
             if calls == 1:
-                raise RuntimeError("boom")  # the first read's consumer fails
+                raise ValueError("consumer broke")  # the first bytes that reach the consumer make it fail
             got.append(data)
             more.set()
 
-        source = SerialSource(path, on_bytes, lambda s, d: states.append((s, d)), read_interval_s=0.005, retry_max_s=0.05)
+        source = SerialSource(path, on_bytes, lambda s, d: states.append((s, d)), read_interval_s=0.005, retry_max_s=0.05,
+                              tee=_FailingTee())  # type: ignore[arg-type]
         task = asyncio.create_task(source.run())
         deadline = asyncio.get_running_loop().time() + 20
-        while not got:  # write until a read reaches the consumer after its failure (the source may still be reopening)
+        while not got:  # write until bytes reach the consumer after both failures (the source may still be reopening)
             assert asyncio.get_running_loop().time() < deadline, states
             os.write(master, b"y" * 10)
             with contextlib.suppress(TimeoutError):
@@ -159,16 +176,17 @@ def test_serial_source_survives_a_failing_consumer_and_counts_it(tmp_path: Path)
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
-        assert source.errors == 1 and source.reconnects == 1
+        return source
 
     try:
-        asyncio.run(main())
+        source = asyncio.run(main())
     finally:
         os.close(master)
         os.close(slave)
+    assert source.errors == 2 and source.reconnects == 1  # the tee's failure reconnected; the consumer's did not
     assert got and set(b"".join(got)) == set(b"y")
     assert [s for s, _ in states] == [CONNECTED, DISCONNECTED, CONNECTED]
-    assert "reader error RuntimeError: boom" in states[1][1]
+    assert "reader error RuntimeError: tee broke" in states[1][1]
 
 
 def test_daemon_on_a_memory_source_ends_the_stream_and_publishes_every_event(tmp_path: Path) -> None:
