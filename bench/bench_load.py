@@ -55,7 +55,7 @@ def play(args: argparse.Namespace) -> None:
     player.close()
 
 
-def run(k: int, seconds: float, stream_path: str, warmup: float) -> dict[str, object]:
+def run(k: int, seconds: float, stream_path: str, warmup: float, config: str | None = None) -> dict[str, object]:
     tmp = tempfile.mkdtemp(prefix=f"tactiled-load{k}-")
     exe = [sys.executable, "-m", "tactiled"]
     links = [f"{tmp}/tty{i}" for i in range(k)]
@@ -63,7 +63,8 @@ def run(k: int, seconds: float, stream_path: str, warmup: float) -> dict[str, ob
                               stdout=subprocess.PIPE, text=True)
     assert player.stdout is not None and player.stdin is not None
     player.stdout.readline()
-    daemons = [subprocess.Popen([*exe, "run", "--port", links[i], "--publish", f"ipc://{tmp}/pub{i}", "--sensor-id", f"s{i}"],
+    daemons = [subprocess.Popen([*exe, "run", "--port", links[i], "--publish", f"ipc://{tmp}/pub{i}", "--sensor-id", f"s{i}",
+                                 *(["--config", config] if config else [])],
                                 stderr=subprocess.DEVNULL) for i in range(k)]
     ctx = zmq.Context.instance()
     socks = []
@@ -92,7 +93,7 @@ def run(k: int, seconds: float, stream_path: str, warmup: float) -> dict[str, ob
 
     thread = threading.Thread(target=reader, daemon=True)
     thread.start()
-    time.sleep(warmup)  # start-up (imports) excluded from the measurement: benchmark warm-up, not synchronisation
+    time.sleep(warmup + 0.8 * k)  # start-up (K processes importing on 2 cores) excluded from the measurement: benchmark warm-up, not synchronisation
     measuring.set()
     lost0 = [int(s["samples_lost"]) if s else 0 for s in last]  # type: ignore[call-overload]
     c0 = [cpu_seconds(d.pid) for d in daemons]
@@ -126,6 +127,7 @@ def run(k: int, seconds: float, stream_path: str, warmup: float) -> dict[str, ob
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--counts", default="1,8,16,24,32,40")
+    ap.add_argument("--config", help="the daemons' config file")
     ap.add_argument("--seconds", type=float, default=30.0)
     ap.add_argument("--warmup", type=float, default=8.0)
     ap.add_argument("--json")
@@ -138,12 +140,13 @@ def main() -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1)
+    counts = [int(c) for c in args.counts.split(",")]
     stream_path = os.path.join(tempfile.mkdtemp(prefix="tactiled-load-"), "stream.bin")
     with open(stream_path, "wb") as fh:
-        fh.write(make_stream(args.seconds + args.warmup + 5))
+        fh.write(make_stream(args.seconds + args.warmup + 0.8 * max(counts) + 5))
     rows = []
-    for k in (int(c) for c in args.counts.split(",")):
-        row = run(k, args.seconds, stream_path, args.warmup)
+    for k in counts:
+        row = run(k, args.seconds, stream_path, args.warmup, args.config)
         rows.append(row)
         print(f"K={k:2d}: daemon CPU mean {100 * row['daemon_cpu_mean']:.2f} % (max {100 * row['daemon_cpu_max']:.2f} %, "  # type: ignore[operator]
               f"total {100 * row['daemon_cpu_total']:.0f} %), player {100 * row['player_cpu']:.1f} %, "  # type: ignore[operator]

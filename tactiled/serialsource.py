@@ -247,7 +247,9 @@ class SerialSource:
         handed = time.monotonic()
         try:
             # one read per period: waking per frame cost 36 % of a core at 1 000 frames/s (measured)
-            while not stop.wait(interval):  # the read period, not synchronisation
+            # time.sleep, not stop.wait: an Event wait with a timeout allocates a lock and a Condition waiter per call
+            while not stop.is_set():
+                time.sleep(interval)  # the read period, not synchronisation
                 now = self.alive_at = time.monotonic()
                 data = _read_all(fd, self._read_size) if fd is not None else port.read(max(1, min(port.in_waiting, self._read_size)))
                 if data:
