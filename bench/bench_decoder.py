@@ -42,14 +42,14 @@ def main() -> None:
     for _ in range(args.repeat):
         dec = FrameDecoder(channels=2)
         feed = dec.feed if args.per_frame else dec.feed_runs
-        t0 = time.perf_counter()
+        t0 = time.process_time()  # CPU time: the machine is shared
         for i in range(0, len(data), args.chunk):
             feed(data[i:i + args.chunk])
-        best = min(best, time.perf_counter() - t0)
+        best = min(best, time.process_time() - t0)
     mbps = len(data) / best / 1e6
     how = 'feed' if args.per_frame else 'feed_runs'
     print(f"decoder ({how}): {len(data) / 1e6:.1f} MB ({bad} of {len(data) // 92} frames corrupted), chunk {args.chunk} B: "
-          f"{mbps:.1f} MB/s, {mbps * 1e6 / 92_000:.0f}x the fingertip's 92 kB/s line rate "
+          f"{mbps:.1f} MB/s ({best * 1e3:.0f} ms of CPU), {mbps * 1e6 / 92_000:.0f}x the fingertip's 92 kB/s line rate "
           f"(frames {dec.stats.frames}, crc errors {dec.stats.crc_errors}, samples lost {dec.stats.samples_lost})")
 
 
