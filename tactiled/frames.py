@@ -240,14 +240,15 @@ class FrameDecoder:
                 lost = delta
                 index = expected + delta
             elif _WRAP - delta <= self._duplicate_window:
-                behind = _WRAP - delta
-                dup = min(samples.shape[0], behind)
-                stats.duplicates += -(-dup // count)
-                if dup >= samples.shape[0]:
+                # frames that start before what was already placed are duplicates, whole frames as if fed one by one
+                drop = -(-(_WRAP - delta) // count)
+                stats.duplicates += min(drop, -(-samples.shape[0] // count))
+                if drop * count >= samples.shape[0]:
                     return None
-                samples = samples[dup:]  # the run goes on past what was already placed: keep the new part
-                index32 = (index32 + dup) % _WRAP
-                index = expected
+                samples = samples[drop * count:]
+                lost = drop * count - (_WRAP - delta)
+                index32 = (index32 + drop * count) % _WRAP
+                index = expected + lost
             else:
                 restart = True
                 stats.restarts += 1
