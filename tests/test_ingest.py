@@ -278,3 +278,25 @@ def test_end_of_stream_releases_what_the_batcher_held() -> None:
     finish_pipeline(ingest, pipeline)
     assert pipeline.ring.end == 100 and ingest.held == 0
     assert isinstance(Batch(0, np.zeros((3, 2), np.int16)).end, int)
+
+
+def test_the_watchdog_is_fed_only_while_the_reader_runs(tmp_path: Path) -> None:
+    config = Config().override({"publish.endpoint": f"ipc://{tmp_path}/w"})
+
+    async def main() -> tuple[bool, bool, bool]:
+        daemon = Daemon(config, None, source_factory=lambda on_bytes, on_state: MemorySource([], on_bytes, on_state))
+        try:
+            daemon.source = daemon._make_source(None)
+            never_ends = asyncio.Event()
+            daemon._reader = asyncio.create_task(never_ends.wait())
+            now = daemon.source.alive_at
+            alive = daemon.reader_alive(now + 1.0)
+            stale = daemon.reader_alive(now + 60.0)  # the reader loop stopped ticking (e.g. stuck in an open)
+            daemon._reader.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await daemon._reader
+            return alive, stale, daemon.reader_alive(now)  # the reader task ended
+        finally:
+            daemon.publisher.close()
+
+    assert asyncio.run(main()) == (True, False, False)
