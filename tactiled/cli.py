@@ -138,6 +138,24 @@ def _model_for(path: str | None, fs: float, channels: int, where: str, explicit:
     return None
 
 
+def _replay_capture(path: str, config: Config, args: argparse.Namespace, publisher: Any) -> tuple[list[Any], Any, Any]:
+    """``replay x.bin``: raw serial bytes through the daemon's ingest core (config.sensor: fs, channels, scale)."""
+    from tactiled.player import capture_recording_stub, read_chunks
+    from tactiled.replay import replay_bytes
+
+    s = config.sensor
+    model = _model_for(args.model, s.fs, s.channels, path, explicit=args.no_model)
+    on_event = None
+    if publisher is not None:
+        stub = capture_recording_stub(path, s.fs, s.channels, s.volts_per_count)
+        on_event = publisher.replay_handler(s.id, stub, getattr(model, "fingerprint", ""), args.speed)
+    try:
+        results, rec = replay_bytes(read_chunks(path), config, model, speed=args.speed, on_event=on_event, meta={"capture": path})
+    except OSError as exc:
+        raise TactiledError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    return results, rec, model
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     import json
 
@@ -156,16 +174,19 @@ def cmd_replay(args: argparse.Namespace) -> int:
     try:
         for path in args.files:
             try:
-                rec = load_recording(path)
+                rec = load_recording(path) if not path.endswith(".bin") else None
             except RecordingError as exc:
                 print(f"tactiled: error: {exc}", file=sys.stderr)
                 failed += 1
                 continue
-            model = _model_for(args.model, rec.fs, rec.channels, path, explicit=args.no_model)
-            on_event = None
-            if publisher is not None:
-                on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""), args.speed)
-            results = replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event)
+            if rec is None:  # a raw capture: through the decoder, as the daemon read it
+                results, rec, model = _replay_capture(path, config, args, publisher)
+            else:
+                model = _model_for(args.model, rec.fs, rec.channels, path, explicit=args.no_model)
+                on_event = None
+                if publisher is not None:
+                    on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""), args.speed)
+                results = replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event)
             for r, provisional in by_slide(results):
                 obj = result_record(path, rec, r, provisional, config.sensor.id, getattr(model, "fingerprint", ""))
                 if args.json:
@@ -261,8 +282,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         if model is None:
             raise TactiledError("no model fits this sensor (train one with tactiled train, or pass --no-model)")
 
+    if args.no_wait:
+        from tactiled.serialsource import check_port
+
+        check_port(config.sensor.port)
+
     async def main() -> None:
-        daemon = Daemon(config, model, args.record)  # type: ignore[arg-type]
+        daemon = Daemon(config, model, args.record, raw_to=args.raw)  # type: ignore[arg-type]
         print(f"tactiled: sensor {config.sensor.id} on {config.sensor.port}, publishing on {daemon.endpoint}", file=sys.stderr, flush=True)
         await daemon.run()
 
@@ -596,6 +622,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record", help="also write every sample received to this .npz, streamed to disk as OUT.npz.journal (tactiled recover) "
                    "and converted on exit; overwrites")
     p.add_argument("--samples", action="store_true", help="also publish the raw samples on samples/<id> (sets publish.samples)")
+    p.add_argument("--raw", metavar="OUT.bin", help="also write every byte read from the port, as read (replay it with tactiled replay OUT.bin)")
+    p.add_argument("--no-wait", action="store_true", help="exit 2 at once if the serial device is missing (default: wait for it)")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("curve-keys", help="create a ZeroMQ CURVE certificate pair (NAME.key, NAME.key_secret) in DIR")
@@ -626,7 +654,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_demo)
 
     p = sub.add_parser("replay", help="run recordings through the daemon's pipeline")
-    p.add_argument("files", nargs="+", help="recordings (.npz) to replay, one after the other")
+    p.add_argument("files", nargs="+", help="recordings (.npz), or raw serial captures (.bin, as run --raw writes: decoded with the "
+                                            "config's sensor), one after the other")
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--json", action="store_true", help="one JSON object per slide")
     p.add_argument("--speed", type=_positive_float, default=None, help="pace at X times real time (default: as fast as possible)")
