@@ -38,6 +38,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
+    from tactiled.ingest import max_gap_for
     from tactiled.record import record
 
     config = _config(args, {"sensor.port": args.port, "sensor.fs": args.fs, "sensor.volts_per_count": args.volts_per_count,
@@ -52,7 +53,8 @@ def cmd_record(args: argparse.Namespace) -> int:
         check_output(args.output, args.force)
     summary = record(config.sensor.port, args.seconds, npz, fs=config.sensor.fs, channels=config.sensor.channels,
                      volts_per_count=config.sensor.volts_per_count, label=args.label, baudrate=config.sensor.baudrate,
-                     retry_max_s=config.serial.retry_max_s, meta={"sensor": config.sensor.id}, force=args.force)
+                     retry_max_s=config.serial.retry_max_s, meta={"sensor": config.sensor.id}, force=args.force,
+                     max_gap=max_gap_for(config.ring.seconds, config.sensor.fs))
     if summary.error is not None:  # a full disk: the capture stopped, the journal keeps what was written
         print(f"tactiled: error: {summary.error}", file=sys.stderr)
         return EXIT_FAIL
