@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -379,18 +380,23 @@ def cmd_curve_keys(args: argparse.Namespace) -> int:
 
 # ---- parser -----------------------------------------------------------------------------------
 
-def _positive_float(text: str) -> float:
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return value
+def _arg_type(name: str, convert: Callable[[str], float], ok: Callable[[float], bool], rule: str) -> Callable[[str], float]:
+    """An argparse ``type``: argparse names it ``name`` in its errors (invalid positive number value: 'abc'), ``rule`` says why a value is refused."""
+    def parse(text: str) -> float:
+        value = convert(text)
+        if not ok(value):
+            raise argparse.ArgumentTypeError(f"must be {rule}, got {text}")
+        return value
+
+    parse.__name__ = name
+    return parse
 
 
-def _probability(text: str) -> float:
-    value = float(text)
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text}")
-    return value
+_positive_float = _arg_type("positive number", float, lambda v: math.isfinite(v) and v > 0, "a finite number > 0")
+_probability = _arg_type("probability", float, lambda v: 0.0 <= v <= 1.0, "in [0, 1]")
+_positive_int = _arg_type("positive integer", int, lambda v: 0 < v <= 2**31, "an integer in 1..2**31")
+_channels = _arg_type("channel count", int, lambda v: 1 <= v <= 8, "in 1..8")
+_seed = _arg_type("seed", int, lambda v: 0 <= v < 2**32, "an integer in 0..2**32-1")
 
 
 SCENE_HELP = ("scene, or scenes joined by commas: hand (default), robot, continuous, fluctuating, hot-gain, one-channel, grating "
@@ -414,7 +420,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="output .npz")
     p.add_argument("--label", help="surface of the whole file")
     p.add_argument("--fs", type=_positive_float, help="sample rate, Hz (overrides sensor.fs)")
-    p.add_argument("--channels", type=int, help="channels (overrides sensor.channels)")
+    p.add_argument("--channels", type=_channels, help="channels (overrides sensor.channels)")
     p.add_argument("--volts-per-count", type=_positive_float, help="ADC scale (overrides sensor.volts_per_count)")
     p.add_argument("--format", choices=("npz", "mcap"), default="npz", help="npz recording (default) or MCAP (converted at the end, as export)")
     p.set_defaults(handler=cmd_record)
@@ -425,26 +431,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config")
     p.add_argument("--model", help="model file for the labels (default: the shipped model, when it fits)")
     p.add_argument("--no-model", action="store_true", help="slides only, no classification")
-    p.add_argument("--batch", type=int, default=None, help="samples per message (default 20: one board frame)")
+    p.add_argument("--batch", type=_positive_int, default=None, help="samples per message (default 20: one board frame)")
     p.set_defaults(handler=cmd_export)
 
     sim = sub.add_parser("simulate", help="the simulated fingertip").add_subparsers(dest="what", required=True, metavar="WHAT")
     p = sim.add_parser("dataset", help="write labelled recordings")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--scene", default=None, help=SCENE_HELP)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0)
     p.add_argument("--surfaces", default=None, help="N spread over the range, or names such as Ra0.44,Ra4.43 (grating: G0.10mm,…) (default: all 15)")
-    p.add_argument("--files-per-surface", type=int, default=4)
-    p.add_argument("--slides-per-file", type=int, default=5, help="slides per file (continuous scenes: one)")
+    p.add_argument("--files-per-surface", type=_positive_int, default=4)
+    p.add_argument("--slides-per-file", type=_positive_int, default=5, help="slides per file (continuous scenes: one)")
     p.add_argument("--mode", choices=("manual", "robot"), default=None, help="older spelling of --scene hand / --scene robot")
     p.add_argument("--fs", type=_positive_float, default=None, help="sample rate, Hz (default: the scene's, 20000 or 2200)")
-    p.add_argument("--channels", type=int, default=None, help="channels (default: the scene's, 2 or 1)")
+    p.add_argument("--channels", type=_channels, default=None, help="channels (default: the scene's, 2 or 1)")
     p.set_defaults(handler=cmd_simulate_dataset)
 
     p = sim.add_parser("figure", help="PNG of one slide per surface class: signal and spectrum")
     p.add_argument("-o", "--output", required=True)
     p.add_argument("--mode", choices=("manual", "robot"), default="manual")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0)
     p.set_defaults(handler=cmd_simulate_figure)
 
     p = sim.add_parser("serial", help="a virtual board streaming frames on a pty")
@@ -459,9 +465,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--unplug-at", default="", help="comma-separated sensor times (s) at which to unplug for --unplug-s")
     p.add_argument("--unplug-s", type=_positive_float, default=0.3)
     p.add_argument("--seconds", type=_positive_float, default=None, help="stop after this much sensor time")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0)
     p.add_argument("--fs", type=_positive_float, default=None, help="sample rate, Hz (default: the scene's)")
-    p.add_argument("--channels", type=int, default=None, help="channels (default: the scene's)")
+    p.add_argument("--channels", type=_channels, default=None, help="channels (default: the scene's)")
     p.add_argument("--log", help="write one JSON line per event sent (slides, faults) to this file")
     p.set_defaults(handler=cmd_simulate_serial)
     p = sub.add_parser("run", help="the daemon: serial port -> roughness labels over ZeroMQ")
@@ -496,7 +502,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="simulated sensor + daemon + monitor")
     p.add_argument("--scene", default="hand", help="the simulated sensor's scene (docs/simulator.md; the shipped model knows hand and robot sliding)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0)
     p.add_argument("--publish", help="endpoint for the demo daemon (default: an ipc socket in a temporary folder)")
     p.add_argument("--headless", action="store_true", help="print one line per label (with the true surface) instead of the monitor")
     p.add_argument("--seconds", type=_positive_float, default=None, help="with --headless: run this long, s (wall time; default 20); exit 0 if labels came")
@@ -510,7 +516,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", help="model file (default: the shipped model, when it fits the recording)")
     p.add_argument("--no-model", action="store_true", help="no classification (labels are null)")
     p.add_argument("--publish", help="also publish the daemon's messages on this ZeroMQ endpoint")
-    p.add_argument("--block", type=int, default=None, help="samples per block fed to the pipeline (default 65536)")
+    p.add_argument("--block", type=_positive_int, default=None, help="samples per block fed to the pipeline (default 65536)")
     p.set_defaults(handler=cmd_replay)
 
     p = sub.add_parser("features", help="feature vectors of every slide")
@@ -525,11 +531,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="config file (detector, spikes, feature settings)")
     p.add_argument("--method", choices=("auto", "paper"), default="auto",
                    help="auto: pick features, classifier and windows by nested grouped CV; paper: the papers' DWT + SFS + ELM (default: auto)")
-    p.add_argument("--folds", type=int, default=5, help="outer cross-validation folds, grouped by file (default: 5)")
-    p.add_argument("--min-slides", type=int, default=2, help="fewest slides a surface needs (default: 2)")
+    p.add_argument("--folds", type=_positive_int, default=5, help="outer cross-validation folds, grouped by file (default: 5)")
+    p.add_argument("--min-slides", type=_positive_int, default=2, help="fewest slides a surface needs (default: 2)")
     p.add_argument("--drop-rare", action="store_true", help="train without surfaces that have too few slides instead of stopping")
     p.add_argument("--scheduler", help="dask.distributed scheduler address (tcp://host:port) to run the cross-validation on a cluster")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed (default: 0)")
     p.set_defaults(handler=cmd_train)
 
     p = sub.add_parser("evaluate", help="the papers' experiments by grouped cross-validation")
@@ -538,9 +544,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config")
     p.add_argument("--experiments", default="abcdefg", help="a: classifiers, b: window grid, c: sampling rate, d: feature count, "
                    "e: clustering, f: error against run time, g: the default method against decision time (default: all)")
-    p.add_argument("--folds", type=int, default=5)
+    p.add_argument("--folds", type=_positive_int, default=5)
     p.add_argument("--quick", action="store_true", help="small grids and fewer features (for tests)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0)
     p.set_defaults(handler=cmd_evaluate)
 
     p = sub.add_parser("score", help="accuracy of a model on ground-truth slides")
