@@ -147,7 +147,7 @@ def softmax(z: FloatArray, temperature: float = 1.0) -> FloatArray:
         temperature = 1.0
     with np.errstate(over="ignore", invalid="ignore"):
         z = np.asarray(z, dtype=np.float64) / temperature
-    z = np.nan_to_num(z, nan=-1e300, posinf=1e300, neginf=-1e300)
+    z = np.clip(np.nan_to_num(z, nan=-1e300, posinf=1e300, neginf=-1e300), -1e300, 1e300)
     z = z - z.max(axis=-1, keepdims=True)
     e = np.exp(z)
     out: FloatArray = e / e.sum(axis=-1, keepdims=True)

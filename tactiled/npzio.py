@@ -115,7 +115,8 @@ class NpzReader:
 
     def _read(self, key: str, info: zipfile.ZipInfo) -> npt.NDArray[Any]:
         if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
-            raise NpzError(key, f"compression method {info.compress_type} refused (NumPy writes stored or deflate members only)")
+            method = {zipfile.ZIP_BZIP2: "bzip2", zipfile.ZIP_LZMA: "LZMA"}.get(info.compress_type, str(info.compress_type))
+            raise NpzError(key, f"compression method {method} refused (NumPy writes stored or deflate members only)")
         with self.zf.open(info) as fh:
             version = np.lib.format.read_magic(fh)
             readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}

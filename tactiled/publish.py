@@ -21,6 +21,7 @@ from tactiled.pipeline import PipelineEvent, SlideEnded, SlideResult, SlideStart
 from tactiled.recording import Recording
 
 M = TypeVar("M", bound=schema.Message)
+MAX_INBOUND_BYTES = 4096
 
 
 class Publisher:
@@ -31,6 +32,9 @@ class Publisher:
         self.socket = self.context.socket(zmq.PUB)
         self.socket.setsockopt(zmq.LINGER, 0)
         self.socket.setsockopt(zmq.SNDHWM, 10_000)
+        # a PUB socket receives its subscribers' SUBSCRIBE messages: a peer sending a longer one is disconnected,
+        # so a 16 MB topic prefix can never grow the daemon (topics are "<type>/<sensor id>", under 100 bytes)
+        self.socket.setsockopt(zmq.MAXMSGSIZE, MAX_INBOUND_BYTES)
         self.authenticator: Any = None
         if config.curve_secret_key_file:
             self._curve(config)

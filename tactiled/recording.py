@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -125,9 +126,9 @@ def _validate(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
         rec.label = str(_scalar(path, a, "label", "U"))
     if "meta" in a:
         try:
-            meta = load_json_bounded(_scalar(path, a, "meta", "U"), "JSON")
+            meta = load_json_bounded(_scalar(path, a, "meta", "U"), "meta")
         except ValueError as exc:
-            raise _fail(path, "meta", str(exc)) from None
+            raise RecordingError(f"{path}: {exc}") from None
         if not isinstance(meta, dict):
             raise _fail(path, "meta", "must be a JSON object")
         rec.meta = meta
@@ -194,13 +195,17 @@ def save_recording(path: str | Path, rec: Recording) -> None:
 
 
 def atomic_savez(path: str | Path, arrays: dict[str, Any]) -> None:
-    """``np.savez`` to a temporary file beside ``path``, then rename over it."""
+    """``arrays`` as an ``.npz`` (what ``np.savez`` writes, never pickle) in a temporary file beside ``path``, then renamed over it."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
     done = False
     try:
         with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
+            # np.savez(fh, **arrays) cannot take a key named "file" (its own first parameter; feature files have one)
+            with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+                for key, value in arrays.items():
+                    with zf.open(f"{key}.npy", "w", force_zip64=True) as member:
+                        np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
             fh.flush()
             os.fsync(fh.fileno())
         umask = os.umask(0)
