@@ -1,7 +1,8 @@
 """Detection on simulated scenes: recall, precision and boundary errors of the daemon's detector.
 
-Usage: python bench/detection.py [--scenes hand,robot,...] [--files-per-surface 2] [--slides-per-file 3] [--out DIR]
-Prints one row per scene (markdown). Recordings are simulated into --out (a temporary folder by default).
+Usage: python bench/detection.py [--scenes hand,robot,...] [--files-per-surface 2] [--slides-per-file 3] [--out DIR] [--reuse]
+Prints one row per scene (markdown). Recordings are simulated into --out (a temporary folder by default);
+``--reuse`` takes the recordings already in --out (of an earlier run with the same arguments) instead.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ def main() -> None:
     ap.add_argument("--slides-per-file", type=int, default=3)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--reuse", action="store_true", help="use the recordings an earlier run left in --out")
     args = ap.parse_args()
     specs = [s for part in args.scenes.split(";") for s in ([part] if "," in part and part not in DEFAULT.split(";")[0] else part.split(","))]
     specs = [s for s in args.scenes.replace(";", "|").split("|")]
@@ -38,8 +40,11 @@ def main() -> None:
     print("| scene | true slides | detections | recall | precision | start error median / p90, s | end error median / p90, s |")
     print("|---|---|---|---|---|---|---|")
     for spec in specs:
-        paths = write_dataset(root / spec.replace(",", "+"), scene=spec, seed=args.seed, files_per_surface=args.files_per_surface,
-                              slides_per_file=args.slides_per_file)
+        folder = root / spec.replace(",", "+")
+        paths = sorted(folder.glob("*.npz")) if args.reuse else []
+        if not paths:
+            paths = write_dataset(folder, scene=spec, seed=args.seed, files_per_surface=args.files_per_surface,
+                                  slides_per_file=args.slides_per_file)
         n_true = n_det = paired = 0
         starts, ends = [], []
         for p in paths:

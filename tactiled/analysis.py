@@ -153,17 +153,26 @@ def clipped_fraction(samples: npt.NDArray[Any]) -> float:
     if n < 3:
         return 0.0
     x = np.asarray(samples)
-    hits = np.zeros(n, dtype=bool)
-    if x.dtype == np.int16:
-        hits |= np.any((x >= 32767) | (x <= -32768), axis=1)
     integer = np.issubdtype(x.dtype, np.integer)
-    for rail in (x.max(axis=0), x.min(axis=0)):
-        at = x == rail
-        held = at[:-2] & at[1:-1] & at[2:]  # three in a row
-        usable = held.any(axis=0) & (np.abs(rail.astype(np.float64)) >= (1024 if integer else 0)) & (x.max(axis=0) > x.min(axis=0))
-        if usable.any():
-            hits |= np.any(at[:, usable], axis=1)
-    return float(np.mean(hits))
+    rows: list[npt.NDArray[np.bool_]] = []  # per channel and rail: the rows where it sits at the rail
+    for c in range(x.shape[1]):
+        col = x[:, c]
+        high, low = col.max(), col.min()  # per column: numpy reduces (n, C) along axis 0 ~15x slower
+        if x.dtype == np.int16 and (high >= 32767 or low <= -32768):
+            rows.append((col >= 32767) | (col <= -32768))
+        if high == low:
+            continue
+        for rail in (high, low):
+            if integer and abs(int(rail)) < 1024:
+                continue
+            at = col == rail
+            # held for three samples in a row (a single extreme sample, the usual case, is not a rail)
+            if np.count_nonzero(at) >= 3 and bool(np.any(at[:-2] & at[1:-1] & at[2:])):
+                rows.append(at)
+    if not rows:
+        return 0.0
+    hits = rows[0] if len(rows) == 1 else np.logical_or.reduce(rows)
+    return np.count_nonzero(hits) / n
 
 
 class Analyser:

@@ -12,6 +12,7 @@ import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any, NoReturn
 
 from tactiled import __version__
 from tactiled.config import Config, load_config
@@ -45,15 +46,32 @@ def cmd_record(args: argparse.Namespace) -> int:
         raise TactiledError("--seconds: must be > 0")
     # --format mcap: record the .npz as usual beside the output, then convert it (the same as tactiled export)
     npz = args.output if args.format == "npz" else f"{args.output}.npz"
+    if args.format == "mcap":
+        from tactiled.record import check_output
+
+        check_output(args.output, args.force)
     summary = record(config.sensor.port, args.seconds, npz, fs=config.sensor.fs, channels=config.sensor.channels,
                      volts_per_count=config.sensor.volts_per_count, label=args.label, baudrate=config.sensor.baudrate,
-                     retry_max_s=config.serial.retry_max_s, meta={"sensor": config.sensor.id})
+                     retry_max_s=config.serial.retry_max_s, meta={"sensor": config.sensor.id}, force=args.force)
+    if summary.error is not None:  # a full disk: the capture stopped, the journal keeps what was written
+        print(f"tactiled: error: {summary.error}", file=sys.stderr)
+        return EXIT_FAIL
     if args.format == "mcap":
         import os
 
         _export(npz, args.output, config, None, explicit_model=True)
         os.unlink(npz)
     print(f"{args.output}: {summary.line()}")
+    return EXIT_OK
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    from tactiled.journal import recover
+    from tactiled.record import check_output
+
+    check_output(args.output, args.force)
+    result = recover(args.journal, args.output, {"recovered_from": str(args.journal)})
+    print(f"{args.output}: {result.line()}")
     return EXIT_OK
 
 
@@ -120,6 +138,24 @@ def _model_for(path: str | None, fs: float, channels: int, where: str, explicit:
     return None
 
 
+def _replay_capture(path: str, config: Config, args: argparse.Namespace, publisher: Any) -> tuple[list[Any], Any, Any]:
+    """``replay x.bin``: raw serial bytes through the daemon's ingest core (config.sensor: fs, channels, scale)."""
+    from tactiled.player import capture_recording_stub, read_chunks
+    from tactiled.replay import replay_bytes
+
+    s = config.sensor
+    model = _model_for(args.model, s.fs, s.channels, path, explicit=args.no_model)
+    on_event = None
+    if publisher is not None:
+        stub = capture_recording_stub(path, s.fs, s.channels, s.volts_per_count)
+        on_event = publisher.replay_handler(s.id, stub, getattr(model, "fingerprint", ""), args.speed)
+    try:
+        results, rec = replay_bytes(read_chunks(path), config, model, speed=args.speed, on_event=on_event, meta={"capture": path})
+    except OSError as exc:
+        raise TactiledError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    return results, rec, model
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
     import json
 
@@ -133,20 +169,24 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.publish:
         from tactiled.publish import Publisher
 
-        publisher = Publisher(config.override({"publish.endpoint": args.publish}).publish)
+        publisher = Publisher(config.override({"publish.endpoint": args.publish}).publish, see_subscribers=True)
+        publisher.wait_subscriber(args.wait_subscriber)
     try:
         for path in args.files:
             try:
-                rec = load_recording(path)
+                rec = load_recording(path) if not path.endswith(".bin") else None
             except RecordingError as exc:
                 print(f"tactiled: error: {exc}", file=sys.stderr)
                 failed += 1
                 continue
-            model = _model_for(args.model, rec.fs, rec.channels, path, explicit=args.no_model)
-            on_event = None
-            if publisher is not None:
-                on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""), args.speed)
-            results = replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event)
+            if rec is None:  # a raw capture: through the decoder, as the daemon read it
+                results, rec, model = _replay_capture(path, config, args, publisher)
+            else:
+                model = _model_for(args.model, rec.fs, rec.channels, path, explicit=args.no_model)
+                on_event = None
+                if publisher is not None:
+                    on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""), args.speed)
+                results = replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event)
             for r, provisional in by_slide(results):
                 obj = result_record(path, rec, r, provisional, config.sensor.id, getattr(model, "fingerprint", ""))
                 if args.json:
@@ -242,8 +282,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         if model is None:
             raise TactiledError("no model fits this sensor (train one with tactiled train, or pass --no-model)")
 
+    if args.no_wait:
+        from tactiled.serialsource import check_port
+
+        check_port(config.sensor.port)
+
     async def main() -> None:
-        daemon = Daemon(config, model, args.record)  # type: ignore[arg-type]
+        daemon = Daemon(config, model, args.record, raw_to=args.raw)  # type: ignore[arg-type]
         print(f"tactiled: sensor {config.sensor.id} on {config.sensor.port}, publishing on {daemon.endpoint}", file=sys.stderr, flush=True)
         await daemon.run()
 
@@ -380,182 +425,319 @@ def cmd_curve_keys(args: argparse.Namespace) -> int:
 
 # ---- parser -----------------------------------------------------------------------------------
 
-def _arg_type(name: str, convert: Callable[[str], float], ok: Callable[[float], bool], rule: str) -> Callable[[str], float]:
-    """An argparse ``type``: argparse names it ``name`` in its errors (invalid positive number value: 'abc'), ``rule`` says why a value is refused."""
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Help that shows each option's default (when it has a value worth showing) and keeps examples as written."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "default" in text or action.default is None or action.default is False or action.default in ("", argparse.SUPPRESS) \
+                or not action.option_strings:
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose help shows defaults and whose errors are one line (subcommands inherit both)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+EXPERIMENTS = "abcdefg"
+
+
+def _float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = _float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
+def _float_in(low: float, high: float, name: str) -> Callable[[str], float]:
+    """An argparse type: a number in ``[low, high]``."""
+
     def parse(text: str) -> float:
-        value = convert(text)
-        if not ok(value):
-            raise argparse.ArgumentTypeError(f"must be {rule}, got {text}")
+        value = _float(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be in [{low:g}, {high:g}], got {text}")
         return value
 
     parse.__name__ = name
     return parse
 
 
-_positive_float = _arg_type("positive number", float, lambda v: math.isfinite(v) and v > 0, "a finite number > 0")
-_probability = _arg_type("probability", float, lambda v: 0.0 <= v <= 1.0, "in [0, 1]")
-_positive_int = _arg_type("positive integer", int, lambda v: 0 < v <= 2**31, "an integer in 1..2**31")
-_channels = _arg_type("channel count", int, lambda v: 1 <= v <= 8, "in 1..8")
-_seed = _arg_type("seed", int, lambda v: 0 <= v < 2**32, "an integer in 0..2**32-1")
+def _int_in(low: int, high: int = 2**31) -> Callable[[str], int]:
+    """An argparse type: an integer in ``low..high`` (an upper bound keeps every count and seed a machine integer)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be an integer {'>= ' + str(low) if value < low else '<= ' + str(high)}, got {text}")
+        return value
+
+    parse.__name__ = f"integer in {low}..{high}"
+    return parse
 
 
+def _experiments(text: str) -> str:
+    unknown = sorted(set(text) - set(EXPERIMENTS))
+    if unknown or not text:
+        raise argparse.ArgumentTypeError(f"letters from {EXPERIMENTS} expected, got {text!r}")
+    return text
+
+
+_float.__name__ = "number"
+_positive_float.__name__ = "number > 0"
+_experiments.__name__ = "experiment letters"
+_count, _seed, _channels = _int_in(1), _int_in(0, 2**32 - 1), _int_in(1, 8)
+_probability, _wait_s = _float_in(0.0, 1.0, "probability"), _float_in(0.0, 3600.0, "seconds")
+
+CONFIG_HELP = "TOML config file (every key is explained in configs/tactiled.toml; default: the built-in defaults)"
 SCENE_HELP = ("scene, or scenes joined by commas: hand (default), robot, continuous, fluctuating, hot-gain, one-channel, grating "
               "(docs/simulator.md), e.g. continuous,one-channel")
+SURFACES_HELP = ("N surfaces spread over the range, or names such as Ra0.44,Ra4.43 (the grating scene: G0.10mm,G1.00mm) "
+                 "(default: all 15)")
+CONNECT_HELP = "daemon endpoint to subscribe to (default: publish.endpoint of --config, or the built-in default)"
+SEED_HELP = "random seed"
+MODEL_HELP = "model file (default: the shipped model, when it fits the recording's rate and channels)"
+
+# every command's example, shown at the end of its --help (keys: the command's words after "tactiled")
+EXAMPLES: dict[str, str] = {
+    "": "tactiled demo --headless --seconds 20",
+    "check-config": "tactiled check-config configs/tactiled.toml",
+    "record": "tactiled record --port /dev/ttyACM0 --seconds 60 --label P120 -o p120_01.npz",
+    "recover": "tactiled recover p120_01.npz.journal -o p120_01.npz",
+    "export": "tactiled export p120_01.npz -o p120_01.mcap",
+    "simulate": "tactiled simulate dataset --out data/sim --surfaces 5",
+    "simulate dataset": "tactiled simulate dataset --scene robot --out data/sim --surfaces Ra0.44,Ra1.00,Ra4.43 --files-per-surface 2",
+    "simulate figure": "tactiled simulate figure -o slides.png",
+    "simulate serial": "tactiled simulate serial --link /tmp/tactile0 --drop 0.01 --unplug-at 30",
+    "run": "tactiled run --config my.toml --model my_model.npz",
+    "curve-keys": "tactiled curve-keys keys/ daemon",
+    "monitor": "tactiled monitor --connect tcp://127.0.0.1:7350",
+    "lsl": "tactiled lsl --connect tcp://127.0.0.1:7350",
+    "ros2": "tactiled ros2 --connect tcp://127.0.0.1:7350 --sensor-id fingertip0",
+    "demo": "tactiled demo --scene robot",
+    "replay": "tactiled replay --model my_model.npz data/sim/hand_Ra0.44_00.npz",
+    "features": "tactiled features data/sim/*.npz -o features.npz",
+    "train": "tactiled train data/sim/*.npz -o my_model.npz",
+    "evaluate": "tactiled evaluate data/sim/*.npz --report report/",
+    "score": "tactiled score my_model.npz held_out/*.npz",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tactiled", description="Tactile roughness sensing daemon and toolkit.")
+    parser = Parser(prog="tactiled", description="Tactile roughness sensing daemon and toolkit.")
     parser.add_argument("--version", action="version", version=f"tactiled {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", help="what to do (each command has --help)")
 
     p = sub.add_parser("check-config", help="validate a config file")
-    p.add_argument("file")
+    p.add_argument("file", help="TOML config file to check")
     p.set_defaults(handler=cmd_check_config)
 
     p = sub.add_parser("record", help="record serial frames into a .npz recording")
-    p.add_argument("--config", help="TOML config (default: built-in defaults)")
+    p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--port", help="serial device path (overrides sensor.port)")
     p.add_argument("--seconds", type=_positive_float, required=True, help="sensor time to record, s")
-    p.add_argument("-o", "--output", required=True, help="output .npz")
-    p.add_argument("--label", help="surface of the whole file")
+    p.add_argument("-o", "--output", required=True, help="recording file to write (.npz, or .mcap with --format mcap)")
+    p.add_argument("--label", help="surface of the whole file (its ground truth for train and score)")
     p.add_argument("--fs", type=_positive_float, help="sample rate, Hz (overrides sensor.fs)")
     p.add_argument("--channels", type=_channels, help="channels (overrides sensor.channels)")
-    p.add_argument("--volts-per-count", type=_positive_float, help="ADC scale (overrides sensor.volts_per_count)")
-    p.add_argument("--format", choices=("npz", "mcap"), default="npz", help="npz recording (default) or MCAP (converted at the end, as export)")
+    p.add_argument("--volts-per-count", type=_positive_float, help="ADC scale, V per count (overrides sensor.volts_per_count)")
+    p.add_argument("--format", choices=("npz", "mcap"), default="npz", help="npz recording, or MCAP (converted at the end, as export)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.set_defaults(handler=cmd_record)
+
+    p = sub.add_parser("recover", help="turn the journal a killed recorder left (OUTPUT.journal) into a .npz recording")
+    p.add_argument("journal", help="the journal (what record -o OUT.npz or run --record OUT.npz leave as OUT.npz.journal)")
+    p.add_argument("-o", "--output", required=True, help="output .npz")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    p.set_defaults(handler=cmd_recover)
 
     p = sub.add_parser("export", help="a recording as an MCAP file (samples, ground-truth slides, labels) for Foxglove / PlotJuggler")
     p.add_argument("file", help="recording .npz")
     p.add_argument("-o", "--output", required=True, help="output .mcap")
-    p.add_argument("--config")
-    p.add_argument("--model", help="model file for the labels (default: the shipped model, when it fits)")
+    p.add_argument("--config", help=CONFIG_HELP)
+    p.add_argument("--model", help=MODEL_HELP)
     p.add_argument("--no-model", action="store_true", help="slides only, no classification")
-    p.add_argument("--batch", type=_positive_int, default=None, help="samples per message (default 20: one board frame)")
+    p.add_argument("--batch", type=_count, default=None, help="samples per message (default 20: one board frame)")
     p.set_defaults(handler=cmd_export)
 
-    sim = sub.add_parser("simulate", help="the simulated fingertip").add_subparsers(dest="what", required=True, metavar="WHAT")
+    sim = sub.add_parser("simulate", help="the simulated fingertip").add_subparsers(dest="what", required=True, metavar="WHAT",
+                                                                                   help="what to simulate (each has --help)")
     p = sim.add_parser("dataset", help="write labelled recordings")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--scene", default=None, help=SCENE_HELP)
-    p.add_argument("--seed", type=_seed, default=0)
-    p.add_argument("--surfaces", default=None, help="N spread over the range, or names such as Ra0.44,Ra4.43 (grating: G0.10mm,…) (default: all 15)")
-    p.add_argument("--files-per-surface", type=_positive_int, default=4)
-    p.add_argument("--slides-per-file", type=_positive_int, default=5, help="slides per file (continuous scenes: one)")
+    p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
+    p.add_argument("--surfaces", default=None, help=SURFACES_HELP)
+    p.add_argument("--files-per-surface", type=_count, default=4, help="recordings per surface")
+    p.add_argument("--slides-per-file", type=_count, default=5, help="slides per file (continuous scenes: one long slide)")
     p.add_argument("--mode", choices=("manual", "robot"), default=None, help="older spelling of --scene hand / --scene robot")
     p.add_argument("--fs", type=_positive_float, default=None, help="sample rate, Hz (default: the scene's, 20000 or 2200)")
     p.add_argument("--channels", type=_channels, default=None, help="channels (default: the scene's, 2 or 1)")
     p.set_defaults(handler=cmd_simulate_dataset)
 
     p = sim.add_parser("figure", help="PNG of one slide per surface class: signal and spectrum")
-    p.add_argument("-o", "--output", required=True)
-    p.add_argument("--mode", choices=("manual", "robot"), default="manual")
-    p.add_argument("--seed", type=_seed, default=0)
+    p.add_argument("-o", "--output", required=True, help="PNG file to write")
+    p.add_argument("--mode", choices=("manual", "robot"), default="manual", help="hand (manual) or robot sliding")
+    p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
     p.set_defaults(handler=cmd_simulate_figure)
 
     p = sim.add_parser("serial", help="a virtual board streaming frames on a pty")
-    p.add_argument("--link", help="keep this symlink pointing at the pty")
+    p.add_argument("--link", help="keep this symlink pointing at the pty (removed on exit)")
     p.add_argument("--scene", default=None, help=SCENE_HELP)
-    p.add_argument("--surfaces", default=None, help="N spread over the range, or names such as Ra0.44,Ra4.43 (default: all 15)")
+    p.add_argument("--surfaces", default=None, help=SURFACES_HELP)
     p.add_argument("--mode", choices=("manual", "robot"), default=None, help="older spelling of --scene hand / --scene robot")
     p.add_argument("--speed", type=_positive_float, default=1.0, help="times real time")
     p.add_argument("--corrupt", type=_probability, default=0.0, help="probability a frame is corrupted")
     p.add_argument("--drop", type=_probability, default=0.0, help="probability a frame is dropped")
     p.add_argument("--garbage", type=_probability, default=0.0, help="probability of garbage before a frame")
     p.add_argument("--unplug-at", default="", help="comma-separated sensor times (s) at which to unplug for --unplug-s")
-    p.add_argument("--unplug-s", type=_positive_float, default=0.3)
-    p.add_argument("--seconds", type=_positive_float, default=None, help="stop after this much sensor time")
-    p.add_argument("--seed", type=_seed, default=0)
+    p.add_argument("--unplug-s", type=_positive_float, default=0.3, help="how long each unplug lasts, s of sensor time")
+    p.add_argument("--seconds", type=_positive_float, default=None, help="stop after this much sensor time, s (default: run until stopped)")
+    p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
     p.add_argument("--fs", type=_positive_float, default=None, help="sample rate, Hz (default: the scene's)")
     p.add_argument("--channels", type=_channels, default=None, help="channels (default: the scene's)")
     p.add_argument("--log", help="write one JSON line per event sent (slides, faults) to this file")
     p.set_defaults(handler=cmd_simulate_serial)
     p = sub.add_parser("run", help="the daemon: serial port -> roughness labels over ZeroMQ")
-    p.add_argument("--config", help="TOML config (default: built-in defaults)")
+    p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--port", help="serial device (overrides sensor.port)")
     p.add_argument("--model", help="model file (overrides model.path; default: the shipped model)")
     p.add_argument("--no-model", action="store_true", help="publish slides and status only")
     p.add_argument("--publish", help="ZeroMQ endpoint to bind (overrides publish.endpoint)")
     p.add_argument("--sensor-id", help="sensor id in topics (overrides sensor.id)")
-    p.add_argument("--record", help="also keep every sample received and write it as a recording on exit (memory grows 80 kB/s)")
+    p.add_argument("--record", help="also write every sample received to this .npz, streamed to disk as OUT.npz.journal (tactiled recover) "
+                   "and converted on exit; overwrites")
     p.add_argument("--samples", action="store_true", help="also publish the raw samples on samples/<id> (sets publish.samples)")
+    p.add_argument("--raw", metavar="OUT.bin", help="also write every byte read from the port, as read (replay it with tactiled replay OUT.bin)")
+    p.add_argument("--no-wait", action="store_true", help="exit 2 at once if the serial device is missing (default: wait for it)")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("curve-keys", help="create a ZeroMQ CURVE certificate pair (NAME.key, NAME.key_secret) in DIR")
-    p.add_argument("dir")
-    p.add_argument("name")
+    p.add_argument("dir", help="folder for the certificates (created if missing)")
+    p.add_argument("name", help="certificate name: NAME.key (public) and NAME.key_secret")
     p.set_defaults(handler=cmd_curve_keys)
 
     p = sub.add_parser("monitor", help="terminal view of a running daemon")
-    p.add_argument("--connect", help="daemon endpoint (default: publish.endpoint of --config or the default)")
-    p.add_argument("--config")
+    p.add_argument("--connect", help=CONNECT_HELP)
+    p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--truth", help="a virtual board's log (simulate serial --log): show the true surface of each slide")
     p.set_defaults(handler=cmd_monitor)
 
     for name, help_, handler in (("lsl", "Lab Streaming Layer outlets of a daemon's raw samples and labels (tactiled[lsl])", cmd_lsl),
                                  ("ros2", "ROS 2 topics of a daemon's labels, status and raw samples (tactiled[ros2])", cmd_ros2)):
         p = sub.add_parser(name, help=help_)
-        p.add_argument("--connect", help="daemon endpoint (default: publish.endpoint of --config or the default)")
-        p.add_argument("--config")
+        p.add_argument("--connect", help=CONNECT_HELP)
+        p.add_argument("--config", help=CONFIG_HELP)
         p.add_argument("--sensor-id", help="sensor to bridge (default: sensor.id of --config)")
         p.set_defaults(handler=handler)
 
     p = sub.add_parser("demo", help="simulated sensor + daemon + monitor")
     p.add_argument("--scene", default="hand", help="the simulated sensor's scene (docs/simulator.md; the shipped model knows hand and robot sliding)")
-    p.add_argument("--seed", type=_seed, default=0)
+    p.add_argument("--seed", type=_seed, default=0, help="the simulated sensor's random seed")
     p.add_argument("--publish", help="endpoint for the demo daemon (default: an ipc socket in a temporary folder)")
     p.add_argument("--headless", action="store_true", help="print one line per label (with the true surface) instead of the monitor")
     p.add_argument("--seconds", type=_positive_float, default=None, help="with --headless: run this long, s (wall time; default 20); exit 0 if labels came")
     p.set_defaults(handler=cmd_demo)
 
     p = sub.add_parser("replay", help="run recordings through the daemon's pipeline")
-    p.add_argument("files", nargs="+")
-    p.add_argument("--config")
+    p.add_argument("files", nargs="+", help="recordings (.npz), or raw serial captures (.bin, as run --raw writes: decoded with the "
+                                            "config's sensor), one after the other")
+    p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--json", action="store_true", help="one JSON object per slide")
     p.add_argument("--speed", type=_positive_float, default=None, help="pace at X times real time (default: as fast as possible)")
-    p.add_argument("--model", help="model file (default: the shipped model, when it fits the recording)")
+    p.add_argument("--model", help=MODEL_HELP)
     p.add_argument("--no-model", action="store_true", help="no classification (labels are null)")
     p.add_argument("--publish", help="also publish the daemon's messages on this ZeroMQ endpoint")
-    p.add_argument("--block", type=_positive_int, default=None, help="samples per block fed to the pipeline (default 65536)")
+    p.add_argument("--wait-subscriber", type=_wait_s, default=1.0, metavar="S",
+                   help="with --publish: wait up to S s for a first subscriber before sending, so that one already started misses "
+                        "nothing (0: send at once)")
+    p.add_argument("--block", type=_count, default=None, help="samples per block fed to the pipeline (default 65536)")
     p.set_defaults(handler=cmd_replay)
 
     p = sub.add_parser("features", help="feature vectors of every slide")
-    p.add_argument("files", nargs="+")
-    p.add_argument("-o", "--output", required=True)
-    p.add_argument("--config")
+    p.add_argument("files", nargs="+", help="recordings (.npz) whose slides to analyse")
+    p.add_argument("-o", "--output", required=True, help="features file to write (.npz: one row per window, docs/features.md)")
+    p.add_argument("--config", help=CONFIG_HELP)
     p.set_defaults(handler=cmd_features)
 
     p = sub.add_parser("train", help="train a model from labelled recordings (finds what works on them)")
     p.add_argument("files", nargs="+", help="labelled recordings (.npz): per-slide ground truth or a file-level label")
     p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
-    p.add_argument("--config", help="config file (detector, spikes, feature settings)")
-    p.add_argument("--method", choices=("auto", "paper"), default="auto",
-                   help="auto: pick features, classifier and windows by nested grouped CV; paper: the papers' DWT + SFS + ELM (default: auto)")
-    p.add_argument("--folds", type=_positive_int, default=5, help="outer cross-validation folds, grouped by file (default: 5)")
-    p.add_argument("--min-slides", type=_positive_int, default=2, help="fewest slides a surface needs (default: 2)")
+    p.add_argument("--config", help="config file (detector, spikes, feature settings; default: the built-in defaults)")
+    p.add_argument("--method", choices=("auto", "quick", "paper"), default="auto",
+                   help="auto: pick features, classifier and windows by nested grouped CV; quick: a small search for a first model in "
+                        "seconds (band energies and texture, linear and kNN); paper: the papers' DWT + SFS + ELM")
+    p.add_argument("--folds", type=_int_in(2, 1000), default=5, help="outer cross-validation folds, grouped by file")
+    p.add_argument("--min-slides", type=_count, default=2, help="fewest slides a surface needs")
     p.add_argument("--drop-rare", action="store_true", help="train without surfaces that have too few slides instead of stopping")
     p.add_argument("--scheduler", help="dask.distributed scheduler address (tcp://host:port) to run the cross-validation on a cluster")
-    p.add_argument("--seed", type=_seed, default=0, help="random seed (default: 0)")
+    p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP + " (the same files, options and seed give the same model file)")
     p.set_defaults(handler=cmd_train)
 
     p = sub.add_parser("evaluate", help="the papers' experiments by grouped cross-validation")
-    p.add_argument("files", nargs="+")
+    p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth, all of one rate and channel count")
     p.add_argument("--report", required=True, help="output folder: report.md, report.json, PNG figures")
-    p.add_argument("--config")
-    p.add_argument("--experiments", default="abcdefg", help="a: classifiers, b: window grid, c: sampling rate, d: feature count, "
-                   "e: clustering, f: error against run time, g: the default method against decision time (default: all)")
-    p.add_argument("--folds", type=_positive_int, default=5)
+    p.add_argument("--config", help=CONFIG_HELP)
+    p.add_argument("--experiments", type=_experiments, default=EXPERIMENTS,
+                   help="a: classifiers, b: window grid, c: sampling rate, d: feature count, e: clustering, f: error against run time, "
+                        "g: the default method against decision time")
+    p.add_argument("--folds", type=_int_in(2, 1000), default=5, help="cross-validation folds, grouped by file")
     p.add_argument("--quick", action="store_true", help="small grids and fewer features (for tests)")
-    p.add_argument("--seed", type=_seed, default=0)
+    p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
     p.set_defaults(handler=cmd_evaluate)
 
     p = sub.add_parser("score", help="accuracy of a model on ground-truth slides")
-    p.add_argument("model")
-    p.add_argument("files", nargs="+")
-    p.add_argument("--config")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("model", help="model file (.npz) to score")
+    p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth or a file label, unseen in training")
+    p.add_argument("--config", help=CONFIG_HELP)
+    p.add_argument("--json", action="store_true", help="the report as one JSON object")
     p.set_defaults(handler=cmd_score)
+    _describe(parser)
     return parser
+
+
+def subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """Every parser under ``parser`` (itself under ""), keyed by its words after the program name, in help order."""
+    out = {"": parser}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                out.update({f"{name} {k}".strip(): p for k, p in subcommands(child).items()})
+    return out
+
+
+def _describe(parser: argparse.ArgumentParser) -> None:
+    """Give every subcommand its one-line help as description and its example (:data:`EXAMPLES`) as epilog."""
+    for words, p in subcommands(parser).items():
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for choice in action._choices_actions:
+                    child = action.choices[choice.dest]
+                    child.description = child.description or choice.help
+        example = EXAMPLES.get(words)
+        codes = "exit codes: 0 ok, 1 failure, 2 usage or bad input\n\n" if not words else ""
+        if example:
+            p.epilog = f"{codes}example:\n  {example}"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

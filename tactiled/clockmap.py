@@ -8,6 +8,11 @@ through the earliest arrival of all. So mapped times never lie after an arrival,
 track the board's crystal (its true rate) rather than the nominal one. What stays is the
 smallest transport delay (USB + read interval), a constant of a few ms.
 
+A host stall (a busy machine) only delays arrivals, which the envelope ignores. The line is
+dropped and measured again only when arrivals stay more than ``reset_s`` after their mapped
+time for ``persist_s`` on end (a board restart that continues the timeline); an arrival before
+its mapped time (a forward jump, or a board faster than nominal) moves the line down at once.
+
 Driven by the host clock by nature (it measures it); the pipeline never uses it.
 """
 
@@ -23,11 +28,13 @@ MIN_SPAN_S = 2.0  # the rate is the nominal one until arrivals span this long
 class ClockMap:
     """Feed :meth:`observe` with (index one past the newest sample received, host monotonic time)."""
 
-    def __init__(self, fs_nominal: float, span_s: float = 30.0, reset_s: float = 0.5) -> None:
+    def __init__(self, fs_nominal: float, span_s: float = 30.0, reset_s: float = 0.5, persist_s: float = 1.0) -> None:
         self.fs_nominal = fs_nominal
         self.fs = fs_nominal
         self.span_s = span_s
         self.reset_s = reset_s
+        self.persist_s = persist_s
+        self._late_since: float | None = None  # host time of the first of a run of arrivals later than reset_s
         self._points: deque[tuple[int, float]] = deque()  # (index, t) earliest arrival per bucket
         self._bucket: tuple[int, float] | None = None
         self._bucket_t0 = 0.0
@@ -40,13 +47,16 @@ class ClockMap:
 
     def observe(self, end_index: int, t_mono: float) -> None:
         """Samples up to ``end_index`` (exclusive) had arrived by ``t_mono``."""
-        if self._offset is not None and t_mono - self.mono(end_index) > self.reset_s:
-            # samples arrive far later than their indices say (a board restart continues the timeline): start again
-            self._points.clear()
-            self._bucket = None
-            self._offset = None
-            self.fs = self.fs_nominal
-            self.resets += 1
+        if self._offset is not None:
+            late = t_mono - self.mono(end_index)
+            if late > self.reset_s:
+                self._late_since = t_mono if self._late_since is None else self._late_since
+                if t_mono - self._late_since < self.persist_s:
+                    return  # a stall so far: a late arrival says nothing new about the line
+            else:
+                self._late_since = None
+            if late > self.reset_s:
+                self._reset()
         if self._bucket is None:
             self._bucket, self._bucket_t0 = (end_index, t_mono), t_mono
         elif self._delay(end_index, t_mono) < self._delay(*self._bucket):
@@ -59,6 +69,14 @@ class ClockMap:
             self._fit()
         elif self._offset is not None:
             self._offset = min(self._offset, t_mono - end_index / self.fs)
+
+    def _reset(self) -> None:
+        self._points.clear()
+        self._bucket = None
+        self._offset = None
+        self._late_since = None
+        self.fs = self.fs_nominal
+        self.resets += 1
 
     def _delay(self, index: int, t: float) -> float:
         return t - index / self.fs_nominal

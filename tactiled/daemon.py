@@ -1,10 +1,13 @@
 """``tactiled run``: one asyncio daemon per sensor.
 
-Tasks in one TaskGroup: ``ingest`` (serial bytes → decoder → pipeline → publisher; blocks
-that complete an analysis window run in a worker thread so feature extraction never
-stalls the loop, detection-only blocks run inline, cheaper than a thread hop), ``status`` (at
-least once a second, and the systemd watchdog), ``stop`` (SIGTERM / SIGINT). The serial
-source is a reader thread (tactiled.serialsource) that survives unplugs.
+Tasks in one TaskGroup: ``reader`` (tactiled.serialsource: a thread reads the port once per
+``serial.read_interval_s`` and hands the loop its bytes once per ``serial.batch_s``; it
+survives unplugs and any exception), whose bytes go through the ingest core (tactiled.ingest: decoder, channel and gap policies,
+batches of ``serial.batch_s``) into the pipeline and the publisher: batches that complete an
+analysis window run in a worker thread so feature extraction never stalls the loop,
+detection-only batches run inline, cheaper than a thread hop; ``status`` (at least once a
+second, and the systemd watchdog, fed only while the reader is alive); ``stop`` (SIGTERM,
+SIGINT, SIGHUP). A finite source (tests) ends the stream explicitly and the daemon stops.
 """
 
 from __future__ import annotations
@@ -15,7 +18,9 @@ import os
 import signal
 import socket
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
+from typing import BinaryIO, Protocol
 
 import numpy as np
 from tactiled_client import schema
@@ -23,13 +28,13 @@ from tactiled_client import schema
 from tactiled import __version__
 from tactiled.clockmap import ClockMap
 from tactiled.config import Config
-from tactiled.frames import FrameDecoder
+from tactiled.frames import Frame
+from tactiled.ingest import Batch, Ingest, feed_pipeline, max_gap_for
 from tactiled.model import Model
 from tactiled.pipeline import Pipeline, PipelineEvent
 from tactiled.publish import Publisher
 from tactiled.rawbatch import raw_batches
-from tactiled.record import FrameAssembler
-from tactiled.recording import Recording, save_recording
+from tactiled.record import RecordingSink
 from tactiled.serialsource import CONNECTED, SerialSource
 
 log = logging.getLogger(__name__)
@@ -50,174 +55,165 @@ def sd_notify(message: str) -> None:
             log.warning("sd_notify failed: %s", exc)
 
 
-PROCESS_S = 0.04  # the pipeline runs on batches of at least this much sensor time, s
-
-
-def group_blocks(items: list[tuple[int, np.ndarray]]) -> list[tuple[int, np.ndarray]]:
-    """Consecutive (index, (n, C) samples) items joined into as few blocks as possible."""
-    blocks: list[tuple[int, list[np.ndarray]]] = []
-    end = None
-    for index, samples in items:
-        if blocks and index == end and samples.shape[1] == blocks[-1][1][0].shape[1]:
-            blocks[-1][1].append(samples)
-        else:
-            blocks.append((index, [samples]))
-        end = index + samples.shape[0]
-    return [(i, np.concatenate(parts) if len(parts) > 1 else parts[0]) for i, parts in blocks]
-
-
-
 @dataclass
 class DaemonState:
     started: float = field(default_factory=time.monotonic)
-    connected: bool = False
     samples_window: int = 0
     sumsq: np.ndarray | None = None
     last_index: int = 0
-    channel_errors: int = 0
+
+
+class ByteSource(Protocol):
+    """What the daemon reads from: :class:`~tactiled.serialsource.SerialSource`, or :class:`~tactiled.serialsource.MemorySource` in tests."""
+
+    connected: bool
+    reconnects: int
+    errors: int
+    arrival: float
+    alive_at: float
+
+    async def run(self) -> None: ...
 
 
 class Daemon:
-    """The daemon's state and tasks; :meth:`run` until stopped."""
+    """The daemon's state and tasks; :meth:`run` until stopped (or, for a finite ``source``, until its end).
 
-    def __init__(self, config: Config, model: Model | None, record_to: str | None = None) -> None:
+    ``source_factory(on_bytes, on_state)``: the byte source (default: the serial port of the config);
+    ``record_to``: also stream every sample to ``record_to``'s journal and write the recording on exit (tactiled/record.py); ``raw_to``: write every byte read.
+    """
+
+    def __init__(self, config: Config, model: Model | None, record_to: str | None = None, *, raw_to: str | None = None,
+                 source_factory: Callable[[Callable[[bytes], Awaitable[None]], Callable[[str, str], None]], ByteSource] | None = None) -> None:
         self.config = config
         self.model = model
         s = config.sensor
         self.fingerprint = model.fingerprint if model else ""
-        self.decoder = FrameDecoder()
+        self.ingest = Ingest(s.channels, max_gap=max_gap_for(config.ring.seconds, s.fs), min_batch=round(config.serial.batch_s * s.fs))
+        self.decoder = self.ingest.decoder
         self.pipeline = Pipeline(config, s.fs, s.channels, s.volts_per_count, True, model)
         self.publisher = Publisher(config.publish)
         self.state = DaemonState()
         self.stop_event = asyncio.Event()
-        self.source: SerialSource | None = None
+        self.source: ByteSource | None = None
         self.record_to = record_to
-        self._backlog: list[tuple[int, np.ndarray]] = []
-        self._backlog_n = 0
-        self._process_n = round(PROCESS_S * s.fs)
-        self.assembler = FrameAssembler(config.sensor.channels) if record_to else None
+        self.raw_to = raw_to
+        self._source_factory = source_factory
+        self.recorder = RecordingSink(record_to, fs=s.fs, channels=s.channels, volts_per_count=s.volts_per_count, force=True,
+                                      meta={"sensor": s.id, "port": s.port, "source": "tactiled run --record"}, counters=self._record_counters,
+                                      on_error=log.error) if record_to else None  # streams to record_to's journal (tactiled/journal.py)
         self.clock = ClockMap(s.fs)  # sample index -> host time
-        self._arrival = 0.0  # host monotonic time of the newest bytes read (reader thread)
         self._raw_next: int | None = None  # next index of the samples topic
+        self._reader: asyncio.Task[None] | None = None
 
     @property
     def endpoint(self) -> str:
         return self.publisher.endpoint
 
+    def _make_source(self, tee: BinaryIO | None) -> ByteSource:
+        if self._source_factory is not None:
+            return self._source_factory(self._on_bytes, self._on_state)
+        s, c = self.config.sensor, self.config.serial
+        return SerialSource(s.port, self._on_bytes, self._on_state, baudrate=s.baudrate, retry_initial_s=c.retry_initial_s,
+                            retry_max_s=c.retry_max_s, read_interval_s=c.read_interval_s, tee=tee, hand_over_s=c.batch_s)
+
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
-        queue: asyncio.Queue[bytes | tuple[str, str]] = asyncio.Queue()
         s = self.config.sensor
-
-        def on_bytes(data: bytes) -> None:
-            self._arrival = time.monotonic()  # every sample queued so far had arrived by then
-            loop.call_soon_threadsafe(queue.put_nowait, data)
-
-        def on_state(state: str, detail: str) -> None:
-            loop.call_soon_threadsafe(queue.put_nowait, (state, detail))
-
-        self.source = SerialSource(s.port, on_bytes, on_state, baudrate=s.baudrate,
-                                   retry_initial_s=self.config.serial.retry_initial_s, retry_max_s=self.config.serial.retry_max_s,
-                                   read_interval_s=self.config.serial.read_interval_s)
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        tee = open(self.raw_to, "wb") if self.raw_to else None  # noqa: SIM115 - closed in finally
+        self.source = self._make_source(tee)
+        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
             loop.add_signal_handler(sig, self.stop_event.set)
-        self.source.start()
         log.info("tactiled %s: sensor %s on %s, publishing on %s, model %s", __version__, s.id, s.port, self.endpoint, self.fingerprint or "none")
         sd_notify("READY=1")
         try:
             async with asyncio.TaskGroup() as tg:
-                ingest = tg.create_task(self._ingest(queue), name="ingest")
+                self._reader = tg.create_task(self._read(), name="reader")
                 status = tg.create_task(self._status(), name="status")
-                await self.stop_event.wait()
-                ingest.cancel()
-                status.cancel()
+                stopped = tg.create_task(self.stop_event.wait(), name="stop")
+                await asyncio.wait([self._reader, stopped], return_when=asyncio.FIRST_COMPLETED)
+                for t in (self._reader, status, stopped):
+                    t.cancel()
         finally:
             sd_notify("STOPPING=1")
-            self.source.stop()
             self.publisher.publish(self._status_message(stopping=True))
             self.publisher.close()
-            if self.assembler is not None and self.record_to:
-                self._save_recording(self.record_to)
-            for sig in (signal.SIGTERM, signal.SIGINT):
+            if tee is not None:
+                tee.close()
+            if self.recorder is not None:
+                self._save_recording()
+            for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
                 loop.remove_signal_handler(sig)
 
-    async def _ingest(self, queue: asyncio.Queue[bytes | tuple[str, str]]) -> None:
-        sensor = self.config.sensor
-        while True:
-            item = await queue.get()
-            chunks = [item]
-            while not queue.empty():
-                chunks.append(queue.get_nowait())
-            data = bytearray()
-            arrival = self._arrival
-            for chunk in chunks:
-                if isinstance(chunk, tuple):
-                    self.state.connected = chunk[0] == CONNECTED
-                    log.log(logging.INFO if self.state.connected else logging.WARNING, "%s: %s (%s)", sensor.port, chunk[0], chunk[1])
-                else:
-                    data += chunk
-            if not data:
-                continue
-            frames = self.decoder.feed(bytes(data))
-            if frames:
-                self.clock.observe(frames[-1].index + frames[-1].samples.shape[0], arrival)
-            if self.assembler is not None:
-                for frame in frames:
-                    self.assembler.add(frame)
-            for frame in frames:
-                if frame.samples.shape[1] != sensor.channels:
-                    self.state.channel_errors += 1
-                    continue
-                self._backlog.append((frame.index, frame.samples))
-                self._backlog_n += frame.samples.shape[0]
-            # the port is read every serial.read_interval_s (the tty buffer is small); the pipeline
-            # runs on batches of at least PROCESS_S of samples: half the CPU of per-read processing
-            if self._backlog_n >= self._process_n:
-                blocks, self._backlog, self._backlog_n = group_blocks(self._backlog), [], 0
-                for index, samples in blocks:
-                    sq = np.einsum("ij,ij->j", samples, samples, dtype=np.float64)
-                    self.state.sumsq = sq if self.state.sumsq is None else self.state.sumsq + sq
-                    self.state.samples_window += samples.shape[0]
-                    self.state.last_index = index + samples.shape[0]
-                detected_at = time.perf_counter()
-                if self.config.publish.samples:
-                    self._publish_samples(blocks)
-                end = blocks[-1][0] + blocks[-1][1].shape[0]
-                if self.pipeline.will_analyse(end):  # feature extraction: off the event loop
-                    events = await asyncio.to_thread(self._feed_blocks, blocks)
-                else:  # detection only: cheaper than a thread hop
-                    events = self._feed_blocks(blocks)
-                to_host = self.clock.host if self.clock.ready else None
-                for ev in events:
-                    self.publisher.publish_event(sensor.id, ev, sensor.fs, self.fingerprint, detected_at, to_host)
+    async def _read(self) -> None:
+        """The source until it ends (a finite source: then the explicit end of stream), or until cancelled."""
+        assert self.source is not None
+        await self.source.run()
+        await self._process(self.ingest.flush())
+        self._publish(self.pipeline.finish(), time.perf_counter())
 
-    def _publish_samples(self, blocks: list[tuple[int, np.ndarray]]) -> None:
+    def _on_state(self, state: str, detail: str) -> None:
+        log.log(logging.INFO if state == CONNECTED else logging.WARNING, "%s: %s (%s)", self.config.sensor.port, state, detail)
+
+    async def _on_bytes(self, data: bytes) -> None:
+        """Bytes read from the port: decode, and run the pipeline when a batch is complete."""
+        batches = self.ingest.feed(data)
+        end = self.decoder.next_index
+        if end is not None and self.source is not None:
+            self.clock.observe(end, self.source.arrival)  # every sample decoded so far had arrived by then
+        if batches:
+            await self._process(batches)
+
+    async def _process(self, batches: list[Batch]) -> None:
+        if not batches:
+            return
+        st = self.state
+        for b in batches:
+            if self.recorder is not None:
+                self.recorder.add(Frame(b.index, b.samples, b.lost, b.restart))
+            sq = np.einsum("ij,ij->j", b.samples, b.samples, dtype=np.float64)
+            st.sumsq = sq if st.sumsq is None else st.sumsq + sq
+            st.samples_window += b.samples.shape[0]
+            st.last_index = b.end
+        detected_at = time.perf_counter()
+        if self.config.publish.samples:
+            self._publish_samples(batches)
+        if self.pipeline.will_analyse(batches[-1].end) or any(b.restart for b in batches):  # feature extraction: off the event loop
+            events = await asyncio.to_thread(feed_pipeline, self.pipeline, batches)
+        else:  # detection only: cheaper than a thread hop
+            events = feed_pipeline(self.pipeline, batches)
+        self._publish(events, detected_at)
+
+    def _publish(self, events: list[PipelineEvent], detected_at: float) -> None:
+        sensor = self.config.sensor
+        to_host = self.clock.host if self.clock.ready else None
+        for ev in events:
+            self.publisher.publish_event(sensor.id, ev, sensor.fs, self.fingerprint, detected_at, to_host)
+
+    def _publish_samples(self, batches: list[Batch]) -> None:
         """The batch's raw samples on ``samples/<id>``: every index from the last batch's end on, lost ones as zero rows."""
         s = self.config.sensor
         to_host = self.clock.host if self.clock.ready else None
-        for b in raw_batches(blocks, self._raw_next, max_fill=round(s.fs)):
+        for b in raw_batches([(x.index, x.samples) for x in batches], self._raw_next, max_fill=round(s.fs)):
             n = b.samples.shape[0]
             self.publisher.publish(schema.samples(s.id, b.index, b.samples.astype("<i2", copy=False).tobytes(), n, s.channels, fs=s.fs,
                                                   volts_per_count=s.volts_per_count, lost=b.lost, lost_before=b.lost_before,
                                                   to_host=to_host, fs_clock=round(self.clock.fs, 3)))
             self._raw_next = b.index + n
 
-    def _save_recording(self, path: str) -> None:
-        assert self.assembler is not None
-        s = self.config.sensor
-        rec = Recording(samples=self.assembler.samples(), fs=s.fs, volts_per_count=s.volts_per_count, first_index=self.assembler.first_index or 0,
-                        lost=self.assembler.lost(), meta={"sensor": s.id, "port": s.port, "source": "tactiled run --record"})
-        save_recording(path, rec)
-        log.info("%s: saved %d samples received", path, rec.samples.shape[0])
+    def _record_counters(self) -> dict[str, int]:
+        st = self.ingest.stats
+        return {"crc_errors": st.crc_errors, "bytes_discarded": st.bytes_discarded, "reconnects": self.source.reconnects if self.source else 0}
 
-    def _feed_blocks(self, blocks: list[tuple[int, np.ndarray]]) -> list[PipelineEvent]:
-        events: list[PipelineEvent] = []
-        for index, samples in blocks:
-            events += self.pipeline.feed(index, samples)
-        return events
+    def _save_recording(self) -> None:
+        assert self.recorder is not None
+        result = self.recorder.finish(self._record_counters())
+        if result.error is None:
+            log.info("%s: saved %d samples (%d lost)", self.recorder.out, result.samples, result.samples_lost)
+        elif not self.recorder.error:  # a failure while capturing was logged when it happened
+            log.error("%s", result.error)
 
     def _status_message(self, interval: float = 0.0, stopping: bool = False) -> schema.Status:
-        st, stats = self.state, self.decoder.stats
+        st, stats = self.state, self.ingest.stats
         if stopping:
             state = schema.STATE_STOPPING
         elif not (self.source and self.source.connected):
@@ -241,8 +237,14 @@ class Daemon:
                              slides=self.pipeline.slides, labels=self.pipeline.labels, fs_nominal=self.config.sensor.fs,
                              fs_measured=round(st.samples_window / interval, 1) if interval > 0 else 0.0, model=self.fingerprint,
                              uptime_s=round(time.monotonic() - st.started, 3), index=st.last_index, level=level, version=__version__,
-                             dropped_messages=self.publisher.dropped, channel_errors=st.channel_errors, clock_index=clock_index,
+                             dropped_messages=self.publisher.dropped, channel_errors=stats.channel_errors, clock_index=clock_index,
                              clock_mono=clock_mono, clock_unix=clock_unix, fs_clock=round(self.clock.fs, 3))
+
+    def reader_alive(self, now: float) -> bool:
+        """The reader task runs and its loop ticked recently (reading, or waiting for the device)."""
+        if self._reader is None or self._reader.done() or self.source is None:
+            return False
+        return now - self.source.alive_at <= max(5.0, 2 * self.config.serial.retry_max_s)
 
     async def _status(self) -> None:
         interval = self.config.publish.status_interval_s
@@ -255,5 +257,5 @@ class Daemon:
             self.state.samples_window = 0
             self.state.sumsq = None
             last = now
-            if watchdog:
+            if watchdog and self.reader_alive(now):  # a dead reader starves the watchdog: systemd restarts the daemon
                 sd_notify("WATCHDOG=1")

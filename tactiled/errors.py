@@ -10,7 +10,8 @@
      ├── RingBufferError (LookupError)   a sample range is not in the ring buffer
      │    ├── OverwrittenError           ... because it was overwritten already
      │    └── NotYetWrittenError         ... because it has not been written yet
-     └── DeviceError (OSError)           the serial device cannot be opened or read
+     ├── DeviceError (OSError)           the serial device cannot be opened or read
+     └── OutputError (OSError)           an output file cannot be written there (checked before a capture)
 
 Every message names *what* and *where* in one line, e.g.
 ``configs/x.toml: detector.on_factor: must be > detector.off_factor``.
@@ -58,3 +59,7 @@ class NotYetWrittenError(RingBufferError):
 
 class DeviceError(TactiledError, OSError):
     """The serial device cannot be opened or read."""
+
+
+class OutputError(TactiledError, OSError):
+    """An output path cannot be written (missing folder, not writable, exists, in use); names the path."""

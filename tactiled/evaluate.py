@@ -65,8 +65,10 @@ class Evaluator:
     """Holds the recordings, their slides, folds and caches of features and selections."""
 
     def __init__(self, recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, max_features: int = 6,
-                 seed: int = 0, progress: Progress | None = None) -> None:
+                 seed: int = 0, progress: Progress | None = None, sfs_pool: int = 0) -> None:
+        """``sfs_pool`` > 0: forward selection considers only that many features (largest ANOVA F in the fold)."""
         self.recs = list(recs)
+        self.sfs_pool = sfs_pool
         self.config = config
         self.n_folds = folds
         self.max_features = max_features
@@ -101,7 +103,8 @@ class Evaluator:
         """Forward selection (ELM criterion, grouped inner CV) on each outer training fold's windows."""
         k = (key, n_features)
         if k not in self._selection:
-            self._selection[k] = [sfs_columns(ws, np.flatnonzero(np.isin(ws.slide, tr)), self.seed, 3, n_features or "auto")
+            self._selection[k] = [sfs_columns(ws, np.flatnonzero(np.isin(ws.slide, tr)), self.seed, 3, n_features or "auto",
+                                                      self.sfs_pool)
                                   for tr, _ in folds]
         return self._selection[k]
 
@@ -278,13 +281,16 @@ def decimate(rec: Recording, rate: float) -> Recording:
                      meta=rec.meta)
 
 
+QUICK_SFS_POOL = 16  # evaluate --quick: candidates per forward-selection step
+
+
 def run_evaluation(recs: Sequence[tuple[str, Recording]], config: Config, report: Path, *, experiments: str = "abcdefg", folds: int = 5,
                    quick: bool = False, seed: int = 0, progress: Progress | None = None) -> dict[str, Any]:
     """Run the experiments, write report.md, report.json and PNG figures into ``report``; return the results."""
-    ev = Evaluator(recs, config, folds=folds, max_features=3 if quick else 6, seed=seed, progress=progress)
+    ev = Evaluator(recs, config, folds=folds, max_features=3 if quick else 6, seed=seed, progress=progress, sfs_pool=QUICK_SFS_POOL if quick else 0)
     starts, durations = ((0.1, 0.3), (0.25, 0.5)) if quick else ((0.0, 0.15, 0.3, 0.5), (0.1, 0.25, 0.5, 0.8))
     rates = (20000.0, 5000.0) if quick else (20000.0, 10000.0, 5000.0, 2000.0, 1000.0)
-    results: dict[str, Any] = {"files": len(recs), "folds": folds, "fs": ev.fs, "channels": ev.channels}
+    results: dict[str, Any] = {"files": len(recs), "folds": folds, "fs": ev.fs, "channels": ev.channels, "sfs_pool": ev.sfs_pool}
     t0 = time.perf_counter()
     if "a" in experiments:
         results["classifiers"] = ev.classifiers()
@@ -314,7 +320,9 @@ def _pm(r: dict[str, Any]) -> str:
 def markdown(res: dict[str, Any], figures: list[str]) -> str:
     out = [f"# Evaluation report\n\n{res['files']} recordings at {res['fs']:g} Hz, {res['channels']} channels; grouped {res['folds']}-fold "
            f"cross-validation (mean ± sd over folds; slides from the daemon's detector paired with the ground truth, every true slide counted); "
-           f"{res['seconds']:.0f} s.\n"]
+           f"{res['seconds']:.0f} s."
+           + (f" Quick run: forward selection among the {res['sfs_pool']} features of largest ANOVA F in each fold." if res.get("sfs_pool") else "")
+           + "\n"]
     if "classifiers" in res:
         c = res["classifiers"]
         out.append(f"## (a) Classifiers\n\n{c['slides']} slides, {c['surfaces']} surfaces. Features selected per fold (ELM criterion): "

@@ -31,6 +31,7 @@ rest as they are (:func:`classifier_inputs`).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -39,7 +40,6 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import pywt
-from scipy import signal
 
 from tactiled.config import STAT_NAMES
 from tactiled.errors import WindowError
@@ -53,24 +53,25 @@ def feature_names(channels: int, level: int = 4, domains: Sequence[str] = DOMAIN
     return [f"film{c + 1}.{d}.{b}.{s}" for c in range(channels) for d in domains for b in bands for s in stats]
 
 
-def band_stats(c: npt.NDArray[np.float64], stats: Iterable[str]) -> dict[str, float]:
+def band_stats(c: npt.NDArray[np.float64], stats: Sequence[str]) -> dict[str, float]:
     """The asked statistics of one coefficient array (float64, non-empty)."""
     n = c.shape[0]
-    mean = float(c.mean())
+    mean = float(c.sum()) / n  # as c.mean(), without its overhead
     d = c - mean
     m2 = float(np.dot(d, d)) / n
     out: dict[str, float] = {}
-    scale = max(abs(mean), float(np.max(np.abs(c))), 1e-300)
+    scale = max(abs(mean), float(c.max()), -float(c.min()), 1e-300)  # max |c|
     flat = m2 <= (1e-12 * scale) ** 2
+    energy = float(np.dot(c, c)) if "energy" in stats or "rms" in stats else 0.0
     for s in stats:
         if s == "mean":
             out[s] = mean
         elif s == "sd":
             out[s] = 0.0 if flat or n < 2 else math.sqrt(m2 * n / (n - 1))
         elif s == "energy":
-            out[s] = float(np.dot(c, c))
+            out[s] = energy
         elif s == "rms":
-            out[s] = math.sqrt(float(np.dot(c, c)) / n)
+            out[s] = math.sqrt(energy / n)
         elif s == "skew":
             out[s] = 0.0 if flat else float(np.mean(d * d * d)) / m2 ** 1.5
         elif s == "kurt":
@@ -154,10 +155,18 @@ def is_log_feature(name: str) -> bool:
     return last in ("sd", "energy", "rms")
 
 
+@functools.lru_cache(maxsize=64)
+def log_mask(names: tuple[str, ...]) -> npt.NDArray[np.bool_]:
+    """(F,) True where :func:`is_log_feature` (cached: a model asks for the same names for every window)."""
+    mask = np.array([is_log_feature(n) for n in names], dtype=bool)
+    mask.setflags(write=False)
+    return mask
+
+
 def classifier_inputs(x: npt.NDArray[np.float64], names: Sequence[str]) -> npt.NDArray[np.float64]:
     """Features (n, F) as classifiers see them: log10 of :func:`is_log_feature` ones (floored at 1e-30), others as they are."""
     out = np.array(x, dtype=np.float64, copy=True)
-    mask = np.array([is_log_feature(n) for n in names], dtype=bool)
+    mask = log_mask(tuple(names))
     out[:, mask] = np.log10(np.maximum(out[:, mask], 1e-30))
     return out
 
@@ -208,10 +217,18 @@ def parse_psd(name: str, fs: float) -> tuple[int, float, float]:
 
 
 def psd_of(x: npt.NDArray[np.float64], fs: float) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """(f (m,) Hz, Welch PSD (m,) V²/Hz) of one channel ``x`` (n,): Hann segments of ~50 ms, half overlapping, mean removed."""
+    """(f (m,) Hz, Welch PSD (m,) V²/Hz) of one channel ``x`` (n,): Hann segments of ~50 ms, half overlapping, mean removed.
+
+    The same values as ``scipy.signal.welch(x, fs, "hann", nper, nper // 2, detrend="constant")`` (to rounding), in numpy.
+    """
     nper = welch_segment(fs, x.shape[0])
-    f, p = signal.welch(x, fs=fs, window="hann", nperseg=nper, noverlap=nper // 2, detrend="constant")
-    return np.asarray(f, dtype=np.float64), np.asarray(p, dtype=np.float64)
+    step = nper - nper // 2
+    segments = np.lib.stride_tricks.sliding_window_view(np.asarray(x, dtype=np.float64), nper)[::step]
+    window = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(nper) / nper)  # periodic Hann, as scipy.signal.welch's "hann"
+    spec = np.fft.rfft((segments - segments.mean(axis=1, keepdims=True)) * window, axis=1)
+    p = (spec.real**2 + spec.imag**2).mean(axis=0) / (fs * float(np.dot(window, window)))
+    p[1:-1 if nper % 2 == 0 else None] *= 2  # one-sided: every bin but DC (and Nyquist) holds both signs
+    return np.asarray(np.fft.rfftfreq(nper, 1.0 / fs), dtype=np.float64), np.asarray(p, dtype=np.float64)
 
 
 def band_powers(f: npt.NDArray[np.float64], p: npt.NDArray[np.float64], bands: Sequence[tuple[float, float]]) -> npt.NDArray[np.float64]:
@@ -326,11 +343,20 @@ class FeaturePlan:
                 sig = np.abs(np.fft.rfft(sig))
             approx = sig
             for j in range(1, level + 1):
-                approx, detail = pywt.dwt(approx, self.wavelet, mode=self.mode)
-                for kind, coeffs in (("A", approx), ("D", detail)):
-                    stats = self._stats.get((channel, domain, f"{kind}{j}"))
+                want = {kind: self._stats.get((channel, domain, f"{kind}{j}")) for kind in "AD"}
+                # only the half of the transform the plan needs: pywt.downcoef gives dwt's coefficients exactly, at half the cost
+                if want["D"] and (want["A"] or j < level):
+                    approx, detail = pywt.dwt(approx, self.wavelet, mode=self.mode)
+                    coeffs = {"A": approx, "D": detail}
+                elif want["D"]:
+                    coeffs = {"D": pywt.downcoef("d", approx, self.wavelet, mode=self.mode, level=1)}
+                else:
+                    approx = pywt.downcoef("a", approx, self.wavelet, mode=self.mode, level=1)
+                    coeffs = {"A": approx}
+                for kind, band in coeffs.items():
+                    stats = want[kind]
                     if stats:
-                        for stat, value in band_stats(coeffs, stats).items():
+                        for stat, value in band_stats(band, stats).items():
                             values[f"film{channel + 1}.{domain}.{kind}{j}.{stat}"] = value
         for channel in sorted(set(self._psd) | set(self._tex)):
             f, p = psd_of(x[:, channel], self.fs)

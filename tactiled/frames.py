@@ -5,10 +5,15 @@ and tests only hand it bytes. It never trusts a sync word without the CRC: a fra
 header is out of range or whose CRC fails is not a frame, and the decoder drops one byte
 and hunts for the next sync word, so a corrupted frame costs only that frame.
 
+Intact consecutive frames are decoded in bulk (one numpy view over the run, one CRC call
+per frame), so :meth:`FrameDecoder.feed_runs` costs little more per read than per frame.
+
 The 32-bit sample index is unwrapped into a 64-bit one. A forward jump counts the samples
 lost; a jump back by less than ``duplicate_window`` samples is a duplicated frame (dropped
-and counted); a larger jump back is a board restart: counted, flagged on the frame, and the
+and counted); a larger jump back, or a jump forward by more than ``max_gap``, is a board
+restart (or a frame that passed the CRC by chance): counted, flagged on the frame, and the
 host's timeline continues from where it was (the samples lost across a restart are unknown).
+Nothing is allocated for a gap. Frames with a foreign channel count never move the index.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ _WRAP = 1 << 32
 _HALF = 1 << 31
 _header = struct.Struct("<BBHI")
 _crc = struct.Struct("<H")
+_index = struct.Struct("<I")
 
 
 def crc16(data: bytes | bytearray | memoryview) -> int:
@@ -65,18 +71,20 @@ def encode_frames(first_index: int, samples: npt.ArrayLike, count: int = 20) -> 
 
 @dataclass(slots=True)
 class Frame:
-    """One decoded frame.
+    """One decoded frame, or (from :meth:`FrameDecoder.feed_runs`) a run of consecutive frames.
 
     ``index``: 64-bit unwrapped index of the first sample on the host's timeline;
-    ``samples``: (N, C) int16 ADC counts (a read-only view);
+    ``samples``: (N, C) int16 ADC counts;
     ``lost``: samples missing just before this frame (index gap);
-    ``restart``: the board restarted just before this frame.
+    ``restart``: the board restarted (or the stream resynchronised) just before this frame;
+    ``frame_count``: samples per frame on the wire (a run holds N / frame_count frames).
     """
 
     index: int
     samples: npt.NDArray[np.int16]
     lost: int = 0
     restart: bool = False
+    frame_count: int = 0
 
 
 @dataclass
@@ -90,18 +98,28 @@ class DecoderStats:
     truncated: int = 0  # incomplete frames at the end of a finite stream (flush)
     bytes_discarded: int = 0
     samples_lost: int = 0
-    restarts: int = 0
+    restarts: int = 0  # backward jumps beyond the duplicate window and forward jumps beyond max_gap
     duplicates: int = 0
+    channel_errors: int = 0  # intact frames with a channel count other than the expected one (skipped)
 
 
 class FrameDecoder:
-    """Sans-IO decoder: ``feed(bytes) -> list[Frame]``; counters in :attr:`stats`."""
+    """Sans-IO decoder: ``feed(bytes) -> list[Frame]`` (one per frame) or ``feed_runs`` (runs of frames); counters in :attr:`stats`.
 
-    def __init__(self, duplicate_window: int = 65536) -> None:
+    ``channels``: if set, intact frames with another channel count are counted in
+    ``stats.channel_errors`` and skipped without moving the index. ``max_gap``: if set, a
+    forward jump of more than this many samples is a restart (resync), as a large backward
+    jump is: the timeline continues where it was, in O(1), and nothing is allocated for
+    the gap.
+    """
+
+    def __init__(self, duplicate_window: int = 65536, *, channels: int | None = None, max_gap: int | None = None) -> None:
         self._buf = b""
         self._next: int | None = None  # host (64-bit) index expected next
         self._next32 = 0  # the board's 32-bit index expected next
         self._duplicate_window = duplicate_window
+        self._channels = channels
+        self._max_gap = _HALF if max_gap is None else min(max(int(max_gap), 0), _HALF)
         self.stats = DecoderStats()
 
     @property
@@ -115,6 +133,10 @@ class FrameDecoder:
         return len(self._buf)
 
     def flush(self) -> list[Frame]:
+        """End of stream, one frame per item: see :meth:`flush_runs`."""
+        return _split(self.flush_runs())
+
+    def flush_runs(self) -> list[Frame]:
         """End of stream: decode what is left, treating an incomplete frame as garbage.
 
         A corrupted count field can make the decoder wait for more bytes than will come;
@@ -126,7 +148,15 @@ class FrameDecoder:
         return out
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[Frame]:
-        """Decode what ``data`` completes; partial frames are kept for the next call."""
+        """Decode what ``data`` completes, one :class:`Frame` per frame; partial frames are kept for the next call."""
+        return _split(self.feed_runs(data))
+
+    def feed_runs(self, data: bytes | bytearray | memoryview) -> list[Frame]:
+        """Decode what ``data`` completes in bulk: consecutive frames come as one :class:`Frame` (a run).
+
+        The samples and indices are those :meth:`feed` gives; only how they are grouped depends
+        on how the bytes were cut.
+        """
         self._buf = self._buf + bytes(data) if self._buf else bytes(data)
         return self._decode(final=False)
 
@@ -138,7 +168,9 @@ class FrameDecoder:
         stats = self.stats
         unpack_header = _header.unpack_from
         unpack_crc = _crc.unpack_from
+        unpack_index = _index.unpack_from
         crc_hqx = binascii.crc_hqx
+        view = memoryview(buf)
         while n - pos >= HEADER_SIZE + CRC_SIZE + 2:
             if buf[pos] != 0xA5 or buf[pos + 1] != 0x5A:
                 j = buf.find(SYNC, pos + 1)
@@ -148,7 +180,7 @@ class FrameDecoder:
                 stats.bytes_discarded += j - pos
                 pos = j
                 continue
-            version, channels, count, index32 = unpack_header(buf, pos + 2)
+            version, channels, count, _ = unpack_header(buf, pos + 2)
             if version != VERSION or not (1 <= channels <= MAX_CHANNELS) or not (1 <= count <= MAX_COUNT):
                 stats.bad_headers += 1
                 stats.bytes_discarded += 1
@@ -162,23 +194,41 @@ class FrameDecoder:
                 stats.bytes_discarded += 1
                 pos += 1
                 continue
-            end = pos + total - CRC_SIZE
-            if crc_hqx(buf[pos + 2:end], 0xFFFF) != unpack_crc(buf, end)[0]:
+            # bulk: the consecutive frames from here (same header fields, indices following on), each checked by its CRC
+            head = buf[pos:pos + 6]
+            first32 = unpack_index(buf, pos + 6)[0]
+            next32 = first32
+            good = 0
+            p = pos
+            last = n - total
+            while p <= last and buf.startswith(head, p) and unpack_index(buf, p + 6)[0] == next32 \
+                    and crc_hqx(view[p + 2:p + total - CRC_SIZE], 0xFFFF) == unpack_crc(buf, p + total - CRC_SIZE)[0]:
+                good += 1
+                p += total
+                next32 = (next32 + count) % _WRAP
+            if not good:
                 stats.crc_errors += 1
                 stats.bytes_discarded += 1
                 pos += 1
                 continue
-            samples = np.frombuffer(buf, dtype="<i2", count=channels * count, offset=pos + HEADER_SIZE)
-            pos += total
-            frame = self._place(index32, samples.reshape(count, channels))
+            start, pos = pos, p
+            if self._channels is not None and channels != self._channels:
+                stats.channel_errors += good  # intact, but not this sensor's layout: the index must not move
+                continue
+            if good == 1:
+                samples = np.frombuffer(buf, dtype="<i2", count=channels * count, offset=start + HEADER_SIZE).reshape(count, channels)
+            else:
+                run = np.frombuffer(buf, dtype=np.uint8, count=good * total, offset=start).reshape(good, total)
+                samples = np.ascontiguousarray(run[:, HEADER_SIZE:total - CRC_SIZE]).view("<i2").reshape(good * count, channels)
+            frame = self._place(first32, samples, count)
             if frame is not None:
                 out.append(frame)
         self._buf = buf[pos:]
         return out
 
-    def _place(self, index32: int, samples: npt.NDArray[np.int16]) -> Frame | None:
+    def _place(self, index32: int, samples: npt.NDArray[np.int16], count: int) -> Frame | None:
+        """Place a run of consecutive frames (``count`` samples each) starting at board index ``index32``."""
         stats = self.stats
-        count = samples.shape[0]
         expected = self._next
         lost = 0
         restart = False
@@ -186,19 +236,38 @@ class FrameDecoder:
             index = index32
         else:
             delta = (index32 - self._next32) % _WRAP
-            if delta < _HALF:
+            if delta <= self._max_gap and delta < _HALF:
                 lost = delta
                 index = expected + delta
             elif _WRAP - delta <= self._duplicate_window:
-                stats.duplicates += 1
-                return None
+                # frames that start before what was already placed are duplicates, whole frames as if fed one by one
+                drop = -(-(_WRAP - delta) // count)
+                stats.duplicates += min(drop, -(-samples.shape[0] // count))
+                if drop * count >= samples.shape[0]:
+                    return None
+                samples = samples[drop * count:]
+                lost = drop * count - (_WRAP - delta)
+                index32 = (index32 + drop * count) % _WRAP
+                index = expected + lost
             else:
                 restart = True
                 stats.restarts += 1
                 index = expected
-        stats.frames += 1
-        stats.samples += count
+        n = samples.shape[0]
+        stats.frames += -(-n // count)
+        stats.samples += n
         stats.samples_lost += lost
-        self._next = index + count
-        self._next32 = (index32 + count) % _WRAP
-        return Frame(index, samples, lost, restart)
+        self._next = index + n
+        self._next32 = (index32 + n) % _WRAP
+        return Frame(index, samples, lost, restart, count)
+
+
+def _split(runs: list[Frame]) -> list[Frame]:
+    """Runs cut back into one :class:`Frame` per frame on the wire (views of the run's samples)."""
+    out: list[Frame] = []
+    for run in runs:
+        c = run.frame_count or run.samples.shape[0]
+        for j in range(0, run.samples.shape[0], c):
+            first = j == 0
+            out.append(Frame(run.index + j, run.samples[j:j + c], run.lost if first else 0, run.restart and first, c))
+    return out

@@ -16,9 +16,12 @@ File arrays: ``header`` (0-d unicode, JSON), ``classes`` (K,) unicode, ``scaler_
 ``scaler_scale`` (F,); per classifier: elm ``weights`` (F, L), ``biases`` (L,), ``beta``
 (L, K'), ``elm_temperature`` (); linear ``coef`` (K'', F), ``intercept`` (K'',); knn and
 svm ``train_x`` (n, F) standardised and ``train_y`` (n,) (both deterministic, refit at
-load; at most :data:`MAX_REFIT_ROWS` rows, :data:`MAX_SVM_ROWS` for an SVM, so a load never
-hangs). Only the arrays of the file's classifier are read, at most :data:`MAX_MODEL_BYTES`
-inflated. The header carries the
+load; at most :data:`MAX_REFIT_ROWS` rows so a load never hangs); svm also the fitted
+``svm_support``, ``svm_dual_coef``, ``svm_intercept``, ``svm_n_support``, ``svm_gamma``
+(optional: :mod:`tactiled.infer` evaluates the model with numpy alone, no refit, no
+scikit-learn import; ``load_model(lean=False)`` takes the scikit-learn path; an svm that
+must be refit at load has at most :data:`MAX_SVM_REFIT_ROWS` rows). Only the arrays of the
+file's classifier are read, at most :data:`MAX_MODEL_BYTES` inflated. The header carries the
 format and its version, the method, the classifier and its parameters, the analysis
 settings (windows, spikes, feature names), fs, channels, temperature, a training summary
 (including the cross-validated accuracy), and ``fingerprint``: the SHA-256 (first 16 hex
@@ -45,6 +48,7 @@ import numpy.typing as npt
 from tactiled.analysis import Analyser, AnalysisSettings
 from tactiled.errors import ModelError
 from tactiled.features import FeaturePlan, classifier_inputs
+from tactiled.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, svm_arrays
 from tactiled.npzio import NpzError, NpzReader, load_json_bounded
 from tactiled.recording import atomic_savez
 
@@ -52,7 +56,7 @@ FORMAT = "tactiled-model"
 FORMAT_VERSION = 2
 CLASSIFIERS = ("elm", "knn", "svm", "linear")
 MAX_REFIT_ROWS = 20_000
-MAX_SVM_ROWS = 4000  # an RBF SVM is refit at load: 4000 rows of noise take ~2 s, 20 000 take minutes
+MAX_SVM_REFIT_ROWS = 4000  # an RBF SVM refit at load (a file without its fitted SVM, or lean=False): 4000 rows of noise take ~2 s, 20 000 minutes
 MAX_FEATURES = 4096
 MAX_MODEL_BYTES = 256 << 20  # all arrays of a model file, inflated
 MAX_WINDOW_SAMPLES = 1 << 20  # an analysis window: 52 s at 20 kHz
@@ -208,14 +212,15 @@ class Model:
     def scores(self, x: npt.ArrayLike) -> FloatArray:
         """Window scores (n, K), columns in :attr:`classes` order, for raw features x (n, F)."""
         x = np.asarray(x, dtype=np.float64).reshape(-1, len(self.names))
-        z = self.pipeline[:-1].transform(x)
-        clf = self.pipeline[-1]
-        raw = decision_scores(clf, z)
-        if len(clf.classes_) == len(self.classes) and all(str(c) == k for c, k in zip(clf.classes_, self.classes, strict=True)):
+        if isinstance(self.pipeline, LeanPipeline):
+            raw, order = self.pipeline.scores(x), self.pipeline.classes_
+        else:
+            raw, order = decision_scores(self.pipeline[-1], self.pipeline[:-1].transform(x)), self.pipeline[-1].classes_
+        if len(order) == len(self.classes) and all(str(c) == k for c, k in zip(order, self.classes, strict=True)):
             return raw
         full = np.full((raw.shape[0], len(self.classes)), raw.min() - 10.0 if raw.size else -10.0)
         index = {c: i for i, c in enumerate(self.classes)}
-        for j, c in enumerate(clf.classes_):
+        for j, c in enumerate(order):
             full[:, index[str(c)]] = raw[:, j]
         return full
 
@@ -255,6 +260,8 @@ class Model:
     # ---- persistence -------------------------------------------------------------------------
 
     def _arrays(self) -> dict[str, Any]:
+        if isinstance(self.pipeline, LeanPipeline):
+            return dict(self.pipeline.arrays)
         scaler, clf = self.pipeline.named_steps["scale"], self.pipeline.named_steps["clf"]
         arrays: dict[str, Any] = {"classes": np.array(self.classes, dtype=np.str_), "scaler_mean": np.asarray(scaler.mean_, dtype=np.float64),
                                   "scaler_scale": np.asarray(scaler.scale_, dtype=np.float64)}
@@ -265,6 +272,8 @@ class Model:
         else:
             assert self.refit is not None, "a kNN or SVM model keeps its training set"
             arrays.update(train_x=np.asarray(self.refit[0], dtype=np.float64), train_y=np.asarray(self.refit[1], dtype=np.str_))
+            if self.kind == "svm":  # the fitted SVM, so that loading needs no refit (tactiled/infer.py)
+                arrays.update(svm_arrays(clf))
         return arrays
 
     def _header(self) -> dict[str, Any]:
@@ -287,14 +296,13 @@ def fit_pipeline(x: FloatArray, y: npt.NDArray[Any], names: list[str] | tuple[st
     """Fit :func:`make_pipeline` on raw features ``x`` (n, F).
 
     Returns the pipeline and, for kNN and SVM (refit at load), their standardised training
-    set, at most :data:`MAX_REFIT_ROWS` rows (:data:`MAX_SVM_ROWS` for an SVM; a seeded subsample beyond that).
+    set, at most :data:`MAX_REFIT_ROWS` rows (a seeded subsample beyond that).
     """
     if kind == "knn":  # never more neighbours than training rows
         params = {**params, "n_neighbors": max(1, min(int(params.get("n_neighbors", 9)), x.shape[0]))}
     pipe = make_pipeline(names, kind, params, seed)
-    rows = MAX_SVM_ROWS if kind == "svm" else MAX_REFIT_ROWS
-    if kind in ("svm", "knn") and x.shape[0] > rows:
-        keep = np.sort(np.random.default_rng(seed).choice(x.shape[0], rows, replace=False))
+    if kind in ("svm", "knn") and x.shape[0] > MAX_REFIT_ROWS:
+        keep = np.sort(np.random.default_rng(seed).choice(x.shape[0], MAX_REFIT_ROWS, replace=False))
         x, y = x[keep], y[keep]
     pipe.fit(x, y)
     refit = (pipe[:-1].transform(x), np.asarray(y, dtype=np.str_)) if kind in ("svm", "knn") else None
@@ -314,8 +322,12 @@ def _need(cond: bool, path: object, what: str) -> None:
         raise ModelError(f"{path}: {what}")
 
 
-def load_model(path: str | Path | None = None) -> Model:
-    """Load and check a model file (``None``: the shipped model); :class:`ModelError` names file and problem."""
+def load_model(path: str | Path | None = None, lean: bool = True) -> Model:
+    """Load and check a model file (``None``: the shipped model); :class:`ModelError` names file and problem.
+
+    ``lean``: evaluate with numpy alone when the file allows it (:mod:`tactiled.infer`; no scikit-learn import);
+    False: through the scikit-learn pipeline, refitting kNN and SVM.
+    """
     path = Path(path) if path else default_model_path()
     try:
         with NpzReader(path, MAX_MODEL_BYTES) as reader:
@@ -331,7 +343,8 @@ def load_model(path: str | Path | None = None) -> Model:
                   f"header.version: {header.get('version')!r} is not the supported {FORMAT_VERSION} (retrain with this tactiled)")
             kind = header.get("classifier")
             _need(kind in CLASSIFIERS, path, f"header.classifier: unknown {kind!r}")
-            keys = ("classes", "scaler_mean", "scaler_scale", *ARRAYS[kind])
+            optional = [k for k in SVM_ARRAYS if k in reader] if kind == "svm" else []
+            keys = ("classes", "scaler_mean", "scaler_scale", *ARRAYS[kind], *optional)
             missing, extra = [k for k in keys if k not in reader], sorted(set(reader.keys()) - {"header", *keys})
             _need(not missing, path, f"{', '.join(missing)}: missing")
             _need(not extra, path, f"{', '.join(extra)}: not an array of a {kind} model (the fingerprint covers every array)")
@@ -340,7 +353,7 @@ def load_model(path: str | Path | None = None) -> Model:
         what = "no such model file" if str(exc) == "no such file" else str(exc)
         raise ModelError(f"{path}: array {exc.key}: {what}" if exc.key else f"{path}: {what}") from None
     try:
-        return _build(path, header, arrays)
+        return _build(path, header, arrays, lean)
     except ModelError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
@@ -402,7 +415,7 @@ def _check_params(path: Path, kind: str, params: dict[str, Any]) -> None:
               "params: elm init must be hpelm or huang, calibrate true or false")
 
 
-def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any]) -> Model:
+def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: bool = True) -> Model:
     fingerprint = header.pop("fingerprint", None)
     _need(fingerprint == _fingerprint(header, arrays), path, "fingerprint does not match the contents (tampered or corrupt)")
     kind = header["classifier"]
@@ -431,10 +444,6 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any]) -> Model:
     for key, a in (("scaler_mean", mean), ("scaler_scale", scale)):
         _need(a.shape == (f,) and _finite(a), path, f"{key}: must be ({f},) finite floats")
     _need(bool(np.all(scale > 0)), path, "scaler_scale: must be > 0")
-    pipe = make_pipeline(settings.names, kind, params, seed)
-    scaler, clf = pipe.named_steps["scale"], pipe.named_steps["clf"]
-    scaler.mean_, scaler.scale_, scaler.var_ = mean, scale, scale**2
-    scaler.n_features_in_, scaler.n_samples_seen_ = f, 1
     if kind == "elm":
         w, b, beta = arrays["weights"], arrays["biases"], arrays["beta"]
         hidden = int(params.get("n_hidden", 200))
@@ -444,25 +453,25 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any]) -> Model:
         elm_t = arrays["elm_temperature"]
         t = float(elm_t) if elm_t.size == 1 and elm_t.dtype.kind in "fiu" else math.nan
         _need(elm_t.shape == () and _finite(elm_t) and 1e-6 <= t <= 1e6, path, "elm_temperature: must be a finite float in [1e-6, 1e6]")
-        clf.weights_, clf.biases_, clf.beta_, clf.temperature_ = w, b, beta, t
-        clf.classes_, clf.n_features_in_ = np.array(classes), f
     elif kind == "linear":
         coef, intercept = arrays["coef"], arrays["intercept"]
         rows = 1 if len(classes) == 2 else len(classes)
         _need(coef.shape == (rows, f) and intercept.shape == (rows,) and _finite(coef) and _finite(intercept), path,
               "coef, intercept: shapes do not match the header or not finite")
-        clf.coef_, clf.intercept_, clf.classes_, clf.n_features_in_ = coef, intercept, np.array(classes), f
     else:
         train_x, train_y = arrays["train_x"], arrays["train_y"]
-        rows = MAX_SVM_ROWS if kind == "svm" else MAX_REFIT_ROWS
-        _need(train_x.ndim == 2 and train_x.shape[1] == f and 1 <= train_x.shape[0] <= rows and train_y.shape == (train_x.shape[0],),
-              path, f"train_x, train_y: shapes do not match the header (at most {rows} rows for {kind})")
+        _need(train_x.ndim == 2 and train_x.shape[1] == f and 1 <= train_x.shape[0] <= MAX_REFIT_ROWS and train_y.shape == (train_x.shape[0],),
+              path, f"train_x, train_y: shapes do not match the header (at most {MAX_REFIT_ROWS} rows)")
         _need(train_y.dtype.kind == "U", path, "train_y: must be unicode")
         _need(_finite(train_x), path, "train_x: must be finite floats")
         _need(set(map(str, train_y)) == set(classes), path, "train_y: classes differ from the header's")
         if kind == "knn":
             _need(int(params.get("n_neighbors", 9)) <= train_x.shape[0], path, "params.n_neighbors: more than the training rows")
-        clf.fit(train_x, train_y)
+    pipe = lean_pipeline(kind, settings.names, classes, params, arrays) if lean else None
+    if pipe is None:
+        _need(kind != "svm" or train_x.shape[0] <= MAX_SVM_REFIT_ROWS, path, f"train_x: {train_x.shape[0]} rows, more than the "
+              f"{MAX_SVM_REFIT_ROWS} an svm is refit on at load (save it with this tactiled to store the fitted SVM)")
+        pipe = _sklearn_pipeline(settings, kind, params, seed, classes, arrays)
     model = Model(str(header.get("method", kind)), kind, params, classes, settings, fs, channels, pipe, temperature, seed,
                   dict(summary), fingerprint or "", None if kind in ("elm", "linear") else (train_x, train_y))
     _probe(path, model)
@@ -483,3 +492,21 @@ def _probe(path: Path, model: Model) -> None:
         raise ModelError(f"{path}: probe prediction failed: {exc}") from None
     _need(scores.shape == (2, len(model.classes)) and bool(np.all(np.isfinite(scores))), path, "probe prediction: scores are not finite")
     _need(bool(np.all(np.isfinite(p))) and abs(float(p.sum()) - 1.0) < 1e-6, path, "probe prediction is not a finite probability")
+
+
+def _sklearn_pipeline(settings: AnalysisSettings, kind: str, params: dict[str, Any], seed: int, classes: list[str], arrays: dict[str, Any]) -> Any:
+    """The scikit-learn pipeline of a model file's (already checked) arrays; kNN and SVM are refitted on the stored training set."""
+    f = len(settings.names)
+    pipe = make_pipeline(settings.names, kind, params, seed)
+    scaler, clf = pipe.named_steps["scale"], pipe.named_steps["clf"]
+    mean, scale = arrays["scaler_mean"], arrays["scaler_scale"]
+    scaler.mean_, scaler.scale_, scaler.var_ = mean, scale, scale**2
+    scaler.n_features_in_, scaler.n_samples_seen_ = f, 1
+    if kind == "elm":
+        clf.weights_, clf.biases_, clf.beta_ = arrays["weights"], arrays["biases"], arrays["beta"]
+        clf.temperature_, clf.classes_, clf.n_features_in_ = float(arrays["elm_temperature"]), np.array(classes), f
+    elif kind == "linear":
+        clf.coef_, clf.intercept_, clf.classes_, clf.n_features_in_ = arrays["coef"], arrays["intercept"], np.array(classes), f
+    else:
+        clf.fit(arrays["train_x"], arrays["train_y"])
+    return pipe

@@ -27,12 +27,13 @@ MAX_INBOUND_BYTES = 4096
 class Publisher:
     """Binds ``config.endpoint``; :meth:`publish` stamps seq and time_unix on schema messages and sends them."""
 
-    def __init__(self, config: PublishConfig, context: zmq.Context[Any] | None = None) -> None:
+    def __init__(self, config: PublishConfig, context: zmq.Context[Any] | None = None, see_subscribers: bool = False) -> None:
+        """``see_subscribers``: an XPUB socket, so that :meth:`wait_subscriber` can tell when a subscription arrived."""
         self.context = context or zmq.Context.instance()
-        self.socket = self.context.socket(zmq.PUB)
+        self.socket = self.context.socket(zmq.XPUB if see_subscribers else zmq.PUB)
         self.socket.setsockopt(zmq.LINGER, 0)
         self.socket.setsockopt(zmq.SNDHWM, 10_000)
-        # a PUB socket receives its subscribers' SUBSCRIBE messages: a peer sending a longer one is disconnected,
+        # PUB and XPUB sockets receive their subscribers' SUBSCRIBE messages: a peer sending a longer one is disconnected,
         # so a 16 MB topic prefix can never grow the daemon (topics are "<type>/<sensor id>", under 100 bytes)
         self.socket.setsockopt(zmq.MAXMSGSIZE, MAX_INBOUND_BYTES)
         self.authenticator: Any = None
@@ -85,6 +86,13 @@ class Publisher:
         except zmq.Again:
             self.dropped += 1
         return msg
+
+    def wait_subscriber(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for a first subscription (XPUB only): a subscriber that connected before
+        the bind otherwise misses what is sent while its subscription is in flight (ZeroMQ's slow joiner)."""
+        if self.socket.socket_type != zmq.XPUB or timeout_s <= 0:
+            return False
+        return bool(self.socket.poll(int(timeout_s * 1000), zmq.POLLIN))
 
     def close(self) -> None:
         self.socket.close(linger=0)

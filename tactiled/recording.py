@@ -2,7 +2,8 @@
 
 :func:`load_recording` validates everything the spec lists and raises one
 :class:`~tactiled.errors.RecordingError` naming the file and the key; it never loads
-pickle. :func:`save_recording` writes atomically (temporary file, then rename).
+pickle. :func:`save_recording` writes atomically (temporary file, then rename), the samples
+optionally block by block (:class:`StreamedArray`), so a long capture never has to fit in memory.
 """
 
 from __future__ import annotations
@@ -11,9 +12,10 @@ import json
 import os
 import tempfile
 import zipfile
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -172,10 +174,25 @@ def _validate(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
     return rec
 
 
-def save_recording(path: str | Path, rec: Recording) -> None:
-    """Write ``rec`` to ``path`` atomically: a temporary file in the same folder, then rename."""
+@dataclass
+class StreamedArray:
+    """An array written block by block (bounded memory): its final ``shape`` and ``dtype``, and ``blocks`` of rows.
+
+    The blocks must add up to ``shape`` exactly (C order, first axis); :func:`atomic_savez` checks that.
+    """
+
+    shape: tuple[int, ...]
+    dtype: np.dtype[Any]
+    blocks: Iterable[npt.NDArray[Any]]
+
+
+def save_recording(path: str | Path, rec: Recording, samples: StreamedArray | None = None) -> None:
+    """Write ``rec`` to ``path`` atomically: a temporary file in the same folder, then rename.
+
+    ``samples``, if given, replaces ``rec.samples``: a recording written from blocks (the journal, the recorder).
+    """
     arrays: dict[str, Any] = {
-        "samples": rec.samples,
+        "samples": rec.samples if samples is None else samples,
         "fs": np.float64(rec.fs),
         "volts_per_count": np.float64(rec.volts_per_count),
         "first_index": np.int64(rec.first_index),
@@ -195,17 +212,22 @@ def save_recording(path: str | Path, rec: Recording) -> None:
 
 
 def atomic_savez(path: str | Path, arrays: dict[str, Any]) -> None:
-    """``arrays`` as an ``.npz`` (what ``np.savez`` writes, never pickle) in a temporary file beside ``path``, then renamed over it."""
+    """What ``np.savez`` writes (uncompressed zip of ``.npy`` members), to a temporary file beside ``path``, then
+    fsync and rename over it and fsync the folder: ``path`` is the old file or the whole new one, even after a
+    power cut. A :class:`StreamedArray` value is written block by block."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
+    folder = path.parent or Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
     done = False
     try:
         with os.fdopen(fd, "wb") as fh:
-            # np.savez(fh, **arrays) cannot take a key named "file" (its own first parameter; feature files have one)
-            with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+            with zipfile.ZipFile(fh, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
                 for key, value in arrays.items():
                     with zf.open(f"{key}.npy", "w", force_zip64=True) as member:
-                        np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+                        if isinstance(value, StreamedArray):
+                            _write_streamed(member, key, value)
+                        else:
+                            np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
             fh.flush()
             os.fsync(fh.fileno())
         umask = os.umask(0)
@@ -213,6 +235,31 @@ def atomic_savez(path: str | Path, arrays: dict[str, Any]) -> None:
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
         done = True
+        fsync_dir(folder)
     finally:
         if not done:  # interrupted or failed: never leave a half-written file behind
             os.unlink(tmp)
+
+
+def _write_streamed(member: IO[bytes], key: str, value: StreamedArray) -> None:
+    dtype = np.dtype(value.dtype)
+    np.lib.format.write_array_header_1_0(member, {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
+                                                  "shape": tuple(value.shape)})
+    row = value.shape[1:]
+    rows = 0
+    for block in value.blocks:
+        if block.shape[1:] != row:
+            raise ValueError(f"{key}: block of shape {block.shape} in an array of rows {row}")
+        member.write(np.ascontiguousarray(block, dtype=dtype).tobytes())
+        rows += block.shape[0]
+    if rows != value.shape[0]:
+        raise ValueError(f"{key}: blocks hold {rows} rows, the header says {value.shape[0]}")
+
+
+def fsync_dir(path: str | Path) -> None:
+    """fsync a folder, so a file just created or renamed in it survives a power cut."""
+    fd = os.open(path or ".", os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

@@ -1,13 +1,15 @@
 """``tactiled replay``: a recording through the daemon's own pipeline.
 
 The recording becomes the same stream the daemon sees (blocks of samples at their sensor
-indices, lost rows marked) and runs through :class:`~tactiled.pipeline.Pipeline`.
+indices, lost rows marked) and runs through :class:`~tactiled.pipeline.Pipeline`. A raw
+capture (``.bin``: the bytes read from the port) runs through the daemon's whole ingest core,
+decoder included (:func:`replay_bytes`).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -15,6 +17,7 @@ from tactiled_client import schema
 
 from tactiled import __version__
 from tactiled.config import Config
+from tactiled.ingest import Batch, BatchCollector, Ingest, max_gap_for, run_bytes
 from tactiled.pipeline import Pipeline, PipelineEvent, SlideResult
 from tactiled.recording import Recording
 
@@ -103,3 +106,39 @@ def replay_recording(rec: Recording, config: Config, model: Any | None, *, block
         handle(pipeline.feed(base + lo, rec.samples[lo:hi], None if all_valid else valid[lo:hi]))
     handle(pipeline.finish())  # a slide still in progress at the end of the file ends there
     return results
+
+
+def replay_bytes(chunks: Iterable[bytes], config: Config, model: Any | None, *, speed: float | None = None,
+                 on_event: Callable[[PipelineEvent], None] | None = None, meta: dict[str, Any] | None = None) -> tuple[list[SlideResult], Recording]:
+    """Raw serial bytes (a ``.bin`` capture, exactly as read from the port) through the daemon's ingest core and pipeline.
+
+    The same decoder, channel and gap policies and pipeline as ``tactiled run`` (config.sensor
+    gives fs, channels and scale); the events do not depend on how the bytes are cut.
+    Returns every slide result (positions from the first sample decoded, as for a recording)
+    and the samples decoded, as a recording (lost samples listed).
+    """
+    s = config.sensor
+    ingest = Ingest(s.channels, max_gap=max_gap_for(config.ring.seconds, s.fs))
+    pipeline = Pipeline(config, s.fs, s.channels, s.volts_per_count, True, model)
+    collector = BatchCollector(s.channels)
+    events: list[PipelineEvent] = []
+    t0 = time.monotonic()
+
+    def on_batch(b: Batch) -> None:
+        collector.add(b)
+        if speed and collector.first_index is not None:
+            ahead = (b.index - collector.first_index) / s.fs / speed - (time.monotonic() - t0)
+            if ahead > 0:
+                time.sleep(ahead)  # pacing the replay at --speed, not synchronisation
+
+    for ev in run_bytes(chunks, ingest, pipeline, on_batch):
+        if on_event:
+            on_event(ev)
+        events.append(ev)
+    base = collector.first_index or 0
+    results = [replace(ev, start=ev.start - base, stop=ev.stop - base, window=(ev.window[0] - base, ev.window[1] - base))
+               for ev in events if isinstance(ev, SlideResult)]
+    st = ingest.stats
+    info = {**(meta or {}), "crc_errors": st.crc_errors, "bytes_discarded": st.bytes_discarded, "restarts": st.restarts,
+            "channel_errors": st.channel_errors}
+    return results, collector.recording(s.fs, s.volts_per_count, info)

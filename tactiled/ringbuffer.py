@@ -93,8 +93,10 @@ class RingBuffer:
             raise OverwrittenError(f"samples [{start}, {stop}) already overwritten (oldest held is {self.oldest})")
 
     def _take(self, arr: npt.NDArray[np.generic], start: int, stop: int) -> npt.NDArray[np.generic]:
-        idx = np.arange(start, stop) % self.capacity
-        return arr[idx]
+        lo, n = start % self.capacity, stop - start  # n <= capacity (checked): at most two slices, no index array
+        if lo + n <= self.capacity:
+            return arr[lo: lo + n].copy()
+        return np.concatenate([arr[lo:], arr[: lo + n - self.capacity]])
 
     def read(self, start: int, stop: int) -> tuple[npt.NDArray[np.generic], npt.NDArray[np.bool_]]:
         """Copy of samples [start, stop) as (n, C) and their validity (n,) bool."""

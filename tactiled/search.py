@@ -107,6 +107,11 @@ def default_candidates() -> list[Candidate]:
             + [PAPER])
 
 
+def quick_candidates() -> list[Candidate]:
+    """``tactiled train --method quick``: a first model in seconds (log band energies and texture, linear and kNN, 0.5 s windows)."""
+    return [Candidate(("psd", "tex"), "linear", 0.5), Candidate(("psd", "tex"), "knn", 0.5, kbest=8)]
+
+
 @dataclass
 class SearchResult:
     """The leaderboard (one row per candidate, best first), the winner, its nested CV accuracy and its model."""
@@ -399,11 +404,14 @@ def _run_with_progress(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]], 
 # ---- the papers' method ----------------------------------------------------------------------------------------------------
 
 
-def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_folds: int = 3, n_features: int | str = "auto") -> list[int]:
+def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_folds: int = 3, n_features: int | str = "auto",
+                pool: int = 0) -> list[int]:
     """Forward selection (scikit-learn's SequentialFeatureSelector, ELM criterion, grouped CV) on the windows ``rows``.
 
     ``n_features`` "auto": add features while the CV accuracy rises by at least 0.005.
-    Constant columns are never candidates. Returns column indices into ``ws.names``.
+    Constant columns are never candidates. ``pool`` > 0: only the ``pool`` columns with the largest
+    ANOVA F on ``rows`` are candidates (a cheaper search; every step costs one CV per candidate).
+    Returns column indices into ``ws.names``.
     """
     from sklearn.feature_selection import SequentialFeatureSelector
     from sklearn.pipeline import Pipeline
@@ -416,6 +424,11 @@ def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_fold
     cv = grouped_splits(y, g, inner_folds, seed)
     z = Pipeline([("log", LogFeatures(tuple(ws.names))), ("scale", StandardScaler())]).fit_transform(x)
     varying = np.flatnonzero(np.ptp(z, axis=0) > 1e-12)
+    if 0 < pool < len(varying) and len(np.unique(y)) > 1:
+        from sklearn.feature_selection import f_classif
+
+        f_stat = np.nan_to_num(f_classif(z[:, varying], y)[0], nan=0.0, posinf=np.finfo(np.float64).max)
+        varying = np.sort(varying[np.argsort(-f_stat, kind="stable")[:pool]])
     n: int | str = n_features if n_features == "auto" else min(int(n_features), len(varying) - 1)
     sfs = SequentialFeatureSelector(ELMClassifier(n_hidden=50, calibrate=False, random_state=seed), n_features_to_select=n,
                                     tol=0.005 if n == "auto" else None, direction="forward", scoring="accuracy", cv=cv)

@@ -83,20 +83,25 @@ def run_virtual_board(args: argparse.Namespace) -> int:
         unplug_at = [float(t) for t in args.unplug_at.split(",") if t.strip()]
     except ValueError:
         raise TactiledError(f"--unplug-at: not a list of seconds: {args.unplug_at!r}") from None
-    log = open(args.log, "w", encoding="utf-8") if args.log else None  # noqa: SIM115 - closed below
     stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):  # before the link exists, so that no stop leaves it behind
+        signal.signal(sig, lambda *_: stop.set())
+    log = open(args.log, "w", encoding="utf-8") if args.log else None  # noqa: SIM115 - closed below
+    board = None
     try:
-        board = VirtualBoard(SensorModel(params, args.seed), _surfaces(args.surfaces, params.family), link=args.link, speed=args.speed,
-                             corrupt=args.corrupt, drop=args.drop, garbage=args.garbage, unplug_at=unplug_at,
-                             unplug_s=args.unplug_s, seed=args.seed, log=log)
+        try:
+            board = VirtualBoard(SensorModel(params, args.seed), _surfaces(args.surfaces, params.family), link=args.link, speed=args.speed,
+                                 corrupt=args.corrupt, drop=args.drop, garbage=args.garbage, unplug_at=unplug_at,
+                                 unplug_s=args.unplug_s, seed=args.seed, log=log)
+        except ValueError as exc:
+            raise TactiledError(str(exc)) from None
         path = board.open()
         print(args.link or path, flush=True)
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
         board.run(stop, args.seconds)
-    except ValueError as exc:
-        raise TactiledError(str(exc)) from None
     finally:
+        if board is not None:
+            board.remove_link()
+            board.close()
         if log:
             log.close()
     sys.stdout.flush()

@@ -15,10 +15,10 @@ from tactiled.config import Config
 from tactiled.dataset import Slide, SlideCounts, find_slides, load_recordings
 from tactiled.errors import TactiledError
 from tactiled.recording import Recording
-from tactiled.search import SearchResult, paper, search
+from tactiled.search import Candidate, SearchResult, paper, quick_candidates, search
 
 Progress = Callable[[str], None]
-METHODS = ("auto", "paper")
+METHODS = ("auto", "quick", "paper")
 
 
 def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None:
@@ -48,13 +48,21 @@ def class_table(per_file: list[list[Slide]]) -> dict[str, tuple[int, int, int]]:
 
 
 def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
-          drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None) -> SearchResult:
-    """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save)."""
+          drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None,
+          candidates: Sequence[Candidate] | None = None) -> SearchResult:
+    """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save).
+
+    ``candidates`` narrows the default search (``method="auto"``) to the given ones.
+    """
     say = progress or (lambda m: None)
     if method not in METHODS:
         raise TactiledError(f"--method: must be one of {', '.join(METHODS)}, got {method!r}")
     if folds < 2:
         raise TactiledError(f"--folds: must be >= 2, got {folds}")
+    if min_slides < 1:
+        raise TactiledError(f"--min-slides: must be >= 1, got {min_slides}")
+    if seed < 0:
+        raise TactiledError(f"--seed: must be >= 0, got {seed}")
     recs = load_recordings(paths, say)
     check_recordings(recs, len(paths))
     per_file, counts = find_slides(recs, config)
@@ -73,8 +81,12 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         say(f"training without {', '.join(rare)} (--drop-rare)")
         per_file = [[s for s in slides if s.label not in rare] for slides in per_file]
     found: tuple[list[list[Slide]], SlideCounts] = (per_file, counts)
-    run = paper if method == "paper" else search
-    result = run(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found)
+    if method == "paper":
+        result = paper(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found)
+    else:
+        if method == "quick" and candidates is None:
+            candidates = quick_candidates()
+        result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
     result.model.summary["dropped"] = rare
     return result

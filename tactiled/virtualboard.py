@@ -82,10 +82,16 @@ class VirtualBoard:
         return self.path
 
     def close(self) -> None:
+        """Close the pty (the link stays: an unplug reopens behind it)."""
         for fd in (self._master, self._slave):
             if fd >= 0:
                 os.close(fd)
         self._master = self._slave = -1
+
+    def remove_link(self) -> None:
+        """Remove the symlink if it still points at this board's pty (so it never names a pty another program gets next)."""
+        if self.link and os.path.islink(self.link) and os.readlink(self.link) == self.path:
+            os.unlink(self.link)
 
     def _log_slides(self) -> None:
         for truth in self.model.truth[self._logged_slides:]:

@@ -1,4 +1,8 @@
-"""Coverage-guided fuzzing (atheris), time-bounded, seeded with valid inputs; and the crash cases found so far."""
+"""Coverage-guided fuzzing (atheris), time-bounded, seeded with valid inputs; and the crash cases found so far.
+
+The timed runs are marked ``fuzz`` and left out of the unit suite (``pytest -m fuzz`` runs them);
+the committed crash cases run in the unit suite (tests/test_fuzz.py::test_committed_fuzz_cases).
+"""
 
 from __future__ import annotations
 
@@ -37,7 +41,11 @@ def _seeds(target: str, corpus: Path) -> None:
         (corpus / case.name).write_bytes(case.read_bytes())
 
 
-@pytest.mark.parametrize("target", ["decoder", "recording", "model", "config"])
+TARGETS = ["decoder", "recording", "model", "config"]
+
+
+@pytest.mark.fuzz
+@pytest.mark.parametrize("target", TARGETS)
 def test_fuzz_target_for_a_few_seconds(tmp_path: Path, target: str) -> None:
     corpus = tmp_path / "corpus"
     _seeds(target, corpus)

@@ -24,22 +24,24 @@ def test_hungarian_and_kmeans_metrics() -> None:
 
 def test_evaluate_writes_all_six_experiments(tmp_path: Path) -> None:
     data = tmp_path / "d"
-    res = run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "3", "--slides-per-file", "3", "--mode", "robot")
+    res = run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "3", "--slides-per-file", "3", "--scene", "robot")
     assert res.returncode == 0, res.stderr
     report = tmp_path / "r"
-    res = run_cli("evaluate", *sorted(str(p) for p in data.glob("*.npz")), "--report", str(report), "--quick", "--folds", "3", timeout=300)
+    res = run_cli("evaluate", *sorted(str(p) for p in data.glob("*.npz")), "--report", f"{report}/", "--quick", "--folds", "3", timeout=300)
     assert res.returncode == 0, res.stderr
+    assert res.stdout.startswith(f"{report}/report.md: 9 recordings")  # a clean path, whatever the folder's spelling
     out = json.loads((report / "report.json").read_text())
-    assert set(out) >= {"classifiers", "window_grid", "sampling_rate", "feature_count", "unsupervised"}
+    assert set(out) >= {"classifiers", "window_grid", "sampling_rate", "feature_count", "unsupervised", "default_method"}
     acc = out["classifiers"]["results"]
     assert {"ELM", "kNN k=9", "SVM RBF", "SVM linear", "ELM (plain: U(-1,1), pinv)"} <= set(acc)
     assert all(0.0 <= r["mean"] <= 1.0 and r["sd"] >= 0 for r in acc.values())
     assert acc["ELM"]["mean"] > 0.6  # three well separated surfaces
     assert [r["fs"] for r in out["sampling_rate"]] == [20000.0, 5000.0]
     md = (report / "report.md").read_text()
-    for heading in ("(a) Classifiers", "(b) Start point", "(c) Sampling rate", "(d) Number", "(e) Without labels", "(f) Error against run time"):
+    for heading in ("(a) Classifiers", "(b) Start point", "(c) Sampling rate", "(d) Number", "(e) Without labels", "(f) Error against run time",
+                    "(g) The default method", "Quick run: forward selection among the 16 features"):
         assert heading in md
-    assert (report / "error_vs_runtime.png").stat().st_size > 10_000
+    assert (report / "error_vs_runtime.png").stat().st_size > 10_000 and (report / "error_vs_decision_time.png").stat().st_size > 10_000
 
 
 def test_evaluate_needs_ground_truth(tmp_path: Path) -> None:

@@ -174,3 +174,17 @@ def test_encode_frames_splits_like_firmware() -> None:
     out = FrameDecoder().feed(data)
     assert [f.index for f in out] == [5, 25, 45]
     assert np.array_equal(np.concatenate([f.samples for f in out]), samples)
+
+
+def test_a_run_overlapping_what_was_placed_drops_whole_frames_like_per_frame_decoding() -> None:
+    """Bulk runs give the frames one-by-one decoding gives: a frame starting before the expected index is a duplicate, whole."""
+    first, _ = _stream(1)
+    later, _ = _stream(3, first=10, seed=2)  # frames at 10, 30, 50: the first overlaps the frame at 0
+    data = b"".join(first + later)
+    runs = FrameDecoder()
+    got = runs.feed_runs(data)
+    assert [(f.index, f.samples.shape[0], f.lost) for f in got] == [(0, 20, 0), (30, 40, 10)]
+    per_frame = FrameDecoder()
+    assert [(f.index, f.lost) for f in per_frame.feed(data)] == [(0, 0), (30, 10), (50, 0)]
+    assert runs.stats.duplicates == per_frame.stats.duplicates == 1
+    assert runs.stats.samples_lost == per_frame.stats.samples_lost == 10

@@ -108,7 +108,7 @@ def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
     assert res.returncode == 0, res.stderr
     model = tmp_path / "m.npz"
     files = sorted(str(p) for p in data.glob("*.npz"))
-    res = run_cli("train", *files, "-o", str(model), "--folds", "2")
+    res = run_cli("train", *files, "-o", str(model), "--folds", "2", "--method", "quick")
     assert res.returncode == 0, res.stderr
     assert "leaderboard" in res.stdout and "nested CV" in res.stdout and "slides per surface" in res.stderr
     res = run_cli("score", str(model), *files, "--json")
@@ -142,7 +142,7 @@ def test_score_counts_every_true_slide_and_reads_file_labels(tmp_path: Path) -> 
                    "--mode", "robot").returncode == 0
     files = sorted(sim.glob("*.npz"))
     model = tmp_path / "m.npz"
-    assert run_cli("train", *map(str, files), "-o", str(model), "--folds", "2").returncode == 0
+    assert run_cli("train", *map(str, files), "-o", str(model), "--folds", "2", "--method", "quick").returncode == 0
     truth = load_recording(files[0])
     only_label = tmp_path / "label.npz"
     save_recording(only_label, Recording(truth.samples, truth.fs, truth.volts_per_count, label=str(truth.surface[0])))
@@ -208,9 +208,10 @@ def test_training_on_a_local_dask_cluster(tmp_path: Path) -> None:
                    "--mode", "robot").returncode == 0
     files = sorted(str(p) for p in data.glob("*.npz"))
     with distributed.LocalCluster(host="127.0.0.1", n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--scheduler", cluster.scheduler_address, timeout=300)
+        res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick", "--scheduler", cluster.scheduler_address,
+                      timeout=300)
         assert res.returncode == 0, res.stderr
-        local = run_cli("train", *files, "-o", str(tmp_path / "m2.npz"), "--folds", "2")
+        local = run_cli("train", *files, "-o", str(tmp_path / "m2.npz"), "--folds", "2", "--method", "quick")
     fp = [line.rsplit("fingerprint ", 1)[1] for out in (res.stdout, local.stdout) for line in out.splitlines() if "fingerprint" in line]
     assert len(fp) == 2 and fp[0] == fp[1]  # the same model, wherever the folds ran
     bad = run_cli("train", *files, "-o", str(tmp_path / "m3.npz"), "--scheduler", "tcp://127.0.0.1:1")

@@ -1,17 +1,62 @@
-"""`tactiled record` end to end from a virtual board on a real pty, with faults and an unplug."""
+"""`tactiled record` end to end from a virtual board on a real pty, with faults and an unplug; kills, signals, full disks, `recover`."""
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import os
+import shutil
+import signal
 import subprocess
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import pytest
 
+from tactiled.frames import Frame
+from tactiled.journal import JournalWriter, encode_chunk, encode_header, journal_path, read_journal, recover
+from tactiled.record import RecordingSink
 from tactiled.recording import load_recording
-from tactiled.sensor_model import SensorModel, SimParams, default_surfaces
+from tactiled.sensor_model import SensorModel, SimParams, Surface, default_surfaces
 from tactiled.virtualboard import VirtualBoard, read_log
-from tests.conftest import run_cli, tactiled_cmd
+from tests.conftest import REPO, run_cli, tactiled_cmd, wait_for
+
+SURFACES = default_surfaces()[:2]
+
+
+@contextlib.contextmanager
+def running_board(tmp_path: Path, seed: int) -> Iterator[VirtualBoard]:
+    """A virtual board streaming on ``tmp_path/dev`` until the block ends, its events in ``tmp_path/board.jsonl``."""
+    with open(tmp_path / "board.jsonl", "w") as log:
+        board = VirtualBoard(SensorModel(SimParams(), seed=seed), SURFACES, link=str(tmp_path / "dev"), seed=seed, log=log)
+        board.open()
+        stop = threading.Event()
+        thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
+        thread.start()
+        try:
+            yield board
+        finally:
+            stop.set()
+            thread.join(10)
+
+
+def board_truth(seed: int, surfaces: list[Surface], start: int, n: int) -> np.ndarray:
+    """The ``n`` samples a seeded virtual board sends from its ``start``-th sample on."""
+    model = SensorModel(SimParams(), seed=seed)
+    model.schedule_random(surfaces, start + n)
+    if start:
+        model.read(start)
+    return model.read(n)
+
+
+def wait_journal(board: VirtualBoard, journal: Path, nbytes: int) -> None:
+    """Wait (on the board's progress, never a sleep) until ``journal`` holds at least ``nbytes``."""
+    def grown() -> bool:
+        board.wait_sent(board.sent_samples + 400, timeout=1.0)
+        return journal.exists() and journal.stat().st_size >= nbytes
+    wait_for(grown, timeout=30, what=f"{journal} to reach {nbytes} bytes")
 
 
 def test_record_keeps_every_intact_sample_through_faults_and_unplug(tmp_path: Path) -> None:
@@ -25,8 +70,10 @@ def test_record_keeps_every_intact_sample_through_faults_and_unplug(tmp_path: Pa
         board.open()
         stop = threading.Event()
         out = tmp_path / "rec.npz"
-        proc = subprocess.Popen(tactiled_cmd("record", "--port", link, "--seconds", "2.5", "-o", str(out)),
+        proc = subprocess.Popen(tactiled_cmd("-v", "record", "--port", link, "--seconds", "2.5", "-o", str(out)),
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert proc.stderr is not None
+        assert "recording" in proc.stderr.readline()  # the port checked and open: the unplug cannot come before
         thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
         thread.start()
         try:
@@ -88,26 +135,261 @@ def test_record_bad_config_value(tmp_path: Path) -> None:
 
 
 def test_record_ctrl_c_saves_what_was_captured(tmp_path: Path) -> None:
-    link = str(tmp_path / "dev")
-    board = VirtualBoard(SensorModel(SimParams(), seed=1), default_surfaces()[:2], link=link, speed=1.0, seed=1)
-    board.open()
-    stop = threading.Event()
-    thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
-    thread.start()
     out = tmp_path / "r.npz"
-    proc = subprocess.Popen(tactiled_cmd("-v", "record", "--port", link, "--seconds", "600", "-o", str(out)),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        assert proc.stderr is not None
-        assert "recording" in proc.stderr.readline()
-        started = board.sent_samples
-        assert board.wait_sent(started + 4000, timeout=20), "board streaming to the recorder"
-        proc.send_signal(2)
-        _stdout, stderr = proc.communicate(timeout=30)
-    finally:
-        stop.set()
-        thread.join(10)
+    with running_board(tmp_path, seed=1) as board:
+        proc = subprocess.Popen(tactiled_cmd("-v", "record", "--port", board.link or "", "--seconds", "600", "-o", str(out)),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert proc.stderr is not None
+            assert "recording" in proc.stderr.readline()
+            started = board.sent_samples
+            assert board.wait_sent(started + 4000, timeout=20), "board streaming to the recorder"
+            proc.send_signal(signal.SIGINT)
+            _stdout, stderr = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
     assert proc.returncode == 0, stderr
     rec = load_recording(out)
     assert rec.samples.shape[0] > 0 and rec.samples.shape[1] == 2
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+# ---- crash-safe recording: the journal (tactiled/journal.py) -----------------------------------------------
+
+def test_sigkill_loses_at_most_a_second_and_recover_gives_the_boards_samples(tmp_path: Path) -> None:
+    out = tmp_path / "r.npz"
+    journal = tmp_path / "r.npz.journal"
+    fs = SimParams().fs
+    with running_board(tmp_path, seed=7) as board:
+        proc = subprocess.Popen(tactiled_cmd("record", "--port", board.link or "", "--seconds", "600", "-o", str(out)),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            wait_journal(board, journal, round(2.5 * fs) * 4)  # 2.5 s of 2 x int16 samples
+            sent = board.sent_samples
+            proc.kill()
+            proc.wait(10)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == -signal.SIGKILL
+    assert not out.exists()
+    res = run_cli("recover", str(journal), "-o", str(out))
+    assert res.returncode == 0, res.stderr
+    rec = load_recording(out)
+    n = rec.samples.shape[0]
+    assert res.stdout.strip().startswith(f"{out}: recovered {n} samples") and "nothing dropped" in res.stdout
+    # everything the board got into the pty up to one second before the kill is there, and equal to what it sent
+    # (a recorder starved of CPU lets the pty overflow: the board logs those frames as overruns, never received)
+    overruns = {e["index"] for e in read_log(tmp_path / "board.jsonl") if e["event"] == "overrun"}
+    delivered_end = max(i + 20 for i in range(0, round(sent - fs), 20) if i not in overruns)
+    assert rec.first_index + n >= delivered_end, f"recovered {rec.first_index}..{rec.first_index + n}, sent {sent}, {len(overruns)} overruns"
+    truth = board_truth(7, SURFACES, rec.first_index, n)
+    valid = rec.valid_mask()
+    assert np.array_equal(rec.samples[valid], truth[valid])
+    for pos, count in rec.lost:
+        assert all(i in overruns for i in range(rec.first_index + pos, rec.first_index + pos + count, 20))
+    assert rec.meta["recovered_from"] == str(journal) and rec.meta["port"] == board.link
+    assert journal.exists()  # recover never removes the journal
+
+
+def _frames(samples: np.ndarray, first: int, count: int = 20, skip: tuple[int, ...] = ()) -> list[Frame]:
+    return [Frame(first + i, samples[i:i + count]) for i in range(0, samples.shape[0], count) if i // count not in skip]
+
+
+def _journal_of(tmp_path: Path, samples: np.ndarray, first: int) -> Path:
+    """A journal as a killed recorder leaves it (chunks of 1000 rows, no .npz)."""
+    journal = journal_path(tmp_path / "k.npz")
+    writer = JournalWriter(journal, encode_header(20000.0, 2, 1e-4, "P120", {}))
+    for at in range(0, samples.shape[0], 1000):
+        block = samples[at:at + 1000]
+        writer.append(encode_chunk(at, first + at, block.shape[0], [], {"crc_errors": 0}, block))
+    writer.close()
+    return journal
+
+
+def test_sink_places_every_frame_at_its_index_and_lists_gaps(tmp_path: Path) -> None:
+    samples = np.random.default_rng(1).integers(-3000, 3000, (5000, 2), dtype=np.int16)
+    sink = RecordingSink(tmp_path / "s.npz", fs=20000.0, channels=2, volts_per_count=1e-4, limit=4500)
+    for frame in _frames(samples, 10**9, skip=(3, 4, 100)):
+        sink.add(frame)
+    assert sink.done
+    result = sink.finish()
+    rec = load_recording(tmp_path / "s.npz")
+    assert result.error is None and result.samples == 4500 and result.samples_lost == 60
+    assert rec.first_index == 10**9 and rec.lost.tolist() == [[60, 40], [2000, 20]]
+    expected = samples[:4500].copy()
+    expected[60:100] = expected[2000:2020] = 0
+    assert np.array_equal(rec.samples, expected)
+    assert not (tmp_path / "s.npz.journal").exists()  # a clean stop removes the journal
+
+
+def test_recover_drops_a_torn_last_chunk_and_a_corrupt_one(tmp_path: Path) -> None:
+    samples = np.random.default_rng(2).integers(-3000, 3000, (4000, 2), dtype=np.int16)
+    journal = _journal_of(tmp_path, samples, 500)
+    scan = read_journal(journal)
+    assert [c.position for c in scan.chunks] == [0, 1000, 2000, 3000] and scan.dropped_chunks == 0
+    # a torn last chunk: the power went while it was being written
+    with open(journal, "r+b") as fh:
+        fh.truncate(scan.size - 1234)
+    res = run_cli("recover", str(journal), "-o", str(tmp_path / "torn.npz"))
+    assert res.returncode == 0, res.stderr
+    assert "recovered 3000 samples" in res.stdout and "dropped 1 damaged or torn chunk(s), " in res.stdout
+    rec = load_recording(tmp_path / "torn.npz")
+    assert np.array_equal(rec.samples, samples[:3000]) and rec.first_index == 500 and rec.lost.size == 0 and rec.label == "P120"
+    # one flipped bit in the second chunk: its rows are lost, the chunks after it kept
+    with open(journal, "r+b") as fh:
+        fh.seek(scan.chunks[1].offset + 100)
+        byte = fh.read(1)
+        fh.seek(-1, os.SEEK_CUR)
+        fh.write(bytes([byte[0] ^ 0x10]))
+    result = recover(journal, tmp_path / "bit.npz")
+    assert (result.chunks, result.dropped_chunks, result.samples, result.samples_lost) == (2, 2, 3000, 1000)
+    rec = load_recording(tmp_path / "bit.npz")
+    assert rec.lost.tolist() == [[1000, 1000]]
+    assert np.array_equal(rec.samples[rec.valid_mask()], np.concatenate([samples[:1000], samples[2000:3000]]))
+
+
+def test_recover_refuses_what_is_not_a_journal(tmp_path: Path) -> None:
+    bad = tmp_path / "x.journal"
+    bad.write_bytes(b"PK\x03\x04 not a journal")
+    res = run_cli("recover", str(bad), "-o", str(tmp_path / "x.npz"))
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == [f"tactiled: error: {bad}: not a tactiled journal (no TACTJNL header)"]
+    assert not (tmp_path / "x.npz").exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_and_sighup_save_a_recording(tmp_path: Path, sig: signal.Signals) -> None:
+    out = tmp_path / "r.npz"
+    with running_board(tmp_path, seed=4) as board:
+        proc = subprocess.Popen(tactiled_cmd("record", "--port", board.link or "", "--seconds", "600", "-o", str(out)),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            wait_journal(board, tmp_path / "r.npz.journal", 20000)
+            proc.send_signal(sig)
+            stdout, stderr = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, stderr
+    rec = load_recording(out)
+    n = rec.samples.shape[0]
+    assert n >= 4000 and f"{n} samples" in stdout
+    assert np.array_equal(rec.samples[rec.valid_mask()], board_truth(4, SURFACES, rec.first_index, n)[rec.valid_mask()])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["board.jsonl", "dev", "r.npz"]  # journal removed, no temporary file left
+
+
+def test_bad_output_path_is_one_line_before_any_capture(tmp_path: Path) -> None:
+    board = VirtualBoard(SensorModel(SimParams(), seed=1), SURFACES, link=str(tmp_path / "dev"))
+    board.open()  # a port that opens, and sends nothing: the output is checked before any capture
+    (tmp_path / "exists.npz").write_bytes(b"old")
+    (tmp_path / "file").write_bytes(b"")
+    (tmp_path / "dir.npz").mkdir()
+    cases = {
+        tmp_path / "missing" / "r.npz": f"folder {tmp_path / 'missing'} does not exist",
+        tmp_path / "file" / "r.npz": f"{tmp_path / 'file'} is not a folder",
+        Path("/proc/self/r.npz"): "folder /proc/self is not writable",
+        tmp_path / "exists.npz": "exists (--force overwrites it)",
+        tmp_path / "dir.npz": "is a folder",
+    }
+    try:
+        for out, message in cases.items():
+            res = run_cli("record", "--port", str(tmp_path / "dev"), "--seconds", "1", "-o", str(out), timeout=20)
+            assert res.returncode == 2
+            assert res.stderr.strip().splitlines() == [f"tactiled: error: {out}: {message}"]
+    finally:
+        board.close()
+    assert (tmp_path / "exists.npz").read_bytes() == b"old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dev", "dir.npz", "exists.npz", "file"]
+
+
+def test_a_leftover_journal_is_kept_aside_never_overwritten(tmp_path: Path) -> None:
+    samples = np.random.default_rng(3).integers(-3000, 3000, (2000, 2), dtype=np.int16)
+    journal = _journal_of(tmp_path, samples, 0)
+    before = journal.read_bytes()
+    sink = RecordingSink(tmp_path / "k.npz", fs=20000.0, channels=2, volts_per_count=1e-4)
+    assert sink.finish().error is None
+    assert Path(f"{journal}.1").read_bytes() == before and not journal.exists()
+
+
+def test_full_disk_stops_the_capture_and_keeps_the_journal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import tactiled.journal
+
+    room = [60_000]  # bytes the "disk" takes before it is full
+    real_write = os.write
+
+    def write(fd: int, data: memoryview) -> int:
+        if room[0] <= 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        n = min(len(data), room[0])
+        room[0] -= n
+        return real_write(fd, data[:n])
+
+    monkeypatch.setattr(tactiled.journal.os, "write", write)
+    samples = np.random.default_rng(5).integers(-3000, 3000, (20000, 2), dtype=np.int16)
+    errors: list[str] = []
+    out = tmp_path / "f.npz"
+    sink = RecordingSink(out, fs=20000.0, channels=2, volts_per_count=1e-4, on_error=errors.append, commit_s=0.2)  # 16 kB chunks
+    for frame in _frames(samples, 0):
+        sink.add(frame)
+    result = sink.finish()
+    assert result.error is not None and errors == [result.error] and len(result.error.splitlines()) == 1
+    assert "No space left on device" in result.error and f"tactiled recover {sink.journal} -o {out}" in result.error
+    assert not out.exists()
+    monkeypatch.undo()
+    scan = read_journal(sink.journal)
+    assert scan.dropped_chunks == 0 and scan.dropped_bytes == 0  # cut back to the last whole chunk
+    assert 0 < result.samples == scan.rows < 20000 and sink.journal.stat().st_size <= 60_000
+    recover(sink.journal, tmp_path / "back.npz")
+    assert np.array_equal(load_recording(tmp_path / "back.npz").samples, samples[:scan.rows])
+
+
+def _can_mount_tmpfs(tmp_path: Path) -> bool:
+    probe = subprocess.run(["unshare", "-rm", "sh", "-c", f"mount -t tmpfs -o size=64k tmpfs {tmp_path}"], capture_output=True)
+    return probe.returncode == 0
+
+
+def test_full_tmpfs_stops_record_cleanly_and_the_journal_recovers(tmp_path: Path) -> None:
+    if shutil.which("unshare") is None or not _can_mount_tmpfs(tmp_path):
+        pytest.skip("needs unprivileged user and mount namespaces (unshare -rm) for a small tmpfs")
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    keep = tmp_path / "kept.journal"
+    with running_board(tmp_path, seed=6) as board:
+        # a 160 kB disk: the header and about 2 s of samples; the journal is copied out before the namespace goes
+        script = (f'mount -t tmpfs -o size=160k tmpfs {disk} && "$@"; rc=$?; cp {disk}/r.npz.journal {keep}; ls -a {disk} >&2; exit $rc')
+        proc = subprocess.run(["unshare", "-rm", "sh", "-c", script, "sh",
+                               *tactiled_cmd("record", "--port", board.link or "", "--seconds", "600", "-o", f"{disk}/r.npz")],
+                              capture_output=True, text=True, timeout=60, cwd=REPO)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1, proc.stderr
+    assert lines[0].startswith(f"tactiled: error: {disk}/r.npz.journal: No space left on device: capture stopped after ")
+    assert lines[0].endswith(f"kept in the journal: tactiled recover {disk}/r.npz.journal -o {disk}/r.npz")
+    assert lines[1:] == [".", "..", "r.npz.journal"]  # no .npz, no temporary file
+    res = run_cli("recover", str(keep), "-o", str(tmp_path / "r.npz"))
+    assert res.returncode == 0 and "nothing dropped" in res.stdout, res.stdout + res.stderr
+    rec = load_recording(tmp_path / "r.npz")
+    n = rec.samples.shape[0]
+    assert n >= 20000 and keep.stat().st_size <= 160 * 1024
+    assert np.array_equal(rec.samples[rec.valid_mask()], board_truth(6, SURFACES, rec.first_index, n)[rec.valid_mask()])
+
+
+def test_run_record_streams_to_the_journal_and_sighup_saves(tmp_path: Path) -> None:
+    out = tmp_path / "d.npz"
+    with running_board(tmp_path, seed=8) as board:
+        proc = subprocess.Popen(tactiled_cmd("run", "--no-model", "--port", board.link or "", "--publish", f"ipc://{tmp_path}/pub",
+                                             "--record", str(out)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            wait_journal(board, tmp_path / "d.npz.journal", 40000)  # on disk while the daemon runs
+            proc.send_signal(signal.SIGHUP)
+            _stdout, stderr = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, stderr
+    rec = load_recording(out)
+    n = rec.samples.shape[0]
+    assert n >= 8000 and rec.meta["source"] == "tactiled run --record"  # 40 kB of journal: ~10k samples less chunk headers
+    assert np.array_equal(rec.samples[rec.valid_mask()], board_truth(8, SURFACES, rec.first_index, n)[rec.valid_mask()])
+    assert not (tmp_path / "d.npz.journal").exists()

@@ -80,9 +80,10 @@ def test_every_intact_sample_once_at_its_index_and_every_lost_one_listed(tmp_pat
         expected[e["index"] - lo:e["index"] - lo + 20] = False
     assert sum(e["event"] == "drop" for e in events) > 0 and sum(e["event"] == "corrupt" for e in events) > 0
     assert np.array_equal(valid, expected)
-    # time mapping: host times advance with the board's pace (speed 2: 40 000 indices per host second) and never lie after arrival
-    later = [(m, t) for m, t in got if m.index_mono is not None and m.index - lo > 5 * 20_000]  # 2.5 s of host time
-    assert later and all(abs(m.fs_clock - 40_000) < 4_000 for m, _ in later)
+    # time mapping (its accuracy is tested on synthetic arrivals below; here, on a machine of unknown load, the plumbing): a plausible
+    # rate (the board is asked for speed 2 but may be slowed), host times never after the subscriber got the samples
+    later = [(m, t) for m, t in got if m.index_mono is not None and m.index - lo > 5 * 20_000]
+    assert later and all(10_000 < m.fs_clock < 60_000 for m, _ in later)
     assert all(m.index_mono + (m.n - 1) / m.fs_clock <= t + 0.005 for m, t in later)  # type: ignore[operator]
     s = statuses[-1]
     m = later[-1][0]
@@ -109,5 +110,14 @@ def test_clock_map_follows_the_earliest_arrivals() -> None:
         clock.observe(end, t0 + end / true_fs + 0.002 + rng.uniform(0, 0.01))  # 2 ms transport + up to 10 ms read jitter
     assert abs(clock.fs - true_fs) < 2.0
     assert 0.0 <= clock.mono(200_000) - (t0 + 200_000 / true_fs) <= 0.0025
-    clock.observe(600 * 400, t0 + 50.0)  # a board restart: the index no longer fits the host clock
-    assert clock.resets == 1 and clock.mono(600 * 400) == t0 + 50.0
+    line = clock.mono(200_000)
+    clock.observe(600 * 400, t0 + 600 * 400 / true_fs + 2.0)  # a host stall of 2 s: one late arrival, then the backlog, on time
+    for k in range(1, 100):
+        end = round((14.0 + 0.02 * k) * true_fs)
+        clock.observe(end, t0 + end / true_fs + 0.003)
+    assert clock.resets == 0 and abs(clock.mono(200_000) - line) < 1e-4  # the line holds (refined by the new on-time arrivals)
+    for k in range(0, 100):  # a board restart that continues the timeline: late by about 70 s from now on, for more than persist_s
+        clock.observe(400_000 + k * 400, t0 + 90.0 + k * 0.02)
+    assert clock.resets == 1 and abs(clock.mono(400_000 + 99 * 400) - (t0 + 91.98)) < 0.01
+    clock.observe(10**9, t0 + 93.0)  # a forward jump: the samples would have arrived before they were taken; the line moves down
+    assert clock.mono(10**9) == t0 + 93.0

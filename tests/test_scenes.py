@@ -121,3 +121,18 @@ def test_same_events_and_labels_in_any_block_size(scene: str, datasets: dict[str
     finals = [r for r in runs[0] if r[5]]
     truth = [(a, b) for a, b, _ in rec.slides()]
     assert all(j is not None for j in match_slides([(r[0], r[1]) for r in finals], truth))
+
+
+def test_a_model_trained_on_clipping_surfaces_knows_them_all_and_scores_every_slide(datasets: dict[str, list[Path]]) -> None:
+    """Clipping is a quality figure: the hot-gain surfaces that clip stay in training and every true slide is scored."""
+    from tactiled.score import score_recordings
+    from tactiled.search import Candidate
+    from tactiled.train import train
+
+    paths = datasets["hot-gain"]
+    result = train(paths, Config(), folds=2, candidates=[Candidate(("psd",), "linear", 0.5)])
+    recs = [(str(p), load_recording(p)) for p in paths]
+    surfaces = sorted({s for _, r in recs for _, _, s in r.slides()})
+    assert sorted(result.model.classes) == surfaces
+    report = score_recordings(recs, Config(), result.model)
+    assert report["n"] == sum(len(r.slides()) for _, r in recs) == 15 and report["coverage"] == 1.0

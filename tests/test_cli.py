@@ -1,0 +1,135 @@
+"""The command line as a newcomer meets it: help on everything, examples that parse, one-line errors, docs/cli.md current."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shlex
+import signal
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from tactiled.cli import EXAMPLES, build_parser, main, subcommands
+from tactiled.clidoc import REGENERATE, cli_markdown
+from tactiled.errors import TactiledError
+from tactiled.model import load_model
+from tactiled.sensor_model import pick_surfaces
+from tests.conftest import REPO, tactiled_cmd
+
+COMMANDS = subcommands(build_parser())
+
+
+def test_every_argument_of_every_command_has_help() -> None:
+    missing = [f"tactiled {words}: {action.dest}" for words, p in COMMANDS.items() for action in p._actions
+               if not (action.help or "").strip() or action.help == argparse.SUPPRESS]
+    assert not missing, f"arguments without help: {missing}"
+    assert len(COMMANDS) >= 19  # the top level, 15 commands, simulate and its three
+
+
+@pytest.mark.parametrize("words", list(COMMANDS))
+def test_help_runs_and_ends_with_an_example_that_parses(words: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main([*words.split(), "--help"])
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    example = EXAMPLES[words]
+    assert out.rstrip().endswith(f"example:\n  {example}")
+    assert COMMANDS[words].description, f"tactiled {words} has no description"
+    argv = shlex.split(example)
+    assert argv[0] == "tactiled" and " ".join(argv[1:]).startswith(words)
+    build_parser().parse_args(argv[1:])  # the example is a valid command line (SystemExit otherwise)
+
+
+def test_defaults_are_shown() -> None:
+    text = COMMANDS["simulate serial"].format_help()
+    assert "times real time (default: 1.0)" in text and "(default: 0.0)" in text
+    assert "(default: None)" not in "".join(p.format_help() for p in COMMANDS.values())
+    assert "(default: False)" not in "".join(p.format_help() for p in COMMANDS.values())
+
+
+def test_docs_cli_md_is_generated_from_the_parser() -> None:
+    wanted = cli_markdown(build_parser())
+    have = (REPO / "docs" / "cli.md").read_text(encoding="utf-8")
+    assert have == wanted, f"docs/cli.md is out of date: regenerate it with `{REGENERATE}`"
+
+
+def test_surface_examples_in_help_are_accepted() -> None:
+    for words in ("simulate dataset", "simulate serial"):
+        text = next(a.help for a in COMMANDS[words]._actions if "--surfaces" in a.option_strings) or ""
+        names = re.findall(r"\b(?:Ra\d\.\d\d|G\d\.\d\dmm)\b", text)
+        assert names
+        for name in names:
+            assert [s.name for s in pick_surfaces(name, "grating" if name.startswith("G") else "self-affine")] == [name]
+
+
+def test_argument_types_reject_bad_values_by_name_not_function(capsys: pytest.CaptureFixture[str]) -> None:
+    """A bad value is one line naming the option and the value, never a Python function name."""
+    for words, p in COMMANDS.items():
+        for action in p._actions:
+            if callable(action.type) and action.type not in (int, float, str):
+                with pytest.raises(argparse.ArgumentTypeError):  # never ValueError: argparse would print the function's name
+                    action.type("?x")
+                assert not action.type.__name__.startswith("_"), f"tactiled {words} {action.dest}"
+    for argv, what in ((["record", "--seconds", "abc", "-o", "x.npz"], "argument --seconds: not a number: 'abc'"),
+                       (["record", "--seconds", "-1", "-o", "x.npz"], "argument --seconds: must be > 0, got -1"),
+                       (["simulate", "serial", "--drop", "2"], "argument --drop: must be in [0, 1], got 2"),
+                       (["evaluate", "a.npz", "--report", "r", "--experiments", "az"], "argument --experiments: letters from abcdefg")):
+        with pytest.raises(SystemExit) as exit_:
+            main(argv)
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and what in err and len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("option, value, what", [("--folds", "1", "must be an integer >= 2, got 1"), ("--folds", "two", "not an integer"),
+                                                 ("--min-slides", "0", "must be an integer >= 1"), ("--seed", "-1", "must be an integer >= 0")])
+def test_train_rejects_impossible_options_in_one_line(option: str, value: str, what: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "x.npz", "-o", "m.npz", option, value])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and f"argument {option}: {what}" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_train_library_rejects_impossible_options(tmp_path: Path) -> None:
+    from tactiled.config import load_config
+    from tactiled.train import train
+
+    for kwargs, what in (({"folds": 1}, "--folds"), ({"min_slides": 0}, "--min-slides"), ({"seed": -1}, "--seed"), ({"method": "x"}, "--method")):
+        with pytest.raises(TactiledError, match=what):
+            train([tmp_path / "none.npz"], load_config(None), **kwargs)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_simulate_serial_removes_its_link_on_exit(tmp_path: Path, sig: signal.Signals) -> None:
+    link = tmp_path / "tty"
+    proc = subprocess.Popen(tactiled_cmd("simulate", "serial", "--link", str(link), "--surfaces", "2"), stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == str(link)  # printed once the link exists
+        assert link.is_symlink() and os.readlink(link).startswith("/dev/pts/")
+        proc.send_signal(sig)
+        assert proc.wait(60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert not os.path.lexists(link)
+
+
+def test_simulate_and_train_give_the_same_fingerprint_in_another_process(tmp_path: Path) -> None:
+    """The documented commands are reproducible: two processes (with different hash seeds) simulate and train the same model."""
+    def commands(i: int) -> str:
+        data, env = tmp_path / f"d{i}", f"PYTHONHASHSEED={i}"
+        simulate = shlex.join(tactiled_cmd("simulate", "dataset", "--out", str(data), "--surfaces", "2", "--files-per-surface", "2",
+                                           "--slides-per-file", "2", "--scene", "robot", "--fs", "2200", "--channels", "1"))
+        train = shlex.join(tactiled_cmd("train", "--method", "quick", "-o", str(tmp_path / f"m{i}.npz"), "--folds", "2"))
+        return f"{env} {simulate} && {env} {train} {shlex.quote(str(data))}/*.npz"
+
+    procs = [subprocess.Popen(["sh", "-c", commands(i)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO) for i in (1, 2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [err for _, err in outs]
+    fingerprints = [re.findall(r"fingerprint ([0-9a-f]{16})", out) for out, _ in outs]
+    assert len(fingerprints[0]) == 1 and fingerprints[0] == fingerprints[1]
+    assert load_model(tmp_path / "m1.npz").fingerprint == fingerprints[0][0]  # the file written loads back as the model printed

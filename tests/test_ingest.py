@@ -1,0 +1,302 @@
+"""The ingest core: block invariance, gap and channel policies, the serial source, and replay of a raw capture against the live daemon."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import subprocess
+import threading
+import tracemalloc
+import tty
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq
+from tactiled_client import BlockingSubscriber, Roughness, Slide, Status
+
+from tactiled.config import Config
+from tactiled.daemon import Daemon
+from tactiled.frames import encode_frame, encode_frames
+from tactiled.ingest import Batch, Ingest, finish_pipeline, max_gap_for, run_bytes
+from tactiled.model import load_model
+from tactiled.pipeline import Pipeline, PipelineEvent, SlideResult
+from tactiled.player import capture_recording_stub, read_chunks, recording_bytes
+from tactiled.recording import Recording
+from tactiled.sensor_model import SensorModel, SimParams, pick_surfaces, simulate_file
+from tactiled.serialsource import CONNECTED, DISCONNECTED, MemorySource, SerialSource
+from tactiled.virtualboard import VirtualBoard
+from tests.conftest import tactiled_cmd, wait_for
+
+FS = 20_000.0
+
+
+def _stream(seed: int = 4, first: int = 1000) -> tuple[bytes, np.ndarray]:
+    """A few seconds of simulated slides as the board's bytes, with corrupted frames and garbage between frames."""
+    sim = simulate_file(SimParams(), pick_surfaces("Ra2.29")[0], 2, seed)
+    frames = [bytearray(encode_frame(first + i, sim.samples[i:i + 20])) for i in range(0, sim.samples.shape[0] - 19, 20)]
+    rng = np.random.default_rng(seed)
+    for k in rng.choice(len(frames), 12, replace=False):
+        frames[k][int(rng.integers(2, len(frames[k])))] ^= 0x5A
+    for k in rng.choice(len(frames), 12, replace=False):
+        frames[k] = bytearray(rng.integers(0, 256, 17, dtype=np.uint8).tobytes()) + frames[k]
+    return b"".join(bytes(f) for f in frames), sim.samples
+
+
+def _events(data: bytes, chunk: int, min_batch: int = 1) -> list[tuple[object, ...]]:
+    config = Config()
+    ingest = Ingest(2, max_gap=max_gap_for(config.ring.seconds, FS), min_batch=min_batch)
+    pipeline = Pipeline(config, FS, 2, config.sensor.volts_per_count, True, load_model())
+    chunks = (data[i:i + chunk] for i in range(0, len(data), chunk))
+    return [_key(ev) for ev in run_bytes(chunks, ingest, pipeline)]
+
+
+def _key(ev: PipelineEvent) -> tuple[object, ...]:
+    if isinstance(ev, SlideResult):
+        return ("result", ev.slide_id, ev.start, ev.stop, ev.window, ev.label, ev.reason, ev.confidence, ev.final)
+    return (type(ev).__name__, *vars(ev).values())
+
+
+def test_events_do_not_depend_on_how_the_bytes_are_cut() -> None:
+    data, _ = _stream()
+    whole = _events(data, len(data))
+    assert any(k[0] == "result" and k[-1] for k in whole)  # final labels came
+    assert _events(data, 4096) == whole
+    assert _events(data, 7) == whole
+    assert _events(data[: len(data) // 3], 1) == _events(data[: len(data) // 3], len(data))
+    assert _events(data, 4096, min_batch=800) == whole  # batching is invisible too
+
+
+def _frames(first: int, n: int, channels: int = 2, seed: int = 0) -> bytes:
+    rng = np.random.default_rng(seed)
+    return encode_frames(first, rng.integers(-500, 500, (n * 20, channels)).astype(np.int16))
+
+
+@pytest.mark.parametrize("jump", [2**31 + 12345, 2**24])
+def test_a_huge_forward_jump_is_a_restart_in_constant_memory(jump: int) -> None:
+    config = Config()
+    ingest = Ingest(2, max_gap=max_gap_for(config.ring.seconds, FS))
+    pipeline = Pipeline(config, FS, 2, config.sensor.volts_per_count, True, None)
+    before = ingest.feed(_frames(5000, 50))
+    for b in before:
+        pipeline.feed(b.index, b.samples)
+    tracemalloc.start()
+    try:
+        after = ingest.feed(_frames((5000 + 1000 + jump) % 2**32, 50, seed=1))
+        for b in after:
+            if b.restart:
+                pipeline.finish()
+            pipeline.feed(b.index, b.samples)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 4 << 20, peak  # nothing proportional to the gap (2**24 int16 pairs alone would be 64 MiB)
+    assert ingest.stats.restarts == 1 and ingest.stats.samples_lost == 0
+    assert [(b.index, b.restart) for b in after] == [(6000, True)]  # the timeline continues where it was
+    assert pipeline.ring.end == 7000
+
+
+def test_a_gap_within_the_ring_is_lost_samples_not_a_restart() -> None:
+    ingest = Ingest(2, max_gap=max_gap_for(20.0, FS))
+    ingest.feed(_frames(0, 10))
+    (b,) = ingest.feed(_frames(200 + 300_000, 10))
+    assert (b.index, b.lost, b.restart) == (300_200, 300_000, False)
+    assert ingest.stats.samples_lost == 300_000 and ingest.stats.restarts == 0
+
+
+def test_foreign_channel_frames_never_move_the_index() -> None:
+    ingest = Ingest(2, max_gap=max_gap_for(20.0, FS))
+    data = b"".join(_frames(k * 20, 1, seed=k) + encode_frame(2**31 + 7 * k, np.ones((20, 8), dtype=np.int16)) for k in range(30))
+    batches = ingest.feed(data) + ingest.flush()
+    assert [(b.index, b.samples.shape[0]) for b in batches] == [(0, 600)]
+    st = ingest.stats
+    assert (st.channel_errors, st.samples, st.samples_lost, st.restarts) == (30, 600, 0, 0)
+
+
+def test_recording_bytes_round_trip_through_the_core() -> None:
+    samples = np.arange(4000, dtype=np.int16).reshape(2000, 2)
+    rec = Recording(samples, FS, 1.0, first_index=77, lost=np.array([[400, 100]]))
+    ingest = Ingest(2, max_gap=10_000)
+    batches = ingest.feed(recording_bytes(rec)) + ingest.flush()
+    assert [(b.index, b.lost) for b in batches] == [(77, 0), (577, 100)]
+    got = np.concatenate([b.samples for b in batches])
+    assert np.array_equal(got, np.concatenate([samples[:400], samples[500:]]))
+
+
+def _pty_frames(n_frames: int, first: int = 0) -> bytes:
+    return _frames(first, n_frames)
+
+
+class _FailingTee:
+    """A capture file whose first write fails: an exception inside the reader thread itself."""
+
+    def __init__(self) -> None:
+        self.writes = 0
+
+    def write(self, data: bytes) -> int:
+        self.writes += 1
+        if self.writes == 1:
+            raise RuntimeError("tee broke")
+        return len(data)
+
+    def flush(self) -> None:
+        pass
+
+
+def test_serial_source_survives_reader_and_consumer_failures_and_counts_them() -> None:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    got: list[bytes] = []
+    states: list[tuple[str, str]] = []
+
+    async def main() -> SerialSource:
+        more = asyncio.Event()
+        calls = 0
+
+        def on_bytes(data: bytes) -> None:
+            nonlocal calls
+            calls += 1
+            if calls == 1:
+                raise ValueError("consumer broke")  # the first bytes that reach the consumer make it fail
+            got.append(data)
+            more.set()
+
+        source = SerialSource(path, on_bytes, lambda s, d: states.append((s, d)), read_interval_s=0.005, retry_max_s=0.05,
+                              tee=_FailingTee())  # type: ignore[arg-type]
+        task = asyncio.create_task(source.run())
+        deadline = asyncio.get_running_loop().time() + 20
+        while not got:  # write until bytes reach the consumer after both failures (the source may still be reopening)
+            assert asyncio.get_running_loop().time() < deadline, states
+            os.write(master, b"y" * 10)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(more.wait(), 0.5)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        return source
+
+    try:
+        source = asyncio.run(main())
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert source.errors == 2 and source.reconnects == 1  # the tee's failure reconnected; the consumer's did not
+    assert got and set(b"".join(got)) == set(b"y")
+    assert [s for s, _ in states] == [CONNECTED, DISCONNECTED, CONNECTED]
+    assert "reader error RuntimeError: tee broke" in states[1][1]
+
+
+def test_daemon_on_a_memory_source_ends_the_stream_and_publishes_every_event(tmp_path: Path) -> None:
+    data, _ = _stream(seed=6)
+    config = Config().override({"publish.endpoint": f"ipc://{tmp_path}/pub", "publish.status_interval_s": 0.2})
+    expected = [k for k in _events(data, 4096) if k[0] == "result" and k[-1]]
+    ctx = zmq.Context.instance()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.SUBSCRIBE, b"roughness")
+    got: list[dict[str, object]] = []
+
+    async def main() -> None:
+        daemon = Daemon(config, load_model(), source_factory=lambda on_bytes, on_state: MemorySource(
+            (data[i:i + 920] for i in range(0, len(data), 920)), on_bytes, on_state))
+        sub.connect(daemon.endpoint)
+        await asyncio.sleep(0.2)  # a ZeroMQ subscription needs a moment to reach the publisher (slow joiner), not synchronisation
+        await daemon.run()  # returns at the end of the stream
+        assert daemon.ingest.stats.crc_errors + daemon.ingest.stats.bad_headers >= 12
+
+    asyncio.run(main())
+    import msgpack
+
+    while sub.poll(2000):
+        got.append(msgpack.unpackb(sub.recv_multipart()[-1]))
+    sub.close(linger=0)
+    finals = [(m["start"], m["stop"], m["label"]) for m in got if m["final"]]
+    assert finals == [(k[2], k[3], k[5]) for k in expected] and finals
+
+
+def test_run_no_wait_exits_at_once_and_waiting_says_so_once(tmp_path: Path) -> None:
+    missing = str(tmp_path / "missing")
+    res = subprocess.run(tactiled_cmd("run", "--port", missing, "--no-wait", "--no-model", "--publish", f"ipc://{tmp_path}/a"),
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and res.stderr.strip().splitlines() == [f"tactiled: error: {missing}: no such serial device"]
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[publish]\nstatus_interval_s = 0.05\n")
+    endpoint = f"ipc://{tmp_path}/b"
+    with BlockingSubscriber(endpoint, topics=["status"], timeout=20) as sub:
+        proc = subprocess.Popen(tactiled_cmd("run", "--config", str(cfg), "--port", missing, "--no-model", "--publish", endpoint),
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            seen: list[Status] = []
+            wait_for(lambda: seen.append(sub.receive()) or len(seen) >= 10, timeout=30, what="ten statuses")  # type: ignore[func-returns-value]
+        finally:
+            proc.terminate()
+            _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0
+    assert all(s.state == "disconnected" for s in seen)
+    assert sum("waiting for the device" in line for line in err.splitlines()) == 1, err
+
+
+def test_replay_of_the_raw_capture_gives_the_live_daemons_events(tmp_path: Path) -> None:
+    """The daemon writes what it reads (run --raw); replay x.bin through the decoder gives the same slides and labels."""
+    link, raw, endpoint = str(tmp_path / "tty"), tmp_path / "cap.bin", f"ipc://{tmp_path}/pub"
+    board = VirtualBoard(SensorModel(SimParams(), seed=8), pick_surfaces(4), link=link, speed=3.0, corrupt=0.01, drop=0.005,
+                         garbage=0.01, seed=8, first_index=2**32 - 100_000)  # the 32-bit index wraps 5 s in
+    board.open()
+    stop = threading.Event()
+    thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
+    messages: list[object] = []
+    with BlockingSubscriber(endpoint, topics=["roughness", "slide"], timeout=30) as sub:
+        proc = subprocess.Popen(tactiled_cmd("run", "--port", link, "--publish", endpoint, "--raw", str(raw)), stderr=subprocess.PIPE, text=True)
+        thread.start()
+        try:
+            wait_for(lambda: messages.append(sub.receive()) or sum(isinstance(m, Roughness) and m.final for m in messages) >= 4,  # type: ignore[func-returns-value]
+                     timeout=120, what="four labels")
+        finally:
+            proc.terminate()
+            proc.wait(10)
+            stop.set()
+            thread.join(10)
+    assert proc.returncode == 0, proc.stderr.read() if proc.stderr else ""
+    live = [(m.slide_id, m.start, m.stop, m.label, m.reason) for m in messages if isinstance(m, Roughness) and m.final]
+    res = subprocess.run(tactiled_cmd("replay", "--json", str(raw)), capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    base = capture_recording_stub(raw, FS, 2, 1.0).first_index
+    replayed = [json.loads(line) for line in res.stdout.splitlines()]
+    again = [(r["slide_id"], r["start"] + base, r["stop"] + base, r["label"], r["reason"]) for r in replayed]
+    assert again[: len(live)] == live
+    assert any(isinstance(m, Slide) for m in messages)
+    assert b"".join(read_chunks(raw))[:2] != b""  # the capture holds what was read
+
+
+def test_end_of_stream_releases_what_the_batcher_held() -> None:
+    config = Config()
+    ingest = Ingest(2, max_gap=1000, min_batch=10_000)
+    pipeline = Pipeline(config, FS, 2, config.sensor.volts_per_count, True, None)
+    assert ingest.feed(_frames(0, 5)) == [] and ingest.held == 100
+    finish_pipeline(ingest, pipeline)
+    assert pipeline.ring.end == 100 and ingest.held == 0
+    assert isinstance(Batch(0, np.zeros((3, 2), np.int16)).end, int)
+
+
+def test_the_watchdog_is_fed_only_while_the_reader_runs(tmp_path: Path) -> None:
+    config = Config().override({"publish.endpoint": f"ipc://{tmp_path}/w"})
+
+    async def main() -> tuple[bool, bool, bool]:
+        daemon = Daemon(config, None, source_factory=lambda on_bytes, on_state: MemorySource([], on_bytes, on_state))
+        try:
+            daemon.source = daemon._make_source(None)
+            never_ends = asyncio.Event()
+            daemon._reader = asyncio.create_task(never_ends.wait())
+            now = daemon.source.alive_at
+            alive = daemon.reader_alive(now + 1.0)
+            stale = daemon.reader_alive(now + 60.0)  # the reader loop stopped ticking (e.g. stuck in an open)
+            daemon._reader.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await daemon._reader
+            return alive, stale, daemon.reader_alive(now)  # the reader task ended
+        finally:
+            daemon.publisher.close()
+
+    assert asyncio.run(main()) == (True, False, False)
