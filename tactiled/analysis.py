@@ -92,6 +92,19 @@ class AnalysisSettings:
         return lo, lo + max(1, round(self.duration_s * fs))
 
 
+
+ANALYSIS_SECTIONS = ("window", "spikes", "features")
+
+
+def sections_a_model_overrides(config: Config) -> list[str]:
+    """The config's analysis sections (``[window]``, ``[spikes]``, ``[features]``) set away from their defaults.
+
+    A loaded model analyses with the settings it was trained with, so these apply only without a model.
+    """
+    default = Config()
+    return [name for name in ANALYSIS_SECTIONS if getattr(config, name) != getattr(default, name)]
+
+
 def dwt_level(channels: int, fs: float, duration_s: float, config: Config) -> int:
     """The most DWT levels (at most ``features.level``) whose bands fit in a window of ``duration_s``; 0 if none."""
     n = round(duration_s * fs)

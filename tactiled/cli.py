@@ -38,6 +38,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
+    from tactiled.ingest import max_gap_for
     from tactiled.record import record
 
     config = _config(args, {"sensor.port": args.port, "sensor.fs": args.fs, "sensor.volts_per_count": args.volts_per_count,
@@ -52,7 +53,8 @@ def cmd_record(args: argparse.Namespace) -> int:
         check_output(args.output, args.force)
     summary = record(config.sensor.port, args.seconds, npz, fs=config.sensor.fs, channels=config.sensor.channels,
                      volts_per_count=config.sensor.volts_per_count, label=args.label, baudrate=config.sensor.baudrate,
-                     retry_max_s=config.serial.retry_max_s, meta={"sensor": config.sensor.id}, force=args.force)
+                     retry_max_s=config.serial.retry_max_s, meta={"sensor": config.sensor.id}, force=args.force,
+                     max_gap=max_gap_for(config.ring.seconds, config.sensor.fs))
     if summary.error is not None:  # a full disk: the capture stopped, the journal keeps what was written
         print(f"tactiled: error: {summary.error}", file=sys.stderr)
         return EXIT_FAIL
@@ -138,6 +140,19 @@ def _model_for(path: str | None, fs: float, channels: int, where: str, explicit:
     return None
 
 
+def _say_model_settings(config: Config, model: object | None) -> None:
+    """One warning when the config sets analysis sections that the loaded ``model`` replaces with its own."""
+    from tactiled.analysis import sections_a_model_overrides
+
+    unused = sections_a_model_overrides(config)
+    if model is None or not unused:
+        return
+    st = model.settings  # type: ignore[attr-defined]
+    log.warning("the model analyses with its own settings (windows of %g s from %g s, spikes %s, %d features); not used with a "
+                "model, only without one (--no-model): the config's %s", st.duration_s, st.start_s, st.spikes, len(st.names),
+                ", ".join(f"[{s}]" for s in unused))
+
+
 def _replay_capture(path: str, config: Config, args: argparse.Namespace, publisher: Any) -> tuple[list[Any], Any, Any]:
     """``replay x.bin``: raw serial bytes through the daemon's ingest core (config.sensor: fs, channels, scale)."""
     from tactiled.player import capture_recording_stub, read_chunks
@@ -165,6 +180,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     config = _config(args)
     failed = 0
+    said = False  # the model-settings warning, once
     publisher = None
     if args.publish:
         from tactiled.publish import Publisher
@@ -183,6 +199,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 results, rec, model = _replay_capture(path, config, args, publisher)
             else:
                 model = _model_for(args.model, rec.fs, rec.channels, path, explicit=args.no_model)
+                if model is not None and not said:
+                    _say_model_settings(config, model)
+                    said = True
                 on_event = None
                 if publisher is not None:
                     on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""), args.speed)
@@ -281,6 +300,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                            explicit=bool(config.model.path))
         if model is None:
             raise TactiledError("no model fits this sensor (train one with tactiled train, or pass --no-model)")
+        _say_model_settings(config, model)
 
     if args.no_wait:
         from tactiled.serialsource import check_port

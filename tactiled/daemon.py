@@ -28,7 +28,6 @@ from tactiled_client import schema
 from tactiled import __version__
 from tactiled.clockmap import ClockMap
 from tactiled.config import Config
-from tactiled.frames import Frame
 from tactiled.ingest import Batch, Ingest, feed_pipeline, max_gap_for
 from tactiled.model import Model
 from tactiled.pipeline import Pipeline, PipelineEvent
@@ -169,7 +168,7 @@ class Daemon:
         st = self.state
         for b in batches:
             if self.recorder is not None:
-                self.recorder.add(Frame(b.index, b.samples, b.lost, b.restart))
+                self.recorder.add(b)
             sq = np.einsum("ij,ij->j", b.samples, b.samples, dtype=np.float64)
             st.sumsq = sq if st.sumsq is None else st.sumsq + sq
             st.samples_window += b.samples.shape[0]

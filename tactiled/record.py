@@ -23,7 +23,8 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.errors import OutputError
-from tactiled.frames import Frame, FrameDecoder
+from tactiled.frames import Frame
+from tactiled.ingest import Batch, Ingest
 from tactiled.journal import JournalWriter, encode_chunk, encode_header, is_locked, journal_path, recover
 from tactiled.recording import fsync_dir
 from tactiled.serialsource import DISCONNECTED, SerialSource, check_port
@@ -131,8 +132,8 @@ class RecordingSink:
         """Rows queued so far (lost ones included)."""
         return self._end
 
-    def add(self, frame: Frame) -> None:
-        """Queue one decoded frame (never blocks; a frame the writer has no room for is lost, and counted)."""
+    def add(self, frame: Frame | Batch) -> None:
+        """Queue one decoded frame or batch (never blocks; one the writer has no room for is lost, and counted)."""
         if self.error is not None or self.done:
             return
         samples = frame.samples
@@ -242,8 +243,12 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 def record(port: str, seconds: float, out: str | Path, *, fs: float, channels: int, volts_per_count: float,
            label: str | None = None, baudrate: int = 1_000_000, retry_max_s: float = 2.0,
-           meta: dict[str, Any] | None = None, force: bool = False) -> RecordSummary:
+           meta: dict[str, Any] | None = None, force: bool = False, max_gap: int | None = None) -> RecordSummary:
     """Record ``seconds`` of sensor time from ``port`` into ``out``; SIGINT, SIGTERM or SIGHUP stops early and saves.
+
+    The bytes go through the daemon's ingest core (tactiled/ingest.py): frames of another channel count
+    are counted and skipped, and a forward jump of the index beyond ``max_gap`` samples (default: 10 s)
+    is a board restart, recorded as continuing, never as a long run of lost samples.
 
     The port and the output path are checked first (:class:`~tactiled.errors.DeviceError`,
     :class:`~tactiled.errors.OutputError`); a write error during the capture stops it and is returned in
@@ -251,12 +256,13 @@ def record(port: str, seconds: float, out: str | Path, *, fs: float, channels: i
     """
     check_port(port)
     chunks: queue.Queue[bytes | None] = queue.Queue()
-    decoder = FrameDecoder()
+    ingest = Ingest(channels, max_gap=max_gap or max(1, round(10 * fs)))
+    stats = ingest.stats
     source: SerialSource | None = None
 
     def counters() -> dict[str, int]:
-        return {"crc_errors": decoder.stats.crc_errors, "bytes_discarded": decoder.stats.bytes_discarded,
-                "reconnects": source.reconnects if source else 0}
+        return {"crc_errors": stats.crc_errors, "bytes_discarded": stats.bytes_discarded, "reconnects": source.reconnects if source else 0,
+                "frames_foreign_channels": stats.channel_errors}
 
     sink = RecordingSink(out, fs=fs, channels=channels, volts_per_count=volts_per_count, label=label,
                          meta={**(meta or {}), "port": port}, limit=max(1, round(seconds * fs)), force=force, counters=counters)
@@ -276,8 +282,8 @@ def record(port: str, seconds: float, out: str | Path, *, fs: float, channels: i
                 data = chunks.get(timeout=0.1)  # the stop flag's polling period
             except queue.Empty:
                 continue
-            for frame in decoder.feed(data or b""):
-                sink.add(frame)
+            for batch in ingest.feed(data or b""):
+                sink.add(batch)
         if stop.is_set():
             log.info("stopped by a signal: saving what was captured")
     finally:
@@ -285,9 +291,9 @@ def record(port: str, seconds: float, out: str | Path, *, fs: float, channels: i
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     while not chunks.empty():
-        for frame in decoder.feed(chunks.get_nowait() or b""):
-            sink.add(frame)
-    for frame in decoder.flush():
-        sink.add(frame)
+        for batch in ingest.feed(chunks.get_nowait() or b""):
+            sink.add(batch)
+    for batch in ingest.flush():
+        sink.add(batch)
     result = sink.finish(counters())
-    return RecordSummary(result.samples / fs, result.samples, result.samples_lost, decoder.stats.crc_errors, source.reconnects, result.error)
+    return RecordSummary(result.samples / fs, result.samples, result.samples_lost, stats.crc_errors, source.reconnects, result.error)

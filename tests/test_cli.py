@@ -17,7 +17,7 @@ from tactiled.clidoc import REGENERATE, cli_markdown
 from tactiled.errors import TactiledError
 from tactiled.model import load_model
 from tactiled.sensor_model import pick_surfaces
-from tests.conftest import REPO, tactiled_cmd
+from tests.conftest import REPO, run_cli, tactiled_cmd
 
 COMMANDS = subcommands(build_parser())
 
@@ -133,3 +133,22 @@ def test_simulate_and_train_give_the_same_fingerprint_in_another_process(tmp_pat
     fingerprints = [re.findall(r"fingerprint ([0-9a-f]{16})", out) for out, _ in outs]
     assert len(fingerprints[0]) == 1 and fingerprints[0] == fingerprints[1]
     assert load_model(tmp_path / "m1.npz").fingerprint == fingerprints[0][0]  # the file written loads back as the model printed
+
+
+def test_a_model_says_once_that_the_configs_analysis_sections_are_not_used(tmp_path: Path) -> None:
+    from tactiled.recording import Recording, save_recording
+    from tactiled.sensor_model import SimParams, simulate_file
+
+    params = SimParams()
+    sim = simulate_file(params, pick_surfaces("Ra1.00")[0], 1, 0)
+    files = [str(tmp_path / f"r{i}.npz") for i in range(2)]
+    for f in files:
+        save_recording(f, Recording(sim.samples, params.fs, params.volts_per_count))
+    config = tmp_path / "c.toml"
+    config.write_text("[window]\nduration_s = 0.25\n\n[spikes]\nmethod = \"none\"\n")
+    res = run_cli("replay", "--config", str(config), *files)
+    assert res.returncode == 0, res.stderr
+    said = [line for line in res.stderr.splitlines() if "its own settings" in line]
+    assert len(said) == 1 and said[0].endswith("the config's [window], [spikes]"), res.stderr
+    plain = run_cli("replay", *files)
+    assert plain.returncode == 0 and "its own settings" not in plain.stderr

@@ -104,7 +104,7 @@ def test_model_for_other_rate_is_refused(tmp_path: Path) -> None:
 def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
     data = tmp_path / "data"
     res = run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "2", "--slides-per-file", "3",
-                  "--mode", "robot", "--fs", "2200", "--channels", "1")
+                  "--scene", "robot", "--fs", "2200", "--channels", "1")
     assert res.returncode == 0, res.stderr
     model = tmp_path / "m.npz"
     files = sorted(str(p) for p in data.glob("*.npz"))
@@ -139,7 +139,7 @@ def test_score_counts_every_true_slide_and_reads_file_labels(tmp_path: Path) -> 
     # end to end: a file-level label recording scored through the CLI
     sim = tmp_path / "sim"
     assert run_cli("simulate", "dataset", "--out", str(sim), "--surfaces", "2", "--files-per-surface", "2", "--slides-per-file", "2",
-                   "--mode", "robot").returncode == 0
+                   "--scene", "robot").returncode == 0
     files = sorted(sim.glob("*.npz"))
     model = tmp_path / "m.npz"
     assert run_cli("train", *map(str, files), "-o", str(model), "--folds", "2", "--method", "quick").returncode == 0
@@ -205,7 +205,7 @@ def test_training_on_a_local_dask_cluster(tmp_path: Path) -> None:
     distributed = pytest.importorskip("distributed", reason="dask.distributed is in the 'cluster' extra")
     data = tmp_path / "d"
     assert run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "2", "--files-per-surface", "2", "--slides-per-file", "2",
-                   "--mode", "robot").returncode == 0
+                   "--scene", "robot").returncode == 0
     files = sorted(str(p) for p in data.glob("*.npz"))
     with distributed.LocalCluster(host="127.0.0.1", n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick", "--scheduler", cluster.scheduler_address,
@@ -219,7 +219,7 @@ def test_training_on_a_local_dask_cluster(tmp_path: Path) -> None:
 
 
 def test_headless_demo_prints_labels_with_the_truth_and_stops() -> None:
-    res = run_cli("demo", "--headless", "--seconds", "25", "--scene", "robot", timeout=120)
+    res = run_cli("demo", "--headless", "--seconds", "15", "--scene", "robot", timeout=120)
     assert res.returncode == 0, res.stderr
     finals = [line for line in res.stdout.splitlines() if "final" in line]
     assert finals and all("true surface Ra" in line for line in finals)

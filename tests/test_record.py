@@ -393,3 +393,32 @@ def test_run_record_streams_to_the_journal_and_sighup_saves(tmp_path: Path) -> N
     assert n >= 8000 and rec.meta["source"] == "tactiled run --record"  # 40 kB of journal: ~10k samples less chunk headers
     assert np.array_equal(rec.samples[rec.valid_mask()], board_truth(8, SURFACES, rec.first_index, n)[rec.valid_mask()])
     assert not (tmp_path / "d.npz.journal").exists()
+
+
+def test_record_takes_a_board_restart_far_ahead_as_a_restart_not_as_lost_samples(tmp_path: Path) -> None:
+    """A 2**31 forward jump of the index (a board reset past half its counter) is a restart: the capture goes on, nothing zero-filled."""
+    import tty
+
+    from tactiled.frames import encode_frames
+
+    rng = np.random.default_rng(4)
+    before, after = (rng.integers(-900, 900, (800, 2)).astype(np.int16) for _ in range(2))
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    out = tmp_path / "jump.npz"
+    proc = subprocess.Popen(tactiled_cmd("-v", "record", "--port", os.ttyname(slave), "--seconds", "0.08", "-o", str(out)),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        assert "recording" in proc.stderr.readline()  # the port is open: what is written now is read
+        os.write(master, encode_frames(1000, before) + encode_frames((1000 + 800 + 2**31) % 2**32, after))
+        _stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        os.close(master)
+        os.close(slave)
+    assert proc.returncode == 0, stderr
+    rec = load_recording(out)
+    assert rec.first_index == 1000 and rec.lost.size == 0 and rec.meta["restarts"] == 1
+    assert np.array_equal(rec.samples, np.concatenate([before, after]))

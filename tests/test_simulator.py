@@ -83,7 +83,7 @@ def test_any_rate_and_channel_count() -> None:
 
 def test_dataset_cli(tmp_path: Path) -> None:
     res = run_cli("simulate", "dataset", "--out", str(tmp_path), "--surfaces", "Ra0.44,Ra4.43", "--files-per-surface", "1",
-                  "--slides-per-file", "2", "--mode", "robot")
+                  "--slides-per-file", "2", "--scene", "robot")
     assert res.returncode == 0, res.stderr
     files = sorted(tmp_path.glob("*.npz"))
     assert len(files) == 2
