@@ -422,7 +422,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from tactiled.evaluate import run_evaluation
 
     config = _config(args)
-    recs = [(n, r) for n, r in load_recordings(args.files, _stderr) if r.slides()]
+    readable = load_recordings(args.files, _stderr)
+    recs = [(n, r) for n, r in readable if r.slides()]
     if len(recs) < 2:
         raise TactiledError("evaluation needs at least two readable recordings with ground-truth slides")
     if len({(r.fs, r.channels) for _, r in recs}) != 1:
@@ -430,7 +431,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     results = run_evaluation(recs, config, Path(args.report), experiments=args.experiments, folds=args.folds, quick=args.quick, seed=args.seed,
                              progress=lambda m: print(f"evaluate: {m}", file=sys.stderr, flush=True))
     print(f"{Path(args.report) / 'report.md'}: {len(recs)} recordings, {results['seconds']:.0f} s")
-    return EXIT_OK
+    return EXIT_OK if len(readable) == len(args.files) else EXIT_USAGE  # as features and score: the skipped files were named
 
 
 def cmd_curve_keys(args: argparse.Namespace) -> int:

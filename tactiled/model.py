@@ -469,8 +469,9 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
             _need(int(params.get("n_neighbors", 9)) <= train_x.shape[0], path, "params.n_neighbors: more than the training rows")
     pipe = lean_pipeline(kind, settings.names, classes, params, arrays) if lean else None
     if pipe is None:
-        _need(kind != "svm" or train_x.shape[0] <= MAX_SVM_REFIT_ROWS, path, f"train_x: {train_x.shape[0]} rows, more than the "
-              f"{MAX_SVM_REFIT_ROWS} an svm is refit on at load (save it with this tactiled to store the fitted SVM)")
+        if kind == "svm":
+            _need(train_x.shape[0] <= MAX_SVM_REFIT_ROWS, path, f"train_x: {train_x.shape[0]} rows, more than the {MAX_SVM_REFIT_ROWS} "
+                  "an svm is refit on at load (save it with this tactiled to store the fitted SVM)")
         pipe = _sklearn_pipeline(settings, kind, params, seed, classes, arrays)
     model = Model(str(header.get("method", kind)), kind, params, classes, settings, fs, channels, pipe, temperature, seed,
                   dict(summary), fingerprint or "", None if kind in ("elm", "linear") else (train_x, train_y))

@@ -90,7 +90,7 @@ class Publisher:
     def wait_subscriber(self, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` for a first subscription (XPUB only): a subscriber that connected before
         the bind otherwise misses what is sent while its subscription is in flight (ZeroMQ's slow joiner)."""
-        if self.socket.socket_type != zmq.XPUB or timeout_s <= 0:
+        if self.socket.type != zmq.XPUB or timeout_s <= 0:
             return False
         return bool(self.socket.poll(int(timeout_s * 1000), zmq.POLLIN))
 

@@ -112,6 +112,13 @@ def _svm_huge(h: dict[str, Any], a: dict[str, Any]) -> None:
     a["train_y"] = np.array(["rough", "smooth"] * (rows // 2))
 
 
+def _svm_fitted_bad(h: dict[str, Any], a: dict[str, Any]) -> None:
+    """A small svm whose stored fitted SVM names a support vector beyond its training rows."""
+    _svm_huge(h, a)
+    a.update(train_x=a["train_x"][:10], train_y=a["train_y"][:10], svm_support=np.array([0, 5, 99]), svm_dual_coef=np.ones((1, 3)),
+             svm_intercept=np.zeros(1), svm_n_support=np.array([2, 1]), svm_gamma=np.float64(0.1))
+
+
 def files() -> dict[str, Callable[[], bytes]]:
     nested = "[" * 100_000 + "]" * 100_000
     rec = good_recording()
@@ -154,6 +161,7 @@ def files() -> dict[str, Callable[[], bytes]]:
                                                                           a.update(train_x=a["train_x"][:10], train_y=a["train_y"][:10]))),
         "model-svm-c-huge.npz": lambda: model_variant(lambda h, a: (_svm_huge(h, a), h["params"].update(C=1e9),
                                                                     a.update(train_x=a["train_x"][:10], train_y=a["train_y"][:10]))),
+        "model-svm-fitted-bad.npz": lambda: model_variant(_svm_fitted_bad),
         "model-header-nested.npz": lambda: zip_bytes({"header": npy(np.str_('{"format": ' + nested + "}"))}),
         "model-extra-member.npz": lambda: model_bytes(*small_model(), extra={"junk.npy": npy(np.zeros(10))}),
         # configs
