@@ -422,7 +422,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from tactiled.evaluate import run_evaluation
 
     config = _config(args)
-    recs = [(n, r) for n, r in load_recordings(args.files, _stderr) if r.slides()]
+    readable = load_recordings(args.files, _stderr)
+    recs = [(n, r) for n, r in readable if r.slides()]
     if len(recs) < 2:
         raise TactiledError("evaluation needs at least two readable recordings with ground-truth slides")
     if len({(r.fs, r.channels) for _, r in recs}) != 1:
@@ -430,7 +431,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     results = run_evaluation(recs, config, Path(args.report), experiments=args.experiments, folds=args.folds, quick=args.quick, seed=args.seed,
                              progress=lambda m: print(f"evaluate: {m}", file=sys.stderr, flush=True))
     print(f"{Path(args.report) / 'report.md'}: {len(recs)} recordings, {results['seconds']:.0f} s")
-    return EXIT_OK
+    return EXIT_OK if len(readable) == len(args.files) else EXIT_USAGE  # as features and score: the skipped files were named
 
 
 def cmd_curve_keys(args: argparse.Namespace) -> int:
@@ -487,26 +488,32 @@ def _positive_float(text: str) -> float:
     return value
 
 
-def _probability(text: str) -> float:
-    value = _float(text)
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {text}")
-    return value
+def _float_in(low: float, high: float, name: str) -> Callable[[str], float]:
+    """An argparse type: a number in ``[low, high]``."""
+
+    def parse(text: str) -> float:
+        value = _float(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be in [{low:g}, {high:g}], got {text}")
+        return value
+
+    parse.__name__ = name
+    return parse
 
 
-def _int_at_least(low: int) -> Callable[[str], int]:
-    """An argparse type: an integer >= ``low``."""
+def _int_in(low: int, high: int = 2**31) -> Callable[[str], int]:
+    """An argparse type: an integer in ``low..high`` (an upper bound keeps every count and seed a machine integer)."""
 
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text}")
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be an integer {'>= ' + str(low) if value < low else '<= ' + str(high)}, got {text}")
         return value
 
-    parse.__name__ = f"integer >= {low}"
+    parse.__name__ = f"integer in {low}..{high}"
     return parse
 
 
@@ -519,9 +526,9 @@ def _experiments(text: str) -> str:
 
 _float.__name__ = "number"
 _positive_float.__name__ = "number > 0"
-_probability.__name__ = "probability"
 _experiments.__name__ = "experiment letters"
-_count, _seed = _int_at_least(1), _int_at_least(0)
+_count, _seed, _channels = _int_in(1), _int_in(0, 2**32 - 1), _int_in(1, 8)
+_probability, _wait_s = _float_in(0.0, 1.0, "probability"), _float_in(0.0, 3600.0, "seconds")
 
 CONFIG_HELP = "TOML config file (every key is explained in configs/tactiled.toml; default: the built-in defaults)"
 SCENE_HELP = ("scene, or scenes joined by commas: hand (default), robot, continuous, fluctuating, hot-gain, one-channel, grating "
@@ -574,7 +581,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="recording file to write (.npz, or .mcap with --format mcap)")
     p.add_argument("--label", help="surface of the whole file (its ground truth for train and score)")
     p.add_argument("--fs", type=_positive_float, help="sample rate, Hz (overrides sensor.fs)")
-    p.add_argument("--channels", type=int, help="channels (overrides sensor.channels)")
+    p.add_argument("--channels", type=_channels, help="channels (overrides sensor.channels)")
     p.add_argument("--volts-per-count", type=_positive_float, help="ADC scale, V per count (overrides sensor.volts_per_count)")
     p.add_argument("--format", choices=("npz", "mcap"), default="npz", help="npz recording, or MCAP (converted at the end, as export)")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
@@ -592,7 +599,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--model", help=MODEL_HELP)
     p.add_argument("--no-model", action="store_true", help="slides only, no classification")
-    p.add_argument("--batch", type=int, default=None, help="samples per message (default 20: one board frame)")
+    p.add_argument("--batch", type=_count, default=None, help="samples per message (default 20: one board frame)")
     p.set_defaults(handler=cmd_export)
 
     sim = sub.add_parser("simulate", help="the simulated fingertip").add_subparsers(dest="what", required=True, metavar="WHAT",
@@ -606,7 +613,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--slides-per-file", type=_count, default=5, help="slides per file (continuous scenes: one long slide)")
     p.add_argument("--mode", choices=("manual", "robot"), default=None, help="older spelling of --scene hand / --scene robot")
     p.add_argument("--fs", type=_positive_float, default=None, help="sample rate, Hz (default: the scene's, 20000 or 2200)")
-    p.add_argument("--channels", type=int, default=None, help="channels (default: the scene's, 2 or 1)")
+    p.add_argument("--channels", type=_channels, default=None, help="channels (default: the scene's, 2 or 1)")
     p.set_defaults(handler=cmd_simulate_dataset)
 
     p = sim.add_parser("figure", help="PNG of one slide per surface class: signal and spectrum")
@@ -629,7 +636,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=_positive_float, default=None, help="stop after this much sensor time, s (default: run until stopped)")
     p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
     p.add_argument("--fs", type=_positive_float, default=None, help="sample rate, Hz (default: the scene's)")
-    p.add_argument("--channels", type=int, default=None, help="channels (default: the scene's)")
+    p.add_argument("--channels", type=_channels, default=None, help="channels (default: the scene's)")
     p.add_argument("--log", help="write one JSON line per event sent (slides, faults) to this file")
     p.set_defaults(handler=cmd_simulate_serial)
     p = sub.add_parser("run", help="the daemon: serial port -> roughness labels over ZeroMQ")
@@ -682,10 +689,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", help=MODEL_HELP)
     p.add_argument("--no-model", action="store_true", help="no classification (labels are null)")
     p.add_argument("--publish", help="also publish the daemon's messages on this ZeroMQ endpoint")
-    p.add_argument("--wait-subscriber", type=_float, default=1.0, metavar="S",
+    p.add_argument("--wait-subscriber", type=_wait_s, default=1.0, metavar="S",
                    help="with --publish: wait up to S s for a first subscriber before sending, so that one already started misses "
                         "nothing (0: send at once)")
-    p.add_argument("--block", type=int, default=None, help="samples per block fed to the pipeline (default 65536)")
+    p.add_argument("--block", type=_count, default=None, help="samples per block fed to the pipeline (default 65536)")
     p.set_defaults(handler=cmd_replay)
 
     p = sub.add_parser("features", help="feature vectors of every slide")
@@ -701,7 +708,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=("auto", "quick", "paper"), default="auto",
                    help="auto: pick features, classifier and windows by nested grouped CV; quick: a small search for a first model in "
                         "seconds (band energies and texture, linear and kNN); paper: the papers' DWT + SFS + ELM")
-    p.add_argument("--folds", type=_int_at_least(2), default=5, help="outer cross-validation folds, grouped by file")
+    p.add_argument("--folds", type=_int_in(2, 1000), default=5, help="outer cross-validation folds, grouped by file")
     p.add_argument("--min-slides", type=_count, default=2, help="fewest slides a surface needs")
     p.add_argument("--drop-rare", action="store_true", help="train without surfaces that have too few slides instead of stopping")
     p.add_argument("--scheduler", help="dask.distributed scheduler address (tcp://host:port) to run the cross-validation on a cluster")
@@ -715,7 +722,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--experiments", type=_experiments, default=EXPERIMENTS,
                    help="a: classifiers, b: window grid, c: sampling rate, d: feature count, e: clustering, f: error against run time, "
                         "g: the default method against decision time")
-    p.add_argument("--folds", type=_int_at_least(2), default=5, help="cross-validation folds, grouped by file")
+    p.add_argument("--folds", type=_int_in(2, 1000), default=5, help="cross-validation folds, grouped by file")
     p.add_argument("--quick", action="store_true", help="small grids and fewer features (for tests)")
     p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
     p.set_defaults(handler=cmd_evaluate)

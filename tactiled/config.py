@@ -1,7 +1,9 @@
 """One config object: a TOML file read once into frozen dataclasses, validated at load.
 
 An unknown key or a bad value is one :class:`~tactiled.errors.ConfigError` naming the key
-path (``detector.on_factor: must be > detector.off_factor``). CLI flags override fields
+path (``detector.on_factor: must be > detector.off_factor``). Every number is finite and
+within documented bounds (configs/tactiled.toml), including the memory the ring buffer
+would take; a file larger than :data:`MAX_CONFIG_BYTES` or nested too deeply is refused. CLI flags override fields
 through :meth:`Config.override`; nothing else merges in.
 """
 
@@ -9,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import ipaddress
+import math
 import tomllib
 import types
 import typing
@@ -19,6 +22,8 @@ from typing import Any, TypeVar
 from tactiled.errors import ConfigError
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:7350"
+MAX_CONFIG_BYTES = 1 << 20
+MAX_RING_BYTES = 1 << 30  # the ring buffer of raw samples (float64 in the worst case)
 STAT_NAMES = ("mean", "sd", "energy", "rms", "skew", "kurt")
 
 
@@ -33,18 +38,22 @@ class SensorConfig:
 
     id: str = "fingertip0"
     port: str = "/dev/ttyACM0"
+    allow_url: bool = False
     baudrate: int = 1_000_000
     fs: float = 20_000.0
     channels: int = 2
     volts_per_count: float = 5.0 / 32768.0
 
     def validate(self, p: str) -> None:
-        _check(bool(self.id) and "/" not in self.id, f"{p}.id", "must be non-empty, without '/'")
-        _check(bool(self.port), f"{p}.port", "must be non-empty")
-        _check(self.baudrate > 0, f"{p}.baudrate", "must be > 0")
-        _check(self.fs > 0, f"{p}.fs", "must be > 0 Hz")
+        _check(bool(self.id) and "/" not in self.id and len(self.id) <= 64 and self.id.isprintable(), f"{p}.id",
+               "must be 1..64 printable characters, without '/'")
+        _check(bool(self.port) and len(self.port) <= 4096 and "\0" not in self.port, f"{p}.port", "must be a non-empty path")
+        _check(self.allow_url or "://" not in self.port, f"{p}.port",
+               f"is a URL ({self.port.split('://')[0]}://), not a device path; set {p}.allow_url = true to read a pyserial URL")
+        _check(50 <= self.baudrate <= 12_000_000, f"{p}.baudrate", "must be in 50..12000000")
+        _check(100 <= self.fs <= 1e6, f"{p}.fs", "must be in [100, 1e6] Hz")
         _check(1 <= self.channels <= 8, f"{p}.channels", "must be in 1..8")
-        _check(self.volts_per_count > 0, f"{p}.volts_per_count", "must be > 0")
+        _check(1e-12 <= self.volts_per_count <= 1e3, f"{p}.volts_per_count", "must be in [1e-12, 1e3]")
 
 
 @dataclass(frozen=True)
@@ -59,8 +68,8 @@ class SerialConfig:
     def validate(self, p: str) -> None:
         _check(0.001 <= self.read_interval_s <= 0.5, f"{p}.read_interval_s", "must be in [0.001, 0.5] s")
         _check(0.0 <= self.batch_s <= 1.0, f"{p}.batch_s", "must be in [0, 1] s")
-        _check(self.retry_initial_s > 0, f"{p}.retry_initial_s", "must be > 0")
-        _check(self.retry_max_s >= self.retry_initial_s, f"{p}.retry_max_s", f"must be >= {p}.retry_initial_s")
+        _check(0.001 <= self.retry_initial_s <= 60, f"{p}.retry_initial_s", "must be in [0.001, 60] s")
+        _check(self.retry_initial_s <= self.retry_max_s <= 600, f"{p}.retry_max_s", f"must be in [{p}.retry_initial_s, 600] s")
 
 
 @dataclass(frozen=True)
@@ -70,7 +79,7 @@ class RingConfig:
     seconds: float = 20.0
 
     def validate(self, p: str) -> None:
-        _check(self.seconds >= 1.0, f"{p}.seconds", "must be >= 1")
+        _check(1.0 <= self.seconds <= 3600, f"{p}.seconds", "must be in [1, 3600] s")
 
 
 @dataclass(frozen=True)
@@ -147,8 +156,8 @@ class SpikesConfig:
 
     def validate(self, p: str) -> None:
         _check(self.method in ("hampel", "mad", "none"), f"{p}.method", "must be one of hampel, mad, none")
-        _check(self.half_width >= 1, f"{p}.half_width", "must be >= 1")
-        _check(self.nsigma > 0, f"{p}.nsigma", "must be > 0")
+        _check(1 <= self.half_width <= 1000, f"{p}.half_width", "must be in 1..1000")
+        _check(0 < self.nsigma <= 1000, f"{p}.nsigma", "must be in (0, 1000]")
 
 
 @dataclass(frozen=True)
@@ -258,6 +267,10 @@ class Config:
     def validate(self) -> None:
         for f in dataclasses.fields(self):
             getattr(self, f.name).validate(f.name)
+        s = self.sensor
+        ring_bytes = self.ring.seconds * s.fs * s.channels * 8
+        _check(ring_bytes <= MAX_RING_BYTES, "ring.seconds",
+               f"{self.ring.seconds:g} s of {s.channels} channels at {s.fs:g} Hz would take {ring_bytes / 2**20:.0f} MiB, more than {MAX_RING_BYTES >> 20} MiB")
 
     def override(self, values: dict[str, Any]) -> Config:
         """A copy with ``{"section.key": value}`` replaced (values already typed), validated."""
@@ -282,16 +295,17 @@ def _coerce(value: Any, typ: Any, key: str) -> Any:
         _check(isinstance(value, bool), key, "must be true or false")
         return value
     if typ is int:
-        _check(isinstance(value, int) and not isinstance(value, bool), key, "must be an integer")
+        _check(isinstance(value, int) and not isinstance(value, bool) and abs(value) < 2**53, key, "must be an integer (|x| < 2**53)")
         return value
     if typ is float:
         _check(isinstance(value, (int, float)) and not isinstance(value, bool), key, "must be a number")
+        _check(math.isfinite(value) and abs(value) < 1e300, key, "must be a finite number")
         return float(value)
     if typ is str:
         _check(isinstance(value, str), key, "must be a string")
         return value
     if typing.get_origin(typ) is tuple:
-        _check(isinstance(value, list) and all(isinstance(v, str) for v in value), key, "must be a list of strings")
+        _check(isinstance(value, list) and len(value) <= 64 and all(isinstance(v, str) for v in value), key, "must be a list of at most 64 strings")
         return tuple(value)
     raise ConfigError(f"{key}: unsupported type")  # pragma: no cover - only our own dataclasses reach here
 
@@ -319,11 +333,15 @@ def _build(cls: type[T], table: Any, prefix: str) -> T:
 def parse_config(text: str, source: str = "<config>") -> Config:
     """Parse TOML text into a validated :class:`Config`; errors name ``source`` and the key path."""
     try:
+        if len(text) > MAX_CONFIG_BYTES:
+            raise ConfigError(f"larger than {MAX_CONFIG_BYTES} bytes")
         data = tomllib.loads(text)
         config = _build(Config, data, "")
         config.validate()
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib parses nested arrays and inline tables recursively
+        raise ConfigError(f"{source}: not valid TOML: arrays or tables nested too deeply") from None
     except ConfigError as exc:
         raise ConfigError(f"{source}: {exc}") from None
     return config
@@ -336,7 +354,10 @@ def load_config(path: str | Path | None) -> Config:
         config.validate()
         return config
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read(MAX_CONFIG_BYTES + 1)  # never more: a config path may be a device or a huge file
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read config: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text: {exc.reason} at byte {exc.start}") from None
     return parse_config(text, str(path))

@@ -24,6 +24,8 @@ from tactiled.npzio import NpzError, load_json_bounded, read_npz
 from tactiled.recording import Recording, atomic_savez
 
 FORMAT, VERSION = "tactiled-features", 1
+KEYS = ("header", "x", "names", "label", "file", "slide", "span", "files")
+MAX_FEATURES_BYTES = 1 << 30  # inflated, all arrays together
 
 
 def write_features(path: str | Path, recs: Sequence[tuple[str, Recording]], config: Config) -> WindowSet:
@@ -40,14 +42,25 @@ def write_features(path: str | Path, recs: Sequence[tuple[str, Recording]], conf
 def load_features(path: str | Path) -> dict[str, Any]:
     """The arrays of a feature file and its parsed ``header``; :class:`RecordingError` naming file and key otherwise."""
     try:
-        arrays: dict[str, Any] = read_npz(path)
+        arrays: dict[str, Any] = read_npz(path, KEYS, MAX_FEATURES_BYTES)
+        missing = [k for k in KEYS if k not in arrays]
+        if missing:
+            raise KeyError(", ".join(missing))
+        if arrays["header"].shape != () or arrays["header"].dtype.kind != "U":
+            raise ValueError("header: not a string")
         header = load_json_bounded(str(arrays["header"].item()), "header")
-    except (NpzError, KeyError, ValueError) as exc:
+    except KeyError as exc:
+        raise RecordingError(f"{path}: not a readable feature file: missing {exc.args[0]}") from None
+    except NpzError as exc:
+        raise RecordingError(f"{path}: {exc.key}: {exc}" if exc.key else f"{path}: not a readable feature file: {exc}") from None
+    except ValueError as exc:
         raise RecordingError(f"{path}: not a readable feature file: {exc}") from None
     if not isinstance(header, dict) or header.get("format") != FORMAT or header.get("version") != VERSION:
         raise RecordingError(f"{path}: header: not a {FORMAT} file of version {VERSION}")
+    if arrays["x"].dtype.kind != "f" or any(arrays[k].dtype.kind not in "iu" for k in ("file", "slide", "span")):
+        raise RecordingError(f"{path}: x, file, slide, span: x must be floats, the others integers")
     w, f = arrays["x"].shape if arrays["x"].ndim == 2 else (-1, -1)
-    if w < 0 or arrays["names"].shape != (f,) or any(arrays[k].shape[0] != w for k in ("label", "file", "slide", "span")):
+    if w < 0 or arrays["names"].shape != (f,) or any(arrays[k].shape[:1] != (w,) for k in ("label", "file", "slide", "span")) or arrays["span"].shape != (w, 2):
         raise RecordingError(f"{path}: x, names, label, file, slide, span: shapes disagree")
     arrays["header"] = header
     return arrays

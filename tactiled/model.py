@@ -19,12 +19,17 @@ svm ``train_x`` (n, F) standardised and ``train_y`` (n,) (both deterministic, re
 load; at most :data:`MAX_REFIT_ROWS` rows so a load never hangs); svm also the fitted
 ``svm_support``, ``svm_dual_coef``, ``svm_intercept``, ``svm_n_support``, ``svm_gamma``
 (optional: :mod:`tactiled.infer` evaluates the model with numpy alone, no refit, no
-scikit-learn import; ``load_model(lean=False)`` takes the scikit-learn path). The header carries the
+scikit-learn import; ``load_model(lean=False)`` takes the scikit-learn path; an svm that
+must be refit at load has at most :data:`MAX_SVM_REFIT_ROWS` rows). Only the arrays of the
+file's classifier are read, at most :data:`MAX_MODEL_BYTES` inflated. The header carries the
 format and its version, the method, the classifier and its parameters, the analysis
 settings (windows, spikes, feature names), fs, channels, temperature, a training summary
 (including the cross-validated accuracy), and ``fingerprint``: the SHA-256 (first 16 hex
-digits) of the header without it and of every array's bytes. Loading checks all of it,
-runs a probe prediction, and refuses anything wrong with one line naming file and part.
+digits) of the header without it and of every array's bytes. Loading checks all of it (types,
+ranges, shapes, and that the stream's channels hold the features), runs a probe (one window of
+synthetic noise through the whole analysis and the classifier, which must give a finite
+probability), and refuses anything wrong with one line naming file and part: a model that
+loads cannot crash the daemon at the first slide.
 """
 
 from __future__ import annotations
@@ -40,18 +45,23 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from tactiled.analysis import AnalysisSettings
+from tactiled.analysis import Analyser, AnalysisSettings
 from tactiled.errors import ModelError
 from tactiled.features import FeaturePlan, classifier_inputs
-from tactiled.infer import LeanPipeline, lean_pipeline, svm_arrays
-from tactiled.npzio import NpzError, load_json_bounded, read_npz
+from tactiled.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, svm_arrays
+from tactiled.npzio import NpzError, NpzReader, load_json_bounded
 from tactiled.recording import atomic_savez
 
 FORMAT = "tactiled-model"
 FORMAT_VERSION = 2
 CLASSIFIERS = ("elm", "knn", "svm", "linear")
 MAX_REFIT_ROWS = 20_000
+MAX_SVM_REFIT_ROWS = 4000  # an RBF SVM refit at load (a file without its fitted SVM, or lean=False): 4000 rows of noise take ~2 s, 20 000 minutes
 MAX_FEATURES = 4096
+MAX_MODEL_BYTES = 256 << 20  # all arrays of a model file, inflated
+MAX_WINDOW_SAMPLES = 1 << 20  # an analysis window: 52 s at 20 kHz
+ARRAYS = {"elm": ("weights", "biases", "beta", "elm_temperature"), "linear": ("coef", "intercept"), "knn": ("train_x", "train_y"),
+          "svm": ("train_x", "train_y")}
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -132,8 +142,16 @@ def decision_scores(clf: Any, z: FloatArray) -> FloatArray:
 
 
 def softmax(z: FloatArray, temperature: float = 1.0) -> FloatArray:
-    """Row-wise softmax of ``z / temperature`` (finite for any finite input)."""
-    z = np.asarray(z, dtype=np.float64) / temperature
+    """Row-wise softmax of ``z / temperature``: always finite, in [0, 1], rows summing to 1.
+
+    A NaN score counts as the least likely class, ±inf as ±1e300; a temperature that is not
+    finite and > 0 is taken as 1 (models are refused at load for it; this is the last guard).
+    """
+    if not (math.isfinite(temperature) and temperature > 0):
+        temperature = 1.0
+    with np.errstate(over="ignore", invalid="ignore"):
+        z = np.asarray(z, dtype=np.float64) / temperature
+    z = np.clip(np.nan_to_num(z, nan=-1e300, posinf=1e300, neginf=-1e300), -1e300, 1e300)
     z = z - z.max(axis=-1, keepdims=True)
     e = np.exp(z)
     out: FloatArray = e / e.sum(axis=-1, keepdims=True)
@@ -312,18 +330,28 @@ def load_model(path: str | Path | None = None, lean: bool = True) -> Model:
     """
     path = Path(path) if path else default_model_path()
     try:
-        arrays = read_npz(path)
+        with NpzReader(path, MAX_MODEL_BYTES) as reader:
+            _need("header" in reader, path, "header: missing or not a string")
+            text = reader.read("header")
+            _need(text.shape == () and text.dtype.kind == "U", path, "header: missing or not a string")
+            try:
+                header = load_json_bounded(text.item(), "header")
+            except ValueError as exc:
+                raise ModelError(f"{path}: {exc}") from None
+            _need(isinstance(header, dict) and header.get("format") == FORMAT, path, f"header.format: not a {FORMAT} file")
+            _need(header.get("version") == FORMAT_VERSION, path,
+                  f"header.version: {header.get('version')!r} is not the supported {FORMAT_VERSION} (retrain with this tactiled)")
+            kind = header.get("classifier")
+            _need(kind in CLASSIFIERS, path, f"header.classifier: unknown {kind!r}")
+            optional = [k for k in SVM_ARRAYS if k in reader] if kind == "svm" else []
+            keys = ("classes", "scaler_mean", "scaler_scale", *ARRAYS[kind], *optional)
+            missing, extra = [k for k in keys if k not in reader], sorted(set(reader.keys()) - {"header", *keys})
+            _need(not missing, path, f"{', '.join(missing)}: missing")
+            _need(not extra, path, f"{', '.join(extra)}: not an array of a {kind} model (the fingerprint covers every array)")
+            arrays = {k: reader.read(k) for k in keys}
     except NpzError as exc:
         what = "no such model file" if str(exc) == "no such file" else str(exc)
         raise ModelError(f"{path}: array {exc.key}: {what}" if exc.key else f"{path}: {what}") from None
-    _need("header" in arrays and arrays["header"].shape == () and arrays["header"].dtype.kind == "U", path, "header: missing or not a string")
-    try:
-        header = load_json_bounded(arrays.pop("header").item(), "header")
-    except ValueError as exc:
-        raise ModelError(f"{path}: {exc}") from None
-    _need(isinstance(header, dict) and header.get("format") == FORMAT, path, f"header.format: not a {FORMAT} file")
-    _need(header.get("version") == FORMAT_VERSION, path,
-          f"header.version: {header.get('version')!r} is not the supported {FORMAT_VERSION} (retrain with this tactiled)")
     try:
         return _build(path, header, arrays, lean)
     except ModelError:
@@ -336,56 +364,82 @@ def _finite(a: Any) -> bool:
     return bool(np.issubdtype(np.asarray(a).dtype, np.floating) and np.all(np.isfinite(a)))
 
 
-def _check_settings(path: Path, s: AnalysisSettings, fs: float) -> None:
-    _need(all(math.isfinite(v) for v in (s.start_s, s.duration_s, s.hop_s, s.nsigma)), path, "settings: times must be finite")
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _check_settings(path: Path, s: AnalysisSettings, fs: float, channels: int) -> None:
+    _need(all(_is_number(v) for v in (s.start_s, s.duration_s, s.hop_s, s.nsigma)), path, "settings: times and nsigma must be finite numbers")
+    _need(all(isinstance(v, int) and not isinstance(v, bool) for v in (s.max_windows, s.half_width, s.level)), path,
+          "settings: max_windows, half_width, level must be integers")
+    _need(all(isinstance(v, str) for v in (s.spikes, s.wavelet, s.mode, s.fusion, *s.names)), path,
+          "settings: spikes, wavelet, mode, fusion, names must be strings")
     _need(0 <= s.start_s <= 60 and 0 < s.duration_s <= 60 and 0 <= s.hop_s <= 60, path, "settings: start_s, duration_s, hop_s out of range")
     _need(0 <= s.max_windows <= 10_000, path, "settings.max_windows: out of range 0..10000")
     _need(s.fusion in ("scores", "features"), path, "settings.fusion: must be scores or features")
     _need(s.spikes in ("mad", "hampel", "none") and 1 <= s.half_width <= 1000 and 0 < s.nsigma <= 1000, path, "settings: spike removal out of range")
     _need(1 <= s.level <= 8, path, "settings.level: must be in 1..8")
     _need(0 < len(s.names) <= MAX_FEATURES, path, f"settings.names: 1..{MAX_FEATURES} features")
+    _need(1 <= round(s.duration_s * fs) <= MAX_WINDOW_SAMPLES, path, f"settings.duration_s: 1..{MAX_WINDOW_SAMPLES} samples at fs")
+    import pywt
+
+    _need(s.wavelet in pywt.wavelist(kind="discrete") and s.mode in pywt.Modes.modes, path, "settings: wavelet or mode unknown to PyWavelets")
     try:
         plan = FeaturePlan(s.names, s.wavelet, s.mode, fs=fs)
     except ValueError as exc:
         raise ModelError(f"{path}: settings: {exc}") from None
+    _need(plan.channels_needed <= channels, path, f"settings.names: features of {plan.channels_needed} channels, the model has {channels}")
     _need(plan.min_samples() <= round(s.duration_s * fs), path,
           f"settings.duration_s: {s.duration_s:g} s is shorter than the {plan.min_samples()} samples the features need")
 
 
 def _check_params(path: Path, kind: str, params: dict[str, Any]) -> None:
-    def num(key: str, lo: float, hi: float) -> None:
+    def num(key: str, lo: float, hi: float, integer: bool = False) -> None:
         if key in params:
             v = params[key]
-            _need(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and lo <= v <= hi, path,
-                  f"params.{key}: must be in [{lo:g}, {hi:g}]")
+            _need(_is_number(v) and lo <= v <= hi and (not integer or isinstance(v, int)), path,
+                  f"params.{key}: must be {'an integer' if integer else 'a number'} in [{lo:g}, {hi:g}]")
 
-    num("n_hidden", 1, 100_000)
+    num("n_hidden", 1, 100_000, integer=True)
     num("alpha", 0, 1e6)
-    num("n_neighbors", 1, 1000)
-    num("C", 1e-9, 1e9)
-    num("max_iter", 1, 100_000)
+    num("n_neighbors", 1, 1000, integer=True)
+    num("C", 1e-6, 1e4 if kind == "svm" else 1e9)  # a huge C makes the SVM's refit at load crawl
+    num("max_iter", 1, 100_000, integer=True)
+    num("kbest", 0, MAX_FEATURES, integer=True)
     if kind == "svm":
-        _need(params.get("kernel", "rbf") in ("rbf", "linear") and (params.get("gamma", "scale") in ("scale", "auto")
-              or isinstance(params.get("gamma"), (int, float))), path, "params: svm kernel must be rbf or linear, gamma scale, auto or a number")
+        gamma = params.get("gamma", "scale")
+        _need(params.get("kernel", "rbf") in ("rbf", "linear") and (gamma in ("scale", "auto") or (_is_number(gamma) and 0 < gamma <= 1e6)),
+              path, "params: svm kernel must be rbf or linear, gamma scale, auto or a number in (0, 1e6]")
+    if kind == "elm":
+        _need(str(params.get("init", "hpelm")) in ("hpelm", "huang") and isinstance(params.get("calibrate", False), bool), path,
+              "params: elm init must be hpelm or huang, calibrate true or false")
 
 
 def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: bool = True) -> Model:
     fingerprint = header.pop("fingerprint", None)
     _need(fingerprint == _fingerprint(header, arrays), path, "fingerprint does not match the contents (tampered or corrupt)")
     kind = header["classifier"]
-    _need(kind in CLASSIFIERS, path, f"header.classifier: unknown {kind!r}")
-    fs, channels = float(header["fs"]), int(header["channels"])
-    _need(math.isfinite(fs) and 100 <= fs <= 1e6 and 1 <= channels <= 8, path, "header: fs must be in 100 Hz..1 MHz and channels in 1..8")
+    fs, channels = header["fs"], header["channels"]
+    _need(_is_number(fs) and 100 <= fs <= 1e6 and isinstance(channels, int) and 1 <= channels <= 8, path,
+          "header: fs must be in 100 Hz..1 MHz and channels in 1..8")
+    fs = float(fs)
     settings = AnalysisSettings.from_dict(header["settings"])
-    _check_settings(path, settings, fs)
+    _check_settings(path, settings, fs, channels)
     f = len(settings.names)
     classes = [str(c) for c in header["classes"]]
     _need(1 <= len(classes) <= 10_000 and len(set(classes)) == len(classes), path, "header.classes: 1..10000 distinct classes")
     _need(list(arrays["classes"]) == classes, path, "classes: differ from the header's")
-    params, seed = dict(header["params"]), int(header["seed"])
+    _need(isinstance(header["params"], dict), path, "header.params: must be an object")
+    params, seed = dict(header["params"]), header["seed"]
     _check_params(path, kind, params)
-    temperature = float(header.get("temperature", 1.0))
-    _need(math.isfinite(temperature) and 1e-6 <= temperature <= 1e6, path, "header.temperature: must be finite, in [1e-6, 1e6]")
+    temperature = header.get("temperature", 1.0)
+    _need(_is_number(temperature) and 1e-6 <= temperature <= 1e6, path, "header.temperature: must be a finite number in [1e-6, 1e6]")
+    temperature = float(temperature)
+    _need(isinstance(seed, int) and 0 <= seed < 2**32, path, "header.seed: must be an integer in [0, 2**32)")
+    summary = header.get("summary", {})
+    cv = summary.get("cv_accuracy") if isinstance(summary, dict) else None
+    _need(isinstance(summary, dict) and (cv is None or (isinstance(cv, dict) and _is_number(cv.get("mean")) and _is_number(cv.get("sd")))),
+          path, "header.summary: must be an object, its cv_accuracy mean and sd numbers")
     mean, scale = arrays["scaler_mean"], arrays["scaler_scale"]
     for key, a in (("scaler_mean", mean), ("scaler_scale", scale)):
         _need(a.shape == (f,) and _finite(a), path, f"{key}: must be ({f},) finite floats")
@@ -396,8 +450,9 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
         _need(w.shape == (f, hidden) and b.shape == (hidden,) and beta.shape == (hidden, max(len(classes), 2)), path,
               "weights, biases, beta: shapes do not match the header")
         _need(all(_finite(a) for a in (w, b, beta)), path, "weights, biases, beta: must be finite floats")
-        t = float(arrays["elm_temperature"])
-        _need(math.isfinite(t) and t > 0, path, "elm_temperature: must be finite and > 0")
+        elm_t = arrays["elm_temperature"]
+        t = float(elm_t) if elm_t.size == 1 and elm_t.dtype.kind in "fiu" else math.nan
+        _need(elm_t.shape == () and _finite(elm_t) and 1e-6 <= t <= 1e6, path, "elm_temperature: must be a finite float in [1e-6, 1e6]")
     elif kind == "linear":
         coef, intercept = arrays["coef"], arrays["intercept"]
         rows = 1 if len(classes) == 2 else len(classes)
@@ -407,21 +462,37 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
         train_x, train_y = arrays["train_x"], arrays["train_y"]
         _need(train_x.ndim == 2 and train_x.shape[1] == f and 1 <= train_x.shape[0] <= MAX_REFIT_ROWS and train_y.shape == (train_x.shape[0],),
               path, f"train_x, train_y: shapes do not match the header (at most {MAX_REFIT_ROWS} rows)")
+        _need(train_y.dtype.kind == "U", path, "train_y: must be unicode")
         _need(_finite(train_x), path, "train_x: must be finite floats")
         _need(set(map(str, train_y)) == set(classes), path, "train_y: classes differ from the header's")
         if kind == "knn":
             _need(int(params.get("n_neighbors", 9)) <= train_x.shape[0], path, "params.n_neighbors: more than the training rows")
-    pipe = (lean_pipeline(kind, settings.names, classes, params, arrays) if lean else None) or _sklearn_pipeline(settings, kind, params, seed,
-                                                                                                           classes, arrays)
+    pipe = lean_pipeline(kind, settings.names, classes, params, arrays) if lean else None
+    if pipe is None:
+        if kind == "svm":
+            _need(train_x.shape[0] <= MAX_SVM_REFIT_ROWS, path, f"train_x: {train_x.shape[0]} rows, more than the {MAX_SVM_REFIT_ROWS} "
+                  "an svm is refit on at load (save it with this tactiled to store the fitted SVM)")
+        pipe = _sklearn_pipeline(settings, kind, params, seed, classes, arrays)
     model = Model(str(header.get("method", kind)), kind, params, classes, settings, fs, channels, pipe, temperature, seed,
-                  dict(header.get("summary", {})), fingerprint or "", None if kind in ("elm", "linear") else (arrays["train_x"], arrays["train_y"]))
-    probe = np.abs(np.random.default_rng(0).standard_normal((3, f))) * 0.01
-    try:
-        p = model.slide_proba(probe)
-    except (ValueError, FloatingPointError, ArithmeticError) as exc:
-        raise ModelError(f"{path}: probe prediction failed: {exc}") from None
-    _need(bool(np.all(np.isfinite(p))) and abs(float(p.sum()) - 1.0) < 1e-6, path, "probe prediction is not a finite probability")
+                  dict(summary), fingerprint or "", None if kind in ("elm", "linear") else (train_x, train_y))
+    _probe(path, model)
     return model
+
+
+def _probe(path: Path, model: Model) -> None:
+    """One window of seeded noise through the model's whole analysis and classifier, as the daemon runs them: it must give a probability."""
+    s = model.settings
+    noise = np.random.default_rng(0).standard_normal((round(s.duration_s * model.fs), model.channels)) * 0.01
+    try:
+        window = Analyser(s, model.fs, 1.0, integer=False).analyse(noise)
+        _need(window.features is not None, path, f"probe window: no features ({window.reason})")
+        assert window.features is not None
+        scores = model.scores(np.stack([window.features, window.features * 1.5]))
+        p = model.slide_proba(np.stack([window.features, window.features * 1.5]))
+    except (ValueError, FloatingPointError, ArithmeticError, IndexError, TypeError) as exc:
+        raise ModelError(f"{path}: probe prediction failed: {exc}") from None
+    _need(scores.shape == (2, len(model.classes)) and bool(np.all(np.isfinite(scores))), path, "probe prediction: scores are not finite")
+    _need(bool(np.all(np.isfinite(p))) and abs(float(p.sum()) - 1.0) < 1e-6, path, "probe prediction is not a finite probability")
 
 
 def _sklearn_pipeline(settings: AnalysisSettings, kind: str, params: dict[str, Any], seed: int, classes: list[str], arrays: dict[str, Any]) -> Any:

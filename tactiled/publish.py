@@ -21,6 +21,7 @@ from tactiled.pipeline import PipelineEvent, SlideEnded, SlideResult, SlideStart
 from tactiled.recording import Recording
 
 M = TypeVar("M", bound=schema.Message)
+MAX_INBOUND_BYTES = 4096
 
 
 class Publisher:
@@ -32,6 +33,9 @@ class Publisher:
         self.socket = self.context.socket(zmq.XPUB if see_subscribers else zmq.PUB)
         self.socket.setsockopt(zmq.LINGER, 0)
         self.socket.setsockopt(zmq.SNDHWM, 10_000)
+        # PUB and XPUB sockets receive their subscribers' SUBSCRIBE messages: a peer sending a longer one is disconnected,
+        # so a 16 MB topic prefix can never grow the daemon (topics are "<type>/<sensor id>", under 100 bytes)
+        self.socket.setsockopt(zmq.MAXMSGSIZE, MAX_INBOUND_BYTES)
         self.authenticator: Any = None
         if config.curve_secret_key_file:
             self._curve(config)
@@ -86,7 +90,7 @@ class Publisher:
     def wait_subscriber(self, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` for a first subscription (XPUB only): a subscriber that connected before
         the bind otherwise misses what is sent while its subscription is in flight (ZeroMQ's slow joiner)."""
-        if self.socket.socket_type != zmq.XPUB or timeout_s <= 0:
+        if self.socket.type != zmq.XPUB or timeout_s <= 0:
             return False
         return bool(self.socket.poll(int(timeout_s * 1000), zmq.POLLIN))
 

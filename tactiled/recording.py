@@ -21,7 +21,11 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.errors import RecordingError
-from tactiled.npzio import NpzError, read_npz
+from tactiled.npzio import NpzError, load_json_bounded, read_npz
+
+KEYS = ("samples", "fs", "volts_per_count", "first_index", "label", "meta", "lost", "slide_start", "slide_stop", "surface", "ra_um")
+MIN_FS, MAX_FS, MAX_CHANNELS = 1.0, 1e7, 64
+MAX_RECORDING_BYTES = 2 << 30  # 2 GiB inflated: 7 h of 2 channels of int16 at 20 kHz; split longer recordings
 
 
 @dataclass
@@ -74,9 +78,13 @@ def _fail(path: object, key: str, message: str) -> RecordingError:
 
 
 def load_recording(path: str | Path) -> Recording:
-    """Load and validate a recording; raises :class:`RecordingError` naming file and key."""
+    """Load and validate a recording; raises :class:`RecordingError` naming file and key.
+
+    Only the arrays of docs/recordings.md are read, at most :data:`MAX_RECORDING_BYTES` inflated
+    (:mod:`tactiled.npzio` refuses decompression bombs before inflating them).
+    """
     try:
-        arrays = read_npz(path)
+        arrays = read_npz(path, KEYS, MAX_RECORDING_BYTES)
     except NpzError as exc:
         raise RecordingError(f"{path}: {exc.key}: {exc}" if exc.key else f"{path}: {exc}") from None
     return _validate(path, arrays)
@@ -100,16 +108,16 @@ def _validate(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
         if key not in a:
             raise _fail(path, key, "missing (required)")
     samples = a["samples"]
-    if samples.ndim != 2 or samples.shape[1] < 1:
-        raise _fail(path, "samples", f"must have shape (n, C), got {samples.shape}")
+    if samples.ndim != 2 or not 1 <= samples.shape[1] <= MAX_CHANNELS:
+        raise _fail(path, "samples", f"must have shape (n, C) with 1 <= C <= {MAX_CHANNELS}, got {samples.shape}")
     if samples.dtype not in (np.int16, np.float32, np.float64):
         raise _fail(path, "samples", f"must be int16, float32 or float64, got {samples.dtype}")
     if samples.dtype.kind == "f" and not np.all(np.isfinite(samples)):
         raise _fail(path, "samples", "contains NaN or Inf")
     n = samples.shape[0]
     fs = float(_scalar(path, a, "fs", "f"))
-    if not (np.isfinite(fs) and fs > 0):
-        raise _fail(path, "fs", f"must be > 0, got {fs}")
+    if not (np.isfinite(fs) and MIN_FS <= fs <= MAX_FS):
+        raise _fail(path, "fs", f"must be in [{MIN_FS:g}, {MAX_FS:g}] Hz, got {fs}")
     vpc = float(_scalar(path, a, "volts_per_count", "f")) if "volts_per_count" in a else 1.0
     if not (np.isfinite(vpc) and vpc > 0):
         raise _fail(path, "volts_per_count", f"must be > 0, got {vpc}")
@@ -120,9 +128,9 @@ def _validate(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
         rec.label = str(_scalar(path, a, "label", "U"))
     if "meta" in a:
         try:
-            meta = json.loads(_scalar(path, a, "meta", "U"))
-        except json.JSONDecodeError as exc:
-            raise _fail(path, "meta", f"not JSON: {exc}") from None
+            meta = load_json_bounded(_scalar(path, a, "meta", "U"), "meta")
+        except ValueError as exc:
+            raise RecordingError(f"{path}: {exc}") from None
         if not isinstance(meta, dict):
             raise _fail(path, "meta", "must be a JSON object")
         rec.meta = meta

@@ -17,7 +17,27 @@ def test_shipped_config_is_valid_and_matches_defaults() -> None:
     ("text", "message"),
     [
         ("[detector]\non_factor = 2.0\n", "detector.on_factor: must be > detector.off_factor"),
-        ("[sensor]\nfs = -1\n", "sensor.fs: must be > 0 Hz"),
+        ("[sensor]\nfs = -1\n", "sensor.fs: must be in [100, 1e6] Hz"),
+        ("[sensor]\nfs = 1e12\n", "sensor.fs: must be in [100, 1e6] Hz"),
+        ("[sensor]\nfs = 0.01\n", "sensor.fs: must be in [100, 1e6] Hz"),
+        ("[sensor]\nfs = inf\n", "sensor.fs: must be a finite number"),
+        ("[sensor]\nfs = nan\n", "sensor.fs: must be a finite number"),
+        ("[serial]\nretry_max_s = inf\n", "serial.retry_max_s: must be a finite number"),
+        ("[detector]\nhop_ms = -inf\n", "detector.hop_ms: must be a finite number"),
+        ("[publish]\nstatus_interval_s = nan\n", "publish.status_interval_s: must be a finite number"),
+        ("[ring]\nseconds = 1e9\n", "ring.seconds: must be in [1, 3600] s"),
+        ("[ring]\nseconds = 3600\n[sensor]\nfs = 1e6\nchannels = 8\n", "ring.seconds: 3600 s of 8 channels at 1e\\+06 Hz would take"),
+        ("[spikes]\nhalf_width = 100000000\n", "spikes.half_width: must be in 1..1000"),
+        ("[sensor]\nbaudrate = 9223372036854775808\n", "sensor.baudrate: must be an integer"),
+        ("[sensor]\nbaudrate = 9223372036854775807\n", "sensor.baudrate: must be an integer"),
+        ("[sensor]\nbaudrate = 0\n", "sensor.baudrate: must be in 50..12000000"),
+        ("[sensor]\nbaudrate = 115200.0\n", "sensor.baudrate: must be an integer"),
+        ("[sensor]\nport = 'socket://10.0.0.1:4000'\n", "sensor.port: is a URL \\(socket://\\), not a device path; set sensor.allow_url = true"),
+        ("[sensor]\nport = 'rfc2217://h:1'\n", "sensor.port: is a URL"),
+        ("[sensor]\nport = 'loop://'\n", "sensor.port: is a URL"),
+        ("x = " + "[" * 500 + "]" * 500 + "\n", "not valid TOML: arrays or tables nested too deeply"),
+        ("x = " + "{a = " * 500 + "1" + "}" * 500 + "\n", "not valid TOML: arrays or tables nested too deeply"),
+        ("[features]\ndomains = " + repr(["time"] * 100) + "\n", "features.domains: must be a list of at most 64 strings"),
         ("[sensor]\nfs = 'fast'\n", "sensor.fs: must be a number"),
         ("[sensr]\nfs = 1\n", "sensr: unknown key"),
         ("[window]\nstrt_s = 1\n", "window.strt_s: unknown key"),
@@ -27,8 +47,23 @@ def test_shipped_config_is_valid_and_matches_defaults() -> None:
     ],
 )
 def test_bad_values_name_the_key(text: str, message: str) -> None:
-    with pytest.raises(ConfigError, match=message.replace("[", r"\[")):
+    with pytest.raises(ConfigError, match=message.replace("[", r"\[")) as err:
         parse_config(text, "x.toml")
+    assert str(err.value).startswith("x.toml: ") and "\n" not in str(err.value)
+
+
+def test_a_url_port_is_allowed_when_asked() -> None:
+    assert parse_config("[sensor]\nport = 'loop://'\nallow_url = true\n").sensor.port == "loop://"
+
+
+def test_config_size_is_bounded(tmp_path: Path) -> None:
+    big = tmp_path / "big.toml"
+    big.write_text("# " + "x" * (2 << 20) + "\n")
+    with pytest.raises(ConfigError, match="larger than"):
+        load_config(big)
+    with pytest.raises(ConfigError, match="not UTF-8"):
+        (tmp_path / "bin.toml").write_bytes(b"\xff\xfe[sensor]")
+        load_config(tmp_path / "bin.toml")
 
 
 def test_override_revalidates() -> None:
