@@ -300,3 +300,40 @@ def test_the_watchdog_is_fed_only_while_the_reader_runs(tmp_path: Path) -> None:
             daemon.publisher.close()
 
     assert asyncio.run(main()) == (True, False, False)
+
+
+def test_the_daemon_takes_a_board_reset_past_2_31_between_slides_and_goes_on(tmp_path: Path) -> None:
+    """A board reset far ahead (index + 2**31) between slides: the daemon counts a restart, keeps publishing, stays small."""
+    sim = simulate_file(SimParams(), pick_surfaces("Ra2.29")[0], 4, 3)
+    cut = (sim.truth[1].stop + sim.truth[2].start) // 2 // 20 * 20  # in the rest between the second and third slides
+    first = 2**31 + 5000
+    data = encode_frames(first, sim.samples[:cut]) + encode_frames((first + cut + 2**31 + 777) % 2**32, sim.samples[cut:])
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    endpoint = f"ipc://{tmp_path}/pub"
+    messages: list[object] = []
+    with BlockingSubscriber(endpoint, topics=["roughness", "status"], timeout=30) as sub:
+        proc = subprocess.Popen(tactiled_cmd("run", "--port", os.ttyname(slave), "--publish", endpoint), stderr=subprocess.PIPE, text=True)
+        try:
+            wait_for(lambda: messages.append(sub.receive()) or any(isinstance(m, Status) for m in messages),  # type: ignore[func-returns-value]
+                     timeout=60, what="the daemon's first status")
+            writer = threading.Thread(target=os.write, args=(master, data), daemon=True)  # blocks while the tty is full: paced by the reader
+            writer.start()
+
+            def done() -> bool:
+                messages.append(sub.receive())
+                finals = [m for m in messages if isinstance(m, Roughness) and m.final]
+                return len(finals) >= 4 and any(isinstance(m, Status) and m.restarts >= 1 for m in messages[messages.index(finals[-1]):])
+            wait_for(done, timeout=120, what="four labels and a status counting the restart after them")
+            with open(f"/proc/{proc.pid}/status") as fh:
+                rss_kb = next(int(line.split()[1]) for line in fh if line.startswith("VmHWM:"))
+        finally:
+            proc.terminate()
+            proc.wait(30)
+            os.close(master)
+            os.close(slave)
+    assert proc.returncode == 0
+    finals = [m for m in messages if isinstance(m, Roughness) and m.final]
+    assert len(finals) == 4 and all(m.label for m in finals)
+    assert [m.seq for m in finals] == sorted(m.seq for m in finals) and finals[1].stop < finals[2].start  # the timeline goes on
+    assert rss_kb < 300 * 1024, f"peak resident {rss_kb} kB"
