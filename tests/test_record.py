@@ -410,9 +410,19 @@ def test_record_takes_a_board_restart_far_ahead_as_a_restart_not_as_lost_samples
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stderr is not None
-        assert "recording" in proc.stderr.readline()  # the port is open: what is written now is read
+        assert "recording" in proc.stderr.readline()  # the port checked, the reader started
+        name = os.ttyname(slave)
+
+        def port_open() -> bool:  # bytes sent before the reader opens the port are lost, as on a real serial line
+            fds = Path(f"/proc/{proc.pid}/fd")
+            return any(os.path.realpath(fd) == name for fd in fds.iterdir() if fd.is_symlink())
+        wait_for(port_open, timeout=30, what="the recorder to open the port")
         os.write(master, encode_frames(1000, before) + encode_frames((1000 + 800 + 2**31) % 2**32, after))
-        _stdout, stderr = proc.communicate(timeout=60)
+        try:
+            _stdout, stderr = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            pytest.fail(f"record did not finish on the {before.shape[0] + after.shape[0]} samples sent: {proc.communicate()[1]}")
     finally:
         if proc.poll() is None:
             proc.kill()
