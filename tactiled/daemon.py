@@ -20,7 +20,7 @@ import socket
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import BinaryIO, Protocol
+from typing import BinaryIO
 
 import numpy as np
 from tactiled_client import schema
@@ -33,8 +33,8 @@ from tactiled.model import Model
 from tactiled.pipeline import Pipeline, PipelineEvent
 from tactiled.publish import Publisher
 from tactiled.rawbatch import raw_batches
-from tactiled.record import RecordingSink
-from tactiled.serialsource import CONNECTED, SerialSource
+from tactiled.record import RecordingSink, link_counters
+from tactiled.serialsource import CONNECTED, ByteSource, SerialSource
 
 log = logging.getLogger(__name__)
 
@@ -62,18 +62,6 @@ class DaemonState:
     last_index: int = 0
 
 
-class ByteSource(Protocol):
-    """What the daemon reads from: :class:`~tactiled.serialsource.SerialSource`, or :class:`~tactiled.serialsource.MemorySource` in tests."""
-
-    connected: bool
-    reconnects: int
-    errors: int
-    arrival: float
-    alive_at: float
-
-    async def run(self) -> None: ...
-
-
 class Daemon:
     """The daemon's state and tasks; :meth:`run` until stopped (or, for a finite ``source``, until its end).
 
@@ -94,11 +82,11 @@ class Daemon:
         self.state = DaemonState()
         self.stop_event = asyncio.Event()
         self.source: ByteSource | None = None
-        self.record_to = record_to
         self.raw_to = raw_to
         self._source_factory = source_factory
         self.recorder = RecordingSink(record_to, fs=s.fs, channels=s.channels, volts_per_count=s.volts_per_count, force=True,
-                                      meta={"sensor": s.id, "port": s.port, "source": "tactiled run --record"}, counters=self._record_counters,
+                                      meta={"sensor": s.id, "port": s.port, "source": "tactiled run --record"},
+                                      counters=lambda: link_counters(self.ingest.stats, self.source),
                                       on_error=log.error) if record_to else None  # streams to record_to's journal (tactiled/journal.py)
         self.clock = ClockMap(s.fs)  # sample index -> host time
         self._raw_next: int | None = None  # next index of the samples topic
@@ -199,13 +187,9 @@ class Daemon:
                                                   to_host=to_host, fs_clock=round(self.clock.fs, 3)))
             self._raw_next = b.index + n
 
-    def _record_counters(self) -> dict[str, int]:
-        st = self.ingest.stats
-        return {"crc_errors": st.crc_errors, "bytes_discarded": st.bytes_discarded, "reconnects": self.source.reconnects if self.source else 0}
-
     def _save_recording(self) -> None:
         assert self.recorder is not None
-        result = self.recorder.finish(self._record_counters())
+        result = self.recorder.finish(link_counters(self.ingest.stats, self.source))
         if result.error is None:
             log.info("%s: saved %d samples (%d lost)", self.recorder.out, result.samples, result.samples_lost)
         elif not self.recorder.error:  # a failure while capturing was logged when it happened

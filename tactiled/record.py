@@ -23,11 +23,11 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.errors import OutputError
-from tactiled.frames import Frame
-from tactiled.ingest import Batch, Ingest
+from tactiled.frames import DecoderStats, Frame
+from tactiled.ingest import Batch, Ingest, max_gap_for
 from tactiled.journal import JournalWriter, encode_chunk, encode_header, is_locked, journal_path, recover
 from tactiled.recording import fsync_dir
-from tactiled.serialsource import DISCONNECTED, SerialSource, check_port
+from tactiled.serialsource import DISCONNECTED, ByteSource, SerialSource, check_port
 
 log = logging.getLogger(__name__)
 
@@ -189,7 +189,8 @@ class RecordingSink:
         if self.error is not None:
             return start
         received = np.concatenate(pending) if pending else np.zeros((0, self.channels), dtype=np.int16)
-        counters = {**self._counters(), "restarts": self.restarts, "channel_errors": self.channel_errors,
+        given = self._counters()
+        counters = {**given, "restarts": self.restarts, "channel_errors": given.get("channel_errors", 0) + self.channel_errors,
                     "samples_dropped_writer_behind": self.queue_dropped}
         assert self.first_index is not None
         try:
@@ -238,6 +239,12 @@ class RecordSummary:
                 f"{self.crc_errors} CRC failures, {self.reconnects} reconnects")
 
 
+def link_counters(stats: DecoderStats, source: ByteSource | None) -> dict[str, int]:
+    """What the serial link did, for a recording's ``meta``: CRC failures, bytes discarded, reconnects, foreign-channel frames."""
+    return {"crc_errors": stats.crc_errors, "bytes_discarded": stats.bytes_discarded, "reconnects": source.reconnects if source else 0,
+            "channel_errors": stats.channel_errors}
+
+
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
@@ -256,13 +263,12 @@ def record(port: str, seconds: float, out: str | Path, *, fs: float, channels: i
     """
     check_port(port)
     chunks: queue.Queue[bytes | None] = queue.Queue()
-    ingest = Ingest(channels, max_gap=max_gap or max(1, round(10 * fs)))
+    ingest = Ingest(channels, max_gap=max_gap or max_gap_for(10.0, fs))
     stats = ingest.stats
     source: SerialSource | None = None
 
     def counters() -> dict[str, int]:
-        return {"crc_errors": stats.crc_errors, "bytes_discarded": stats.bytes_discarded, "reconnects": source.reconnects if source else 0,
-                "frames_foreign_channels": stats.channel_errors}
+        return link_counters(stats, source)
 
     sink = RecordingSink(out, fs=fs, channels=channels, volts_per_count=volts_per_count, label=label,
                          meta={**(meta or {}), "port": port}, limit=max(1, round(seconds * fs)), force=force, counters=counters)

@@ -35,7 +35,7 @@ import select
 import threading
 import time
 from collections.abc import Awaitable, Callable, Iterable
-from typing import BinaryIO
+from typing import BinaryIO, Protocol
 
 import serial
 
@@ -286,6 +286,18 @@ def _read_all(fd: int, limit: int) -> bytes:
         if len(chunk) < 4096:  # the kernel had no more (a tty hands out at most its buffer per read)
             break
     return parts[0] if len(parts) == 1 else b"".join(parts)
+
+
+class ByteSource(Protocol):
+    """What the daemon reads from: :class:`SerialSource`, or :class:`MemorySource` in tests."""
+
+    connected: bool
+    reconnects: int
+    errors: int
+    arrival: float
+    alive_at: float
+
+    async def run(self) -> None: ...
 
 
 class MemorySource:

@@ -8,8 +8,10 @@ import json
 import os
 import subprocess
 import threading
+import time
 import tracemalloc
 import tty
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -196,13 +198,20 @@ def test_daemon_on_a_memory_source_ends_the_stream_and_publishes_every_event(tmp
     ctx = zmq.Context.instance()
     sub = ctx.socket(zmq.SUB)
     sub.setsockopt(zmq.SUBSCRIBE, b"roughness")
+    sub.setsockopt(zmq.SUBSCRIBE, b"status")
     got: list[dict[str, object]] = []
 
+    def chunks() -> Iterator[bytes]:
+        """Nothing until a status message arrives (the subscriptions have reached the publisher), then the stream."""
+        deadline = time.monotonic() + 30
+        while not sub.poll(0):
+            assert time.monotonic() < deadline, "no status message from the daemon"
+            yield b""  # the source yields to the loop between chunks: the status task runs
+        yield from (data[i:i + 920] for i in range(0, len(data), 920))
+
     async def main() -> None:
-        daemon = Daemon(config, load_model(), source_factory=lambda on_bytes, on_state: MemorySource(
-            (data[i:i + 920] for i in range(0, len(data), 920)), on_bytes, on_state))
+        daemon = Daemon(config, load_model(), source_factory=lambda on_bytes, on_state: MemorySource(chunks(), on_bytes, on_state))
         sub.connect(daemon.endpoint)
-        await asyncio.sleep(0.2)  # a ZeroMQ subscription needs a moment to reach the publisher (slow joiner), not synchronisation
         await daemon.run()  # returns at the end of the stream
         assert daemon.ingest.stats.crc_errors + daemon.ingest.stats.bad_headers >= 12
 
@@ -210,7 +219,9 @@ def test_daemon_on_a_memory_source_ends_the_stream_and_publishes_every_event(tmp
     import msgpack
 
     while sub.poll(2000):
-        got.append(msgpack.unpackb(sub.recv_multipart()[-1]))
+        topic, *_, body = sub.recv_multipart()
+        if topic.startswith(b"roughness"):
+            got.append(msgpack.unpackb(body))
     sub.close(linger=0)
     finals = [(m["start"], m["stop"], m["label"]) for m in got if m["final"]]
     assert finals == [(k[2], k[3], k[5]) for k in expected] and finals

@@ -42,6 +42,18 @@ def running_board(tmp_path: Path, seed: int) -> Iterator[VirtualBoard]:
             thread.join(10)
 
 
+@contextlib.contextmanager
+def spawned(*args: str) -> Iterator[subprocess.Popen[str]]:
+    """``tactiled ARGS`` with piped output; killed on leaving the block if it is still running."""
+    proc = subprocess.Popen(tactiled_cmd(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
 def board_truth(seed: int, surfaces: list[Surface], start: int, n: int) -> np.ndarray:
     """The ``n`` samples a seeded virtual board sends from its ``start``-th sample on."""
     model = SensorModel(SimParams(), seed=seed)
@@ -136,19 +148,13 @@ def test_record_bad_config_value(tmp_path: Path) -> None:
 
 def test_record_ctrl_c_saves_what_was_captured(tmp_path: Path) -> None:
     out = tmp_path / "r.npz"
-    with running_board(tmp_path, seed=1) as board:
-        proc = subprocess.Popen(tactiled_cmd("-v", "record", "--port", board.link or "", "--seconds", "600", "-o", str(out)),
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            assert proc.stderr is not None
-            assert "recording" in proc.stderr.readline()
-            started = board.sent_samples
-            assert board.wait_sent(started + 4000, timeout=20), "board streaming to the recorder"
-            proc.send_signal(signal.SIGINT)
-            _stdout, stderr = proc.communicate(timeout=30)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
+    with running_board(tmp_path, seed=1) as board, spawned("-v", "record", "--port", board.link or "", "--seconds", "600", "-o", str(out)) as proc:
+        assert proc.stderr is not None
+        assert "recording" in proc.stderr.readline()
+        started = board.sent_samples
+        assert board.wait_sent(started + 4000, timeout=20), "board streaming to the recorder"
+        proc.send_signal(signal.SIGINT)
+        _stdout, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 0, stderr
     rec = load_recording(out)
     assert rec.samples.shape[0] > 0 and rec.samples.shape[1] == 2
@@ -161,17 +167,11 @@ def test_sigkill_loses_at_most_a_second_and_recover_gives_the_boards_samples(tmp
     out = tmp_path / "r.npz"
     journal = tmp_path / "r.npz.journal"
     fs = SimParams().fs
-    with running_board(tmp_path, seed=7) as board:
-        proc = subprocess.Popen(tactiled_cmd("record", "--port", board.link or "", "--seconds", "600", "-o", str(out)),
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            wait_journal(board, journal, round(2.5 * fs) * 4)  # 2.5 s of 2 x int16 samples
-            sent = board.sent_samples
-            proc.kill()
-            proc.wait(10)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
+    with running_board(tmp_path, seed=7) as board, spawned("record", "--port", board.link or "", "--seconds", "600", "-o", str(out)) as proc:
+        wait_journal(board, journal, round(2.5 * fs) * 4)  # 2.5 s of 2 x int16 samples
+        sent = board.sent_samples
+        proc.kill()
+        proc.wait(10)
     assert proc.returncode == -signal.SIGKILL
     assert not out.exists()
     res = run_cli("recover", str(journal), "-o", str(out))
@@ -262,16 +262,10 @@ def test_recover_refuses_what_is_not_a_journal(tmp_path: Path) -> None:
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
 def test_sigterm_and_sighup_save_a_recording(tmp_path: Path, sig: signal.Signals) -> None:
     out = tmp_path / "r.npz"
-    with running_board(tmp_path, seed=4) as board:
-        proc = subprocess.Popen(tactiled_cmd("record", "--port", board.link or "", "--seconds", "600", "-o", str(out)),
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            wait_journal(board, tmp_path / "r.npz.journal", 20000)
-            proc.send_signal(sig)
-            stdout, stderr = proc.communicate(timeout=30)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
+    with running_board(tmp_path, seed=4) as board, spawned("record", "--port", board.link or "", "--seconds", "600", "-o", str(out)) as proc:
+        wait_journal(board, tmp_path / "r.npz.journal", 20000)
+        proc.send_signal(sig)
+        stdout, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 0, stderr
     rec = load_recording(out)
     n = rec.samples.shape[0]
@@ -377,16 +371,11 @@ def test_full_tmpfs_stops_record_cleanly_and_the_journal_recovers(tmp_path: Path
 
 def test_run_record_streams_to_the_journal_and_sighup_saves(tmp_path: Path) -> None:
     out = tmp_path / "d.npz"
-    with running_board(tmp_path, seed=8) as board:
-        proc = subprocess.Popen(tactiled_cmd("run", "--no-model", "--port", board.link or "", "--publish", f"ipc://{tmp_path}/pub",
-                                             "--record", str(out)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            wait_journal(board, tmp_path / "d.npz.journal", 40000)  # on disk while the daemon runs
-            proc.send_signal(signal.SIGHUP)
-            _stdout, stderr = proc.communicate(timeout=30)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
+    with running_board(tmp_path, seed=8) as board, spawned("run", "--no-model", "--port", board.link or "", "--publish", f"ipc://{tmp_path}/pub",
+                                                           "--record", str(out)) as proc:
+        wait_journal(board, tmp_path / "d.npz.journal", 40000)  # on disk while the daemon runs
+        proc.send_signal(signal.SIGHUP)
+        _stdout, stderr = proc.communicate(timeout=30)
     assert proc.returncode == 0, stderr
     rec = load_recording(out)
     n = rec.samples.shape[0]
@@ -406,26 +395,22 @@ def test_record_takes_a_board_restart_far_ahead_as_a_restart_not_as_lost_samples
     master, slave = os.openpty()
     tty.setraw(slave)
     out = tmp_path / "jump.npz"
-    proc = subprocess.Popen(tactiled_cmd("-v", "record", "--port", os.ttyname(slave), "--seconds", "0.08", "-o", str(out)),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    name = os.ttyname(slave)
     try:
-        assert proc.stderr is not None
-        assert "recording" in proc.stderr.readline()  # the port checked, the reader started
-        name = os.ttyname(slave)
+        with spawned("-v", "record", "--port", name, "--seconds", "0.08", "-o", str(out)) as proc:
+            assert proc.stderr is not None
+            assert "recording" in proc.stderr.readline()  # the port checked, the reader started
 
-        def port_open() -> bool:  # bytes sent before the reader opens the port are lost, as on a real serial line
-            fds = Path(f"/proc/{proc.pid}/fd")
-            return any(os.path.realpath(fd) == name for fd in fds.iterdir() if fd.is_symlink())
-        wait_for(port_open, timeout=30, what="the recorder to open the port")
-        os.write(master, encode_frames(1000, before) + encode_frames((1000 + 800 + 2**31) % 2**32, after))
-        try:
-            _stdout, stderr = proc.communicate(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            pytest.fail(f"record did not finish on the {before.shape[0] + after.shape[0]} samples sent: {proc.communicate()[1]}")
+            def port_open() -> bool:  # bytes sent before the reader opens the port are lost, as on a real serial line
+                return any(os.path.realpath(fd) == name for fd in Path(f"/proc/{proc.pid}/fd").iterdir() if fd.is_symlink())
+            wait_for(port_open, timeout=30, what="the recorder to open the port")
+            os.write(master, encode_frames(1000, before) + encode_frames((1000 + 800 + 2**31) % 2**32, after))
+            try:
+                _stdout, stderr = proc.communicate(timeout=60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                pytest.fail(f"record did not finish on the {before.shape[0] + after.shape[0]} samples sent: {proc.communicate()[1]}")
     finally:
-        if proc.poll() is None:
-            proc.kill()
         os.close(master)
         os.close(slave)
     assert proc.returncode == 0, stderr
