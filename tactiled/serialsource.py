@@ -61,9 +61,13 @@ class KeepInputSerial(serial.Serial):
         finally:
             self._opening = False
 
-    def reset_input_buffer(self) -> None:
+    def reset_input_buffer(self) -> None:  # what pyserial < 3.5 calls from open()
         if not self._opening:
             super().reset_input_buffer()
+
+    def _reset_input_buffer(self) -> None:  # what pyserial 3.5 calls from open()
+        if not self._opening:
+            super()._reset_input_buffer()  # type: ignore[misc]
 
 
 def check_port(path: str) -> None:

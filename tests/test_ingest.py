@@ -147,6 +147,27 @@ class _FailingTee:
         pass
 
 
+def test_opening_the_port_keeps_what_the_board_sent_before() -> None:
+    """pyserial flushes a port's input when it opens it; bytes already in the tty (a replug, a recorder starting) are kept."""
+    from tactiled.serialsource import KeepInputSerial
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        os.write(master, b"frames sent before the open")
+        port = KeepInputSerial(os.ttyname(slave), timeout=0)
+        try:
+            assert port.read(100) == b"frames sent before the open"
+            os.write(master, b"stale")
+            port.reset_input_buffer()  # an explicit reset still resets
+            assert port.read(100) == b""
+        finally:
+            port.close()
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
 def test_serial_source_survives_reader_and_consumer_failures_and_counts_them() -> None:
     master, slave = os.openpty()
     tty.setraw(slave)
