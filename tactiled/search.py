@@ -126,6 +126,7 @@ class SearchResult:
     counts: dict[str, Any]
     seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
+    models: dict[str, Model] = field(default_factory=dict)
 
 
 # ---- folds and slide-level scoring ------------------------------------------------------------------------------
@@ -270,8 +271,11 @@ def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, li
 
 def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
            candidates: Sequence[Candidate] | None = None, progress: Progress | None = None, scheduler: str | None = None,
-           found: tuple[list[list[Slide]], SlideCounts] | None = None, method: str = "search") -> SearchResult:
-    """Score every candidate, pick and refit the winner (see the module docstring)."""
+           found: tuple[list[list[Slide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False) -> SearchResult:
+    """Score every candidate, pick and refit the winner (see the module docstring).
+
+    ``keep_models``: also refit every other candidate (``SearchResult.models``, by name), to compare them on held-out recordings.
+    """
     say = progress or (lambda m: None)
     t0 = time.perf_counter()
     fs, channels = recs[0][1].fs, recs[0][1].channels
@@ -348,23 +352,35 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         picks.append(usable[pick].name)
         nested_accs.append(float(board[pick]["folds"][o]))
     nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks}
-    st, ws = sets[_key(best)]
-    temperature = fit_temperature(oof[best.name], y_idx)
+    summary = {"cv_accuracy": nested, "winner": best.name, "leaderboard": leaderboard[:12], "files": len(recs)}
     say(f"winner {best.name}: {leaderboard[0]['mean']:.3f} ± {leaderboard[0]['sd']:.3f}; nested CV {nested['mean']:.3f}; fitting on every slide")
+    model = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary)
+    ws = sets[_key(best)][1]
+    result = SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
+                          time.perf_counter() - t0)
+    if keep_models:
+        result.models = {c.name: _refit(sets, c, oof[c.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary)
+                         for c in usable}
+    return result
+
+
+def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: Candidate, oof: FloatArray, y_idx: npt.NDArray[np.intp],
+           classes: list[str], config: Config, fs: float, channels: int, seed: int, inner_folds: int, method: str,
+           summary: dict[str, Any]) -> Model:
+    """Candidate ``c`` fitted on every labelled slide, its temperature fitted on its out-of-fold slide scores ``oof``."""
+    st, ws = sets[_key(c)]
+    temperature = fit_temperature(oof, y_idx)
     rows = np.flatnonzero(ws.y != "")
-    cols, pipe, refit = fit_candidate(ws, rows, best, seed, inner_folds)
+    cols, pipe, refit = fit_candidate(ws, rows, c, seed, inner_folds)
     names = [ws.names[j] for j in cols]
-    settings = replace(st, names=tuple(names), level=st.level if "dwt" in best.families else config.features.level, fusion=best.fusion)
-    summary = {"cv_accuracy": nested, "winner": best.name, "leaderboard": leaderboard[:12], "slides": len(ws.slides), "files": len(recs),
-               "windows": len(rows), "classes": classes, "per_class": {k: list(v) for k, v in ws.per_class().items()}, "skipped": ws.skipped,
-               "detector": _counts(ws)}
-    params = {k: v for k, v in best.params.items() if k != "kbest"}
-    if best.kind == "knn":
+    settings = replace(st, names=tuple(names), level=st.level if "dwt" in c.families else config.features.level, fusion=c.fusion)
+    summary = {**summary, "slides": len(ws.slides), "windows": len(rows), "classes": classes,
+               "per_class": {k: list(v) for k, v in ws.per_class().items()}, "skipped": ws.skipped, "detector": _counts(ws)}
+    params = {k: v for k, v in c.params.items() if k != "kbest"}
+    if c.kind == "knn":
         params["n_neighbors"] = int(pipe[-1].n_neighbors)
-    model = Model(method, best.kind, params, [str(c) for c in pipe[-1].classes_], settings, fs, channels, pipe, temperature,
-                  seed, summary, "", refit)
-    return SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
-                        time.perf_counter() - t0)
+    return Model(method, c.kind, params, [str(k) for k in pipe[-1].classes_], settings, fs, channels, pipe, temperature,
+                 seed, summary, "", refit)
 
 
 def _counts(ws: WindowSet) -> dict[str, Any]:

@@ -49,10 +49,10 @@ def class_table(per_file: list[list[Slide]]) -> dict[str, tuple[int, int, int]]:
 
 def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
           drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None,
-          candidates: Sequence[Candidate] | None = None) -> SearchResult:
+          candidates: Sequence[Candidate] | None = None, keep_models: bool = False) -> SearchResult:
     """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save).
 
-    ``candidates`` narrows the default search (``method="auto"``) to the given ones.
+    ``candidates`` narrows the default search (``method="auto"``) to the given ones; ``keep_models``: see :func:`search`.
     """
     say = progress or (lambda m: None)
     if method not in METHODS:
@@ -86,7 +86,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     else:
         if method == "quick" and candidates is None:
             candidates = quick_candidates()
-        result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates)
+        result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates,
+                        keep_models=keep_models)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
     result.model.summary["dropped"] = rare
     return result
