@@ -365,8 +365,9 @@ def markdown(res: dict[str, Any], figures: list[str]) -> str:
     if "default_method" in res:
         g = res["default_method"]
         out.append(f"## (g) The default method: `tactiled train`'s choice\n\nWinner: **{g['winner']}**; nested CV accuracy {_pm(g['nested'])} "
-                   f"(outer-fold picks: {', '.join(g['nested']['picks'])}).\n\n| candidate | accuracy |\n|---|---|")
-        out += [f"| {r['candidate']} | {_pm(r)} |" for r in g["leaderboard"]]
+                   f"(outer-fold picks: {', '.join(g['nested']['picks'])}). The choice is the simplest candidate within one standard error "
+                   "of the best mean (marked *).\n\n| candidate | accuracy |\n|---|---|")
+        out += [f"| {r['candidate']}{' *' if r.get('chosen') else ''} | {_pm(r)} |" for r in g["leaderboard"]]
         out.append(f"\nAccuracy against the slide time used before deciding (windows fused so far; a slide with no window yet counts as wrong); "
                    f"compute per decision = windows × ({g['feature_ms']:.2f} ms features + {g['infer_ms']:.3f} ms inference).\n\n"
                    "| slide time used | accuracy | decided | windows | compute ms |\n|---|---|---|---|---|")

@@ -11,10 +11,13 @@ Every candidate is scored by grouped cross-validation (folds never split a recor
 the level that matters: the label of each whole slide, from its windows' fused scores,
 over every slide (a slide with no usable window counts as wrong); selection and scaling
 are fitted inside each training fold only. The leaderboard lists mean ± sd over outer
-folds. The winner is the best mean; its accuracy is estimated honestly by nested
-cross-validation: in each outer fold, an inner grouped CV on the training files alone
-picks a candidate, which is then scored on the held-out files. The winner is refitted on
-every recording; its temperature is fitted on its out-of-fold slide scores.
+folds. The winner is the simplest candidate whose mean is within one standard error of
+the best mean (:func:`choose`): with few recordings the top of the leaderboard is within
+noise, and the simpler candidate is the safer bet on new data. Its accuracy is estimated
+honestly by nested cross-validation: in each outer fold, the same rule on an inner grouped
+CV of the training files alone picks a candidate, which is then scored on the held-out
+files. The winner is refitted on every recording; its temperature is fitted on its
+out-of-fold slide scores.
 
 Work is spread over every core with joblib; ``scheduler`` (a dask.distributed address)
 sends it to a cluster through joblib's Dask backend instead.
@@ -48,6 +51,7 @@ PARAMS: dict[str, dict[str, Any]] = {
     "svm": {"kernel": "rbf", "C": 10.0, "gamma": "scale"},
     "linear": {"C": 10.0, "max_iter": 2000},
 }
+KIND_RANK: dict[str, int] = {"linear": 0, "svm": 1, "knn": 2, "elm": 3}
 PAPER_PARAMS: dict[str, Any] = {"n_hidden": 200, "alpha": 1e-6}
 # (start_s, duration_s, max_windows): windows back to back from the slide's start, or from 0.3 s (after the onset transient)
 PLACEMENTS: tuple[tuple[float, float, int], ...] = ((0.0, 0.25, 0), (0.3, 0.25, 0), (0.0, 0.5, 0))
@@ -323,7 +327,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     results = iter(_run_with_progress(tasks, say, scheduler, [t[1][1].sfs for t in tasks]))
     board: list[dict[str, Any]] = []
     oof: dict[str, FloatArray] = {}
-    inner_acc: dict[str, list[float]] = {}
+    inner_acc: dict[str, list[list[float]]] = {}  # per candidate, per outer fold: the accuracy of each inner fold
     for c in usable:
         ws = sets[_key(c)][1]
         scores = np.full((len(ws.slides), len(classes)), -np.inf)
@@ -332,28 +336,29 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         for (tr, te), (sc, inner_scores) in zip(outer, per_fold, strict=True):
             scores[te] = sc
             accs.append(accuracy_of(sc, y_idx[te]))
-            hits = total = 0.0
-            for (_itr, ite), isc in zip(_inner_folds(ws, tr, inner_folds, seed) if nested_on else [], inner_scores, strict=True):
-                hits += accuracy_of(isc, y_idx[ite]) * len(ite)
-                total += len(ite)
-            per_outer_inner.append(hits / max(1.0, total))
+            per_outer_inner.append([accuracy_of(isc, y_idx[ite]) for (_itr, ite), isc in
+                                    zip(_inner_folds(ws, tr, inner_folds, seed) if nested_on else [], inner_scores, strict=True)])
         oof[c.name] = scores
         inner_acc[c.name] = per_outer_inner
         board.append({"candidate": c.name, "families": list(c.families), "classifier": c.kind, "start_s": c.start_s, "duration_s": c.duration_s,
                       "max_windows": c.max_windows, "sfs": c.sfs, "fusion": c.fusion, "mean": float(np.mean(accs)), "sd": float(np.std(accs)), "folds": accs})
     means = [float(r["mean"]) for r in board]
     order = sorted(range(len(board)), key=lambda i: -means[i])  # stable: ties keep the cheaper candidate
+    chosen = choose(usable, [r["folds"] for r in board])
+    board[chosen]["chosen"] = True
     leaderboard = [board[i] for i in order]
-    best = usable[order[0]]
-    # nested: per outer fold, the candidate with the best inner score, scored on that fold
+    best = usable[chosen]
+    # nested: per outer fold, the rule applied to the inner folds' accuracies, its pick scored on that fold
     nested_accs, picks = [], []
     for o in range(len(outer)):
-        pick = max(range(len(usable)), key=lambda i: (inner_acc[usable[i].name][o], -i)) if nested_on else 0
+        pick = choose(usable, [inner_acc[c.name][o] for c in usable]) if nested_on else 0
         picks.append(usable[pick].name)
         nested_accs.append(float(board[pick]["folds"][o]))
     nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks}
-    summary = {"cv_accuracy": nested, "winner": best.name, "leaderboard": leaderboard[:12], "files": len(recs)}
-    say(f"winner {best.name}: {leaderboard[0]['mean']:.3f} ± {leaderboard[0]['sd']:.3f}; nested CV {nested['mean']:.3f}; fitting on every slide")
+    shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
+    summary = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs)}
+    say(f"winner {best.name}: {board[chosen]['mean']:.3f} ± {board[chosen]['sd']:.3f} (best mean {leaderboard[0]['mean']:.3f}); "
+        f"nested CV {nested['mean']:.3f}; fitting on every slide")
     model = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary)
     ws = sets[_key(best)][1]
     result = SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
@@ -381,6 +386,33 @@ def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: C
         params["n_neighbors"] = int(pipe[-1].n_neighbors)
     return Model(method, c.kind, params, [str(k) for k in pipe[-1].classes_], settings, fs, channels, pipe, temperature,
                  seed, summary, "", refit)
+
+
+def complexity(c: Candidate) -> tuple[int, int, int]:
+    """How much a candidate can fit, for :func:`choose` (smaller: simpler).
+
+    Classifier first (a linear model, an RBF SVM, kNN, an ELM, forward selection on top), then how many
+    feature families and whether features are picked by score, then per-window fusion over a whole-slide mean
+    (one row per slide averages the noise out before fitting).
+    """
+    return KIND_RANK[c.kind] + 2 * c.sfs, len(c.families) + (c.kbest > 0), int(c.fusion != "features")
+
+
+def choose(candidates: Sequence[Candidate], folds: Sequence[Sequence[float]]) -> int:
+    """Index of the candidate to keep, from each candidate's accuracy per fold (the one-standard-error rule).
+
+    The best mean accuracy sets the bar: its mean less one standard error (sd over folds / sqrt(folds)).
+    Of the candidates at or above the bar, the simplest (:func:`complexity`) wins; among equally simple
+    ones, the better mean, then the earlier in the list. With few recordings the top candidates are often
+    within noise of each other, and the simpler one is the safer bet on new data (Hastie, Tibshirani and
+    Friedman, The Elements of Statistical Learning, 2nd ed., section 7.10).
+    """
+    means = np.array([np.mean(f) if len(f) else 0.0 for f in folds])
+    top = int(np.argmax(means))
+    n = len(folds[top])
+    bar = means[top] - (float(np.std(folds[top], ddof=1)) / np.sqrt(n) if n > 1 else 0.0)
+    near = [i for i in range(len(candidates)) if means[i] >= bar - 1e-12]
+    return min(near, key=lambda i: (complexity(candidates[i]), -means[i], i))
 
 
 def _counts(ws: WindowSet) -> dict[str, Any]:

@@ -111,6 +111,7 @@ def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
     res = run_cli("train", *files, "-o", str(model), "--folds", "2", "--method", "quick")
     assert res.returncode == 0, res.stderr
     assert "leaderboard" in res.stdout and "nested CV" in res.stdout and "slides per surface" in res.stderr
+    assert sum(line.startswith("* ") for line in res.stdout.splitlines()) == 1  # the choice is marked once
     res = run_cli("score", str(model), *files, "--json")
     assert res.returncode == 0, res.stderr
     report = json.loads(res.stdout)
@@ -119,6 +120,24 @@ def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
     lines = [json.loads(line) for line in res.stdout.splitlines()]
     assert res.returncode == 0 and len(lines) == 3, res.stdout
     assert all(line["label"] for line in lines) and "3 slides, 3 labelled" in res.stderr
+
+
+def test_choice_is_the_simplest_within_one_standard_error() -> None:
+    """The best mean sets a bar one standard error below it; the simplest candidate at or above the bar wins."""
+    from tactiled.search import Candidate, choose, complexity
+
+    linear, svm, elm = Candidate(("psd",), "linear", 0.5), Candidate(("psd", "tex"), "svm", 0.5, kbest=8), Candidate(("dwt",), "elm", 0.5)
+    assert complexity(linear) < complexity(svm) < complexity(elm)
+    whole = Candidate(("psd",), "linear", 0.5, fusion="features")
+    assert complexity(whole) < complexity(linear)
+    noisy = [0.9, 0.5, 0.7, 0.8, 0.6]  # mean 0.70, standard error 0.0707: the bar is 0.629
+    assert choose([elm, svm, linear], [noisy, [0.66] * 5, [0.62] * 5]) == 1  # the linear model is under the bar: the svm
+    assert choose([elm, svm, linear], [noisy, [0.66] * 5, [0.64] * 5]) == 2  # both above: the linear model
+    assert choose([elm, svm, linear], [noisy, [0.62] * 5, [0.62] * 5]) == 0  # none but the best
+    steady = [0.70] * 5  # no spread: the best alone
+    assert choose([elm, svm, linear], [steady, [0.69] * 5, [0.69] * 5]) == 0
+    assert choose([svm, linear], [[0.8], [0.1]]) == 0  # one fold: no spread to go by
+    assert choose([svm, svm], [[0.5, 0.6], [0.5, 0.6]]) == 0  # equal: the earlier
 
 
 def test_score_counts_every_true_slide_and_reads_file_labels(tmp_path: Path) -> None:
