@@ -707,7 +707,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     p.add_argument("--config", help="config file (detector, spikes, feature settings; default: the built-in defaults)")
     p.add_argument("--method", choices=("auto", "quick", "paper"), default="auto",
-                   help="auto: pick features, classifier and windows by nested grouped CV; quick: a small search for a first model in "
+                   help="auto: score features, classifiers and windows by grouped CV and keep the simplest within one standard error of "
+                        "the best; quick: a small search for a first model in "
                         "seconds (band energies and texture, linear and kNN); paper: the papers' DWT + SFS + ELM")
     p.add_argument("--folds", type=_int_in(2, 1000), default=5, help="outer cross-validation folds, grouped by file")
     p.add_argument("--min-slides", type=_count, default=2, help="fewest slides a surface needs")
