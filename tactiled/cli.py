@@ -249,9 +249,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
                    scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True))
     print("leaderboard (slide accuracy, grouped by file: mean ± sd over folds; * the choice, the simplest within one standard error of the best):")
+    width = max(len(row["candidate"]) for row in result.leaderboard)
     for row in result.leaderboard:
         mark = "*" if row.get("chosen") else " "
-        print(f"{mark} {row['candidate']:<28s} {100 * row['mean']:5.1f} ± {100 * row['sd']:4.1f} %")
+        print(f"{mark} {row['candidate']:<{width}s} {100 * row['mean']:5.1f} ± {100 * row['sd']:4.1f} %")
     fingerprint = result.model.save(args.output)
     print(f"{args.output}: {result.model.describe()}; nested CV {100 * result.nested['mean']:.1f} ± {100 * result.nested['sd']:.1f} %; "
           f"fingerprint {fingerprint}")

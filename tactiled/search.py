@@ -407,12 +407,17 @@ def choose(candidates: Sequence[Candidate], folds: Sequence[Sequence[float]]) ->
     within noise of each other, and the simpler one is the safer bet on new data (Hastie, Tibshirani and
     Friedman, The Elements of Statistical Learning, 2nd ed., section 7.10).
     """
+    means = [float(np.mean(f)) if len(f) else 0.0 for f in folds]
+    return min(within_one_se(folds), key=lambda i: (complexity(candidates[i]), -means[i], i))
+
+
+def within_one_se(folds: Sequence[Sequence[float]]) -> list[int]:
+    """Indices of the candidates whose mean accuracy is at or above the best mean less its standard error (in order)."""
     means = np.array([np.mean(f) if len(f) else 0.0 for f in folds])
     top = int(np.argmax(means))
     n = len(folds[top])
     bar = means[top] - (float(np.std(folds[top], ddof=1)) / np.sqrt(n) if n > 1 else 0.0)
-    near = [i for i in range(len(candidates)) if means[i] >= bar - 1e-12]
-    return min(near, key=lambda i: (complexity(candidates[i]), -means[i], i))
+    return [i for i in range(len(folds)) if means[i] >= bar - 1e-12]
 
 
 def _counts(ws: WindowSet) -> dict[str, Any]:
