@@ -78,7 +78,11 @@ def vm_kb(pid: int, key: str) -> int:
 
 def daemon_memory(seconds: float) -> tuple[int, int]:
     """(VmHWM, VmRSS) kB of ``tactiled run`` with the shipped model after ``seconds`` of a simulated 20 kHz board."""
-    tmp = tempfile.mkdtemp(prefix="tactiled-bench-")
+    with tempfile.TemporaryDirectory(prefix="tactiled-bench-") as tmp:
+        return _daemon_memory(seconds, tmp)
+
+
+def _daemon_memory(seconds: float, tmp: str) -> tuple[int, int]:
     link = f"{tmp}/tty"
     board = subprocess.Popen([*EXE, "simulate", "serial", "--link", link, "--seed", "11"], stdout=subprocess.PIPE,
                              stderr=subprocess.DEVNULL, text=True)
@@ -107,7 +111,12 @@ def main() -> None:
     ap.add_argument("--startup", type=int, default=5, help="runs of each command timed for start-up (0: skip start-up and memory)")
     ap.add_argument("--daemon-seconds", type=float, default=0.0, help="run the daemon this long and report its memory (0: skip)")
     args = ap.parse_args()
-    tmp = Path(tempfile.mkdtemp(prefix="tactiled-bench-"))
+    with tempfile.TemporaryDirectory(prefix="tactiled-bench-") as tmp:
+        measure(args, Path(tmp))
+
+
+def measure(args: argparse.Namespace, tmp: Path) -> None:
+    """Every figure the command line asks for; ``tmp`` holds the recordings made for it (removed after)."""
     if args.recording:
         path = Path(args.recording)
         rec = load_recording(path)

@@ -32,7 +32,6 @@ def main() -> None:
     ap.add_argument("--out", default=None)
     ap.add_argument("--reuse", action="store_true", help="use the recordings an earlier run left in --out")
     args = ap.parse_args()
-    specs = [s for part in args.scenes.split(";") for s in ([part] if "," in part and part not in DEFAULT.split(";")[0] else part.split(","))]
     specs = [s for s in args.scenes.replace(";", "|").split("|")]
     specs = [x for s in specs for x in (s.split(",") if s == DEFAULT.split(";")[0] else [s])]
     config = Config()

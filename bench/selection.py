@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from tactiled.search import Candidate, choose, default_candidates, within_one_se
+from tactiled.search import Candidate, choose, default_candidates, standard_error, within_one_se
 
 Row = dict[str, Any]
 
@@ -36,7 +36,7 @@ def one_se_list_order(board: list[Row], cands: list[Candidate]) -> int:
 
 def mean_minus_se(board: list[Row], cands: list[Candidate]) -> int:
     """The best mean less its own standard error."""
-    return int(np.argmax([r["mean"] - np.std(r["folds"], ddof=1) / np.sqrt(len(r["folds"])) for r in board]))
+    return int(np.argmax([r["mean"] - standard_error(r["folds"]) for r in board]))
 
 
 def mean_rank(board: list[Row], cands: list[Candidate]) -> int:
@@ -59,7 +59,7 @@ RULES: dict[str, Callable[[list[Row], list[Candidate]], int]] = {
 def main() -> None:
     rows = json.loads(Path(sys.argv[1]).read_text())
     by_name = {c.name: c for c in default_candidates()}
-    order = [c.name for c in default_candidates()]
+    order = list(by_name)
     print("| scene | papers' method | oracle | " + " | ".join(RULES) + " |")
     print("|---" * (3 + len(RULES)) + "|")
     totals: dict[str, list[float]] = {k: [] for k in RULES}

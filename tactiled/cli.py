@@ -12,11 +12,14 @@ import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from tactiled import __version__
 from tactiled.config import Config, load_config
 from tactiled.errors import TactiledError
+
+if TYPE_CHECKING:
+    from tactiled.model import Model
 
 log = logging.getLogger("tactiled")
 EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
@@ -120,7 +123,7 @@ def cmd_simulate_serial(args: argparse.Namespace) -> int:
     return run_virtual_board(args)
 
 
-def _model_for(path: str | None, fs: float, channels: int, where: str, explicit: bool) -> object | None:
+def _model_for(path: str | None, fs: float, channels: int, where: str, explicit: bool) -> Model | None:
     """The model to use on a stream: an explicit one must fit; the shipped one is used only if it fits."""
     from tactiled.errors import ModelError
     from tactiled.model import default_model_path, load_model
@@ -140,14 +143,14 @@ def _model_for(path: str | None, fs: float, channels: int, where: str, explicit:
     return None
 
 
-def _say_model_settings(config: Config, model: object | None) -> None:
+def _say_model_settings(config: Config, model: Model) -> None:
     """One warning when the config sets analysis sections that the loaded ``model`` replaces with its own."""
     from tactiled.analysis import sections_a_model_overrides
 
     unused = sections_a_model_overrides(config)
-    if model is None or not unused:
+    if not unused:
         return
-    st = model.settings  # type: ignore[attr-defined]
+    st = model.settings
     log.warning("the model analyses with its own settings (windows of %g s from %g s, spikes %s, %d features); not used with a "
                 "model, only without one (--no-model): the config's %s", st.duration_s, st.start_s, st.spikes, len(st.names),
                 ", ".join(f"[{s}]" for s in unused))

@@ -48,14 +48,12 @@ class ClockMap:
     def observe(self, end_index: int, t_mono: float) -> None:
         """Samples up to ``end_index`` (exclusive) had arrived by ``t_mono``."""
         if self._offset is not None:
-            late = t_mono - self.mono(end_index)
-            if late > self.reset_s:
+            if t_mono - self.mono(end_index) <= self.reset_s:
+                self._late_since = None
+            else:
                 self._late_since = t_mono if self._late_since is None else self._late_since
                 if t_mono - self._late_since < self.persist_s:
                     return  # a stall so far: a late arrival says nothing new about the line
-            else:
-                self._late_since = None
-            if late > self.reset_s:
                 self._reset()
         if self._bucket is None:
             self._bucket, self._bucket_t0 = (end_index, t_mono), t_mono

@@ -94,8 +94,8 @@ class DetectorConfig:
     band_high_hz: float = 4000.0
     band_high_frac: float = 0.45
     mains_hz: float = 50.0
-    notch_q: float = 5.0
-    clamp_mads: float = 6.0
+    notch_q: float = 5.0  # accepted for old configs, not used (the comb replaced the notches)
+    clamp_mads: float = 6.0  # accepted for old configs, not used (the median of sub-blocks replaced the clamp)
     on_factor: float = 6.0
     off_factor: float = 3.0
     off_hold_s: float = 0.3

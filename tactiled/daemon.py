@@ -15,7 +15,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
-import signal
 import socket
 import time
 from collections.abc import Awaitable, Callable
@@ -33,7 +32,7 @@ from tactiled.model import Model
 from tactiled.pipeline import Pipeline, PipelineEvent
 from tactiled.publish import Publisher
 from tactiled.rawbatch import raw_batches
-from tactiled.record import RecordingSink, link_counters
+from tactiled.record import STOP_SIGNALS, RecordingSink, link_counters
 from tactiled.serialsource import CONNECTED, ByteSource, SerialSource
 
 log = logging.getLogger(__name__)
@@ -108,7 +107,7 @@ class Daemon:
         s = self.config.sensor
         tee = open(self.raw_to, "wb") if self.raw_to else None  # noqa: SIM115 - closed in finally
         self.source = self._make_source(tee)
-        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        for sig in STOP_SIGNALS:
             loop.add_signal_handler(sig, self.stop_event.set)
         log.info("tactiled %s: sensor %s on %s, publishing on %s, model %s", __version__, s.id, s.port, self.endpoint, self.fingerprint or "none")
         sd_notify("READY=1")
@@ -128,7 +127,7 @@ class Daemon:
                 tee.close()
             if self.recorder is not None:
                 self._save_recording()
-            for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+            for sig in STOP_SIGNALS:
                 loop.remove_signal_handler(sig)
 
     async def _read(self) -> None:
@@ -189,7 +188,7 @@ class Daemon:
 
     def _save_recording(self) -> None:
         assert self.recorder is not None
-        result = self.recorder.finish(link_counters(self.ingest.stats, self.source))
+        result = self.recorder.finish()
         if result.error is None:
             log.info("%s: saved %d samples (%d lost)", self.recorder.out, result.samples, result.samples_lost)
         elif not self.recorder.error:  # a failure while capturing was logged when it happened

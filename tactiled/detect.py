@@ -49,6 +49,7 @@ events.
 from __future__ import annotations
 
 import math
+import statistics
 from collections import deque
 from dataclasses import dataclass, replace
 from typing import cast
@@ -57,18 +58,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.config import DetectorConfig
-
-
-def median_last(a: npt.NDArray[np.float64], keepdims: bool = False) -> npt.NDArray[np.float64]:
-    """The median along the last axis, by ``np.partition`` (same values as ``np.median``, less overhead)."""
-    m = a.shape[-1]
-    k = m // 2
-    if m % 2:
-        out = np.partition(a, k, axis=-1)[..., k]
-    else:
-        p = np.partition(a, (k - 1, k), axis=-1)
-        out = (p[..., k - 1] + p[..., k]) / 2
-    return out[..., None] if keepdims else out
+from tactiled.spikes import median_last
 
 
 @dataclass(frozen=True)
@@ -272,9 +262,8 @@ class SlideDetector:
             return []
         ref = self._reference or 0.0
         self._recent.append((at, env))
-        window = sorted(e for _, e in list(self._recent)[-self._initial_hops:])
-        half = len(window) // 2
-        if len(window) == self._initial_hops and (window[half] if len(window) % 2 else (window[half - 1] + window[half]) / 2) > c.on_factor * ref:
+        window = [e for _, e in list(self._recent)[-self._initial_hops:]]
+        if len(window) == self._initial_hops and statistics.median(window) > c.on_factor * ref:
             # the stream began at rest: a sustained rise (a slide's own level fluctuates hop to hop more than on_factor)
             self._floor = ref
             self.floor = ref

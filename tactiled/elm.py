@@ -25,6 +25,8 @@ from sklearn.model_selection import StratifiedKFold
 from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.validation import check_is_fitted, validate_data
 
+from tactiled.infer import sigmoid
+
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -75,9 +77,7 @@ class ELMClassifier(ClassifierMixin, BaseEstimator):  # type: ignore[misc]
         self.calibrate = calibrate
 
     def _hidden(self, x: FloatArray) -> FloatArray:
-        z = np.asarray(x, dtype=np.float64) @ self.weights_ + self.biases_
-        out: FloatArray = 0.5 * (1.0 + np.tanh(0.5 * z))  # the logistic sigmoid, overflow-free
-        return out
+        return sigmoid(np.asarray(x, dtype=np.float64) @ self.weights_ + self.biases_)
 
     def _fit_core(self, x: FloatArray, y_idx: npt.NDArray[np.intp], n_classes: int) -> None:
         rng = np.random.default_rng(self.random_state)

@@ -35,9 +35,20 @@ FloatArray = npt.NDArray[np.float64]
 SVM_ARRAYS = ("svm_support", "svm_dual_coef", "svm_intercept", "svm_n_support", "svm_gamma")
 
 
-def _pm_half(d: FloatArray) -> FloatArray:
+def pm_half(d: FloatArray) -> FloatArray:
     """A binary decision value (n,) as the two columns (−d/2, d/2)."""
     return np.stack([-d / 2, d / 2], axis=1)
+
+
+def log_proba(p: FloatArray) -> FloatArray:
+    """Scores from probabilities: their log, floored at 1e-3 (so one window can never veto a class)."""
+    return np.asarray(np.log(np.clip(p, 1e-3, None)), dtype=np.float64)
+
+
+def sigmoid(z: FloatArray) -> FloatArray:
+    """The logistic sigmoid, overflow-free (through tanh): an ELM's hidden layer."""
+    out: FloatArray = 0.5 * (1.0 + np.tanh(0.5 * z))
+    return out
 
 
 class LeanPipeline:
@@ -63,15 +74,18 @@ class LeanPipeline:
             # one (n_SV, pairs) matrix: column p holds class i's coefficients against j and class j's against i
             coef = np.zeros((self._sv.shape[0], len(pairs)))
             dual = np.asarray(arrays["svm_dual_coef"], dtype=np.float64)
+            self._first = np.zeros((len(pairs), k))  # pair p -> its first class i, its second class j
+            self._second = np.zeros((len(pairs), k))
             for p, (i, j) in enumerate(pairs):
                 coef[starts[i]:starts[i + 1], p] = dual[j - 1, starts[i]:starts[i + 1]]
                 coef[starts[j]:starts[j + 1], p] = dual[i, starts[j]:starts[j + 1]]
-            self._pair_coef = coef
-            self._first = np.zeros((len(pairs), k))
-            self._second = np.zeros((len(pairs), k))
-            for p, (i, j) in enumerate(pairs):
                 self._first[p, i] = 1.0
                 self._second[p, j] = 1.0
+            self._pair_coef = coef
+        elif kind == "knn":  # what depends on the training rows only, once per model rather than per query
+            train_x = arrays["train_x"]
+            self._train_sq = (train_x * train_x).sum(axis=1)
+            self._train_label = np.searchsorted(classes_, arrays["train_y"])  # class index of every training row
 
     def transform(self, x: npt.ArrayLike) -> FloatArray:
         """Standardised classifier inputs (n, F) of raw features ``x`` (n, F)."""
@@ -84,25 +98,25 @@ class LeanPipeline:
         a = self.arrays
         k = len(self.classes_)
         if self.kind == "elm":
-            s = (0.5 * (1.0 + np.tanh(0.5 * (z @ a["weights"] + a["biases"])))) @ a["beta"]
+            s = sigmoid(z @ a["weights"] + a["biases"]) @ a["beta"]
             if k == 1:
                 return np.zeros((z.shape[0], 1))
-            return _pm_half((s[:, 1] - s[:, 0]) / 2) if k == 2 else np.asarray(s[:, :k], dtype=np.float64)
+            return pm_half((s[:, 1] - s[:, 0]) / 2) if k == 2 else np.asarray(s[:, :k], dtype=np.float64)
         if self.kind == "linear":
             d = z @ np.asarray(a["coef"], dtype=np.float64).T + a["intercept"]
-            return _pm_half(d[:, 0]) if k == 2 else np.asarray(d, dtype=np.float64)
+            return pm_half(d[:, 0]) if k == 2 else np.asarray(d, dtype=np.float64)
         if self.kind == "knn":
             return self._knn(z)
         return self._svm(z)
 
     def _knn(self, z: FloatArray) -> FloatArray:
-        train_x, train_y = self.arrays["train_x"], self.arrays["train_y"]
+        train_x = self.arrays["train_x"]
         n = int(self.params.get("n_neighbors", 9))
-        d = (z * z).sum(axis=1)[:, None] - 2.0 * z @ train_x.T + (train_x * train_x).sum(axis=1)[None, :]
+        d = (z * z).sum(axis=1)[:, None] - 2.0 * z @ train_x.T + self._train_sq[None, :]
         nearest = np.argpartition(d, n - 1, axis=1)[:, :n] if n < train_x.shape[0] else np.broadcast_to(np.arange(train_x.shape[0]), d.shape)
-        label = np.searchsorted(self.classes_, train_y)[nearest]  # (q, n) class indices
+        label = self._train_label[nearest]  # (q, n) class indices
         p = np.stack([(label == c).sum(axis=1) for c in range(len(self.classes_))], axis=1) / n
-        return np.asarray(np.log(np.clip(p, 1e-3, None)), dtype=np.float64)
+        return log_proba(p)
 
     def _svm(self, z: FloatArray) -> FloatArray:
         gamma = float(self.arrays["svm_gamma"])
@@ -113,7 +127,7 @@ class LeanPipeline:
             kern = np.exp(-gamma * np.maximum(sq, 0.0))
         dec = kern @ self._pair_coef + self.arrays["svm_intercept"]
         if len(self.classes_) == 2:
-            return _pm_half(dec[:, 0])
+            return pm_half(dec[:, 0])
         conf = dec @ self._first - dec @ self._second
         votes = (dec >= 0) @ self._first + (dec < 0) @ self._second
         return np.asarray(votes + conf / (3 * (np.abs(conf) + 1)), dtype=np.float64)

@@ -29,7 +29,9 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.errors import RecordingError
-from tactiled.recording import Recording, StreamedArray, fsync_dir, save_recording
+from tactiled.frames import MAX_CHANNELS
+from tactiled.npzio import load_json_bounded
+from tactiled.recording import MAX_FS, MIN_FS, Recording, StreamedArray, fsync_dir, save_recording
 
 MAGIC = b"TACTJNL\x01"
 CHUNK_MAGIC = b"TJCK"
@@ -222,10 +224,10 @@ def _header(path: Path, fh: IO[bytes]) -> dict[str, Any]:
     crc = fh.read(4)
     if len(text) != n or len(crc) != 4 or binascii.crc32(head + text) != _u32.unpack(crc)[0]:
         raise RecordingError(f"{path}: header: torn or corrupt (CRC-32 mismatch)")
-    try:
-        obj = json.loads(text)
-    except (ValueError, RecursionError) as exc:
-        raise RecordingError(f"{path}: header: not JSON: {exc}") from None
+    try:  # the same bounds as a recording's meta, so what recovers also loads
+        obj = load_json_bounded(text.decode(), "header")
+    except ValueError as exc:  # not UTF-8, too large, too deep, or not JSON
+        raise RecordingError(f"{path}: {exc}") from None
     if not isinstance(obj, dict) or obj.get("format") != "tactiled-journal" or obj.get("version") != VERSION:
         raise RecordingError(f"{path}: header: not a version {VERSION} tactiled journal")
     return obj
@@ -250,7 +252,8 @@ def read_journal(path: str | Path) -> JournalScan:
             label, meta = h.get("label"), h.get("meta") or {}
         except (KeyError, TypeError, ValueError) as exc:
             raise RecordingError(f"{path}: header: {exc}") from None
-        if not (np.isfinite(fs) and fs > 0 and 1 <= channels <= 8 and np.isfinite(vpc) and vpc > 0 and isinstance(meta, dict)):
+        if not (np.isfinite(fs) and MIN_FS <= fs <= MAX_FS and 1 <= channels <= MAX_CHANNELS and np.isfinite(vpc) and vpc > 0
+                and isinstance(meta, dict)):
             raise RecordingError(f"{path}: header: fs, channels or volts_per_count out of range")
         scan = JournalScan(path, fs, channels, vpc, None if label is None else str(label), meta, size=os.fstat(fh.fileno()).st_size)
         pos = fh.tell()

@@ -48,7 +48,7 @@ import numpy.typing as npt
 from tactiled.analysis import Analyser, AnalysisSettings
 from tactiled.errors import ModelError
 from tactiled.features import FeaturePlan, classifier_inputs
-from tactiled.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, svm_arrays
+from tactiled.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, log_proba, pm_half, svm_arrays
 from tactiled.npzio import NpzError, NpzReader, load_json_bounded
 from tactiled.recording import atomic_savez
 
@@ -134,11 +134,8 @@ def decision_scores(clf: Any, z: FloatArray) -> FloatArray:
     """
     if hasattr(clf, "decision_function") and len(clf.classes_) > 1:
         d = np.asarray(clf.decision_function(z), dtype=np.float64)
-        if d.ndim == 1:
-            d = np.stack([-d / 2, d / 2], axis=1)
-        return d
-    p = np.asarray(clf.predict_proba(z), dtype=np.float64)
-    return np.log(np.clip(p, 1e-3, None))
+        return pm_half(d) if d.ndim == 1 else d
+    return log_proba(np.asarray(clf.predict_proba(z), dtype=np.float64))
 
 
 def softmax(z: FloatArray, temperature: float = 1.0) -> FloatArray:
@@ -487,8 +484,9 @@ def _probe(path: Path, model: Model) -> None:
         window = Analyser(s, model.fs, 1.0, integer=False).analyse(noise)
         _need(window.features is not None, path, f"probe window: no features ({window.reason})")
         assert window.features is not None
-        scores = model.scores(np.stack([window.features, window.features * 1.5]))
-        p = model.slide_proba(np.stack([window.features, window.features * 1.5]))
+        two = np.stack([window.features, window.features * 1.5])
+        scores = model.scores(two)
+        p = model.slide_proba(two)
     except (ValueError, FloatingPointError, ArithmeticError, IndexError, TypeError) as exc:
         raise ModelError(f"{path}: probe prediction failed: {exc}") from None
     _need(scores.shape == (2, len(model.classes)) and bool(np.all(np.isfinite(scores))), path, "probe prediction: scores are not finite")

@@ -127,11 +127,6 @@ class RecordingSink:
         """True once ``limit`` rows have been queued."""
         return self.limit is not None and self._end >= self.limit
 
-    @property
-    def rows(self) -> int:
-        """Rows queued so far (lost ones included)."""
-        return self._end
-
     def add(self, frame: Frame | Batch) -> None:
         """Queue one decoded frame or batch (never blocks; one the writer has no room for is lost, and counted)."""
         if self.error is not None or self.done:
@@ -167,11 +162,7 @@ class RecordingSink:
             final = self._finishing.wait(self._commit_s)  # the commit period (wall time), not synchronisation
             with self._lock:
                 batch, self._batch, self._queued = self._batch, [], 0
-            for position, samples in batch:
-                if position < end:  # never happens with the decoder's indices; keep positions increasing anyway
-                    samples, position = samples[end - position:], end
-                if not samples.shape[0]:
-                    continue
+            for position, samples in batch:  # positions increase (the decoder's indices); add() keeps no empty rows
                 if position > end:
                     lost.append((end, position - end))
                 pending.append(samples)
@@ -188,7 +179,7 @@ class RecordingSink:
         """Append rows ``start .. end`` as one chunk; returns where the next chunk starts (``end``, or ``start`` after an error)."""
         if self.error is not None:
             return start
-        received = np.concatenate(pending) if pending else np.zeros((0, self.channels), dtype=np.int16)
+        received = np.concatenate(pending)  # never empty: a chunk ends on a row received
         given = self._counters()
         counters = {**given, "restarts": self.restarts, "channel_errors": given.get("channel_errors", 0) + self.channel_errors,
                     "samples_dropped_writer_behind": self.queue_dropped}
@@ -208,6 +199,8 @@ class RecordingSink:
     def finish(self, extra_meta: dict[str, Any] | None = None) -> SinkResult:
         """Commit what is queued, then write ``out`` from the journal and remove the journal.
 
+        ``extra_meta`` (default: the ``counters`` callable's final values) is merged into the recording's meta.
+
         On a write error (now or before) the journal is kept and :attr:`SinkResult.error` says how to recover it.
         """
         self._finishing.set()
@@ -216,7 +209,7 @@ class RecordingSink:
         if self.error is not None:
             return SinkResult(self._rows, self._lost, self.error)
         try:
-            recover(self.journal, self.out, extra_meta, allow_empty=True)
+            recover(self.journal, self.out, self._counters() if extra_meta is None else extra_meta, allow_empty=True)
         except OSError as exc:
             return SinkResult(self._rows, self._lost, f"{self.out}: cannot write: {exc.strerror or exc}; the capture is kept in "
                                                       f"{self.journal}: tactiled recover {self.journal} -o {self.out}")
@@ -301,5 +294,5 @@ def record(port: str, seconds: float, out: str | Path, *, fs: float, channels: i
             sink.add(batch)
     for batch in ingest.flush():
         sink.add(batch)
-    result = sink.finish(counters())
+    result = sink.finish()
     return RecordSummary(result.samples / fs, result.samples, result.samples_lost, stats.crc_errors, source.reconnects, result.error)

@@ -364,8 +364,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     result = SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
                           time.perf_counter() - t0)
     if keep_models:
-        result.models = {c.name: _refit(sets, c, oof[c.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary)
-                         for c in usable}
+        result.models = {c.name: model if c == best else _refit(sets, c, oof[c.name], y_idx, classes, config, fs, channels, seed,
+                                                                   inner_folds, method, summary) for c in usable}
     return result
 
 
@@ -415,9 +415,14 @@ def within_one_se(folds: Sequence[Sequence[float]]) -> list[int]:
     """Indices of the candidates whose mean accuracy is at or above the best mean less its standard error (in order)."""
     means = np.array([np.mean(f) if len(f) else 0.0 for f in folds])
     top = int(np.argmax(means))
-    n = len(folds[top])
-    bar = means[top] - (float(np.std(folds[top], ddof=1)) / np.sqrt(n) if n > 1 else 0.0)
+    bar = means[top] - standard_error(folds[top])
     return [i for i in range(len(folds)) if means[i] >= bar - 1e-12]
+
+
+def standard_error(folds: Sequence[float]) -> float:
+    """Standard error of the mean of per-fold accuracies: sd (ddof 1) / sqrt(folds); 0 for fewer than two folds."""
+    n = len(folds)
+    return float(np.std(folds, ddof=1)) / np.sqrt(n) if n > 1 else 0.0
 
 
 def _counts(ws: WindowSet) -> dict[str, Any]:

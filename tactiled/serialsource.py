@@ -61,11 +61,7 @@ class KeepInputSerial(serial.Serial):
         finally:
             self._opening = False
 
-    def reset_input_buffer(self) -> None:  # what pyserial < 3.5 calls from open()
-        if not self._opening:
-            super().reset_input_buffer()
-
-    def _reset_input_buffer(self) -> None:  # what pyserial 3.5 calls from open()
+    def _reset_input_buffer(self) -> None:  # what pyserial (>= 3.5) calls from open(); reset_input_buffer() goes through it too
         if not self._opening:
             super()._reset_input_buffer()  # type: ignore[misc]
 

@@ -77,7 +77,7 @@ def test_svm_file_without_fitted_arrays_loads_through_sklearn(tmp_path: Path) ->
     header = model._header()
     from tactiled.model import _fingerprint
 
-    header["fingerprint"] = _fingerprint(model._header(), arrays)
+    header["fingerprint"] = _fingerprint(header, arrays)
     import json
 
     path = tmp_path / "old.npz"

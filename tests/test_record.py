@@ -100,12 +100,7 @@ def test_record_keeps_every_intact_sample_through_faults_and_unplug(tmp_path: Pa
     assert n == 50_000
     assert "1 reconnects" in stdout
     # the expected stream: regenerate the same seeded samples
-    expected = SensorModel(params, seed=3)
-    start = rec.first_index - first
-    expected.schedule_random(default_surfaces()[:3], start + n)
-    if start:
-        expected.read(start)
-    truth = expected.read(n)
+    truth = board_truth(3, default_surfaces()[:3], rec.first_index - first, n)
     bad = np.zeros(n, dtype=bool)
     for e in events:
         if e["event"] in ("drop", "corrupt", "overrun", "unplug"):
@@ -193,8 +188,8 @@ def test_sigkill_loses_at_most_a_second_and_recover_gives_the_boards_samples(tmp
     assert journal.exists()  # recover never removes the journal
 
 
-def _frames(samples: np.ndarray, first: int, count: int = 20, skip: tuple[int, ...] = ()) -> list[Frame]:
-    return [Frame(first + i, samples[i:i + count]) for i in range(0, samples.shape[0], count) if i // count not in skip]
+def _frames(samples: np.ndarray, first: int, skip: tuple[int, ...] = ()) -> list[Frame]:
+    return [Frame(first + i, samples[i:i + 20]) for i in range(0, samples.shape[0], 20) if i // 20 not in skip]
 
 
 def _journal_of(tmp_path: Path, samples: np.ndarray, first: int) -> Path:
@@ -401,8 +396,12 @@ def test_record_takes_a_board_restart_far_ahead_as_a_restart_not_as_lost_samples
             assert proc.stderr is not None
             assert "recording" in proc.stderr.readline()  # the port checked, the reader started
 
-            def port_open() -> bool:  # bytes sent before the reader opens the port are lost, as on a real serial line
-                return any(os.path.realpath(fd) == name for fd in Path(f"/proc/{proc.pid}/fd").iterdir() if fd.is_symlink())
+            def port_open() -> bool:  # once it holds the port, what we write is the recorder's alone (no other reader)
+                try:
+                    proc.wait(0.05)  # the predicate waits: a short block on the process instead of a spin
+                except subprocess.TimeoutExpired:
+                    return any(os.path.realpath(fd) == name for fd in Path(f"/proc/{proc.pid}/fd").iterdir() if fd.is_symlink())
+                raise AssertionError(f"record ended before opening the port: {proc.communicate()[1]}")
             wait_for(port_open, timeout=30, what="the recorder to open the port")
             os.write(master, encode_frames(1000, before) + encode_frames((1000 + 800 + 2**31) % 2**32, after))
             try:
