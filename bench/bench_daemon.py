@@ -54,8 +54,8 @@ FS = 20_000
 
 def make_stream(seconds: float, seed: int = 11, corrupt: float = 0.0, drop: float = 0.0, garbage: float = 0.0) -> bytes:
     """``seconds`` of the simulator's hand scene (slides over random surfaces) as the board's frames, faults injected per frame."""
-    from tactiled.frames import encode_frame
-    from tactiled.sensor_model import SensorModel, SimParams, default_surfaces
+    from tactiled.board.frames import encode_frame
+    from tactiled.sim.sensor_model import SensorModel, SimParams, default_surfaces
 
     model = SensorModel(SimParams(), seed=seed)
     rng = np.random.default_rng(seed)
@@ -66,7 +66,7 @@ def make_stream(seconds: float, seed: int = 11, corrupt: float = 0.0, drop: floa
         parts.append(model.read(min(FS, n - lo)))
     samples = np.concatenate(parts)
     if not (corrupt or drop or garbage):
-        from tactiled.frames import encode_frames
+        from tactiled.board.frames import encode_frames
 
         return encode_frames(0, samples)
     out = []

@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from tactiled.frames import FrameDecoder, encode_frame
+from tactiled.board.frames import FrameDecoder, encode_frame
 
 
 def make_stream(seconds: float, corrupt: float, seed: int = 0) -> tuple[bytes, int]:

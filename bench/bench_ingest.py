@@ -3,7 +3,7 @@
 Usage: python bench/bench_ingest.py [--seconds 60]
 
 1. ``seconds`` of the simulator's hand scene as frame bytes, fed in reads of ``read`` seconds
-   through :class:`tactiled.ingest.Ingest` (batches of ``batch`` seconds) alone, then through
+   through :class:`tactiled.run.ingest.Ingest` (batches of ``batch`` seconds) alone, then through
    the pipeline with the shipped model too: CPU time (``time.process_time``) per second of
    stream, i.e. the share of one core the daemon spends on it at 20 kHz.
 2. One wake-up per 10 ms for 10 s (reading a silent pty each time) through ``asyncio.sleep``,
@@ -26,9 +26,9 @@ from bench_daemon import FS, make_stream
 
 def ingest_costs(data: bytes, seconds: float) -> None:
     from tactiled.config import Config
-    from tactiled.ingest import Ingest, feed_pipeline, max_gap_for
-    from tactiled.model import load_model
-    from tactiled.pipeline import Pipeline
+    from tactiled.core.pipeline import Pipeline
+    from tactiled.learn.model import load_model
+    from tactiled.run.ingest import Ingest, feed_pipeline, max_gap_for
 
     config, model = Config(), load_model()
     line_rate = len(data) / seconds

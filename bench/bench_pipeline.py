@@ -22,13 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from tactiled.analysis import AnalysisSettings
 from tactiled.config import Config
-from tactiled.features import FeaturePlan
-from tactiled.model import load_model
-from tactiled.recording import Recording, load_recording, save_recording
-from tactiled.replay import replay_recording
-from tactiled.sensor_model import SensorModel, SimParams, default_surfaces
+from tactiled.core.analysis import AnalysisSettings
+from tactiled.core.features import FeaturePlan
+from tactiled.files.recording import Recording, load_recording, save_recording
+from tactiled.learn.model import load_model
+from tactiled.run.replay import replay_recording
+from tactiled.sim.sensor_model import SensorModel, SimParams, default_surfaces
 
 EXE = [sys.executable, "-m", "tactiled"]
 
@@ -53,7 +53,7 @@ def wall_s(cmd: list[str]) -> float:
 # include this benchmark's own memory at fork)
 PEAK = """
 import sys
-from tactiled.cli import main
+from tactiled.cli.parser import main
 try:
     sys.exit(main(sys.argv[1:]))
 finally:  # also after --help, which exits from argparse

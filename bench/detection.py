@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from tactiled.config import Config
-from tactiled.dataset import detect_slides
-from tactiled.matching import match_slides
-from tactiled.recording import load_recording
-from tactiled.sensor_model import SCENES
-from tactiled.simulate import write_dataset
+from tactiled.core.matching import match_slides
+from tactiled.files.recording import load_recording
+from tactiled.learn.dataset import detect_slides
+from tactiled.sim.sensor_model import SCENES
+from tactiled.sim.simulate import write_dataset
 
 DEFAULT = ",".join(SCENES) + ";continuous,one-channel;fluctuating,one-channel;robot,hot-gain"
 

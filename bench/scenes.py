@@ -25,11 +25,11 @@ from typing import Any
 import numpy as np
 
 from tactiled.config import Config
-from tactiled.dataset import detect_slides, load_recordings
-from tactiled.matching import match_slides
-from tactiled.score import score_recordings
-from tactiled.simulate import write_dataset
-from tactiled.train import train
+from tactiled.core.matching import match_slides
+from tactiled.learn.dataset import detect_slides, load_recordings
+from tactiled.learn.score import score_recordings
+from tactiled.learn.train import train
+from tactiled.sim.simulate import write_dataset
 
 DEFAULT = "hand;robot;continuous;fluctuating;hot-gain;one-channel;grating;continuous,one-channel;fluctuating,one-channel;hand,hot-gain"
 

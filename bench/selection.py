@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from tactiled.search import Candidate, choose, default_candidates, standard_error, within_one_se
+from tactiled.learn.search import Candidate, choose, default_candidates, standard_error, within_one_se
 
 Row = dict[str, Any]
 
@@ -47,7 +47,7 @@ def mean_rank(board: list[Row], cands: list[Candidate]) -> int:
 
 
 def adopted(board: list[Row], cands: list[Candidate]) -> int:
-    """``tactiled train``'s rule (:func:`tactiled.search.choose`): the simplest within one standard error."""
+    """``tactiled train``'s rule (:func:`tactiled.learn.search.choose`): the simplest within one standard error."""
     return choose(cands, [r["folds"] for r in board])
 
 

@@ -18,11 +18,11 @@ import tempfile
 import atheris
 
 with atheris.instrument_imports(include=["tactiled"]):  # our code only: instrumenting SciPy costs ~50 s
+    from tactiled.board.frames import FrameDecoder
     from tactiled.config import parse_config
     from tactiled.errors import ConfigError, ModelError, RecordingError
-    from tactiled.frames import FrameDecoder
-    from tactiled.model import load_model
-    from tactiled.recording import load_recording
+    from tactiled.files.recording import load_recording
+    from tactiled.learn.model import load_model
 
 _TMP = tempfile.mkdtemp(prefix="tactiled-fuzz-")
 

@@ -84,7 +84,7 @@ class RingConfig:
 
 @dataclass(frozen=True)
 class DetectorConfig:
-    """Online slide detector: hysteresis on a short-time energy envelope over a tracked noise floor (tactiled/detect.py).
+    """Online slide detector: hysteresis on a short-time energy envelope over a tracked noise floor (tactiled/core/detect.py).
 
     Every threshold is a ratio of energies or a time; sample counts are derived from fs."""
 

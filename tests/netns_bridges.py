@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 from tactiled_client import schema
 
-from tactiled.bridges import run_bridge
+from tactiled.apps.bridges import run_bridge
 from tactiled.config import PublishConfig
-from tactiled.pipeline import SlideResult
-from tactiled.publish import Publisher
+from tactiled.core.pipeline import SlideResult
+from tactiled.service.publish import Publisher
 
 FS, N, BATCHES, SENSOR = 20_000.0, 400, 6, "tip7"
 VPC = 5.0 / 32768
@@ -175,13 +175,13 @@ def main() -> None:
         raise SystemExit(f"refusing to run discovery outside a private network namespace: interfaces {interfaces}")
     endpoint = f"ipc://{folder}/pub"
     if kind == "lsl":
-        from tactiled.bridges.lsl import LslSink
+        from tactiled.apps.bridges.lsl import LslSink
 
         out = feed(endpoint, LslSink(SENSOR), LslConsumer())
     else:
         import rclpy
 
-        from tactiled.bridges.ros2 import Ros2Sink
+        from tactiled.apps.bridges.ros2 import Ros2Sink
 
         rclpy.init()
         out = feed(endpoint, Ros2Sink(SENSOR), Ros2Consumer())

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tactiled.frames import encode_frames
-from tactiled.model import default_model_path
+from tactiled.board.frames import encode_frames
+from tactiled.learn.model import default_model_path
 from tests.conftest import REPO
 
 CASES = REPO / "tests" / "fuzz_cases"

@@ -12,11 +12,11 @@ from pathlib import Path
 
 import pytest
 
-from tactiled.cli import EXAMPLES, build_parser, main, subcommands
-from tactiled.clidoc import REGENERATE, cli_markdown
+from tactiled.cli.clidoc import REGENERATE, cli_markdown
+from tactiled.cli.parser import EXAMPLES, build_parser, main, subcommands
 from tactiled.errors import TactiledError
-from tactiled.model import load_model
-from tactiled.sensor_model import pick_surfaces
+from tactiled.learn.model import load_model
+from tactiled.sim.sensor_model import pick_surfaces
 from tests.conftest import REPO, run_cli, tactiled_cmd
 
 COMMANDS = subcommands(build_parser())
@@ -94,7 +94,7 @@ def test_train_rejects_impossible_options_in_one_line(option: str, value: str, w
 
 def test_train_library_rejects_impossible_options(tmp_path: Path) -> None:
     from tactiled.config import load_config
-    from tactiled.train import train
+    from tactiled.learn.train import train
 
     for kwargs, what in (({"folds": 1}, "--folds"), ({"min_slides": 0}, "--min-slides"), ({"seed": -1}, "--seed"), ({"method": "x"}, "--method")):
         with pytest.raises(TactiledError, match=what):
@@ -136,8 +136,8 @@ def test_simulate_and_train_give_the_same_fingerprint_in_another_process(tmp_pat
 
 
 def test_a_model_says_once_that_the_configs_analysis_sections_are_not_used(tmp_path: Path) -> None:
-    from tactiled.recording import Recording, save_recording
-    from tactiled.sensor_model import SimParams, simulate_file
+    from tactiled.files.recording import Recording, save_recording
+    from tactiled.sim.sensor_model import SimParams, simulate_file
 
     params = SimParams()
     sim = simulate_file(params, pick_surfaces("Ra1.00")[0], 1, 0)

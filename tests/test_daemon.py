@@ -12,11 +12,11 @@ import zmq
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, Status
 
 from tactiled.config import Config
-from tactiled.model import load_model
-from tactiled.recording import load_recording
-from tactiled.replay import replay_recording
-from tactiled.sensor_model import SensorModel, SimParams, pick_surfaces
-from tactiled.virtualboard import VirtualBoard, read_log
+from tactiled.files.recording import load_recording
+from tactiled.learn.model import load_model
+from tactiled.run.replay import replay_recording
+from tactiled.sim.sensor_model import SensorModel, SimParams, pick_surfaces
+from tactiled.sim.virtualboard import VirtualBoard, read_log
 from tests.conftest import tactiled_cmd, wait_for
 
 
@@ -138,8 +138,8 @@ def test_replay_publishes_the_daemon_messages(tmp_path: Path) -> None:
     """A controller can be tested offline: replay --publish sends the same messages as the daemon."""
     import json
 
-    from tactiled.recording import Recording, save_recording
-    from tactiled.sensor_model import simulate_file
+    from tactiled.files.recording import Recording, save_recording
+    from tactiled.sim.sensor_model import simulate_file
 
     params = SimParams()
     sim = simulate_file(params, pick_surfaces("Ra2.29")[0], 3, 4)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tactiled.cluster import hungarian_accuracy, kmeans, som_clusters
+from tactiled.learn.cluster import hungarian_accuracy, kmeans, som_clusters
 from tests.conftest import run_cli
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from tactiled.features import FeaturePlan, classifier_inputs, family_names, is_log_feature, name_family, psd_bands
+from tactiled.core.features import FeaturePlan, classifier_inputs, family_names, is_log_feature, name_family, psd_bands
 
 
 @pytest.mark.parametrize("fs", [1000.0, 2200.0, 20000.0, 50000.0])

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tactiled.frames import FrameDecoder, crc16, encode_frame, encode_frames, frame_size
+from tactiled.board.frames import FrameDecoder, crc16, encode_frame, encode_frames, frame_size
 
 
 def test_crc_check_value() -> None:

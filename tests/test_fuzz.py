@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 
 from tactiled.config import parse_config
 from tactiled.errors import ConfigError, ModelError, RecordingError
-from tactiled.model import default_model_path, load_model
-from tactiled.recording import load_recording
+from tactiled.files.recording import load_recording
+from tactiled.learn.model import default_model_path, load_model
 
 FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 

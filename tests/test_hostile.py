@@ -20,15 +20,15 @@ import pytest
 import zmq
 from tactiled_client import schema
 
-from tactiled.cli import build_parser
+from tactiled.cli.parser import build_parser
 from tactiled.config import PublishConfig
 from tactiled.errors import ModelError, RecordingError
-from tactiled.features_file import load_features
-from tactiled.model import load_model, softmax
-from tactiled.npzio import NpzError, read_npz
-from tactiled.publish import Publisher
-from tactiled.recording import atomic_savez, load_recording, save_recording
-from tactiled.simulate import write_dataset
+from tactiled.files.npzio import NpzError, read_npz
+from tactiled.files.recording import atomic_savez, load_recording, save_recording
+from tactiled.learn.features_file import load_features
+from tactiled.learn.model import load_model, softmax
+from tactiled.service.publish import Publisher
+from tactiled.sim.simulate import write_dataset
 from tests.conftest import REPO, run_cli, tactiled_cmd, wait_for
 
 CORPUS = REPO / "tests" / "hostile"

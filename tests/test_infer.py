@@ -1,4 +1,4 @@
-"""Lean inference (tactiled/infer.py) against the scikit-learn pipeline the same file loads into."""
+"""Lean inference (tactiled/learn/infer.py) against the scikit-learn pipeline the same file loads into."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tactiled.analysis import AnalysisSettings
-from tactiled.features import is_log_feature
-from tactiled.infer import LeanPipeline
-from tactiled.model import Model, fit_pipeline, load_model
+from tactiled.core.analysis import AnalysisSettings
+from tactiled.core.features import is_log_feature
+from tactiled.learn.infer import LeanPipeline
+from tactiled.learn.model import Model, fit_pipeline, load_model
 
 NAMES = ("film1.time.D1.sd", "film1.time.D2.energy", "film1.time.A1.mean", "film2.freq.D3.kurt", "film2.psd.100-126Hz.power")
 
@@ -62,7 +62,7 @@ def test_shipped_model_lean_on_its_training_set() -> None:
 
 
 def test_loading_the_shipped_model_imports_neither_sklearn_nor_scipy() -> None:
-    code = ("import sys; from tactiled.model import load_model; from tactiled.pipeline import Pipeline; m = load_model(); "
+    code = ("import sys; from tactiled.learn.model import load_model; from tactiled.core.pipeline import Pipeline; m = load_model(); "
             "print(sorted({k.split('.')[0] for k in sys.modules} & {'sklearn', 'scipy'}))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
@@ -70,12 +70,12 @@ def test_loading_the_shipped_model_imports_neither_sklearn_nor_scipy() -> None:
 
 def test_svm_file_without_fitted_arrays_loads_through_sklearn(tmp_path: Path) -> None:
     """An svm file saved before the fitted arrays were stored still loads (refitted by scikit-learn)."""
-    from tactiled.recording import atomic_savez
+    from tactiled.files.recording import atomic_savez
 
     model = load_model(lean=False)
     arrays = {k: v for k, v in model._arrays().items() if not k.startswith("svm_")}
     header = model._header()
-    from tactiled.model import _fingerprint
+    from tactiled.learn.model import _fingerprint
 
     header["fingerprint"] = _fingerprint(header, arrays)
     import json

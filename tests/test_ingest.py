@@ -19,17 +19,17 @@ import pytest
 import zmq
 from tactiled_client import BlockingSubscriber, Roughness, Slide, Status
 
+from tactiled.board.frames import encode_frame, encode_frames
+from tactiled.board.serialsource import CONNECTED, DISCONNECTED, MemorySource, SerialSource
 from tactiled.config import Config
-from tactiled.daemon import Daemon
-from tactiled.frames import encode_frame, encode_frames
-from tactiled.ingest import Batch, Ingest, finish_pipeline, max_gap_for, run_bytes
-from tactiled.model import load_model
-from tactiled.pipeline import Pipeline, PipelineEvent, SlideResult
-from tactiled.player import capture_recording_stub, read_chunks, recording_bytes
-from tactiled.recording import Recording
-from tactiled.sensor_model import SensorModel, SimParams, pick_surfaces, simulate_file
-from tactiled.serialsource import CONNECTED, DISCONNECTED, MemorySource, SerialSource
-from tactiled.virtualboard import VirtualBoard
+from tactiled.core.pipeline import Pipeline, PipelineEvent, SlideResult
+from tactiled.files.player import capture_recording_stub, read_chunks, recording_bytes
+from tactiled.files.recording import Recording
+from tactiled.learn.model import load_model
+from tactiled.run.ingest import Batch, Ingest, finish_pipeline, max_gap_for, run_bytes
+from tactiled.service.daemon import Daemon
+from tactiled.sim.sensor_model import SensorModel, SimParams, pick_surfaces, simulate_file
+from tactiled.sim.virtualboard import VirtualBoard
 from tests.conftest import tactiled_cmd, wait_for
 
 FS = 20_000.0
@@ -149,7 +149,7 @@ class _FailingTee:
 
 def test_opening_the_port_keeps_what_the_board_sent_before() -> None:
     """pyserial flushes a port's input when it opens it; bytes already in the tty (a replug, a recorder starting) are kept."""
-    from tactiled.serialsource import KeepInputSerial
+    from tactiled.board.serialsource import KeepInputSerial
 
     master, slave = os.openpty()
     tty.setraw(slave)

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tactiled.elm import ELMClassifier
 from tactiled.errors import ModelError
-from tactiled.model import load_model
+from tactiled.learn.elm import ELMClassifier
+from tactiled.learn.model import load_model
 from tests.conftest import REPO, run_cli, tactiled_cmd
 
 
@@ -124,7 +124,7 @@ def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
 
 def test_choice_is_the_simplest_within_one_standard_error() -> None:
     """The best mean sets a bar one standard error below it; the simplest candidate at or above the bar wins."""
-    from tactiled.search import Candidate, choose, complexity
+    from tactiled.learn.search import Candidate, choose, complexity
 
     linear, svm, elm = Candidate(("psd",), "linear", 0.5), Candidate(("psd", "tex"), "svm", 0.5, kbest=8), Candidate(("dwt",), "elm", 0.5)
     assert complexity(linear) < complexity(svm) < complexity(elm)
@@ -142,9 +142,9 @@ def test_choice_is_the_simplest_within_one_standard_error() -> None:
 
 def test_score_counts_every_true_slide_and_reads_file_labels(tmp_path: Path) -> None:
     """A slide the model cannot label counts as wrong; a record --label file (no per-slide truth) is scored from detected slides."""
-    from tactiled.pipeline import SlideResult
-    from tactiled.recording import Recording, load_recording, save_recording
-    from tactiled.score import score
+    from tactiled.core.pipeline import SlideResult
+    from tactiled.files.recording import Recording, load_recording, save_recording
+    from tactiled.learn.score import score
 
     rec = Recording(np.zeros((100, 1), dtype=np.int16), 1000.0, slide_start=np.array([0, 40]), slide_stop=np.array([30, 90]),
                     surface=np.array(["a", "b"]))
@@ -187,8 +187,8 @@ def test_elm_passes_check_estimator() -> None:
 @pytest.mark.parametrize("case", ["silent_class", "constant", "span_1e12", "one_per_class", "collinear", "two_classes", "fifty_classes"])
 def test_every_classifier_trains_on_hard_data(kind: str, case: str, tmp_path: Path) -> None:
     """Finite, normalised probabilities, and a file that loads back to the same scores."""
-    from tactiled.analysis import AnalysisSettings
-    from tactiled.model import Model, fit_pipeline, load_model
+    from tactiled.core.analysis import AnalysisSettings
+    from tactiled.learn.model import Model, fit_pipeline, load_model
 
     rng = np.random.default_rng(0)
     k = {"two_classes": 2, "fifty_classes": 50}.get(case, 4)
@@ -245,8 +245,8 @@ def test_headless_demo_prints_labels_with_the_truth_and_stops() -> None:
 
 
 def test_monitor_shows_live_labels_in_a_terminal(tmp_path: Path) -> None:
-    from tactiled.model import load_model as _lm
-    from tactiled.sensor_model import SimParams
+    from tactiled.learn.model import load_model as _lm
+    from tactiled.sim.sensor_model import SimParams
 
     assert _lm().fs == SimParams().fs
     master, slave = pty.openpty()

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 from mcap.reader import make_reader
 
-from tactiled.mcap_export import read_mcap_samples
-from tactiled.recording import Recording, save_recording
-from tactiled.sensor_model import SensorModel, SimParams, default_surfaces, pick_surfaces, simulate_file
-from tactiled.virtualboard import VirtualBoard
+from tactiled.files.recording import Recording, save_recording
+from tactiled.service.mcap_export import read_mcap_samples
+from tactiled.sim.sensor_model import SensorModel, SimParams, default_surfaces, pick_surfaces, simulate_file
+from tactiled.sim.virtualboard import VirtualBoard
 from tests.conftest import run_cli, tactiled_cmd
 
 

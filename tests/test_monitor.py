@@ -10,9 +10,9 @@ from pathlib import Path
 from rich.console import Console
 from tactiled_client import BlockingSubscriber, Roughness
 
-from tactiled.monitor import SPARK, MonitorModel, render
-from tactiled.sensor_model import SensorModel, SimParams, pick_surfaces
-from tactiled.virtualboard import VirtualBoard
+from tactiled.apps.monitor import SPARK, MonitorModel, render
+from tactiled.sim.sensor_model import SensorModel, SimParams, pick_surfaces
+from tactiled.sim.virtualboard import VirtualBoard
 from tests.conftest import tactiled_cmd, wait_for
 
 
@@ -57,7 +57,7 @@ def test_monitor_shows_state_traces_spectrum_and_labels_with_truth(tmp_path: Pat
 def test_monitor_highlights_abstentions_and_provisional_labels() -> None:
     from tactiled_client import schema
 
-    from tactiled.pipeline import SlideResult
+    from tactiled.core.pipeline import SlideResult
 
     model = MonitorModel()
     model.update(schema.status("s", state=schema.STATE_DISCONNECTED, fs_nominal=20_000.0))

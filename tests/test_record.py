@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tactiled.frames import Frame
-from tactiled.journal import JournalWriter, encode_chunk, encode_header, journal_path, read_journal, recover
-from tactiled.record import RecordingSink
-from tactiled.recording import load_recording
-from tactiled.sensor_model import SensorModel, SimParams, Surface, default_surfaces
-from tactiled.virtualboard import VirtualBoard, read_log
+from tactiled.board.frames import Frame
+from tactiled.files.journal import JournalWriter, encode_chunk, encode_header, journal_path, read_journal, recover
+from tactiled.files.recording import load_recording
+from tactiled.service.record import RecordingSink
+from tactiled.sim.sensor_model import SensorModel, SimParams, Surface, default_surfaces
+from tactiled.sim.virtualboard import VirtualBoard, read_log
 from tests.conftest import REPO, run_cli, tactiled_cmd, wait_for
 
 SURFACES = default_surfaces()[:2]
@@ -156,7 +156,7 @@ def test_record_ctrl_c_saves_what_was_captured(tmp_path: Path) -> None:
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
-# ---- crash-safe recording: the journal (tactiled/journal.py) -----------------------------------------------
+# ---- crash-safe recording: the journal (tactiled/files/journal.py) -----------------------------------------------
 
 def test_sigkill_loses_at_most_a_second_and_recover_gives_the_boards_samples(tmp_path: Path) -> None:
     out = tmp_path / "r.npz"
@@ -303,7 +303,7 @@ def test_a_leftover_journal_is_kept_aside_never_overwritten(tmp_path: Path) -> N
 
 
 def test_full_disk_stops_the_capture_and_keeps_the_journal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import tactiled.journal
+    import tactiled.files.journal
 
     room = [60_000]  # bytes the "disk" takes before it is full
     real_write = os.write
@@ -315,7 +315,7 @@ def test_full_disk_stops_the_capture_and_keeps_the_journal(tmp_path: Path, monke
         room[0] -= n
         return real_write(fd, data[:n])
 
-    monkeypatch.setattr(tactiled.journal.os, "write", write)
+    monkeypatch.setattr(tactiled.files.journal.os, "write", write)
     samples = np.random.default_rng(5).integers(-3000, 3000, (20000, 2), dtype=np.int16)
     errors: list[str] = []
     out = tmp_path / "f.npz"
@@ -383,7 +383,7 @@ def test_record_takes_a_board_restart_far_ahead_as_a_restart_not_as_lost_samples
     """A 2**31 forward jump of the index (a board reset past half its counter) is a restart: the capture goes on, nothing zero-filled."""
     import tty
 
-    from tactiled.frames import encode_frames
+    from tactiled.board.frames import encode_frames
 
     rng = np.random.default_rng(4)
     before, after = (rng.integers(-900, 900, (800, 2)).astype(np.int16) for _ in range(2))

@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tactiled.core.ringbuffer import RingBuffer
 from tactiled.errors import NotYetWrittenError, OverwrittenError
-from tactiled.ringbuffer import RingBuffer
 
 
 def test_reads_across_the_wrap() -> None:

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 from tactiled_client import BlockingSubscriber, Samples, Status
 
-from tactiled.clockmap import ClockMap
-from tactiled.rawbatch import raw_batches
-from tactiled.sensor_model import SensorModel, SimParams, pick_surfaces
-from tactiled.virtualboard import VirtualBoard, read_log
+from tactiled.board.clockmap import ClockMap
+from tactiled.service.rawbatch import raw_batches
+from tactiled.sim.sensor_model import SensorModel, SimParams, pick_surfaces
+from tactiled.sim.virtualboard import VirtualBoard, read_log
 from tests.conftest import tactiled_cmd, wait_for
 
 

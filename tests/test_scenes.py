@@ -7,14 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tactiled.analysis import clipped_fraction
 from tactiled.config import Config
-from tactiled.dataset import detect_slides
+from tactiled.core.analysis import clipped_fraction
+from tactiled.core.matching import detection_scores, match_slides
 from tactiled.errors import TactiledError
-from tactiled.matching import detection_scores, match_slides
-from tactiled.recording import Recording, load_recording
-from tactiled.replay import replay_recording
-from tactiled.simulate import write_dataset
+from tactiled.files.recording import Recording, load_recording
+from tactiled.learn.dataset import detect_slides
+from tactiled.run.replay import replay_recording
+from tactiled.sim.simulate import write_dataset
 
 SCENES = ["hand", "robot", "continuous", "fluctuating", "hot-gain", "one-channel", "grating", "continuous,one-channel",
           "fluctuating,one-channel", "robot,hot-gain"]
@@ -102,8 +102,8 @@ def test_a_quiet_stream_is_no_slide_and_a_constant_level_is_one() -> None:
 
 @pytest.fixture(scope="module")
 def small_model(tmp_path_factory: pytest.TempPathFactory, datasets: dict[str, list[Path]]) -> object:
-    from tactiled.dataset import load_recordings
-    from tactiled.search import Candidate, search
+    from tactiled.learn.dataset import load_recordings
+    from tactiled.learn.search import Candidate, search
 
     root = tmp_path_factory.mktemp("model")
     recs = load_recordings(write_dataset(root, scene="continuous,one-channel", seed=12, surfaces="5", files_per_surface=2))
@@ -125,9 +125,9 @@ def test_same_events_and_labels_in_any_block_size(scene: str, datasets: dict[str
 
 def test_a_model_trained_on_clipping_surfaces_knows_them_all_and_scores_every_slide(datasets: dict[str, list[Path]]) -> None:
     """Clipping is a quality figure: the hot-gain surfaces that clip stay in training and every true slide is scored."""
-    from tactiled.score import score_recordings
-    from tactiled.search import Candidate
-    from tactiled.train import train
+    from tactiled.learn.score import score_recordings
+    from tactiled.learn.search import Candidate
+    from tactiled.learn.train import train
 
     paths = datasets["hot-gain"]
     result = train(paths, Config(), folds=2, candidates=[Candidate(("psd",), "linear", 0.5)])

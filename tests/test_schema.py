@@ -10,11 +10,11 @@ from pathlib import Path
 from tactiled_client import schema
 
 from tactiled.config import Config
-from tactiled.model import load_model
-from tactiled.pipeline import SlideResult
-from tactiled.recording import Recording, save_recording
-from tactiled.replay import by_slide, replay_recording, result_record
-from tactiled.sensor_model import SimParams, pick_surfaces, simulate_file
+from tactiled.core.pipeline import SlideResult
+from tactiled.files.recording import Recording, save_recording
+from tactiled.learn.model import load_model
+from tactiled.run.replay import by_slide, replay_recording, result_record
+from tactiled.sim.sensor_model import SimParams, pick_surfaces, simulate_file
 from tests.conftest import REPO, run_cli
 
 

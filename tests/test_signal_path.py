@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 import pywt
 
-from tactiled.analysis import Analyser, AnalysisSettings
 from tactiled.config import Config
-from tactiled.detect import SlideDetector, SlideEnd
+from tactiled.core.analysis import Analyser, AnalysisSettings
+from tactiled.core.detect import SlideDetector, SlideEnd
+from tactiled.core.features import FeaturePlan, classifier_inputs, feature_names
+from tactiled.core.spikes import remove_spikes
 from tactiled.errors import WindowError
-from tactiled.features import FeaturePlan, classifier_inputs, feature_names
-from tactiled.recording import Recording, load_recording, save_recording
-from tactiled.replay import replay_recording
-from tactiled.sensor_model import SimParams, default_surfaces, simulate_file, with_mode
-from tactiled.spikes import remove_spikes
+from tactiled.files.recording import Recording, load_recording, save_recording
+from tactiled.run.replay import replay_recording
+from tactiled.sim.sensor_model import SimParams, default_surfaces, simulate_file, with_mode
 from tests.conftest import run_cli
 
 NAMES = feature_names(2)

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tactiled.recording import load_recording
-from tactiled.sensor_model import SensorModel, SimParams, Surface, _self_affine_profile, default_surfaces, simulate_file
+from tactiled.files.recording import load_recording
+from tactiled.sim.sensor_model import SensorModel, SimParams, Surface, _self_affine_profile, default_surfaces, simulate_file
 from tests.conftest import run_cli
 
 QUIET = dict(noise_v=0.0, mains_v=0.0, drift_v=0.0, spike_rate_hz=0.0, stick_slip=False)
@@ -67,7 +67,7 @@ def test_finite_and_clipping_only_beyond_full_scale() -> None:
     m.schedule_random(default_surfaces()[-3:], 80000)
     volts = m.read_volts(80000)
     assert np.all(np.isfinite(volts))
-    from tactiled.sensor_model import adc
+    from tactiled.sim.sensor_model import adc
 
     counts = adc(volts, p.volts_per_count)
     clipped = (counts == 32767) | (counts == -32768)

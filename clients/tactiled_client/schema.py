@@ -267,7 +267,7 @@ def parse(topic_: str, body: dict[str, Any]) -> Message:
 # ---- writer side -----------------------------------------------------------------------------
 
 class SlideOutcome(Protocol):
-    """What :func:`roughness` needs of a slide's result (``tactiled.pipeline.SlideResult`` is one)."""
+    """What :func:`roughness` needs of a slide's result (``tactiled.core.pipeline.SlideResult`` is one)."""
 
     slide_id: int
     start: int

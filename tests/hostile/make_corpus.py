@@ -23,7 +23,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[1]))
 
-from tactiled.model import _fingerprint, default_model_path  # noqa: E402
+from tactiled.learn.model import _fingerprint, default_model_path  # noqa: E402
 
 STAMP = (1980, 1, 1, 0, 0, 0)
 BOMB_SHAPE = (2**29, 2)  # int16: 2 GiB of zeros, bzip2-compressed to about 1.5 kB

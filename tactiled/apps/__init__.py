@@ -1,0 +1,1 @@
+"""Programs built on the client library only: the terminal monitor and the ROS 2 / LSL bridges."""

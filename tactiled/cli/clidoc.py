@@ -1,0 +1,51 @@
+"""docs/cli.md, generated from the parser: ``python -m tactiled.cli.clidoc > docs/cli.md``.
+
+:func:`cli_markdown` renders every command's ``--help`` at a fixed width, so the page is the
+same on every terminal; tests/test_cli.py fails when docs/cli.md differs from it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import sys
+
+from tactiled.cli.parser import HelpFormatter, build_parser, subcommands
+
+WIDTH = 100
+REGENERATE = "python -m tactiled.cli.clidoc > docs/cli.md"
+
+
+def _help(parser: argparse.ArgumentParser, width: int) -> str:
+    """``parser.format_help()`` at ``width`` columns, whatever the terminal."""
+    saved = parser.formatter_class
+    parser.formatter_class = functools.partial(HelpFormatter, width=width)  # type: ignore[assignment]
+    try:
+        return parser.format_help()
+    finally:
+        parser.formatter_class = saved
+
+
+def cli_markdown(parser: argparse.ArgumentParser, width: int = WIDTH) -> str:
+    """The command line reference in Markdown: an index, then the help of every (sub)command of ``parser``."""
+    commands = subcommands(parser)
+    lines = ["# Command line reference", "",
+             f"The output of `{parser.prog} <command> --help` for every command, generated from the parser by `{REGENERATE}`",
+             "(a test keeps this page equal to it). Exit codes: 0 ok, 1 failure, 2 usage or bad input (config, recording, model,",
+             "device path).", ""]
+    for words, p in commands.items():
+        if words and not any(isinstance(a, argparse._SubParsersAction) for a in p._actions):
+            title = f"{parser.prog} {words}"
+            lines.append(f"- [`{title}`](#{title.replace(' ', '-')}): {p.description}")
+    for words, p in commands.items():
+        lines += ["", f"## {parser.prog} {words}".rstrip(), "", "```", _help(p, width).rstrip(), "```"]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    sys.stdout.write(cli_markdown(build_parser()))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,248 @@
+"""The streaming pipeline shared by the daemon, replay, scoring and the demo.
+
+samples (index, (n, C), valid) → ring buffer → slide detector → windows of the slide →
+spike removal + features (only those the model uses) → model scores → events. Driven by
+the sample index only: the same samples in any block sizes give the same events.
+
+A slide is cut into successive windows (:meth:`AnalysisSettings.spans`); each is analysed
+as soon as the ring holds it, while the slide goes on. After each window the scores so
+far are combined (:meth:`Classifier.slide_proba`); when the fused confidence first reaches
+``classifier.provisional_confidence`` (and again whenever the leading label changes
+while above it), a provisional :class:`SlideResult` (``final=False``) is emitted. When
+the slide ends, the windows that lie inside it are fused into the final result. Windows
+that could not be analysed (lost samples, too short, ...) are skipped; a slide with
+none gets no label and the most common reason. :meth:`Pipeline.finish` ends the stream:
+a slide still running is analysed as far as it goes.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from tactiled.config import Config
+from tactiled.core.analysis import Analyser, AnalysisSettings, WindowResult
+from tactiled.core.detect import Event, SlideDetector, SlideEnd, SlideStart
+from tactiled.core.ringbuffer import RingBuffer
+from tactiled.errors import OverwrittenError
+
+
+class Classifier(Protocol):
+    """What the pipeline needs of a model (see :class:`tactiled.learn.model.Model`)."""
+
+    classes: list[str]
+    fingerprint: str
+    settings: AnalysisSettings
+
+    def slide_proba(self, features: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
+
+
+@dataclass
+class SlideStarted:
+    slide_id: int
+    start: int
+
+
+@dataclass
+class SlideEnded:
+    slide_id: int
+    start: int
+    stop: int
+    reason: str  # quiet | max_duration | end_of_stream | too_short (too short is not a slide: no result follows)
+
+
+@dataclass
+class SlideResult:
+    """The outcome of one slide (or, with ``final`` False, a provisional label while it goes on).
+
+    ``label`` is None when abstaining, with ``reason``; ``window`` spans the windows used;
+    ``quality`` sums their samples, lost samples and spikes, and gives the largest
+    clipped (saturated) fraction and the number of windows used.
+    """
+
+    slide_id: int
+    start: int
+    stop: int
+    window: tuple[int, int]
+    label: str | None
+    reason: str | None
+    confidence: float | None
+    top: list[tuple[str, float]]
+    quality: dict[str, Any]
+    features: npt.NDArray[np.float64] | None = field(default=None, repr=False)
+    compute_ms: float = 0.0
+    final: bool = True  # False: a provisional label published while the slide goes on
+    used_s: float = 0.0  # seconds of the slide (from its start) the label is based on
+
+
+PipelineEvent = SlideStarted | SlideEnded | SlideResult
+
+
+@dataclass
+class _Window:
+    span: tuple[int, int]
+    result: WindowResult
+
+    @property
+    def usable(self) -> bool:
+        return self.result.features is not None
+
+
+class Pipeline:
+    """Feed blocks in order with :meth:`feed`, end with :meth:`finish`; both return the events completed."""
+
+    def __init__(self, config: Config, fs: float, channels: int, volts_per_count: float, integer: bool = True,
+                 model: Classifier | None = None, settings: AnalysisSettings | None = None) -> None:
+        self.fs = fs
+        self.channels = channels
+        self.model = model
+        self.settings = model.settings if model is not None else (settings or AnalysisSettings.from_config(config, channels, fs))
+        self.min_confidence = config.classifier.min_confidence
+        self.provisional_confidence = config.classifier.provisional_confidence
+        self.analyser = Analyser(self.settings, fs, volts_per_count, integer, config.classifier.max_saturated, config.classifier.max_lost)
+        self.min_samples = self.analyser.plan.min_samples()
+        window = round(self.settings.duration_s * fs)
+        capacity = max(round(config.ring.seconds * fs), 2 * window + round(config.detector.off_hold_s * fs) + round(fs))
+        self.ring = RingBuffer(capacity, channels, np.int16 if integer else np.float64)
+        self.detector = SlideDetector(config.detector, fs, channels)
+        self.volts_per_count = volts_per_count if integer else 1.0
+        self.slides = 0
+        self.labels = 0
+        self._slide_id = -1
+        self._onset: int | None = None
+        self._windows: list[_Window] = []
+        self._next: tuple[int, int] | None = None  # the next window of the slide in progress
+        self._provisional: str | None = None
+
+    @property
+    def sliding(self) -> bool:
+        return self._onset is not None
+
+    def will_analyse(self, end: int) -> bool:
+        """True if feeding samples up to absolute index ``end`` completes a window of the slide in progress (feature work)."""
+        return self._onset is not None and self._next is not None and end >= self._next[1]
+
+    def feed(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None = None) -> list[PipelineEvent]:
+        """Process ``samples`` (n, C) whose first sample has absolute ``index`` (gaps are lost samples)."""
+        self.ring.write(index, samples, valid)
+        volts = samples.astype(np.float64) * self.volts_per_count
+        if valid is not None:
+            volts[~valid] = 0.0
+        events = self._handle(self.detector.feed(index, volts, valid))  # the detector treats index gaps as lost itself
+        events += self._analyse_ready()
+        return events
+
+    def finish(self) -> list[PipelineEvent]:
+        """End of stream: a slide in progress ends at the last sample fed and gets its final result."""
+        return self._handle(self.detector.finish())
+
+    def _handle(self, detector_events: list[Event]) -> list[PipelineEvent]:
+        events: list[PipelineEvent] = []
+        for ev in detector_events:
+            # windows the ring held when the detector decided come first: the same order whatever the block size
+            events += self._analyse_ready(until=ev.at if ev.at >= 0 else None)
+            if isinstance(ev, SlideStart):
+                self._slide_id += 1
+                self._onset = ev.start
+                self._windows = []
+                self._provisional = None
+                self._next = self.settings.first_span(ev.start, self.fs)
+                events.append(SlideStarted(self._slide_id, ev.start))
+                events += self._analyse_ready(until=ev.at if ev.at >= 0 else None)
+            elif isinstance(ev, SlideEnd):
+                events.append(SlideEnded(self._slide_id, ev.start, ev.stop, ev.reason))
+                if ev.reason != "too_short":
+                    events.append(self._final(ev.start, ev.stop))
+                self._onset = None
+                self._next = None
+                self._windows = []
+        return events
+
+    def _analyse_ready(self, until: int | None = None) -> list[PipelineEvent]:
+        """Analyse every window of the slide in progress that the ring holds (up to ``until``); provisional results."""
+        events: list[PipelineEvent] = []
+        s = self.settings
+        limit = self.ring.end if until is None else min(until, self.ring.end)
+        while self._onset is not None and self._next is not None and limit >= self._next[1]:
+            if s.max_windows and len(self._windows) >= s.max_windows:
+                self._next = None
+                break
+            t0 = time.perf_counter()
+            w = self._window(self._next)
+            self._windows.append(w)
+            hop = max(1, round(s.hop() * self.fs))
+            self._next = (self._next[0] + hop, self._next[1] + hop)
+            if w.usable:
+                prov = self._provisional_result(t0)
+                if prov is not None:
+                    events.append(prov)
+        return events
+
+    def _window(self, span: tuple[int, int]) -> _Window:
+        return _Window(span, self._read(*span))
+
+    def _proba(self, used: list[_Window]) -> npt.NDArray[np.float64]:
+        assert self.model is not None
+        return self.model.slide_proba(np.stack([w.result.features for w in used if w.result.features is not None]))
+
+    def _read(self, lo: int, hi: int) -> WindowResult:
+        if hi - lo < self.min_samples:
+            # a slide that ended before (or soon after) its window began: nothing to read, whatever the block timing
+            return WindowResult(None, "window_too_short", {"samples": max(hi - lo, 0), "lost": 0, "saturated": 0.0, "spikes": 0})
+        try:
+            samples, valid = self.ring.read(lo, hi)
+        except OverwrittenError:
+            return WindowResult(None, "overwritten", {"samples": hi - lo, "lost": hi - lo, "saturated": 0.0, "spikes": 0})
+        return self.analyser.analyse(samples, valid)
+
+    def _provisional_result(self, t0: float) -> SlideResult | None:
+        if self.model is None or self._onset is None or self.provisional_confidence >= 1.0:
+            return None
+        used = [w for w in self._windows if w.usable]
+        proba = self._proba(used)
+        best = int(np.argmax(proba))
+        label = self.model.classes[best]
+        if proba[best] < max(self.provisional_confidence, self.min_confidence) or label == self._provisional:
+            return None
+        self._provisional = label
+        return self._result(self._onset, used[-1].span[1], used, proba, t0, final=False)
+
+    def _final(self, start: int, stop: int) -> SlideResult:
+        t0 = time.perf_counter()
+        self.slides += 1
+        spans = self.settings.spans(start, stop, self.fs, self.min_samples)
+        done = {w.span: w for w in self._windows}
+        windows = [done[sp] if sp in done else self._window(sp) for sp in spans]
+        used = [w for w in windows if w.usable] if self.model is not None else []
+        if not used:
+            reasons = [w.result.reason for w in windows if w.result.reason] or ["window_too_short"]
+            reason = "no_model" if self.model is None and any(w.result.features is not None for w in windows) else Counter(reasons).most_common(1)[0][0]
+            return SlideResult(self._slide_id, start, stop, (spans[0][0], spans[-1][1]) if spans else (start, start), None, reason, None, [],
+                               _quality(windows), None, (time.perf_counter() - t0) * 1e3, True, (stop - start) / self.fs)
+        return self._result(start, stop, used, self._proba(used), t0, final=True)
+
+    def _result(self, start: int, stop: int, used: list[_Window], proba: npt.NDArray[np.float64], t0: float, final: bool) -> SlideResult:
+        assert self.model is not None
+        order = np.argsort(proba)[::-1][:3]
+        top = [(self.model.classes[i], round(float(proba[i]), 4)) for i in order]
+        confidence = float(proba[order[0]])
+        label: str | None = self.model.classes[order[0]]
+        reason = None
+        if confidence < self.min_confidence:
+            label, reason = None, "low_confidence"
+        elif final:
+            self.labels += 1
+        feats = used[-1].result.features
+        return SlideResult(self._slide_id, start, stop, (used[0].span[0], used[-1].span[1]), label, reason, confidence, top, _quality(used),
+                           feats, (time.perf_counter() - t0) * 1e3, final, (used[-1].span[1] - start) / self.fs)
+
+
+def _quality(windows: list[_Window]) -> dict[str, Any]:
+    q = [w.result.quality for w in windows]
+    return {"samples": sum(x["samples"] for x in q), "lost": sum(x["lost"] for x in q), "saturated": max((x["saturated"] for x in q), default=0.0),
+            "spikes": sum(x["spikes"] for x in q), "windows": sum(w.usable for w in windows)}

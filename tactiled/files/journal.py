@@ -1,0 +1,356 @@
+"""The recording journal: the append-only form a recorder streams to disk (docs/recordings.md, "The journal").
+
+A journal is a header then chunks, each self-delimiting and guarded by a CRC-32::
+
+    header  b"TACTJNL\\x01" | u32 n | n bytes of JSON (fs, channels, volts_per_count, label, meta) | u32 CRC-32
+    chunk   b"TJCK" | u32 n | body (n bytes) | u32 CRC-32 of everything before it in the chunk
+    body    i64 position | i64 index | i64 rows | u32 g | u32 s | g x (i64 position, i64 count) lost ranges
+            | s bytes of JSON (counters) | (rows - lost) x C int16 little-endian samples
+
+All integers little-endian. A chunk covers the rows ``position .. position + rows`` of the recording; its lost
+ranges (absolute positions) are not stored, its samples are the other rows in order. :class:`JournalWriter`
+appends whole chunks and fsyncs each; :func:`read_journal` checks every chunk and drops the ones that fail
+(a torn last chunk after a kill or a power cut), and :func:`recover` turns a journal into a normal recording
+without holding the samples in memory.
+"""
+
+from __future__ import annotations
+
+import binascii
+import json
+import os
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from tactiled.board.frames import MAX_CHANNELS
+from tactiled.errors import RecordingError
+from tactiled.files.npzio import load_json_bounded
+from tactiled.files.recording import MAX_FS, MIN_FS, Recording, StreamedArray, fsync_dir, save_recording
+
+MAGIC = b"TACTJNL\x01"
+CHUNK_MAGIC = b"TJCK"
+VERSION = 1
+MAX_HEADER_BYTES = 2 << 20  # JSON header: meta is at most 1 MB (docs/recordings.md)
+MAX_CHUNK_BYTES = 64 << 20  # far above what a writer makes (0.5 s or 4 MiB of samples): anything longer is corrupt
+SUFFIX = ".journal"
+_u32 = struct.Struct("<I")
+_body = struct.Struct("<qqqII")
+_range = struct.Struct("<qq")
+ZERO_BLOCK = 1 << 16  # rows of zeros written at a time for lost rows
+
+
+def journal_path(out: str | Path) -> Path:
+    """Where a recorder writing ``out`` keeps its journal: ``out`` + ``.journal``."""
+    return Path(f"{out}{SUFFIX}")
+
+
+def encode_header(fs: float, channels: int, volts_per_count: float, label: str | None, meta: dict[str, Any]) -> bytes:
+    """The journal's header bytes."""
+    text = json.dumps({"format": "tactiled-journal", "version": VERSION, "fs": fs, "channels": channels,
+                       "volts_per_count": volts_per_count, "label": label, "meta": meta}, sort_keys=True).encode()
+    head = MAGIC + _u32.pack(len(text)) + text
+    return head + _u32.pack(binascii.crc32(head))
+
+
+def encode_chunk(position: int, index: int, rows: int, lost: list[tuple[int, int]], counters: dict[str, int],
+                 samples: npt.NDArray[np.int16]) -> bytes:
+    """One chunk: rows ``position .. position + rows``; ``samples`` (rows - lost, C) are the rows not in ``lost``."""
+    text = json.dumps(counters, sort_keys=True).encode()
+    body = (_body.pack(position, index, rows, len(lost), len(text)) + b"".join(_range.pack(p, c) for p, c in lost) + text
+            + np.ascontiguousarray(samples, dtype="<i2").tobytes())
+    head = CHUNK_MAGIC + _u32.pack(len(body)) + body
+    return head + _u32.pack(binascii.crc32(head))
+
+
+class JournalWriter:
+    """Appends chunks to a new journal file; each :meth:`append` is written whole and fsynced before it returns.
+
+    The file is created exclusively (an existing journal is never overwritten) and locked (``flock``) while open,
+    so another recorder cannot claim it. A failed append (a full disk) truncates the file back to its last
+    complete chunk and raises the ``OSError``: the journal stays recoverable.
+    """
+
+    def __init__(self, path: str | Path, header: bytes) -> None:
+        import fcntl
+
+        self.path = Path(path)
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
+        fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        self.size = 0
+        self.chunks = 0
+        try:
+            self._write(header)
+            fsync_dir(self.path.parent)  # the journal's name survives a power cut too
+        except OSError:
+            self.close()
+            os.unlink(self.path)
+            raise
+        self.size = len(header)
+
+    def _write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(self._fd, view):]
+        os.fsync(self._fd)
+
+    def append(self, chunk: bytes) -> None:
+        """Write ``chunk`` and fsync; on ``OSError`` cut the file back to the last whole chunk, then raise."""
+        try:
+            self._write(chunk)
+        except OSError:
+            os.ftruncate(self._fd, self.size)  # never grows the file: works on a full disk
+            raise
+        self.size += len(chunk)
+        self.chunks += 1
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+
+def is_locked(path: str | Path) -> bool:
+    """True if a live writer holds ``path`` (its ``flock``)."""
+    import fcntl
+
+    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+
+@dataclass
+class Chunk:
+    """One intact chunk: where its samples lie in the file and which rows it covers."""
+
+    position: int
+    index: int
+    rows: int
+    lost: list[tuple[int, int]]
+    counters: dict[str, int]
+    offset: int  # of the samples in the file
+    stored: int  # rows stored (rows - lost)
+
+
+@dataclass
+class JournalScan:
+    """What :func:`read_journal` found: the header, the intact chunks in order, and what it dropped."""
+
+    path: Path
+    fs: float
+    channels: int
+    volts_per_count: float
+    label: str | None
+    meta: dict[str, Any]
+    chunks: list[Chunk] = field(default_factory=list)
+    dropped_chunks: int = 0  # chunks that failed their length or CRC check, or overlapped an earlier one
+    dropped_bytes: int = 0  # bytes not in an intact chunk (a torn last chunk, garbage)
+    size: int = 0
+
+    @property
+    def rows(self) -> int:
+        return self.chunks[-1].position + self.chunks[-1].rows if self.chunks else 0
+
+    @property
+    def first_index(self) -> int:
+        return self.chunks[0].index - self.chunks[0].position if self.chunks else 0
+
+    def lost(self) -> npt.NDArray[np.int64]:
+        """(g, 2) lost ranges (position, count): the chunks' own and the rows no intact chunk covers, merged."""
+        ranges: list[list[int]] = []
+        end = 0
+        for c in self.chunks:
+            for p, n in [(end, c.position - end), *c.lost]:
+                if n <= 0:
+                    continue
+                if ranges and ranges[-1][0] + ranges[-1][1] == p:
+                    ranges[-1][1] += n
+                else:
+                    ranges.append([p, n])
+            end = c.position + c.rows
+        return np.asarray(ranges, dtype=np.int64).reshape(-1, 2)
+
+    def blocks(self) -> Iterator[npt.NDArray[np.int16]]:
+        """All rows in order, lost ones as zeros, a chunk's worth at a time (bounded memory)."""
+        zeros = np.zeros((ZERO_BLOCK, self.channels), dtype="<i2")
+        end = 0
+        with open(self.path, "rb") as fh:
+            for c in self.chunks:
+                yield from _zero_rows(zeros, c.position - end)
+                fh.seek(c.offset)
+                stored = np.frombuffer(_read_exact(fh, 2 * self.channels * c.stored), dtype="<i2").reshape(c.stored, self.channels)
+                at = c.position
+                taken = 0
+                for p, n in c.lost:
+                    yield stored[taken:taken + p - at]
+                    taken += p - at
+                    yield from _zero_rows(zeros, n)
+                    at = p + n
+                yield stored[taken:]
+                end = c.position + c.rows
+
+
+def _zero_rows(zeros: npt.NDArray[np.int16], n: int) -> Iterator[npt.NDArray[np.int16]]:
+    while n > 0:
+        yield zeros[:n]
+        n -= min(n, zeros.shape[0])
+
+
+def _read_exact(fh: IO[bytes], n: int) -> bytes:
+    data = fh.read(n)
+    if len(data) != n:
+        raise RecordingError(f"{getattr(fh, 'name', '?')}: changed while being read")
+    return data
+
+
+def _header(path: Path, fh: IO[bytes]) -> dict[str, Any]:
+    head = fh.read(len(MAGIC) + 4)
+    if len(head) < len(MAGIC) + 4 or not head.startswith(MAGIC):
+        raise RecordingError(f"{path}: not a tactiled journal (no {MAGIC[:7].decode()} header)")
+    (n,) = _u32.unpack_from(head, len(MAGIC))
+    if n > MAX_HEADER_BYTES:
+        raise RecordingError(f"{path}: header: {n} bytes, more than {MAX_HEADER_BYTES}")
+    text = fh.read(n)
+    crc = fh.read(4)
+    if len(text) != n or len(crc) != 4 or binascii.crc32(head + text) != _u32.unpack(crc)[0]:
+        raise RecordingError(f"{path}: header: torn or corrupt (CRC-32 mismatch)")
+    try:  # the same bounds as a recording's meta, so what recovers also loads
+        obj = load_json_bounded(text.decode(), "header")
+    except ValueError as exc:  # not UTF-8, too large, too deep, or not JSON
+        raise RecordingError(f"{path}: {exc}") from None
+    if not isinstance(obj, dict) or obj.get("format") != "tactiled-journal" or obj.get("version") != VERSION:
+        raise RecordingError(f"{path}: header: not a version {VERSION} tactiled journal")
+    return obj
+
+
+def read_journal(path: str | Path) -> JournalScan:
+    """Check every chunk of the journal at ``path``; intact ones are kept, the others counted as dropped.
+
+    A chunk that fails its length or CRC check is skipped and the next chunk marker is looked for after it, so
+    one damaged chunk costs only its own rows (listed as lost). Raises :class:`RecordingError` for a missing
+    file or a bad header.
+    """
+    path = Path(path)
+    try:
+        fh = open(path, "rb")  # noqa: SIM115 (closed below)
+    except OSError as exc:
+        raise RecordingError(f"{path}: {exc.strerror}") from None
+    with fh:
+        h = _header(path, fh)
+        try:
+            fs, channels, vpc = float(h["fs"]), int(h["channels"]), float(h["volts_per_count"])
+            label, meta = h.get("label"), h.get("meta") or {}
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RecordingError(f"{path}: header: {exc}") from None
+        if not (np.isfinite(fs) and MIN_FS <= fs <= MAX_FS and 1 <= channels <= MAX_CHANNELS and np.isfinite(vpc) and vpc > 0
+                and isinstance(meta, dict)):
+            raise RecordingError(f"{path}: header: fs, channels or volts_per_count out of range")
+        scan = JournalScan(path, fs, channels, vpc, None if label is None else str(label), meta, size=os.fstat(fh.fileno()).st_size)
+        pos = fh.tell()
+        while pos < scan.size:
+            chunk = _chunk_at(fh, pos, channels)
+            if chunk is not None and chunk[0].position >= scan.rows:
+                scan.chunks.append(chunk[0])
+                pos += chunk[1]
+                continue
+            scan.dropped_chunks += 1
+            nxt = _find(fh, CHUNK_MAGIC, pos + 1)
+            scan.dropped_bytes += (nxt if nxt >= 0 else scan.size) - pos
+            if nxt < 0:
+                break
+            pos = nxt
+    return scan
+
+
+def _chunk_at(fh: IO[bytes], pos: int, channels: int) -> tuple[Chunk, int] | None:
+    """The intact chunk at ``pos`` and its size in bytes, or None."""
+    fh.seek(pos)
+    head = fh.read(8)
+    if len(head) < 8 or head[:4] != CHUNK_MAGIC:
+        return None
+    (n,) = _u32.unpack_from(head, 4)
+    if n < _body.size or n > MAX_CHUNK_BYTES:
+        return None
+    body = fh.read(n)
+    crc = fh.read(4)
+    if len(body) != n or len(crc) != 4 or binascii.crc32(body, binascii.crc32(head)) != _u32.unpack(crc)[0]:
+        return None
+    position, index, rows, g, s = _body.unpack_from(body)
+    lost = [_range.unpack_from(body, _body.size + 16 * i) for i in range(g)]
+    at = _body.size + 16 * g
+    try:
+        counters = json.loads(body[at:at + s])
+    except (ValueError, RecursionError):
+        return None
+    stored = rows - sum(c for _, c in lost)
+    end = position
+    for p, c in lost:  # inside the chunk, in order, not overlapping
+        if p < end or c <= 0 or p + c > position + rows:
+            return None
+        end = p + c
+    if position < 0 or stored < 0 or n - at - s != 2 * channels * stored or not isinstance(counters, dict):
+        return None
+    return Chunk(position, index, rows, lost, counters, pos + 8 + at + s, stored), 8 + n + 4
+
+
+def _find(fh: IO[bytes], marker: bytes, start: int, block: int = 1 << 20) -> int:
+    """Offset of the next ``marker`` at or after ``start``, or -1."""
+    fh.seek(start)
+    base, tail = start, b""
+    while True:
+        data = fh.read(block)
+        if not data:
+            return -1
+        buf = tail + data
+        i = buf.find(marker)
+        if i >= 0:
+            return base - len(tail) + i
+        tail = buf[-(len(marker) - 1):]
+        base += len(data)
+
+
+@dataclass
+class Recovered:
+    """What :func:`recover` wrote and dropped."""
+
+    samples: int
+    samples_lost: int
+    chunks: int
+    dropped_chunks: int
+    dropped_bytes: int
+    fs: float
+
+    def line(self) -> str:
+        dropped = (f"dropped {self.dropped_chunks} damaged or torn chunk(s), {self.dropped_bytes} bytes" if self.dropped_chunks
+                   else "nothing dropped")
+        return (f"recovered {self.samples} samples ({self.samples / self.fs:.3f} s, {self.samples_lost} lost) "
+                f"from {self.chunks} chunks; {dropped}")
+
+
+def recover(journal: str | Path, out: str | Path, extra_meta: dict[str, Any] | None = None, allow_empty: bool = False) -> Recovered:
+    """Write the recording held by ``journal`` to ``out`` (.npz, docs/recordings.md), streaming the samples.
+
+    The recording's ``meta`` is the header's plus the last intact chunk's counters and ``extra_meta``.
+    Raises :class:`RecordingError` if the journal has no intact chunk (unless ``allow_empty``: a recording of
+    no samples, what a recorder stopped before the first frame writes).
+    """
+    scan = read_journal(journal)
+    if not scan.chunks and not allow_empty:
+        raise RecordingError(f"{journal}: no intact chunk: nothing to recover"
+                             + (f" ({scan.dropped_bytes} bytes dropped)" if scan.dropped_bytes else ""))
+    meta = {**scan.meta, **(scan.chunks[-1].counters if scan.chunks else {}), **(extra_meta or {})}
+    lost = scan.lost()
+    rec = Recording(samples=np.zeros((0, scan.channels), dtype=np.int16), fs=scan.fs, volts_per_count=scan.volts_per_count,
+                    label=scan.label, meta=meta, first_index=scan.first_index, lost=lost)
+    save_recording(out, rec, StreamedArray((scan.rows, scan.channels), np.dtype("<i2"), scan.blocks()))
+    return Recovered(scan.rows, int(lost[:, 1].sum()), len(scan.chunks), scan.dropped_chunks, scan.dropped_bytes, scan.fs)

@@ -1,0 +1,265 @@
+"""Recording files (.npz), per docs/recordings.md.
+
+:func:`load_recording` validates everything the spec lists and raises one
+:class:`~tactiled.errors.RecordingError` naming the file and the key; it never loads
+pickle. :func:`save_recording` writes atomically (temporary file, then rename), the samples
+optionally block by block (:class:`StreamedArray`), so a long capture never has to fit in memory.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from tactiled.errors import RecordingError
+from tactiled.files.npzio import NpzError, load_json_bounded, read_npz
+
+KEYS = ("samples", "fs", "volts_per_count", "first_index", "label", "meta", "lost", "slide_start", "slide_stop", "surface", "ra_um")
+MIN_FS, MAX_FS, MAX_CHANNELS = 1.0, 1e7, 64
+MAX_RECORDING_BYTES = 2 << 30  # 2 GiB inflated: 7 h of 2 channels of int16 at 20 kHz; split longer recordings
+
+
+@dataclass
+class Recording:
+    """One recording. ``samples`` (n, C) int16 counts or float volts; indices are positions."""
+
+    samples: npt.NDArray[Any]
+    fs: float
+    volts_per_count: float = 1.0
+    slide_start: npt.NDArray[np.int64] | None = None
+    slide_stop: npt.NDArray[np.int64] | None = None
+    surface: npt.NDArray[np.str_] | None = None
+    ra_um: npt.NDArray[np.float64] | None = None
+    label: str | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+    first_index: int = 0
+    lost: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+
+    @property
+    def channels(self) -> int:
+        return int(self.samples.shape[1])
+
+    @property
+    def is_integer(self) -> bool:
+        return bool(np.issubdtype(self.samples.dtype, np.integer))
+
+    def volts(self) -> npt.NDArray[np.float64]:
+        """All samples in volts, float64 (n, C)."""
+        if self.is_integer:
+            return self.samples.astype(np.float64) * self.volts_per_count
+        return self.samples.astype(np.float64)
+
+    def valid_mask(self) -> npt.NDArray[np.bool_]:
+        """(n,) False where samples were lost."""
+        mask = np.ones(self.samples.shape[0], dtype=bool)
+        for pos, count in self.lost:
+            mask[pos:pos + count] = False
+        return mask
+
+    def slides(self) -> list[tuple[int, int, str | None]]:
+        """Ground-truth slides as (start, stop, surface) positions; empty if none."""
+        if self.slide_start is None or self.slide_stop is None:
+            return []
+        names = self.surface if self.surface is not None else [self.label] * len(self.slide_start)
+        return [(int(a), int(b), None if s is None else str(s)) for a, b, s in zip(self.slide_start, self.slide_stop, names, strict=True)]
+
+
+def _fail(path: object, key: str, message: str) -> RecordingError:
+    return RecordingError(f"{path}: {key}: {message}")
+
+
+def load_recording(path: str | Path) -> Recording:
+    """Load and validate a recording; raises :class:`RecordingError` naming file and key.
+
+    Only the arrays of docs/recordings.md are read, at most :data:`MAX_RECORDING_BYTES` inflated
+    (:mod:`tactiled.files.npzio` refuses decompression bombs before inflating them).
+    """
+    try:
+        arrays = read_npz(path, KEYS, MAX_RECORDING_BYTES)
+    except NpzError as exc:
+        raise RecordingError(f"{path}: {exc.key}: {exc}" if exc.key else f"{path}: {exc}") from None
+    return _validate(path, arrays)
+
+
+def _scalar(path: object, arrays: dict[str, Any], key: str, kind: str) -> Any:
+    arr = arrays[key]
+    if arr.shape != ():
+        raise _fail(path, key, f"must be a scalar, got shape {arr.shape}")
+    if kind == "f" and arr.dtype.kind not in "fiu":
+        raise _fail(path, key, f"must be a number, got {arr.dtype}")
+    if kind == "i" and arr.dtype.kind not in "iu":
+        raise _fail(path, key, f"must be an integer, got {arr.dtype}")
+    if kind == "U" and arr.dtype.kind != "U":
+        raise _fail(path, key, f"must be a unicode string, got {arr.dtype}")
+    return arr.item()
+
+
+def _validate(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
+    for key in ("samples", "fs"):
+        if key not in a:
+            raise _fail(path, key, "missing (required)")
+    samples = a["samples"]
+    if samples.ndim != 2 or not 1 <= samples.shape[1] <= MAX_CHANNELS:
+        raise _fail(path, "samples", f"must have shape (n, C) with 1 <= C <= {MAX_CHANNELS}, got {samples.shape}")
+    if samples.dtype not in (np.int16, np.float32, np.float64):
+        raise _fail(path, "samples", f"must be int16, float32 or float64, got {samples.dtype}")
+    if samples.dtype.kind == "f" and not np.all(np.isfinite(samples)):
+        raise _fail(path, "samples", "contains NaN or Inf")
+    n = samples.shape[0]
+    fs = float(_scalar(path, a, "fs", "f"))
+    if not (np.isfinite(fs) and MIN_FS <= fs <= MAX_FS):
+        raise _fail(path, "fs", f"must be in [{MIN_FS:g}, {MAX_FS:g}] Hz, got {fs}")
+    vpc = float(_scalar(path, a, "volts_per_count", "f")) if "volts_per_count" in a else 1.0
+    if not (np.isfinite(vpc) and vpc > 0):
+        raise _fail(path, "volts_per_count", f"must be > 0, got {vpc}")
+    rec = Recording(samples=samples, fs=fs, volts_per_count=vpc)
+    if "first_index" in a:
+        rec.first_index = int(_scalar(path, a, "first_index", "i"))
+    if "label" in a:
+        rec.label = str(_scalar(path, a, "label", "U"))
+    if "meta" in a:
+        try:
+            meta = load_json_bounded(_scalar(path, a, "meta", "U"), "meta")
+        except ValueError as exc:
+            raise RecordingError(f"{path}: {exc}") from None
+        if not isinstance(meta, dict):
+            raise _fail(path, "meta", "must be a JSON object")
+        rec.meta = meta
+    if "lost" in a:
+        lost = a["lost"]
+        if lost.ndim != 2 or lost.shape[1] != 2 or lost.dtype.kind not in "iu":
+            raise _fail(path, "lost", f"must be (g, 2) integers, got {lost.shape} {lost.dtype}")
+        lost = lost.astype(np.int64)
+        if lost.size and (np.any(lost[:, 0] < 0) or np.any(lost[:, 1] <= 0) or np.any(lost.sum(axis=1) > n)):
+            raise _fail(path, "lost", "ranges must lie inside samples with count > 0")
+        rec.lost = lost
+    has_start, has_stop = "slide_start" in a, "slide_stop" in a
+    if has_start != has_stop:
+        raise _fail(path, "slide_stop" if has_start else "slide_start", "missing (slide_start and slide_stop go together)")
+    if has_start:
+        start, stop = a["slide_start"], a["slide_stop"]
+        for key, arr in (("slide_start", start), ("slide_stop", stop)):
+            if arr.ndim != 1 or arr.dtype.kind not in "iu":
+                raise _fail(path, key, f"must be (k,) integers, got {arr.shape} {arr.dtype}")
+        if start.shape != stop.shape:
+            raise _fail(path, "slide_stop", f"length {stop.shape[0]} differs from slide_start's {start.shape[0]}")
+        if np.any(stop <= start):
+            raise _fail(path, "slide_stop", "stop must be > start")
+        if start.size and (start.min() < 0 or stop.max() > n):
+            raise _fail(path, "slide_start", f"indices outside samples (0..{n})")
+        rec.slide_start, rec.slide_stop = start.astype(np.int64), stop.astype(np.int64)
+        k = start.shape[0]
+        for key in ("surface", "ra_um"):
+            if key in a and a[key].shape != (k,):
+                raise _fail(path, key, f"must have shape ({k},), got {a[key].shape}")
+        if "surface" in a:
+            if a["surface"].dtype.kind != "U":
+                raise _fail(path, "surface", f"must be unicode, got {a['surface'].dtype}")
+            rec.surface = a["surface"]
+        elif rec.label is None:
+            raise _fail(path, "surface", "missing (slides need a surface, or a file-level label)")
+        if "ra_um" in a:
+            if a["ra_um"].dtype.kind != "f":
+                raise _fail(path, "ra_um", f"must be float, got {a['ra_um'].dtype}")
+            rec.ra_um = a["ra_um"].astype(np.float64)
+    return rec
+
+
+@dataclass
+class StreamedArray:
+    """An array written block by block (bounded memory): its final ``shape`` and ``dtype``, and ``blocks`` of rows.
+
+    The blocks must add up to ``shape`` exactly (C order, first axis); :func:`atomic_savez` checks that.
+    """
+
+    shape: tuple[int, ...]
+    dtype: np.dtype[Any]
+    blocks: Iterable[npt.NDArray[Any]]
+
+
+def save_recording(path: str | Path, rec: Recording, samples: StreamedArray | None = None) -> None:
+    """Write ``rec`` to ``path`` atomically: a temporary file in the same folder, then rename.
+
+    ``samples``, if given, replaces ``rec.samples``: a recording written from blocks (the journal, the recorder).
+    """
+    arrays: dict[str, Any] = {
+        "samples": rec.samples if samples is None else samples,
+        "fs": np.float64(rec.fs),
+        "volts_per_count": np.float64(rec.volts_per_count),
+        "first_index": np.int64(rec.first_index),
+        "lost": np.asarray(rec.lost, dtype=np.int64).reshape(-1, 2),
+        "meta": np.str_(json.dumps(rec.meta, sort_keys=True)),
+    }
+    if rec.slide_start is not None and rec.slide_stop is not None:
+        arrays["slide_start"] = np.asarray(rec.slide_start, dtype=np.int64)
+        arrays["slide_stop"] = np.asarray(rec.slide_stop, dtype=np.int64)
+    if rec.surface is not None:
+        arrays["surface"] = np.asarray(rec.surface, dtype=np.str_)
+    if rec.ra_um is not None:
+        arrays["ra_um"] = np.asarray(rec.ra_um, dtype=np.float64)
+    if rec.label is not None:
+        arrays["label"] = np.str_(rec.label)
+    atomic_savez(path, arrays)
+
+
+def atomic_savez(path: str | Path, arrays: dict[str, Any]) -> None:
+    """What ``np.savez`` writes (uncompressed zip of ``.npy`` members), to a temporary file beside ``path``, then
+    fsync and rename over it and fsync the folder: ``path`` is the old file or the whole new one, even after a
+    power cut. A :class:`StreamedArray` value is written block by block."""
+    path = Path(path)
+    folder = path.parent or Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    done = False
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            with zipfile.ZipFile(fh, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+                for key, value in arrays.items():
+                    with zf.open(f"{key}.npy", "w", force_zip64=True) as member:
+                        if isinstance(value, StreamedArray):
+                            _write_streamed(member, key, value)
+                        else:
+                            np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+            fh.flush()
+            os.fsync(fh.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+        done = True
+        fsync_dir(folder)
+    finally:
+        if not done:  # interrupted or failed: never leave a half-written file behind
+            os.unlink(tmp)
+
+
+def _write_streamed(member: IO[bytes], key: str, value: StreamedArray) -> None:
+    dtype = np.dtype(value.dtype)
+    np.lib.format.write_array_header_1_0(member, {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
+                                                  "shape": tuple(value.shape)})
+    row = value.shape[1:]
+    rows = 0
+    for block in value.blocks:
+        if block.shape[1:] != row:
+            raise ValueError(f"{key}: block of shape {block.shape} in an array of rows {row}")
+        member.write(np.ascontiguousarray(block, dtype=dtype).tobytes())
+        rows += block.shape[0]
+    if rows != value.shape[0]:
+        raise ValueError(f"{key}: blocks hold {rows} rows, the header says {value.shape[0]}")
+
+
+def fsync_dir(path: str | Path) -> None:
+    """fsync a folder, so a file just created or renamed in it survives a power cut."""
+    fd = os.open(path or ".", os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

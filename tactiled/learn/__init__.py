@@ -1,0 +1,1 @@
+"""Learning: datasets of slides, model files, classifiers, the training search, scoring and the papers' experiments."""

@@ -1,0 +1,511 @@
+"""Models: a scikit-learn pipeline over window features, and its files (``.npz`` + JSON; never pickle).
+
+A model classifies windows of a slide and combines them (:meth:`Model.fuse`):
+
+    raw features (n, F) ─▶ log10 of scale features ─▶ StandardScaler ─▶ classifier ─▶ scores (n, K)
+    slide: mean of its windows' scores (or the scores of the mean of their features) ─▶ softmax(· / temperature) ─▶ probabilities (K,)
+
+``pipeline`` is a real :class:`sklearn.pipeline.Pipeline` (steps ``log``, ``scale``,
+``clf``), so scikit-learn's tools work on it. The classifier is one of ``elm`` (the
+papers' extreme learning machine), ``knn``, ``svm`` (RBF) or ``linear`` (L2-regularised
+multinomial logistic regression). Scores are the classifier's decision values (log
+probabilities for kNN); ``temperature`` is fitted on out-of-fold slides in training so
+that a slide's confidence is calibrated.
+
+File arrays: ``header`` (0-d unicode, JSON), ``classes`` (K,) unicode, ``scaler_mean`` and
+``scaler_scale`` (F,); per classifier: elm ``weights`` (F, L), ``biases`` (L,), ``beta``
+(L, K'), ``elm_temperature`` (); linear ``coef`` (K'', F), ``intercept`` (K'',); knn and
+svm ``train_x`` (n, F) standardised and ``train_y`` (n,) (both deterministic, refit at
+load; at most :data:`MAX_REFIT_ROWS` rows so a load never hangs); svm also the fitted
+``svm_support``, ``svm_dual_coef``, ``svm_intercept``, ``svm_n_support``, ``svm_gamma``
+(optional: :mod:`tactiled.learn.infer` evaluates the model with numpy alone, no refit, no
+scikit-learn import; ``load_model(lean=False)`` takes the scikit-learn path; an svm that
+must be refit at load has at most :data:`MAX_SVM_REFIT_ROWS` rows). Only the arrays of the
+file's classifier are read, at most :data:`MAX_MODEL_BYTES` inflated. The header carries the
+format and its version, the method, the classifier and its parameters, the analysis
+settings (windows, spikes, feature names), fs, channels, temperature, a training summary
+(including the cross-validated accuracy), and ``fingerprint``: the SHA-256 (first 16 hex
+digits) of the header without it and of every array's bytes. Loading checks all of it (types,
+ranges, shapes, and that the stream's channels hold the features), runs a probe (one window of
+synthetic noise through the whole analysis and the classifier, which must give a finite
+probability), and refuses anything wrong with one line naming file and part: a model that
+loads cannot crash the daemon at the first slide.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from tactiled.core.analysis import Analyser, AnalysisSettings
+from tactiled.core.features import FeaturePlan, classifier_inputs
+from tactiled.errors import ModelError
+from tactiled.files.npzio import NpzError, NpzReader, load_json_bounded
+from tactiled.files.recording import atomic_savez
+from tactiled.learn.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, log_proba, pm_half, svm_arrays
+
+FORMAT = "tactiled-model"
+FORMAT_VERSION = 2
+CLASSIFIERS = ("elm", "knn", "svm", "linear")
+MAX_REFIT_ROWS = 20_000
+MAX_SVM_REFIT_ROWS = 4000  # an RBF SVM refit at load (a file without its fitted SVM, or lean=False): 4000 rows of noise take ~2 s, 20 000 minutes
+MAX_FEATURES = 4096
+MAX_MODEL_BYTES = 256 << 20  # all arrays of a model file, inflated
+MAX_WINDOW_SAMPLES = 1 << 20  # an analysis window: 52 s at 20 kHz
+ARRAYS = {"elm": ("weights", "biases", "beta", "elm_temperature"), "linear": ("coef", "intercept"), "knn": ("train_x", "train_y"),
+          "svm": ("train_x", "train_y")}
+FloatArray = npt.NDArray[np.float64]
+
+
+def default_model_path() -> Path:
+    """The model shipped in the package."""
+    return Path(str(resources.files("tactiled") / "data" / "default_model.npz"))
+
+
+def make_classifier(kind: str, params: dict[str, Any], seed: int = 0) -> Any:
+    """A fresh scikit-learn estimator of ``kind`` (elm, knn, svm, linear) with ``params``."""
+    if kind == "elm":
+        from tactiled.learn.elm import ELMClassifier
+
+        return ELMClassifier(n_hidden=int(params.get("n_hidden", 200)), alpha=float(params.get("alpha", 1e-6)), random_state=seed,
+                             init=str(params.get("init", "hpelm")), calibrate=bool(params.get("calibrate", False)))
+    if kind == "knn":
+        from sklearn.neighbors import KNeighborsClassifier
+
+        return KNeighborsClassifier(n_neighbors=int(params.get("n_neighbors", 9)))
+    if kind == "svm":
+        from sklearn.svm import SVC
+
+        return SVC(kernel=str(params.get("kernel", "rbf")), C=float(params.get("C", 10.0)), gamma=params.get("gamma", "scale"), random_state=seed)
+    if kind == "linear":
+        from sklearn.linear_model import LogisticRegression
+
+        return LogisticRegression(C=float(params.get("C", 1.0)), max_iter=int(params.get("max_iter", 1000)))
+    raise ModelError(f"unknown classifier {kind!r}; choose one of {', '.join(CLASSIFIERS)}")
+
+
+class LogFeatures:
+    """The pipeline's first step: :func:`tactiled.core.features.classifier_inputs` for ``names`` (stateless)."""
+
+    def __init__(self, names: tuple[str, ...] | list[str] = ()) -> None:
+        self.names = names
+
+    def fit(self, x: Any, y: Any = None) -> LogFeatures:
+        return self
+
+    def transform(self, x: Any) -> FloatArray:
+        return classifier_inputs(np.asarray(x, dtype=np.float64), list(self.names))
+
+    def get_params(self, deep: bool = True) -> dict[str, Any]:
+        return {"names": self.names}
+
+    def set_params(self, **params: Any) -> LogFeatures:
+        self.names = params.get("names", self.names)
+        return self
+
+
+def make_pipeline(names: tuple[str, ...] | list[str], kind: str, params: dict[str, Any], seed: int = 0) -> Any:
+    """An unfitted sklearn Pipeline: log of scale features → standardise → [the ``kbest`` best by ANOVA F] → classifier."""
+    from sklearn.pipeline import Pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    steps: list[tuple[str, Any]] = [("log", LogFeatures(tuple(names))), ("scale", StandardScaler())]
+    k = int(params.get("kbest", 0))
+    if 0 < k < len(names):
+        from sklearn.feature_selection import SelectKBest, f_classif
+
+        steps.append(("select", SelectKBest(f_classif, k=k)))
+    return Pipeline([*steps, ("clf", make_classifier(kind, params, seed))])
+
+
+def decision_scores(clf: Any, z: FloatArray) -> FloatArray:
+    """Scores (n, K) of a fitted classifier, columns in ``clf.classes_`` order, higher is likelier.
+
+    Decision values where the classifier has them (a binary (n,) becomes ±d/2), else the log
+    of its probabilities (floored at 1e-3, so one window can never veto a class).
+    """
+    if hasattr(clf, "decision_function") and len(clf.classes_) > 1:
+        d = np.asarray(clf.decision_function(z), dtype=np.float64)
+        return pm_half(d) if d.ndim == 1 else d
+    return log_proba(np.asarray(clf.predict_proba(z), dtype=np.float64))
+
+
+def softmax(z: FloatArray, temperature: float = 1.0) -> FloatArray:
+    """Row-wise softmax of ``z / temperature``: always finite, in [0, 1], rows summing to 1.
+
+    A NaN score counts as the least likely class, ±inf as ±1e300; a temperature that is not
+    finite and > 0 is taken as 1 (models are refused at load for it; this is the last guard).
+    """
+    if not (math.isfinite(temperature) and temperature > 0):
+        temperature = 1.0
+    with np.errstate(over="ignore", invalid="ignore"):
+        z = np.asarray(z, dtype=np.float64) / temperature
+    z = np.clip(np.nan_to_num(z, nan=-1e300, posinf=1e300, neginf=-1e300), -1e300, 1e300)
+    z = z - z.max(axis=-1, keepdims=True)
+    e = np.exp(z)
+    out: FloatArray = e / e.sum(axis=-1, keepdims=True)
+    return out
+
+
+def fit_temperature(scores: FloatArray, y_idx: npt.NDArray[np.intp], smoothing: float = 0.02) -> float:
+    """Temperature T minimising the log loss of softmax(scores / T) against ``y_idx`` (rows = slides).
+
+    The targets are label-smoothed (``smoothing`` of the mass spread over the other classes),
+    so perfectly separated training slides do not drive T to zero and every confidence to 1.
+    Slides with no window, or whose true class the fold's model never saw, are ignored;
+    other classes it never saw count as far less likely than any seen one.
+    """
+    from scipy import optimize
+
+    ok = y_idx >= 0
+    ok[ok] = np.isfinite(scores[ok, y_idx[ok]])
+    if ok.sum() < 2 or scores.shape[1] < 2:
+        return 1.0
+    s, y = scores[ok], y_idx[ok]
+    low = np.where(np.isfinite(s), s, np.inf).min(axis=1, keepdims=True) - 20.0
+    s = np.where(np.isfinite(s), s, low)
+    k = s.shape[1]
+    target = np.full(s.shape, smoothing / (k - 1))
+    target[np.arange(len(y)), y] = 1.0 - smoothing
+
+    def nll(log_t: float) -> float:
+        p = softmax(s, math.exp(log_t))
+        return float(-np.mean(np.sum(target * np.log(np.clip(p, 1e-300, None)), axis=1)))
+
+    res = optimize.minimize_scalar(nll, bounds=(-8.0, 6.0), method="bounded")
+    return float(math.exp(res.x))
+
+
+@dataclass
+class Model:
+    """A trained window classifier with everything needed to use it on a stream."""
+
+    method: str
+    kind: str
+    params: dict[str, Any]
+    classes: list[str]
+    settings: AnalysisSettings
+    fs: float
+    channels: int
+    pipeline: Any
+    temperature: float = 1.0
+    seed: int = 0
+    summary: dict[str, Any] = field(default_factory=dict)
+    fingerprint: str = ""
+    refit: tuple[FloatArray, npt.NDArray[np.str_]] | None = None  # kNN/SVM: standardised training set and labels, stored in the file
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.settings.names
+
+    def scores(self, x: npt.ArrayLike) -> FloatArray:
+        """Window scores (n, K), columns in :attr:`classes` order, for raw features x (n, F)."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, len(self.names))
+        if isinstance(self.pipeline, LeanPipeline):
+            raw, order = self.pipeline.scores(x), self.pipeline.classes_
+        else:
+            raw, order = decision_scores(self.pipeline[-1], self.pipeline[:-1].transform(x)), self.pipeline[-1].classes_
+        if len(order) == len(self.classes) and all(str(c) == k for c, k in zip(order, self.classes, strict=True)):
+            return raw
+        full = np.full((raw.shape[0], len(self.classes)), raw.min() - 10.0 if raw.size else -10.0)
+        index = {c: i for i, c in enumerate(self.classes)}
+        for j, c in enumerate(order):
+            full[:, index[str(c)]] = raw[:, j]
+        return full
+
+    def fuse(self, scores: FloatArray) -> FloatArray:
+        """Probabilities (K,) of a slide from the scores (w, K) of its windows (w >= 1)."""
+        return softmax(np.asarray(scores, dtype=np.float64).mean(axis=0), self.temperature)
+
+    def slide_proba(self, features: FloatArray) -> FloatArray:
+        """Probabilities (K,) of a slide from the raw features (w, F) of its windows (w >= 1), by the settings' ``fusion``."""
+        x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
+        if self.settings.fusion == "features":
+            return softmax(self.scores(x.mean(axis=0, keepdims=True))[0], self.temperature)
+        return self.fuse(self.scores(x))
+
+    def predict_proba(self, x: npt.ArrayLike) -> FloatArray:
+        """(n, K) probabilities of single windows."""
+        return softmax(self.scores(x), self.temperature)
+
+    def predict(self, x: npt.ArrayLike) -> npt.NDArray[np.str_]:
+        return np.asarray(self.classes)[np.argmax(self.scores(x), axis=1)]
+
+    def check_stream(self, fs: float, channels: int, where: str = "stream") -> None:
+        """Refuse a stream of another rate or channel count (one line)."""
+        if abs(fs - self.fs) > 1e-6 * self.fs:
+            raise ModelError(f"model trained at fs {self.fs:g} Hz, {where} is {fs:g} Hz")
+        if channels < self.channels:
+            raise ModelError(f"model needs {self.channels} channels, {where} has {channels}")
+
+    def describe(self) -> str:
+        """One line: method, classifier, features, windows, cross-validated accuracy."""
+        cv = self.summary.get("cv_accuracy")
+        acc = f", CV accuracy {cv['mean']:.3f} ± {cv['sd']:.3f}" if isinstance(cv, dict) else ""
+        s = self.settings
+        return (f"{self.method}: {self.kind} on {len(self.names)} features, windows {s.duration_s:g} s every {s.hop():g} s from "
+                f"{s.start_s:g} s{' (at most ' + str(s.max_windows) + ')' if s.max_windows else ''}, {len(self.classes)} classes{acc}")
+
+    # ---- persistence -------------------------------------------------------------------------
+
+    def _arrays(self) -> dict[str, Any]:
+        if isinstance(self.pipeline, LeanPipeline):
+            return dict(self.pipeline.arrays)
+        scaler, clf = self.pipeline.named_steps["scale"], self.pipeline.named_steps["clf"]
+        arrays: dict[str, Any] = {"classes": np.array(self.classes, dtype=np.str_), "scaler_mean": np.asarray(scaler.mean_, dtype=np.float64),
+                                  "scaler_scale": np.asarray(scaler.scale_, dtype=np.float64)}
+        if self.kind == "elm":
+            arrays.update(weights=clf.weights_, biases=clf.biases_, beta=clf.beta_, elm_temperature=np.float64(clf.temperature_))
+        elif self.kind == "linear":
+            arrays.update(coef=np.asarray(clf.coef_, dtype=np.float64), intercept=np.asarray(clf.intercept_, dtype=np.float64))
+        else:
+            assert self.refit is not None, "a kNN or SVM model keeps its training set"
+            arrays.update(train_x=np.asarray(self.refit[0], dtype=np.float64), train_y=np.asarray(self.refit[1], dtype=np.str_))
+            if self.kind == "svm":  # the fitted SVM, so that loading needs no refit (tactiled/learn/infer.py)
+                arrays.update(svm_arrays(clf))
+        return arrays
+
+    def _header(self) -> dict[str, Any]:
+        return {"format": FORMAT, "version": FORMAT_VERSION, "method": self.method, "classifier": self.kind, "params": self.params,
+                "seed": self.seed, "classes": self.classes, "settings": self.settings.to_dict(), "fs": self.fs, "channels": self.channels,
+                "temperature": self.temperature, "summary": self.summary}
+
+    def save(self, path: str | Path) -> str:
+        """Write atomically; returns the fingerprint."""
+        arrays = self._arrays()
+        header = self._header()
+        self.fingerprint = _fingerprint(header, arrays)
+        header["fingerprint"] = self.fingerprint
+        atomic_savez(path, {"header": np.str_(json.dumps(header, sort_keys=True)), **arrays})
+        return self.fingerprint
+
+
+def fit_pipeline(x: FloatArray, y: npt.NDArray[Any], names: list[str] | tuple[str, ...], kind: str, params: dict[str, Any],
+                 seed: int = 0) -> tuple[Any, tuple[FloatArray, npt.NDArray[np.str_]] | None]:
+    """Fit :func:`make_pipeline` on raw features ``x`` (n, F).
+
+    Returns the pipeline and, for kNN and SVM (refit at load), their standardised training
+    set, at most :data:`MAX_REFIT_ROWS` rows (a seeded subsample beyond that).
+    """
+    if kind == "knn":  # never more neighbours than training rows
+        params = {**params, "n_neighbors": max(1, min(int(params.get("n_neighbors", 9)), x.shape[0]))}
+    pipe = make_pipeline(names, kind, params, seed)
+    if kind in ("svm", "knn") and x.shape[0] > MAX_REFIT_ROWS:
+        keep = np.sort(np.random.default_rng(seed).choice(x.shape[0], MAX_REFIT_ROWS, replace=False))
+        x, y = x[keep], y[keep]
+    pipe.fit(x, y)
+    refit = (pipe[:-1].transform(x), np.asarray(y, dtype=np.str_)) if kind in ("svm", "knn") else None
+    return pipe, refit
+
+
+def _fingerprint(header: dict[str, Any], arrays: dict[str, Any]) -> str:
+    h = hashlib.sha256(json.dumps(header, sort_keys=True).encode())
+    for key in sorted(arrays):
+        a = np.ascontiguousarray(arrays[key])
+        h.update(key.encode() + str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
+    return h.hexdigest()[:16]
+
+
+def _need(cond: bool, path: object, what: str) -> None:
+    if not cond:
+        raise ModelError(f"{path}: {what}")
+
+
+def load_model(path: str | Path | None = None, lean: bool = True) -> Model:
+    """Load and check a model file (``None``: the shipped model); :class:`ModelError` names file and problem.
+
+    ``lean``: evaluate with numpy alone when the file allows it (:mod:`tactiled.learn.infer`; no scikit-learn import);
+    False: through the scikit-learn pipeline, refitting kNN and SVM.
+    """
+    path = Path(path) if path else default_model_path()
+    try:
+        with NpzReader(path, MAX_MODEL_BYTES) as reader:
+            _need("header" in reader, path, "header: missing or not a string")
+            text = reader.read("header")
+            _need(text.shape == () and text.dtype.kind == "U", path, "header: missing or not a string")
+            try:
+                header = load_json_bounded(text.item(), "header")
+            except ValueError as exc:
+                raise ModelError(f"{path}: {exc}") from None
+            _need(isinstance(header, dict) and header.get("format") == FORMAT, path, f"header.format: not a {FORMAT} file")
+            _need(header.get("version") == FORMAT_VERSION, path,
+                  f"header.version: {header.get('version')!r} is not the supported {FORMAT_VERSION} (retrain with this tactiled)")
+            kind = header.get("classifier")
+            _need(kind in CLASSIFIERS, path, f"header.classifier: unknown {kind!r}")
+            optional = [k for k in SVM_ARRAYS if k in reader] if kind == "svm" else []
+            keys = ("classes", "scaler_mean", "scaler_scale", *ARRAYS[kind], *optional)
+            missing, extra = [k for k in keys if k not in reader], sorted(set(reader.keys()) - {"header", *keys})
+            _need(not missing, path, f"{', '.join(missing)}: missing")
+            _need(not extra, path, f"{', '.join(extra)}: not an array of a {kind} model (the fingerprint covers every array)")
+            arrays = {k: reader.read(k) for k in keys}
+    except NpzError as exc:
+        what = "no such model file" if str(exc) == "no such file" else str(exc)
+        raise ModelError(f"{path}: array {exc.key}: {what}" if exc.key else f"{path}: {what}") from None
+    try:
+        return _build(path, header, arrays, lean)
+    except ModelError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+        raise ModelError(f"{path}: header or arrays inconsistent: {exc}") from None
+
+
+def _finite(a: Any) -> bool:
+    return bool(np.issubdtype(np.asarray(a).dtype, np.floating) and np.all(np.isfinite(a)))
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _check_settings(path: Path, s: AnalysisSettings, fs: float, channels: int) -> None:
+    _need(all(_is_number(v) for v in (s.start_s, s.duration_s, s.hop_s, s.nsigma)), path, "settings: times and nsigma must be finite numbers")
+    _need(all(isinstance(v, int) and not isinstance(v, bool) for v in (s.max_windows, s.half_width, s.level)), path,
+          "settings: max_windows, half_width, level must be integers")
+    _need(all(isinstance(v, str) for v in (s.spikes, s.wavelet, s.mode, s.fusion, *s.names)), path,
+          "settings: spikes, wavelet, mode, fusion, names must be strings")
+    _need(0 <= s.start_s <= 60 and 0 < s.duration_s <= 60 and 0 <= s.hop_s <= 60, path, "settings: start_s, duration_s, hop_s out of range")
+    _need(0 <= s.max_windows <= 10_000, path, "settings.max_windows: out of range 0..10000")
+    _need(s.fusion in ("scores", "features"), path, "settings.fusion: must be scores or features")
+    _need(s.spikes in ("mad", "hampel", "none") and 1 <= s.half_width <= 1000 and 0 < s.nsigma <= 1000, path, "settings: spike removal out of range")
+    _need(1 <= s.level <= 8, path, "settings.level: must be in 1..8")
+    _need(0 < len(s.names) <= MAX_FEATURES, path, f"settings.names: 1..{MAX_FEATURES} features")
+    _need(1 <= round(s.duration_s * fs) <= MAX_WINDOW_SAMPLES, path, f"settings.duration_s: 1..{MAX_WINDOW_SAMPLES} samples at fs")
+    import pywt
+
+    _need(s.wavelet in pywt.wavelist(kind="discrete") and s.mode in pywt.Modes.modes, path, "settings: wavelet or mode unknown to PyWavelets")
+    try:
+        plan = FeaturePlan(s.names, s.wavelet, s.mode, fs=fs)
+    except ValueError as exc:
+        raise ModelError(f"{path}: settings: {exc}") from None
+    _need(plan.channels_needed <= channels, path, f"settings.names: features of {plan.channels_needed} channels, the model has {channels}")
+    _need(plan.min_samples() <= round(s.duration_s * fs), path,
+          f"settings.duration_s: {s.duration_s:g} s is shorter than the {plan.min_samples()} samples the features need")
+
+
+def _check_params(path: Path, kind: str, params: dict[str, Any]) -> None:
+    def num(key: str, lo: float, hi: float, integer: bool = False) -> None:
+        if key in params:
+            v = params[key]
+            _need(_is_number(v) and lo <= v <= hi and (not integer or isinstance(v, int)), path,
+                  f"params.{key}: must be {'an integer' if integer else 'a number'} in [{lo:g}, {hi:g}]")
+
+    num("n_hidden", 1, 100_000, integer=True)
+    num("alpha", 0, 1e6)
+    num("n_neighbors", 1, 1000, integer=True)
+    num("C", 1e-6, 1e4 if kind == "svm" else 1e9)  # a huge C makes the SVM's refit at load crawl
+    num("max_iter", 1, 100_000, integer=True)
+    num("kbest", 0, MAX_FEATURES, integer=True)
+    if kind == "svm":
+        gamma = params.get("gamma", "scale")
+        _need(params.get("kernel", "rbf") in ("rbf", "linear") and (gamma in ("scale", "auto") or (_is_number(gamma) and 0 < gamma <= 1e6)),
+              path, "params: svm kernel must be rbf or linear, gamma scale, auto or a number in (0, 1e6]")
+    if kind == "elm":
+        _need(str(params.get("init", "hpelm")) in ("hpelm", "huang") and isinstance(params.get("calibrate", False), bool), path,
+              "params: elm init must be hpelm or huang, calibrate true or false")
+
+
+def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: bool = True) -> Model:
+    fingerprint = header.pop("fingerprint", None)
+    _need(fingerprint == _fingerprint(header, arrays), path, "fingerprint does not match the contents (tampered or corrupt)")
+    kind = header["classifier"]
+    fs, channels = header["fs"], header["channels"]
+    _need(_is_number(fs) and 100 <= fs <= 1e6 and isinstance(channels, int) and 1 <= channels <= 8, path,
+          "header: fs must be in 100 Hz..1 MHz and channels in 1..8")
+    fs = float(fs)
+    settings = AnalysisSettings.from_dict(header["settings"])
+    _check_settings(path, settings, fs, channels)
+    f = len(settings.names)
+    classes = [str(c) for c in header["classes"]]
+    _need(1 <= len(classes) <= 10_000 and len(set(classes)) == len(classes), path, "header.classes: 1..10000 distinct classes")
+    _need(list(arrays["classes"]) == classes, path, "classes: differ from the header's")
+    _need(isinstance(header["params"], dict), path, "header.params: must be an object")
+    params, seed = dict(header["params"]), header["seed"]
+    _check_params(path, kind, params)
+    temperature = header.get("temperature", 1.0)
+    _need(_is_number(temperature) and 1e-6 <= temperature <= 1e6, path, "header.temperature: must be a finite number in [1e-6, 1e6]")
+    temperature = float(temperature)
+    _need(isinstance(seed, int) and 0 <= seed < 2**32, path, "header.seed: must be an integer in [0, 2**32)")
+    summary = header.get("summary", {})
+    cv = summary.get("cv_accuracy") if isinstance(summary, dict) else None
+    _need(isinstance(summary, dict) and (cv is None or (isinstance(cv, dict) and _is_number(cv.get("mean")) and _is_number(cv.get("sd")))),
+          path, "header.summary: must be an object, its cv_accuracy mean and sd numbers")
+    mean, scale = arrays["scaler_mean"], arrays["scaler_scale"]
+    for key, a in (("scaler_mean", mean), ("scaler_scale", scale)):
+        _need(a.shape == (f,) and _finite(a), path, f"{key}: must be ({f},) finite floats")
+    _need(bool(np.all(scale > 0)), path, "scaler_scale: must be > 0")
+    if kind == "elm":
+        w, b, beta = arrays["weights"], arrays["biases"], arrays["beta"]
+        hidden = int(params.get("n_hidden", 200))
+        _need(w.shape == (f, hidden) and b.shape == (hidden,) and beta.shape == (hidden, max(len(classes), 2)), path,
+              "weights, biases, beta: shapes do not match the header")
+        _need(all(_finite(a) for a in (w, b, beta)), path, "weights, biases, beta: must be finite floats")
+        elm_t = arrays["elm_temperature"]
+        t = float(elm_t) if elm_t.size == 1 and elm_t.dtype.kind in "fiu" else math.nan
+        _need(elm_t.shape == () and _finite(elm_t) and 1e-6 <= t <= 1e6, path, "elm_temperature: must be a finite float in [1e-6, 1e6]")
+    elif kind == "linear":
+        coef, intercept = arrays["coef"], arrays["intercept"]
+        rows = 1 if len(classes) == 2 else len(classes)
+        _need(coef.shape == (rows, f) and intercept.shape == (rows,) and _finite(coef) and _finite(intercept), path,
+              "coef, intercept: shapes do not match the header or not finite")
+    else:
+        train_x, train_y = arrays["train_x"], arrays["train_y"]
+        _need(train_x.ndim == 2 and train_x.shape[1] == f and 1 <= train_x.shape[0] <= MAX_REFIT_ROWS and train_y.shape == (train_x.shape[0],),
+              path, f"train_x, train_y: shapes do not match the header (at most {MAX_REFIT_ROWS} rows)")
+        _need(train_y.dtype.kind == "U", path, "train_y: must be unicode")
+        _need(_finite(train_x), path, "train_x: must be finite floats")
+        _need(set(map(str, train_y)) == set(classes), path, "train_y: classes differ from the header's")
+        if kind == "knn":
+            _need(int(params.get("n_neighbors", 9)) <= train_x.shape[0], path, "params.n_neighbors: more than the training rows")
+    pipe = lean_pipeline(kind, settings.names, classes, params, arrays) if lean else None
+    if pipe is None:
+        if kind == "svm":
+            _need(train_x.shape[0] <= MAX_SVM_REFIT_ROWS, path, f"train_x: {train_x.shape[0]} rows, more than the {MAX_SVM_REFIT_ROWS} "
+                  "an svm is refit on at load (save it with this tactiled to store the fitted SVM)")
+        pipe = _sklearn_pipeline(settings, kind, params, seed, classes, arrays)
+    model = Model(str(header.get("method", kind)), kind, params, classes, settings, fs, channels, pipe, temperature, seed,
+                  dict(summary), fingerprint or "", None if kind in ("elm", "linear") else (train_x, train_y))
+    _probe(path, model)
+    return model
+
+
+def _probe(path: Path, model: Model) -> None:
+    """One window of seeded noise through the model's whole analysis and classifier, as the daemon runs them: it must give a probability."""
+    s = model.settings
+    noise = np.random.default_rng(0).standard_normal((round(s.duration_s * model.fs), model.channels)) * 0.01
+    try:
+        window = Analyser(s, model.fs, 1.0, integer=False).analyse(noise)
+        _need(window.features is not None, path, f"probe window: no features ({window.reason})")
+        assert window.features is not None
+        two = np.stack([window.features, window.features * 1.5])
+        scores = model.scores(two)
+        p = model.slide_proba(two)
+    except (ValueError, FloatingPointError, ArithmeticError, IndexError, TypeError) as exc:
+        raise ModelError(f"{path}: probe prediction failed: {exc}") from None
+    _need(scores.shape == (2, len(model.classes)) and bool(np.all(np.isfinite(scores))), path, "probe prediction: scores are not finite")
+    _need(bool(np.all(np.isfinite(p))) and abs(float(p.sum()) - 1.0) < 1e-6, path, "probe prediction is not a finite probability")
+
+
+def _sklearn_pipeline(settings: AnalysisSettings, kind: str, params: dict[str, Any], seed: int, classes: list[str], arrays: dict[str, Any]) -> Any:
+    """The scikit-learn pipeline of a model file's (already checked) arrays; kNN and SVM are refitted on the stored training set."""
+    f = len(settings.names)
+    pipe = make_pipeline(settings.names, kind, params, seed)
+    scaler, clf = pipe.named_steps["scale"], pipe.named_steps["clf"]
+    mean, scale = arrays["scaler_mean"], arrays["scaler_scale"]
+    scaler.mean_, scaler.scale_, scaler.var_ = mean, scale, scale**2
+    scaler.n_features_in_, scaler.n_samples_seen_ = f, 1
+    if kind == "elm":
+        clf.weights_, clf.biases_, clf.beta_ = arrays["weights"], arrays["biases"], arrays["beta"]
+        clf.temperature_, clf.classes_, clf.n_features_in_ = float(arrays["elm_temperature"]), np.array(classes), f
+    elif kind == "linear":
+        clf.coef_, clf.intercept_, clf.classes_, clf.n_features_in_ = arrays["coef"], arrays["intercept"], np.array(classes), f
+    else:
+        clf.fit(arrays["train_x"], arrays["train_y"])
+    return pipe

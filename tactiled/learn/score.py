@@ -1,0 +1,69 @@
+"""Honest scores: a model run end to end (replay's pipeline) over recordings, against every true slide.
+
+With per-slide ground truth, each true slide is paired with the pipeline's slide that
+overlaps it most (:func:`tactiled.core.matching.match_slides`); a true slide without a label
+(missed by the detector, or abstained) counts as wrong. With a file-level ``label`` only,
+the slides are the detector's and each should carry that label. Accuracy is over every
+true slide; coverage is the fraction that got a label; abstentions are listed by reason.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from tactiled.config import Config
+from tactiled.core.pipeline import SlideResult
+from tactiled.files.recording import Recording
+from tactiled.run.replay import pair_results, replay_recording
+
+
+def confusion(y_true: Sequence[str], y_pred: Sequence[str | None], classes: Sequence[str]) -> dict[str, Any]:
+    """Per-class recall and the confusion matrix (rows true, columns predicted; a last column '-' for no label)."""
+    from sklearn.metrics import confusion_matrix
+
+    labels = sorted(set(classes) | set(y_true))
+    cols = [*labels, "-"]
+    pred = [p if p is not None else "-" for p in y_pred]
+    cm = confusion_matrix(list(y_true), pred, labels=cols)[: len(labels)] if len(y_true) else np.zeros((0, len(cols)), dtype=int)
+    recall = {c: float(cm[i, i] / cm[i].sum()) for i, c in enumerate(labels) if cm[i].sum()}
+    return {"classes": cols, "confusion": cm.tolist(), "recall": recall}
+
+
+def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[SlideResult]], classes: Sequence[str]) -> dict[str, Any]:
+    """Scores over every true slide of ``recs`` given the pipeline's ``results`` per recording."""
+    y_true: list[str] = []
+    y_pred: list[str | None] = []
+    reasons: Counter[str] = Counter()
+    extra = 0
+    per_file = []
+    for (name, rec), res in zip(recs, results, strict=True):
+        truth, paired, unpaired = pair_results(rec, res)
+        extra += unpaired
+        right = 0
+        for t, r in zip(truth, paired, strict=True):
+            y_true.append(t)
+            y_pred.append(None if r is None else r.label)
+            if r is None:
+                reasons["missed_by_detector"] += 1
+            elif r.label is None:
+                reasons[r.reason or "?"] += 1
+            right += r is not None and r.label == t
+        per_file.append({"file": name, "slides": len(truth), "correct": right, "unpaired_detections": unpaired})
+    n = len(y_true)
+    correct = sum(p == t for p, t in zip(y_pred, y_true, strict=True))
+    labelled = sum(p is not None for p in y_pred)
+    out = {"n": n, "correct": correct, "accuracy": correct / n if n else 0.0, "labelled": labelled, "coverage": labelled / n if n else 0.0,
+           "accuracy_of_labelled": correct / labelled if labelled else 0.0, "abstained": dict(reasons), "unpaired_detections": extra,
+           "files": per_file}
+    out.update(confusion(y_true, y_pred, classes))
+    return out
+
+
+def score_recordings(recs: Sequence[tuple[str, Recording]], config: Config, model: Any) -> dict[str, Any]:
+    """Replay every recording through the pipeline with ``model`` and score it (:func:`score`)."""
+    results = [replay_recording(rec, config, model) for _, rec in recs]
+    return score(recs, results, model.classes)

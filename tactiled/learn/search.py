@@ -1,0 +1,518 @@
+"""Model selection: which features, classifier and windows work on the user's recordings.
+
+A candidate combines a feature family set (:data:`tactiled.core.features.FAMILIES`: the papers'
+DWT statistics, log band energies of the Welch PSD, texture descriptors), a classifier
+(ELM, kNN, SVM, regularised linear), a window placement (length, first window's offset
+from the slide's start, how many windows), and optionally forward feature selection. The
+papers' method (:data:`PAPER`: DWT statistics of one 0.5 s window 0.3 s after the start,
+sequential forward selection, ELM) is one of the candidates.
+
+Every candidate is scored by grouped cross-validation (folds never split a recording) at
+the level that matters: the label of each whole slide, from its windows' fused scores,
+over every slide (a slide with no usable window counts as wrong); selection and scaling
+are fitted inside each training fold only. The leaderboard lists mean ± sd over outer
+folds. The winner is the simplest candidate whose mean is within one standard error of
+the best mean (:func:`choose`): with few recordings the top of the leaderboard is within
+noise, and the simpler candidate is the safer bet on new data. Its accuracy is estimated
+honestly by nested cross-validation: in each outer fold, the same rule on an inner grouped
+CV of the training files alone picks a candidate, which is then scored on the held-out
+files. The winner is refitted on every recording; its temperature is fitted on its
+out-of-fold slide scores.
+
+Work is spread over every core with joblib; ``scheduler`` (a dask.distributed address)
+sends it to a cluster through joblib's Dask backend instead.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from tactiled.config import Config
+from tactiled.core.analysis import AnalysisSettings, window_settings
+from tactiled.core.features import name_family
+from tactiled.errors import TactiledError
+from tactiled.files.recording import Recording
+from tactiled.learn.dataset import Slide, SlideCounts, WindowSet, collect_windows, find_slides
+from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature
+
+Progress = Callable[[str], None]
+FloatArray = npt.NDArray[np.float64]
+
+PARAMS: dict[str, dict[str, Any]] = {
+    "elm": {"n_hidden": 200, "alpha": 1e-3},
+    "knn": {"n_neighbors": 9},
+    "svm": {"kernel": "rbf", "C": 10.0, "gamma": "scale"},
+    "linear": {"C": 10.0, "max_iter": 2000},
+}
+KIND_RANK: dict[str, int] = {"linear": 0, "svm": 1, "knn": 2, "elm": 3}
+PAPER_PARAMS: dict[str, Any] = {"n_hidden": 200, "alpha": 1e-6}
+# (start_s, duration_s, max_windows): windows back to back from the slide's start, or from 0.3 s (after the onset transient)
+PLACEMENTS: tuple[tuple[float, float, int], ...] = ((0.0, 0.25, 0), (0.3, 0.25, 0), (0.0, 0.5, 0))
+# (families, classifier): cheap and robust first, so ties go to them; each window classified, scores averaged
+# (families, classifier, k): k > 0 keeps the k features with the largest ANOVA F (fitted in each training fold)
+COMBINATIONS: tuple[tuple[tuple[str, ...], str, int], ...] = (
+    (("psd",), "linear", 0), (("psd", "tex"), "linear", 0), (("psd",), "svm", 0), (("psd", "tex"), "svm", 0),
+    (("psd", "tex"), "svm", 8), (("psd", "tex"), "knn", 4), (("psd",), "elm", 0), (("dwt",), "svm", 8), (("dwt",), "linear", 0),
+)
+# whole-slide representations: the mean of the windows' features (for psd: the slide's spectrum), one row per slide
+SLIDE_PLACEMENTS: tuple[tuple[float, float, int], ...] = ((0.0, 0.25, 0), (0.3, 0.25, 0))
+SLIDE_COMBINATIONS: tuple[tuple[tuple[str, ...], str, int], ...] = (
+    (("psd",), "linear", 0), (("psd",), "svm", 0), (("psd", "tex"), "linear", 0), (("psd", "tex"), "svm", 8), (("psd", "tex"), "knn", 4),
+    (("dwt",), "svm", 8),
+)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One way to build a model: feature families, classifier kind, window placement, and whether forward selection picks the features."""
+
+    families: tuple[str, ...]
+    kind: str
+    duration_s: float
+    start_s: float = 0.0
+    max_windows: int = 0
+    sfs: bool = False
+    fusion: str = "scores"  # scores: average the windows' scores; features: classify the slide's average features
+    kbest: int = 0  # keep the k features with the largest ANOVA F (0: all)
+
+    @property
+    def name(self) -> str:
+        where = f" from {self.start_s:g} s" if self.start_s else ""
+        count = " x1" if self.max_windows == 1 else ""
+        whole = " / slide mean" if self.fusion == "features" else ""
+        chosen = f"+best{self.kbest}" if self.kbest else "+sfs" if self.sfs else ""
+        return f"{'+'.join(self.families)}{chosen} / {self.kind} / {self.duration_s:g} s{where}{count}{whole}"
+
+    @property
+    def params(self) -> dict[str, Any]:
+        base = PAPER_PARAMS if self.sfs else PARAMS[self.kind]
+        return {**base, "kbest": self.kbest} if self.kbest else base
+
+    @property
+    def placement(self) -> tuple[float, float, int]:
+        return self.start_s, self.duration_s, self.max_windows
+
+
+# the papers' method: DWT statistics of one 0.5 s window 0.3 s after the start, forward selection, ELM
+PAPER = Candidate(("dwt",), "elm", 0.5, 0.3, 1, True)
+
+
+def default_candidates() -> list[Candidate]:
+    """The search space of ``tactiled train``: every combination at every placement, and the papers' method."""
+    return ([Candidate(fams, kind, d, start, n, kbest=k) for start, d, n in PLACEMENTS for fams, kind, k in COMBINATIONS]
+            + [Candidate(fams, kind, d, start, n, fusion="features", kbest=k) for start, d, n in SLIDE_PLACEMENTS for fams, kind, k in SLIDE_COMBINATIONS]
+            + [PAPER])
+
+
+def quick_candidates() -> list[Candidate]:
+    """``tactiled train --method quick``: a first model in seconds (log band energies and texture, linear and kNN, 0.5 s windows)."""
+    return [Candidate(("psd", "tex"), "linear", 0.5), Candidate(("psd", "tex"), "knn", 0.5, kbest=8)]
+
+
+@dataclass
+class SearchResult:
+    """The leaderboard (one row per candidate, best first), the winner, its nested CV accuracy and its model."""
+
+    leaderboard: list[dict[str, Any]]
+    winner: str
+    nested: dict[str, Any]
+    model: Model
+    slides: int
+    files: int
+    per_class: dict[str, tuple[int, int, int]]
+    counts: dict[str, Any]
+    seconds: float = 0.0
+    notes: list[str] = field(default_factory=list)
+    models: dict[str, Model] = field(default_factory=dict)
+
+
+# ---- folds and slide-level scoring ------------------------------------------------------------------------------
+
+
+def grouped_splits(y: npt.NDArray[Any], groups: npt.NDArray[Any], n_splits: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
+    """Folds that never split a group (a recording), stratified by ``y`` when every class has enough members, else grouped only."""
+    from sklearn.model_selection import GroupKFold, StratifiedGroupKFold
+
+    n_groups = len(np.unique(groups))
+    if n_groups < 2:
+        raise TactiledError("cross-validation needs at least two recordings")
+    k = max(2, min(n_splits, n_groups))
+    if np.unique(y, return_counts=True)[1].min() < k:  # a class with fewer members than folds: grouped, not stratified
+        return list(GroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, groups))
+    return list(StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, groups))
+
+
+def slide_folds(ws: WindowSet, n_splits: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
+    """Grouped (by file), label-stratified where possible folds of the slides of ``ws`` (slide indices)."""
+    return grouped_splits(ws.slide_labels(), np.array([s.file for s in ws.slides]), n_splits, seed)
+
+
+def _window_rows(ws: WindowSet, slides: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
+    return np.flatnonzero(np.isin(ws.slide, slides))
+
+
+def slide_scores(ws: WindowSet, pipe: Any, cols: Sequence[int], test: npt.NDArray[np.intp], classes: list[str]) -> FloatArray:
+    """Fused scores (len(test), K) of the slides ``test`` from a fitted pipeline: the mean of their windows' scores.
+
+    Columns follow ``classes``; classes the pipeline never saw and slides without windows get -inf.
+    """
+    out = np.full((len(test), len(classes)), -np.inf)
+    te = _window_rows(ws, test)
+    if not len(te):
+        return out
+    raw = decision_scores(pipe[-1], pipe[:-1].transform(ws.x[te][:, cols]))
+    where = {s: i for i, s in enumerate(test)}
+    sums = np.zeros((len(test), raw.shape[1]))
+    counts = np.zeros(len(test))
+    pos = np.array([where[s] for s in ws.slide[te]])
+    np.add.at(sums, pos, raw)
+    np.add.at(counts, pos, 1)
+    has = counts > 0
+    index = {c: i for i, c in enumerate(classes)}
+    for j, c in enumerate(pipe[-1].classes_):
+        out[has, index[str(c)]] = sums[has, j] / counts[has]
+    return out
+
+
+def fold_slide_scores(ws: WindowSet, cols: npt.NDArray[np.intp], kind: str, params: dict[str, Any], train: npt.NDArray[np.intp],
+                      test: npt.NDArray[np.intp], classes: list[str], seed: int) -> FloatArray:
+    """:func:`slide_scores` of the test slides from a pipeline fitted on the train slides' windows (columns ``cols``)."""
+    tr = _window_rows(ws, train)
+    if len(np.unique(ws.y[tr])) < 2:
+        return np.full((len(test), len(classes)), -np.inf)
+    pipe, _ = fit_pipeline(ws.x[tr][:, cols], ws.y[tr], [ws.names[j] for j in cols], kind, params, seed)
+    return slide_scores(ws, pipe, list(cols), test, classes)
+
+
+def accuracy_of(scores: FloatArray, y_idx: npt.NDArray[np.intp]) -> float:
+    """Slide accuracy: argmax of each row against ``y_idx``; a row with no finite score is wrong."""
+    decided = np.isfinite(scores).any(axis=1)
+    pred = np.where(decided, np.argmax(np.where(np.isfinite(scores), scores, -np.inf), axis=1), -1)
+    return float(np.mean(pred == y_idx)) if len(y_idx) else 0.0
+
+
+# ---- parallel execution -----------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def parallel_backend(scheduler: str | None) -> Iterator[None]:
+    """joblib on every local core, or on a dask.distributed cluster at ``scheduler`` (``tcp://host:port``)."""
+    import joblib
+
+    if not scheduler:
+        with joblib.parallel_config(n_jobs=-1):
+            yield
+        return
+    try:
+        from dask.distributed import Client
+    except ImportError:
+        raise TactiledError("--scheduler needs dask.distributed: pip install 'tactiled[cluster]'") from None
+    try:
+        client = Client(scheduler, timeout="10s")
+    except (OSError, TimeoutError) as exc:
+        raise TactiledError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
+    try:
+        with joblib.parallel_config(backend="dask"):
+            yield
+    finally:
+        client.close()
+
+
+# ---- the search ---------------------------------------------------------------------------------------------------
+
+
+def _key(c: Candidate) -> tuple[Any, ...]:
+    key = (*c.placement, c.families)
+    return (*key, "features") if c.fusion == "features" else key
+
+
+def _columns(ws: WindowSet, families: Sequence[str]) -> npt.NDArray[np.intp]:
+    return np.array([j for j, n in enumerate(ws.names) if name_family(n) in families], dtype=np.intp)
+
+
+def fit_candidate(ws: WindowSet, rows: npt.NDArray[np.intp], c: Candidate, seed: int, inner_folds: int = 3) -> tuple[list[int], Any, Any]:
+    """(columns, fitted pipeline, refit data) of candidate ``c`` on the windows ``rows``; forward selection first if ``c.sfs``."""
+    cols = [int(j) for j in _columns(ws, c.families)]
+    if c.sfs:
+        cols = [cols[j] for j in sfs_columns(_restrict(ws, cols), rows, seed, inner_folds)]
+    pipe, refit = fit_pipeline(ws.x[rows][:, cols], ws.y[rows], [ws.names[j] for j in cols], c.kind, c.params, seed)
+    if "select" in pipe.named_steps:  # bake the selection into the columns: the model then computes only those features
+        cols = [cols[j] for j in np.flatnonzero(pipe.named_steps["select"].get_support())]
+        params = {k: v for k, v in c.params.items() if k != "kbest"}
+        pipe, refit = fit_pipeline(ws.x[rows][:, cols], ws.y[rows], [ws.names[j] for j in cols], c.kind, params, seed)
+    return cols, pipe, refit
+
+
+def _restrict(ws: WindowSet, cols: list[int]) -> WindowSet:
+    if len(cols) == len(ws.names):
+        return ws
+    return replace(ws, x=ws.x[:, cols], names=[ws.names[j] for j in cols])
+
+
+def candidate_fold(ws: WindowSet, c: Candidate, train: npt.NDArray[np.intp], test: npt.NDArray[np.intp], classes: list[str], seed: int,
+                   inner_folds: int) -> FloatArray:
+    """Fused scores of the test slides from candidate ``c`` fitted on the train slides (selection inside them only)."""
+    tr = _window_rows(ws, train)
+    if len(np.unique(ws.y[tr])) < 2:
+        return np.full((len(test), len(classes)), -np.inf)
+    cols, pipe, _ = fit_candidate(ws, tr, c, seed, inner_folds)
+    return slide_scores(ws, pipe, cols, test, classes)
+
+
+def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, list[tuple[Any, Any]]]], classes: list[str], seed: int,
+                    inner_folds: int) -> list[tuple[FloatArray, list[FloatArray]]]:
+    """:func:`candidate_fold` on every (outer train, outer test, inner folds) split: the outer scores and each inner fold's."""
+    return [(candidate_fold(ws, c, tr, te, classes, seed, inner_folds),
+             [candidate_fold(ws, c, itr, ite, classes, seed, inner_folds) for itr, ite in inner]) for tr, te, inner in splits]
+
+
+def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
+           candidates: Sequence[Candidate] | None = None, progress: Progress | None = None, scheduler: str | None = None,
+           found: tuple[list[list[Slide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False) -> SearchResult:
+    """Score every candidate, pick and refit the winner (see the module docstring).
+
+    ``keep_models``: also refit every other candidate (``SearchResult.models``, by name), to compare them on held-out recordings.
+    """
+    say = progress or (lambda m: None)
+    t0 = time.perf_counter()
+    fs, channels = recs[0][1].fs, recs[0][1].channels
+    found = found or find_slides(recs, config)
+    wanted = list(candidates if candidates is not None else default_candidates())
+    sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]] = {}
+    usable: list[Candidate] = []
+    for c in wanted:
+        key: tuple[Any, ...] = (*c.placement, c.families)
+        fams = sorted({f for w in wanted if w.placement == c.placement for f in w.families})
+        full = (*c.placement, tuple(fams))
+        if full not in sets:
+            st = window_settings(config, channels, fs, c.duration_s, fams, start_s=c.start_s, max_windows=c.max_windows)
+            if st is None and "dwt" in fams:  # the DWT does not fit such windows: the other families alone
+                st = window_settings(config, channels, fs, c.duration_s, [f for f in fams if f != "dwt"], c.start_s, c.max_windows)
+            if st is not None:
+                say(f"features of {c.duration_s:g} s windows from {c.start_s:g} s ({len(st.names)} features)")
+                sets[full] = (st, collect_windows(recs, config, st, progress, found=found))
+        if full in sets and all(any(name_family(n) == f for n in sets[full][1].names) for f in c.families):
+            if c.fusion == "features":
+                key = (*key, "features")
+                if key not in sets:
+                    sets[key] = (sets[full][0], sets[full][1].averaged())
+            else:
+                sets[key] = sets[full]
+            usable.append(c)
+    if not usable:
+        raise TactiledError(f"no candidate fits: windows too short for the feature families at {fs:g} Hz; record longer slides")
+    first = sets[_key(usable[0])][1]
+    classes = sorted({s.label for s in first.slides if s.label is not None})
+    if len(classes) < 2:
+        raise TactiledError(f"training needs at least two surfaces, got {classes}")
+    y_idx = np.array([classes.index(s.label) if s.label in classes else -1 for s in first.slides])
+    outer = slide_folds(first, folds, seed)
+    nested_on = len(usable) > 1
+    # every window set has the same slides in the same order (detection does not depend on the window)
+    tasks = []
+    for c in usable:  # one task per candidate (its data crosses to a worker once); per outer fold for the slow forward selection
+        splits = [(tr, te, _inner_folds(sets[_key(c)][1], tr, inner_folds, seed) if nested_on else []) for tr, te in outer]
+        parts = [[sp] for sp in splits] if c.sfs else [splits]
+        tasks += [(candidate_folds, (sets[_key(c)][1], c, part, classes, seed, inner_folds)) for part in parts]
+    n_fits = sum(len(outer) * (1 + (inner_folds if nested_on else 0)) for _ in usable)
+    say(f"cross-validating {len(usable)} candidate(s) over {len(outer)} outer" + (f" x {inner_folds} inner" if nested_on else "")
+        + f" folds: about {n_fits} fits")
+    results = iter(_run_with_progress(tasks, say, scheduler, [t[1][1].sfs for t in tasks]))
+    board: list[dict[str, Any]] = []
+    oof: dict[str, FloatArray] = {}
+    inner_acc: dict[str, list[list[float]]] = {}  # per candidate, per outer fold: the accuracy of each inner fold
+    for c in usable:
+        ws = sets[_key(c)][1]
+        scores = np.full((len(ws.slides), len(classes)), -np.inf)
+        accs, per_outer_inner = [], []
+        per_fold = [r for _ in range(len(outer) if c.sfs else 1) for r in next(results)]
+        for (tr, te), (sc, inner_scores) in zip(outer, per_fold, strict=True):
+            scores[te] = sc
+            accs.append(accuracy_of(sc, y_idx[te]))
+            per_outer_inner.append([accuracy_of(isc, y_idx[ite]) for (_itr, ite), isc in
+                                    zip(_inner_folds(ws, tr, inner_folds, seed) if nested_on else [], inner_scores, strict=True)])
+        oof[c.name] = scores
+        inner_acc[c.name] = per_outer_inner
+        board.append({"candidate": c.name, "families": list(c.families), "classifier": c.kind, "start_s": c.start_s, "duration_s": c.duration_s,
+                      "max_windows": c.max_windows, "sfs": c.sfs, "fusion": c.fusion, "mean": float(np.mean(accs)), "sd": float(np.std(accs)), "folds": accs})
+    means = [float(r["mean"]) for r in board]
+    order = sorted(range(len(board)), key=lambda i: -means[i])  # stable: ties keep the cheaper candidate
+    chosen = choose(usable, [r["folds"] for r in board])
+    board[chosen]["chosen"] = True
+    leaderboard = [board[i] for i in order]
+    best = usable[chosen]
+    # nested: per outer fold, the rule applied to the inner folds' accuracies, its pick scored on that fold
+    nested_accs, picks = [], []
+    for o in range(len(outer)):
+        pick = choose(usable, [inner_acc[c.name][o] for c in usable]) if nested_on else 0
+        picks.append(usable[pick].name)
+        nested_accs.append(float(board[pick]["folds"][o]))
+    nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks}
+    shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
+    summary = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs)}
+    say(f"winner {best.name}: {board[chosen]['mean']:.3f} ± {board[chosen]['sd']:.3f} (best mean {leaderboard[0]['mean']:.3f}); "
+        f"nested CV {nested['mean']:.3f}; fitting on every slide")
+    model = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary)
+    ws = sets[_key(best)][1]
+    result = SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
+                          time.perf_counter() - t0)
+    if keep_models:
+        result.models = {c.name: model if c == best else _refit(sets, c, oof[c.name], y_idx, classes, config, fs, channels, seed,
+                                                                   inner_folds, method, summary) for c in usable}
+    return result
+
+
+def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: Candidate, oof: FloatArray, y_idx: npt.NDArray[np.intp],
+           classes: list[str], config: Config, fs: float, channels: int, seed: int, inner_folds: int, method: str,
+           summary: dict[str, Any]) -> Model:
+    """Candidate ``c`` fitted on every labelled slide, its temperature fitted on its out-of-fold slide scores ``oof``."""
+    st, ws = sets[_key(c)]
+    temperature = fit_temperature(oof, y_idx)
+    rows = np.flatnonzero(ws.y != "")
+    cols, pipe, refit = fit_candidate(ws, rows, c, seed, inner_folds)
+    names = [ws.names[j] for j in cols]
+    settings = replace(st, names=tuple(names), level=st.level if "dwt" in c.families else config.features.level, fusion=c.fusion)
+    summary = {**summary, "slides": len(ws.slides), "windows": len(rows), "classes": classes,
+               "per_class": {k: list(v) for k, v in ws.per_class().items()}, "skipped": ws.skipped, "detector": _counts(ws)}
+    params = {k: v for k, v in c.params.items() if k != "kbest"}
+    if c.kind == "knn":
+        params["n_neighbors"] = int(pipe[-1].n_neighbors)
+    return Model(method, c.kind, params, [str(k) for k in pipe[-1].classes_], settings, fs, channels, pipe, temperature,
+                 seed, summary, "", refit)
+
+
+def complexity(c: Candidate) -> tuple[int, int, int]:
+    """How much a candidate can fit, for :func:`choose` (smaller: simpler).
+
+    Classifier first (a linear model, an RBF SVM, kNN, an ELM, forward selection on top), then how many
+    feature families and whether features are picked by score, then per-window fusion over a whole-slide mean
+    (one row per slide averages the noise out before fitting).
+    """
+    return KIND_RANK[c.kind] + 2 * c.sfs, len(c.families) + (c.kbest > 0), int(c.fusion != "features")
+
+
+def choose(candidates: Sequence[Candidate], folds: Sequence[Sequence[float]]) -> int:
+    """Index of the candidate to keep, from each candidate's accuracy per fold (the one-standard-error rule).
+
+    The best mean accuracy sets the bar: its mean less one standard error (sd over folds / sqrt(folds)).
+    Of the candidates at or above the bar, the simplest (:func:`complexity`) wins; among equally simple
+    ones, the better mean, then the earlier in the list. With few recordings the top candidates are often
+    within noise of each other, and the simpler one is the safer bet on new data (Hastie, Tibshirani and
+    Friedman, The Elements of Statistical Learning, 2nd ed., section 7.10).
+    """
+    means = [float(np.mean(f)) if len(f) else 0.0 for f in folds]
+    return min(within_one_se(folds), key=lambda i: (complexity(candidates[i]), -means[i], i))
+
+
+def within_one_se(folds: Sequence[Sequence[float]]) -> list[int]:
+    """Indices of the candidates whose mean accuracy is at or above the best mean less its standard error (in order)."""
+    means = np.array([np.mean(f) if len(f) else 0.0 for f in folds])
+    top = int(np.argmax(means))
+    bar = means[top] - standard_error(folds[top])
+    return [i for i in range(len(folds)) if means[i] >= bar - 1e-12]
+
+
+def standard_error(folds: Sequence[float]) -> float:
+    """Standard error of the mean of per-fold accuracies: sd (ddof 1) / sqrt(folds); 0 for fewer than two folds."""
+    n = len(folds)
+    return float(np.std(folds, ddof=1)) / np.sqrt(n) if n > 1 else 0.0
+
+
+def _counts(ws: WindowSet) -> dict[str, Any]:
+    c = ws.counts
+    return {"truth": c.truth, "detected": c.detected, "missed": sum(c.missed.values()), "missed_by_file": c.missed,
+            "false": sum(c.false.values())}
+
+
+def _inner_folds(ws: WindowSet, train: npt.NDArray[np.intp], n: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
+    """Grouped folds of the slides ``train`` (indices into ws.slides), as indices into ws.slides; [] if fewer than 2 files."""
+    from sklearn.model_selection import GroupKFold
+
+    files = np.array([ws.slides[i].file for i in train])
+    k = min(n, len(np.unique(files)))
+    if k < 2:
+        return []
+    return [(train[a], train[b]) for a, b in GroupKFold(n_splits=k).split(train, groups=files)]
+
+
+def _run_with_progress(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]], say: Progress, scheduler: str | None,
+                       first: Sequence[bool] | None = None) -> list[Any]:
+    """Results of ``tasks`` in order; the ``first`` ones are started first (the slowest), progress reported as they finish."""
+    from joblib import Parallel, delayed
+
+    order = sorted(range(len(tasks)), key=lambda i: not (first[i] if first is not None else False))
+    out: list[Any] = [None] * len(tasks)
+    step = max(1, len(tasks) // 20)
+    with parallel_backend(scheduler):
+        results = Parallel(return_as="generator")(delayed(tasks[i][0])(*tasks[i][1]) for i in order)
+        for done, (i, result) in enumerate(zip(order, results, strict=True), 1):
+            out[i] = result
+            if done % step == 0 or done == len(tasks):
+                say(f"[{'#' * round(20 * done / len(tasks)):<20s}] {done}/{len(tasks)} tasks")
+    return out
+
+
+# ---- the papers' method ----------------------------------------------------------------------------------------------------
+
+
+def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_folds: int = 3, n_features: int | str = "auto",
+                pool: int = 0) -> list[int]:
+    """Forward selection (scikit-learn's SequentialFeatureSelector, ELM criterion, grouped CV) on the windows ``rows``.
+
+    ``n_features`` "auto": add features while the CV accuracy rises by at least 0.005.
+    Constant columns are never candidates. ``pool`` > 0: only the ``pool`` columns with the largest
+    ANOVA F on ``rows`` are candidates (a cheaper search; every step costs one CV per candidate).
+    Returns column indices into ``ws.names``.
+    """
+    from sklearn.feature_selection import SequentialFeatureSelector
+    from sklearn.pipeline import Pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    from tactiled.learn.elm import ELMClassifier
+    from tactiled.learn.model import LogFeatures
+
+    x, y, g = ws.x[rows], ws.y[rows], ws.groups[rows]
+    cv = grouped_splits(y, g, inner_folds, seed)
+    z = Pipeline([("log", LogFeatures(tuple(ws.names))), ("scale", StandardScaler())]).fit_transform(x)
+    varying = np.flatnonzero(np.ptp(z, axis=0) > 1e-12)
+    if 0 < pool < len(varying) and len(np.unique(y)) > 1:
+        from sklearn.feature_selection import f_classif
+
+        f_stat = np.nan_to_num(f_classif(z[:, varying], y)[0], nan=0.0, posinf=np.finfo(np.float64).max)
+        varying = np.sort(varying[np.argsort(-f_stat, kind="stable")[:pool]])
+    n: int | str = n_features if n_features == "auto" else min(int(n_features), len(varying) - 1)
+    sfs = SequentialFeatureSelector(ELMClassifier(n_hidden=50, calibrate=False, random_state=seed), n_features_to_select=n,
+                                    tol=0.005 if n == "auto" else None, direction="forward", scoring="accuracy", cv=cv)
+    sfs.fit(z[:, varying], y)
+    return [int(varying[j]) for j in np.flatnonzero(sfs.get_support())]
+
+
+def window_oof(ws: WindowSet, cols: npt.NDArray[np.intp], kind: str, params: dict[str, Any],
+               folds: list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]], classes: list[str], seed: int) -> FloatArray:
+    """Out-of-fold scores (w, K) of every window, each from the fold model that did not see its slide (-inf: class unseen)."""
+    out = np.full((len(ws.y), len(classes)), -np.inf)
+    index = {c: i for i, c in enumerate(classes)}
+    for train, test in folds:
+        tr, te = _window_rows(ws, train), _window_rows(ws, test)
+        if len(np.unique(ws.y[tr])) < 2 or not len(te):
+            continue
+        pipe, _ = fit_pipeline(ws.x[tr][:, cols], ws.y[tr], [ws.names[j] for j in cols], kind, params, seed)
+        raw = decision_scores(pipe[-1], pipe[:-1].transform(ws.x[te][:, cols]))
+        for j, c in enumerate(pipe[-1].classes_):
+            out[te, index[str(c)]] = raw[:, j]
+    return out
+
+
+def paper(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
+          progress: Progress | None = None, scheduler: str | None = None,
+          found: tuple[list[list[Slide]], SlideCounts] | None = None) -> SearchResult:
+    """The papers' DWT + SFS + ELM (:data:`PAPER`), cross-validated the same way as :func:`search`, then fitted on everything."""
+    return search(recs, config, folds=folds, inner_folds=inner_folds, seed=seed, candidates=[PAPER], progress=progress, scheduler=scheduler,
+                  found=found, method="paper")

@@ -1,0 +1,93 @@
+"""``tactiled train``: recordings → slides (the daemon's detector, paired with ground truth) → model search → model file.
+
+:func:`train` is the whole command as a library call. Training never drops a surface
+silently: the slides of every surface are counted first, and a surface with fewer than
+``min_slides`` is an error naming it (``drop_rare`` proceeds without it, saying so).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from tactiled.config import Config
+from tactiled.errors import TactiledError
+from tactiled.files.recording import Recording
+from tactiled.learn.dataset import Slide, SlideCounts, find_slides, load_recordings
+from tactiled.learn.search import Candidate, SearchResult, paper, quick_candidates, search
+
+Progress = Callable[[str], None]
+METHODS = ("auto", "quick", "paper")
+
+
+def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None:
+    """Every file readable, one rate and channel count."""
+    if len(recs) != wanted:
+        raise TactiledError("unreadable recordings (listed above); nothing written")
+    if not recs:
+        raise TactiledError("no recordings given")
+    fs = {r.fs for _, r in recs}
+    channels = {r.channels for _, r in recs}
+    if len(fs) != 1 or len(channels) != 1:
+        raise TactiledError(f"recordings differ in fs {sorted(fs)} or channels {sorted(channels)}; train one rate at a time")
+
+
+def class_table(per_file: list[list[Slide]]) -> dict[str, tuple[int, int, int]]:
+    """{surface: (slides, slides the detector found, files)}."""
+    out: dict[str, list[Any]] = {}
+    for slides in per_file:
+        for s in slides:
+            if s.label is None:
+                continue
+            row = out.setdefault(s.label, [0, 0, set()])
+            row[0] += 1
+            row[1] += s.source != "truth"
+            row[2].add(s.file)
+    return {k: (v[0], v[1], len(v[2])) for k, v in sorted(out.items())}
+
+
+def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
+          drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None,
+          candidates: Sequence[Candidate] | None = None, keep_models: bool = False) -> SearchResult:
+    """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save).
+
+    ``candidates`` narrows the default search (``method="auto"``) to the given ones; ``keep_models``: see :func:`search`.
+    """
+    say = progress or (lambda m: None)
+    if method not in METHODS:
+        raise TactiledError(f"--method: must be one of {', '.join(METHODS)}, got {method!r}")
+    if folds < 2:
+        raise TactiledError(f"--folds: must be >= 2, got {folds}")
+    if min_slides < 1:
+        raise TactiledError(f"--min-slides: must be >= 1, got {min_slides}")
+    if seed < 0:
+        raise TactiledError(f"--seed: must be >= 0, got {seed}")
+    recs = load_recordings(paths, say)
+    check_recordings(recs, len(paths))
+    per_file, counts = find_slides(recs, config)
+    table = class_table(per_file)
+    say(f"{len(recs)} files, {sum(len(s) for s in per_file)} slides ({counts.truth} in ground truth, {counts.detected} detected, "
+        f"{sum(counts.missed.values())} missed by the detector, {sum(counts.false.values())} detections outside any true slide)")
+    for name, n in counts.missed.items():
+        say(f"  detector missed {n} true slide(s) in {name}: used at their true bounds")
+    say("slides per surface (slides, found by the detector, files):")
+    for label, (n, det, files) in table.items():
+        say(f"  {label}: {n}, {det}, {files}")
+    rare = [k for k, (n, _, _) in table.items() if n < min_slides]
+    if rare and not drop_rare:
+        raise TactiledError(f"too few slides (< {min_slides}) for surface(s) {', '.join(rare)}; record more, or pass --drop-rare to train without them")
+    if rare:
+        say(f"training without {', '.join(rare)} (--drop-rare)")
+        per_file = [[s for s in slides if s.label not in rare] for slides in per_file]
+    found: tuple[list[list[Slide]], SlideCounts] = (per_file, counts)
+    if method == "paper":
+        result = paper(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found)
+    else:
+        if method == "quick" and candidates is None:
+            candidates = quick_candidates()
+        result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates,
+                        keep_models=keep_models)
+    result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
+    result.model.summary["dropped"] = rare
+    return result

@@ -1,0 +1,198 @@
+"""The ingest core, sans-IO: bytes → frames → channel and gap policies → batches → pipeline → events.
+
+One path for every driver: the daemon feeds it the bytes it reads from the port,
+``tactiled replay x.bin`` the bytes of a raw capture, tests bytes from memory; a recorder
+takes the batches. Nothing here does I/O or reads a clock.
+
+- **Decoder** (:class:`~tactiled.board.frames.FrameDecoder`): frames in bulk, CRC-checked.
+- **Channel policy**: an intact frame whose channel count is not the sensor's is counted in
+  ``stats.channel_errors`` and skipped; it never moves the sample index.
+- **Gap policy**: a forward jump of the index up to ``max_gap`` samples is lost samples (the
+  pipeline marks them invalid); a jump back beyond the duplicate window, or forward beyond
+  ``max_gap`` (by default the ring's length: nothing older could be analysed anyway), is a
+  board restart or a resync. It costs O(1): counted in ``stats.restarts``, the host's timeline
+  continues where it was, and the batch after it carries ``restart`` so the pipeline ends
+  the stream (a slide in progress ends there) before going on.
+- **Batches**: decoded frames are held until at least ``min_batch`` samples are there, then
+  handed out as contiguous :class:`Batch` es (the pipeline's cost is mostly per call).
+- **End of stream**: :meth:`Ingest.flush` then :func:`finish_pipeline`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from tactiled.board.frames import DecoderStats, Frame, FrameDecoder
+from tactiled.core.pipeline import Pipeline, PipelineEvent
+
+
+@dataclass(slots=True)
+class Batch:
+    """Contiguous samples: ``samples`` (n, C) int16 counts whose first has host index ``index``.
+
+    ``lost``: samples missing between the previous batch's end and ``index``;
+    ``restart``: the board restarted (or the stream resynchronised) just before ``index``.
+    """
+
+    index: int
+    samples: npt.NDArray[np.int16]
+    lost: int = 0
+    restart: bool = False
+
+    @property
+    def end(self) -> int:
+        """Host index one past the last sample."""
+        return self.index + self.samples.shape[0]
+
+
+def max_gap_for(ring_seconds: float, fs: float) -> int:
+    """The default gap limit, samples: the ring's length (a longer gap leaves nothing to analyse across it)."""
+    return max(1, round(ring_seconds * fs))
+
+
+class Ingest:
+    """Bytes in, :class:`Batch` es out; counters in :attr:`stats` (see the module docstring)."""
+
+    def __init__(self, channels: int, *, max_gap: int, min_batch: int = 1, duplicate_window: int = 65536) -> None:
+        self.channels = channels
+        self.min_batch = max(1, int(min_batch))
+        self.decoder = FrameDecoder(duplicate_window, channels=channels, max_gap=max_gap)
+        self._pending: list[Frame] = []
+        self._pending_n = 0
+
+    @property
+    def stats(self) -> DecoderStats:
+        return self.decoder.stats
+
+    @property
+    def held(self) -> int:
+        """Samples decoded but not yet handed out (waiting for ``min_batch``)."""
+        return self._pending_n
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Batch]:
+        """Decode ``data``; the batches it completes (none until ``min_batch`` samples are held)."""
+        runs = self.decoder.feed_runs(data)
+        if runs:
+            self._pending += runs
+            self._pending_n += sum(r.samples.shape[0] for r in runs)
+        return self._release() if self._pending_n >= self.min_batch else []
+
+    def flush(self) -> list[Batch]:
+        """End of stream: whatever is held, and frames the decoder can still complete."""
+        self._pending += self.decoder.flush_runs()
+        return self._release()
+
+    def _release(self) -> list[Batch]:
+        runs, self._pending, self._pending_n = self._pending, [], 0
+        return join_runs(runs)
+
+
+def join_runs(runs: list[Frame]) -> list[Batch]:
+    """Decoded runs (increasing host index) joined into as few contiguous batches as possible."""
+    groups: list[tuple[Frame, list[npt.NDArray[np.int16]]]] = []
+    end = None
+    for r in runs:
+        if groups and r.index == end and not r.restart:
+            groups[-1][1].append(r.samples)
+        else:
+            groups.append((r, [r.samples]))
+        end = r.index + r.samples.shape[0]
+    return [Batch(first.index, np.concatenate(parts) if len(parts) > 1 else parts[0], first.lost, first.restart) for first, parts in groups]
+
+
+def feed_pipeline(pipeline: Pipeline, batches: Iterable[Batch]) -> list[PipelineEvent]:
+    """Batches through ``pipeline``; a restart ends the stream (a slide in progress ends) before the batch after it."""
+    events: list[PipelineEvent] = []
+    for b in batches:
+        if b.restart:
+            events += pipeline.finish()
+        events += pipeline.feed(b.index, b.samples)
+    return events
+
+
+def finish_pipeline(ingest: Ingest, pipeline: Pipeline) -> list[PipelineEvent]:
+    """The explicit end of stream: what the decoder still held, then a slide in progress ends at the last sample."""
+    return feed_pipeline(pipeline, ingest.flush()) + pipeline.finish()
+
+
+def run_bytes(chunks: Iterable[bytes], ingest: Ingest, pipeline: Pipeline,
+              on_batch: Callable[[Batch], None] | None = None) -> Iterator[PipelineEvent]:
+    """Every event of a finite byte stream (``chunks`` cut anywhere: the events do not depend on it), ending it at the end."""
+    def batches(bs: list[Batch]) -> list[Batch]:
+        if on_batch is not None:
+            for b in bs:
+                on_batch(b)
+        return bs
+
+    for data in chunks:
+        yield from feed_pipeline(pipeline, batches(ingest.feed(data)))
+    yield from feed_pipeline(pipeline, batches(ingest.flush()))
+    yield from pipeline.finish()
+
+
+@dataclass
+class BatchCollector:
+    """Batches kept in memory as one contiguous recording: index gaps become zero rows listed in ``lost``.
+
+    ``limit``: keep at most this many rows (then :attr:`done`). A restart continues the timeline,
+    so nothing here grows with the size of an index jump.
+    """
+
+    channels: int
+    limit: int | None = None
+    first_index: int | None = None
+    restarts: int = 0
+    _chunks: list[npt.NDArray[np.int16]] = field(default_factory=list)
+    _lost: list[tuple[int, int]] = field(default_factory=list)
+    _n: int = 0
+
+    @property
+    def n(self) -> int:
+        return self._n
+
+    @property
+    def done(self) -> bool:
+        return self.limit is not None and self._n >= self.limit
+
+    def add(self, batch: Batch) -> None:
+        if self.done:
+            return
+        if self.first_index is None:
+            self.first_index = batch.index
+        self.restarts += batch.restart
+        gap = batch.index - (self.first_index + self._n)
+        if gap > 0:
+            self._append(np.zeros((gap, self.channels), dtype=np.int16), lost=True)
+        self._append(batch.samples, lost=False)
+
+    def _append(self, block: npt.NDArray[np.int16], lost: bool) -> None:
+        if self.limit is not None:
+            block = block[: self.limit - self._n]
+        if not block.shape[0]:
+            return
+        if lost:
+            self._lost.append((self._n, block.shape[0]))
+        self._chunks.append(block)
+        self._n += block.shape[0]
+
+    def samples(self) -> npt.NDArray[np.int16]:
+        """(n, C) int16: every row from the first index on, lost ones zero."""
+        if not self._chunks:
+            return np.zeros((0, self.channels), dtype=np.int16)
+        return np.concatenate(self._chunks).astype(np.int16, copy=False)
+
+    def lost(self) -> npt.NDArray[np.int64]:
+        """(k, 2) int64 [position, count] of the lost rows."""
+        return np.asarray(self._lost, dtype=np.int64).reshape(-1, 2)
+
+    def recording(self, fs: float, volts_per_count: float, meta: dict[str, Any] | None = None) -> Any:
+        """A :class:`~tactiled.files.recording.Recording` of what was collected."""
+        from tactiled.files.recording import Recording
+
+        return Recording(samples=self.samples(), fs=fs, volts_per_count=volts_per_count, first_index=self.first_index or 0,
+                         lost=self.lost(), meta=dict(meta or {}))

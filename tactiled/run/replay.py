@@ -1,0 +1,156 @@
+"""``tactiled replay``: a recording through the daemon's own pipeline.
+
+The recording becomes the same stream the daemon sees (blocks of samples at their sensor
+indices, lost rows marked) and runs through :class:`~tactiled.core.pipeline.Pipeline`. A raw
+capture (``.bin``: the bytes read from the port) runs through the daemon's whole ingest core,
+decoder included (:func:`replay_bytes`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
+from typing import Any
+
+from tactiled_client import schema
+
+from tactiled import __version__
+from tactiled.config import Config
+from tactiled.core.matching import match_slides
+from tactiled.core.pipeline import Pipeline, PipelineEvent, SlideResult
+from tactiled.files.recording import Recording
+from tactiled.run.ingest import Batch, BatchCollector, Ingest, max_gap_for, run_bytes
+
+BLOCK = 65536  # samples per block fed to the pipeline by default
+
+
+def truth_of(rec: Recording, start: int, stop: int) -> str | None:
+    """The surface of the true slide overlapping [start, stop) most (the file's label without per-slide truth)."""
+    best, overlap = None, 0
+    for a, b, surface in rec.slides():
+        o = min(b, stop) - max(a, start)
+        if o > overlap:
+            best, overlap = surface, o
+    return best if rec.slides() else rec.label
+
+
+def result_record(file: str, rec: Recording, r: SlideResult, provisional: Sequence[SlideResult] = (), sensor: str = "",
+                  model: str = "") -> schema.ReplaySlide:
+    """The ``replay --json`` line of one slide (positions in the file): its final roughness message, the truth, the provisional labels."""
+    msg = schema.roughness(sensor, r, fs=rec.fs, model=model, version=__version__)
+    return schema.ReplaySlide(**msg.to_map(), file=file, slide=r.slide_id, truth=truth_of(rec, r.start, r.stop),
+                              duration_s=round((r.stop - r.start) / rec.fs, 4),
+                              provisional=[schema.provisional_label(p).to_map() for p in provisional])
+
+
+def by_slide(results: Sequence[SlideResult]) -> list[tuple[SlideResult, list[SlideResult]]]:
+    """(final result, the provisional results before it) per slide, in order; provisional ones of a slide that never ended are dropped."""
+    out: list[tuple[SlideResult, list[SlideResult]]] = []
+    pending: dict[int, list[SlideResult]] = {}
+    for r in results:
+        if r.final:
+            out.append((r, pending.pop(r.slide_id, [])))
+        else:
+            pending.setdefault(r.slide_id, []).append(r)
+    return out
+
+
+def pair_results(rec: Recording, results: Sequence[SlideResult]) -> tuple[list[str], list[SlideResult | None], int]:
+    """(true label per scored slide, the result paired with it or None, results paired with nothing) for one recording."""
+    truth = rec.slides()
+    finals = [r for r in results if r.final]
+    if truth:
+        pairs = match_slides([(r.start, r.stop) for r in finals], [(a, b) for a, b, _ in truth])
+        paired = [None if j is None else finals[j] for j in pairs]
+        return [str(s) for _, _, s in truth], paired, len(finals) - sum(j is not None for j in pairs)
+    if rec.label is not None:
+        return [rec.label] * len(finals), list(finals), 0
+    return [], [], len(finals)
+
+
+def summary_line(results: list[SlideResult], rec: Recording) -> str:
+    """``N slides, L labelled[, C of T true slides right]`` for one replayed recording."""
+    finals = [r for r in results if r.final]
+    labelled = sum(r.label is not None for r in finals)
+    line = f"{len(finals)} slides, {labelled} labelled"
+    truth = rec.slides()
+    if truth or rec.label is not None:
+        t, paired, _ = pair_results(rec, results)
+        right = sum(p is not None and p.label == x for x, p in zip(t, paired, strict=True))
+        line += f", {right} of {len(t)} true slides right"
+    return line
+
+
+def replay_recording(rec: Recording, config: Config, model: Any | None, *, block: int = BLOCK, speed: float | None = None,
+                     on_event: Callable[[PipelineEvent], None] | None = None) -> list[SlideResult]:
+    """Run ``rec`` through a fresh pipeline in blocks of ``block`` samples, then end the stream; returns every slide result.
+
+    Provisional results (``final`` False) come before their slide's final one.
+
+    Samples are fed at their sensor indices (``first_index + position``), exactly as the
+    daemon saw them; results are converted back to positions in the file.
+
+    ``speed``: pace the stream at that many times real time (None: as fast as possible).
+    ``on_event`` sees every pipeline event as it happens.
+    """
+    pipeline = Pipeline(config, rec.fs, rec.channels, rec.volts_per_count, rec.is_integer, model)
+    valid = rec.valid_mask()
+    all_valid = bool(valid.all())
+    results: list[SlideResult] = []
+    n = rec.samples.shape[0]
+    base = rec.first_index
+    t0 = time.monotonic()
+
+    def handle(events: list[PipelineEvent]) -> None:
+        for ev in events:
+            if on_event:
+                on_event(ev)
+            if isinstance(ev, SlideResult):
+                results.append(replace(ev, start=ev.start - base, stop=ev.stop - base, window=(ev.window[0] - base, ev.window[1] - base)))
+
+    for lo in range(0, n, block):
+        hi = min(lo + block, n)
+        if speed:
+            ahead = lo / rec.fs / speed - (time.monotonic() - t0)
+            if ahead > 0:
+                time.sleep(ahead)  # pacing the replay at --speed, not synchronisation
+        handle(pipeline.feed(base + lo, rec.samples[lo:hi], None if all_valid else valid[lo:hi]))
+    handle(pipeline.finish())  # a slide still in progress at the end of the file ends there
+    return results
+
+
+def replay_bytes(chunks: Iterable[bytes], config: Config, model: Any | None, *, speed: float | None = None,
+                 on_event: Callable[[PipelineEvent], None] | None = None, meta: dict[str, Any] | None = None) -> tuple[list[SlideResult], Recording]:
+    """Raw serial bytes (a ``.bin`` capture, exactly as read from the port) through the daemon's ingest core and pipeline.
+
+    The same decoder, channel and gap policies and pipeline as ``tactiled run`` (config.sensor
+    gives fs, channels and scale); the events do not depend on how the bytes are cut.
+    Returns every slide result (positions from the first sample decoded, as for a recording)
+    and the samples decoded, as a recording (lost samples listed).
+    """
+    s = config.sensor
+    ingest = Ingest(s.channels, max_gap=max_gap_for(config.ring.seconds, s.fs))
+    pipeline = Pipeline(config, s.fs, s.channels, s.volts_per_count, True, model)
+    collector = BatchCollector(s.channels)
+    events: list[PipelineEvent] = []
+    t0 = time.monotonic()
+
+    def on_batch(b: Batch) -> None:
+        collector.add(b)
+        if speed and collector.first_index is not None:
+            ahead = (b.index - collector.first_index) / s.fs / speed - (time.monotonic() - t0)
+            if ahead > 0:
+                time.sleep(ahead)  # pacing the replay at --speed, not synchronisation
+
+    for ev in run_bytes(chunks, ingest, pipeline, on_batch):
+        if on_event:
+            on_event(ev)
+        events.append(ev)
+    base = collector.first_index or 0
+    results = [replace(ev, start=ev.start - base, stop=ev.stop - base, window=(ev.window[0] - base, ev.window[1] - base))
+               for ev in events if isinstance(ev, SlideResult)]
+    st = ingest.stats
+    info = {**(meta or {}), "crc_errors": st.crc_errors, "bytes_discarded": st.bytes_discarded, "restarts": st.restarts,
+            "channel_errors": st.channel_errors}
+    return results, collector.recording(s.fs, s.volts_per_count, info)

@@ -1,0 +1,244 @@
+"""``tactiled run``: one asyncio daemon per sensor.
+
+Tasks in one TaskGroup: ``reader`` (tactiled.board.serialsource: a thread reads the port once per
+``serial.read_interval_s`` and hands the loop its bytes once per ``serial.batch_s``; it
+survives unplugs and any exception), whose bytes go through the ingest core (tactiled.run.ingest: decoder, channel and gap policies,
+batches of ``serial.batch_s``) into the pipeline and the publisher: batches that complete an
+analysis window run in a worker thread so feature extraction never stalls the loop,
+detection-only batches run inline, cheaper than a thread hop; ``status`` (at least once a
+second, and the systemd watchdog, fed only while the reader is alive); ``stop`` (SIGTERM,
+SIGINT, SIGHUP). A finite source (tests) ends the stream explicitly and the daemon stops.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import socket
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import BinaryIO
+
+import numpy as np
+from tactiled_client import schema
+
+from tactiled import __version__
+from tactiled.board.clockmap import ClockMap
+from tactiled.board.serialsource import CONNECTED, ByteSource, SerialSource
+from tactiled.config import Config
+from tactiled.core.pipeline import Pipeline, PipelineEvent
+from tactiled.learn.model import Model
+from tactiled.run.ingest import Batch, Ingest, feed_pipeline, max_gap_for
+from tactiled.service.publish import Publisher
+from tactiled.service.rawbatch import raw_batches
+from tactiled.service.record import STOP_SIGNALS, RecordingSink, link_counters
+
+log = logging.getLogger(__name__)
+
+
+def sd_notify(message: str) -> None:
+    """Send ``message`` to systemd's notify socket if there is one (Type=notify, watchdog)."""
+    path = os.environ.get("NOTIFY_SOCKET")
+    if not path:
+        return
+    if path.startswith("@"):
+        path = "\0" + path[1:]
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        try:
+            sock.connect(path)
+            sock.sendall(message.encode())
+        except OSError as exc:
+            log.warning("sd_notify failed: %s", exc)
+
+
+@dataclass
+class DaemonState:
+    started: float = field(default_factory=time.monotonic)
+    samples_window: int = 0
+    sumsq: np.ndarray | None = None
+    last_index: int = 0
+
+
+class Daemon:
+    """The daemon's state and tasks; :meth:`run` until stopped (or, for a finite ``source``, until its end).
+
+    ``source_factory(on_bytes, on_state)``: the byte source (default: the serial port of the config);
+    ``record_to``: also stream every sample to ``record_to``'s journal and write the recording on exit
+    (tactiled/service/record.py); ``raw_to``: write every byte read.
+    """
+
+    def __init__(self, config: Config, model: Model | None, record_to: str | None = None, *, raw_to: str | None = None,
+                 source_factory: Callable[[Callable[[bytes], Awaitable[None]], Callable[[str, str], None]], ByteSource] | None = None) -> None:
+        self.config = config
+        self.model = model
+        s = config.sensor
+        self.fingerprint = model.fingerprint if model else ""
+        self.ingest = Ingest(s.channels, max_gap=max_gap_for(config.ring.seconds, s.fs), min_batch=round(config.serial.batch_s * s.fs))
+        self.decoder = self.ingest.decoder
+        self.pipeline = Pipeline(config, s.fs, s.channels, s.volts_per_count, True, model)
+        self.publisher = Publisher(config.publish)
+        self.state = DaemonState()
+        self.stop_event = asyncio.Event()
+        self.source: ByteSource | None = None
+        self.raw_to = raw_to
+        self._source_factory = source_factory
+        self.recorder = RecordingSink(record_to, fs=s.fs, channels=s.channels, volts_per_count=s.volts_per_count, force=True,
+                                      meta={"sensor": s.id, "port": s.port, "source": "tactiled run --record"},
+                                      counters=lambda: link_counters(self.ingest.stats, self.source),
+                                      on_error=log.error) if record_to else None  # streams to record_to's journal (tactiled/files/journal.py)
+        self.clock = ClockMap(s.fs)  # sample index -> host time
+        self._raw_next: int | None = None  # next index of the samples topic
+        self._reader: asyncio.Task[None] | None = None
+
+    @property
+    def endpoint(self) -> str:
+        return self.publisher.endpoint
+
+    def _make_source(self, tee: BinaryIO | None) -> ByteSource:
+        if self._source_factory is not None:
+            return self._source_factory(self._on_bytes, self._on_state)
+        s, c = self.config.sensor, self.config.serial
+        return SerialSource(s.port, self._on_bytes, self._on_state, baudrate=s.baudrate, retry_initial_s=c.retry_initial_s,
+                            retry_max_s=c.retry_max_s, read_interval_s=c.read_interval_s, tee=tee, hand_over_s=c.batch_s)
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        s = self.config.sensor
+        tee = open(self.raw_to, "wb") if self.raw_to else None  # noqa: SIM115 - closed in finally
+        self.source = self._make_source(tee)
+        for sig in STOP_SIGNALS:
+            loop.add_signal_handler(sig, self.stop_event.set)
+        log.info("tactiled %s: sensor %s on %s, publishing on %s, model %s", __version__, s.id, s.port, self.endpoint, self.fingerprint or "none")
+        sd_notify("READY=1")
+        try:
+            async with asyncio.TaskGroup() as tg:
+                self._reader = tg.create_task(self._read(), name="reader")
+                status = tg.create_task(self._status(), name="status")
+                stopped = tg.create_task(self.stop_event.wait(), name="stop")
+                await asyncio.wait([self._reader, stopped], return_when=asyncio.FIRST_COMPLETED)
+                for t in (self._reader, status, stopped):
+                    t.cancel()
+        finally:
+            sd_notify("STOPPING=1")
+            self.publisher.publish(self._status_message(stopping=True))
+            self.publisher.close()
+            if tee is not None:
+                tee.close()
+            if self.recorder is not None:
+                self._save_recording()
+            for sig in STOP_SIGNALS:
+                loop.remove_signal_handler(sig)
+
+    async def _read(self) -> None:
+        """The source until it ends (a finite source: then the explicit end of stream), or until cancelled."""
+        assert self.source is not None
+        await self.source.run()
+        await self._process(self.ingest.flush())
+        self._publish(self.pipeline.finish(), time.perf_counter())
+
+    def _on_state(self, state: str, detail: str) -> None:
+        log.log(logging.INFO if state == CONNECTED else logging.WARNING, "%s: %s (%s)", self.config.sensor.port, state, detail)
+
+    async def _on_bytes(self, data: bytes) -> None:
+        """Bytes read from the port: decode, and run the pipeline when a batch is complete."""
+        batches = self.ingest.feed(data)
+        end = self.decoder.next_index
+        if end is not None and self.source is not None:
+            self.clock.observe(end, self.source.arrival)  # every sample decoded so far had arrived by then
+        if batches:
+            await self._process(batches)
+
+    async def _process(self, batches: list[Batch]) -> None:
+        if not batches:
+            return
+        st = self.state
+        for b in batches:
+            if self.recorder is not None:
+                self.recorder.add(b)
+            sq = np.einsum("ij,ij->j", b.samples, b.samples, dtype=np.float64)
+            st.sumsq = sq if st.sumsq is None else st.sumsq + sq
+            st.samples_window += b.samples.shape[0]
+            st.last_index = b.end
+        detected_at = time.perf_counter()
+        if self.config.publish.samples:
+            self._publish_samples(batches)
+        if self.pipeline.will_analyse(batches[-1].end) or any(b.restart for b in batches):  # feature extraction: off the event loop
+            events = await asyncio.to_thread(feed_pipeline, self.pipeline, batches)
+        else:  # detection only: cheaper than a thread hop
+            events = feed_pipeline(self.pipeline, batches)
+        self._publish(events, detected_at)
+
+    def _publish(self, events: list[PipelineEvent], detected_at: float) -> None:
+        sensor = self.config.sensor
+        to_host = self.clock.host if self.clock.ready else None
+        for ev in events:
+            self.publisher.publish_event(sensor.id, ev, sensor.fs, self.fingerprint, detected_at, to_host)
+
+    def _publish_samples(self, batches: list[Batch]) -> None:
+        """The batch's raw samples on ``samples/<id>``: every index from the last batch's end on, lost ones as zero rows."""
+        s = self.config.sensor
+        to_host = self.clock.host if self.clock.ready else None
+        for b in raw_batches([(x.index, x.samples) for x in batches], self._raw_next, max_fill=round(s.fs)):
+            n = b.samples.shape[0]
+            self.publisher.publish(schema.samples(s.id, b.index, b.samples.astype("<i2", copy=False).tobytes(), n, s.channels, fs=s.fs,
+                                                  volts_per_count=s.volts_per_count, lost=b.lost, lost_before=b.lost_before,
+                                                  to_host=to_host, fs_clock=round(self.clock.fs, 3)))
+            self._raw_next = b.index + n
+
+    def _save_recording(self) -> None:
+        assert self.recorder is not None
+        result = self.recorder.finish()
+        if result.error is None:
+            log.info("%s: saved %d samples (%d lost)", self.recorder.out, result.samples, result.samples_lost)
+        elif not self.recorder.error:  # a failure while capturing was logged when it happened
+            log.error("%s", result.error)
+
+    def _status_message(self, interval: float = 0.0, stopping: bool = False) -> schema.Status:
+        st, stats = self.state, self.ingest.stats
+        if stopping:
+            state = schema.STATE_STOPPING
+        elif not (self.source and self.source.connected):
+            state = schema.STATE_DISCONNECTED
+        elif self.pipeline.sliding:
+            state = schema.STATE_SLIDING
+        elif st.samples_window == 0:
+            state = schema.STATE_CONNECTED
+        else:
+            state = schema.STATE_IDLE
+        level = []
+        if st.sumsq is not None and st.samples_window:
+            level = [round(float(np.sqrt(v / st.samples_window)) * self.config.sensor.volts_per_count, 6) for v in st.sumsq]
+        clock_index = clock_mono = clock_unix = None
+        if self.clock.ready and st.last_index:
+            clock_index = st.last_index
+            clock_mono, clock_unix = (round(t, 6) for t in self.clock.host(clock_index))
+        return schema.status(self.config.sensor.id, state=state, samples=stats.samples, samples_lost=stats.samples_lost, crc_errors=stats.crc_errors,
+                             bytes_discarded=stats.bytes_discarded, bad_headers=stats.bad_headers,
+                             reconnects=self.source.reconnects if self.source else 0, restarts=stats.restarts,
+                             slides=self.pipeline.slides, labels=self.pipeline.labels, fs_nominal=self.config.sensor.fs,
+                             fs_measured=round(st.samples_window / interval, 1) if interval > 0 else 0.0, model=self.fingerprint,
+                             uptime_s=round(time.monotonic() - st.started, 3), index=st.last_index, level=level, version=__version__,
+                             dropped_messages=self.publisher.dropped, channel_errors=stats.channel_errors, clock_index=clock_index,
+                             clock_mono=clock_mono, clock_unix=clock_unix, fs_clock=round(self.clock.fs, 3))
+
+    def reader_alive(self, now: float) -> bool:
+        """The reader task runs and its loop ticked recently (reading, or waiting for the device)."""
+        if self._reader is None or self._reader.done() or self.source is None:
+            return False
+        return now - self.source.alive_at <= max(5.0, 2 * self.config.serial.retry_max_s)
+
+    async def _status(self) -> None:
+        interval = self.config.publish.status_interval_s
+        last = time.monotonic()
+        watchdog = "WATCHDOG_USEC" in os.environ
+        while True:
+            await asyncio.sleep(interval)  # the status period itself, not synchronisation
+            now = time.monotonic()
+            self.publisher.publish(self._status_message(now - last))
+            self.state.samples_window = 0
+            self.state.sumsq = None
+            last = now
+            if watchdog and self.reader_alive(now):  # a dead reader starves the watchdog: systemd restarts the daemon
+                sd_notify("WATCHDOG=1")

@@ -1,0 +1,128 @@
+"""The ZeroMQ PUB side: builds schema messages and sends them without ever blocking.
+
+A PUB socket drops messages for a subscriber whose queue is full (high-water mark), so a
+slow or absent subscriber never stalls the daemon; ``seq`` (per topic, consecutive) lets
+every subscriber count what it missed.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import zmq
+from tactiled_client import schema
+
+from tactiled import __version__
+from tactiled.config import PublishConfig
+from tactiled.core.pipeline import PipelineEvent, SlideEnded, SlideResult, SlideStarted
+from tactiled.errors import ConfigError
+from tactiled.files.recording import Recording
+
+M = TypeVar("M", bound=schema.Message)
+MAX_INBOUND_BYTES = 4096
+
+
+class Publisher:
+    """Binds ``config.endpoint``; :meth:`publish` stamps seq and time_unix on schema messages and sends them."""
+
+    def __init__(self, config: PublishConfig, context: zmq.Context[Any] | None = None, see_subscribers: bool = False) -> None:
+        """``see_subscribers``: an XPUB socket, so that :meth:`wait_subscriber` can tell when a subscription arrived."""
+        self.context = context or zmq.Context.instance()
+        self.socket = self.context.socket(zmq.XPUB if see_subscribers else zmq.PUB)
+        self.socket.setsockopt(zmq.LINGER, 0)
+        self.socket.setsockopt(zmq.SNDHWM, 10_000)
+        # PUB and XPUB sockets receive their subscribers' SUBSCRIBE messages: a peer sending a longer one is disconnected,
+        # so a 16 MB topic prefix can never grow the daemon (topics are "<type>/<sensor id>", under 100 bytes)
+        self.socket.setsockopt(zmq.MAXMSGSIZE, MAX_INBOUND_BYTES)
+        self.authenticator: Any = None
+        if config.curve_secret_key_file:
+            self._curve(config)
+        try:
+            self.socket.bind(config.endpoint)
+        except zmq.ZMQError as exc:
+            self.socket.close()
+            raise ConfigError(f"publish.endpoint: cannot bind {config.endpoint}: {exc}") from None
+        self.endpoint = self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
+        self._seq: dict[str, int] = {}
+        self.sent = 0
+        self.dropped = 0
+
+    def _curve(self, config: PublishConfig) -> None:
+        """CURVE: encrypt, and admit only subscribers whose public certificate is in the authorised folder."""
+        import os
+
+        import zmq.auth
+        from zmq.auth.thread import ThreadAuthenticator
+
+        try:
+            public, secret = zmq.auth.load_certificate(config.curve_secret_key_file)
+        except (OSError, ValueError) as exc:
+            self.socket.close()
+            raise ConfigError(f"publish.curve_secret_key_file: cannot read {config.curve_secret_key_file}: {exc}") from None
+        if not secret:
+            self.socket.close()
+            raise ConfigError(f"publish.curve_secret_key_file: {config.curve_secret_key_file} holds no secret key")
+        if not os.path.isdir(config.curve_authorized_dir):
+            self.socket.close()
+            raise ConfigError(f"publish.curve_authorized_dir: {config.curve_authorized_dir} is not a folder")
+        self.authenticator = ThreadAuthenticator(self.context)
+        self.authenticator.start()
+        self.authenticator.configure_curve(domain="*", location=config.curve_authorized_dir)
+        self.socket.curve_secretkey = secret
+        self.socket.curve_publickey = public
+        self.socket.curve_server = True
+
+    def publish(self, msg: M) -> M:
+        """Send ``msg`` (built by a :mod:`tactiled_client.schema` builder) with the next ``seq`` of its topic and ``time_unix`` now."""
+        key = schema.topic(msg.type, msg.sensor)
+        msg.seq = self._seq.get(key, 0)
+        self._seq[key] = msg.seq + 1
+        msg.time_unix = time.time()
+        try:
+            self.socket.send_multipart(schema.encode(msg.type, msg.sensor, msg.to_map()), flags=zmq.NOBLOCK)
+            self.sent += 1
+        except zmq.Again:
+            self.dropped += 1
+        return msg
+
+    def wait_subscriber(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for a first subscription (XPUB only): a subscriber that connected before
+        the bind otherwise misses what is sent while its subscription is in flight (ZeroMQ's slow joiner)."""
+        if self.socket.type != zmq.XPUB or timeout_s <= 0:
+            return False
+        return bool(self.socket.poll(int(timeout_s * 1000), zmq.POLLIN))
+
+    def close(self) -> None:
+        self.socket.close(linger=0)
+        if self.authenticator is not None:
+            self.authenticator.stop()
+
+    def publish_event(self, sensor: str, ev: PipelineEvent, fs: float, model: str, detected_at: float | None = None,
+                      to_host: schema.HostTime | None = None) -> None:
+        """Publish one pipeline event; ``detected_at`` (perf_counter) is when its block was handed in; ``to_host`` maps indices to host times."""
+        if isinstance(ev, SlideStarted):
+            self.publish(schema.slide_start(sensor, ev.slide_id, ev.start, fs, to_host))
+        elif isinstance(ev, SlideEnded):
+            self.publish(schema.slide_end(sensor, ev.slide_id, ev.start, ev.stop, ev.reason, fs, to_host))
+        elif isinstance(ev, SlideResult):
+            latency = 0.0 if detected_at is None else (time.perf_counter() - detected_at) * 1e3
+            self.publish(schema.roughness(sensor, ev, fs=fs, model=model, version=__version__, latency_ms=latency, to_host=to_host))
+
+    def replay_handler(self, sensor: str, rec: Recording, model: str, speed: float | None = None) -> Callable[[PipelineEvent], None]:
+        """An ``on_event`` callback for replay (events carry sensor indices, as live).
+
+        Paced (``speed``), host times are when the replay reached each sample; as fast as possible they are nil.
+        """
+        t0 = time.monotonic()
+        to_host = None
+        if speed:
+            def to_host(index: int) -> tuple[float, float]:
+                mono = t0 + (index - rec.first_index) / rec.fs / speed
+                return mono, mono + (time.time() - time.monotonic())
+
+        def handle(ev: PipelineEvent) -> None:
+            self.publish_event(sensor, ev, rec.fs, model, time.perf_counter(), to_host)
+
+        return handle

@@ -1,0 +1,298 @@
+"""``tactiled record``: serial frames → a recording file, with every lost sample listed, streamed to disk.
+
+:class:`RecordingSink` (used by ``record`` and ``run --record``) writes the samples to a journal beside the output
+(tactiled/files/journal.py) as they come, committed (written and fsynced) every :data:`COMMIT_S` of wall time by a
+writer thread, so the caller never waits on the disk. Memory stays bounded. On a clean stop the journal becomes
+the ``.npz`` and is removed; after a kill or a power cut ``tactiled recover`` turns it into the ``.npz``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from tactiled.board.frames import DecoderStats, Frame
+from tactiled.board.serialsource import DISCONNECTED, ByteSource, SerialSource, check_port
+from tactiled.errors import OutputError
+from tactiled.files.journal import JournalWriter, encode_chunk, encode_header, is_locked, journal_path, recover
+from tactiled.files.recording import fsync_dir
+from tactiled.run.ingest import Batch, Ingest, max_gap_for
+
+log = logging.getLogger(__name__)
+
+COMMIT_S = 0.5  # the commit period, s of wall time: about what a kill or a power cut can lose
+MAX_CHUNK_BYTES = 4 << 20  # a chunk is committed at this size at the latest
+QUEUE_BYTES = 64 << 20  # samples waiting for the writer (a disk stalled 13 min at 20 kHz x 2 channels); beyond, frames are lost, counted
+
+
+def check_output(out: str | Path, force: bool) -> None:
+    """Raise :class:`OutputError` naming ``out`` unless a file can be written there (and, without ``force``, none exists)."""
+    out = Path(out)
+    folder = out.parent
+    if not folder.exists():
+        raise OutputError(f"{out}: folder {folder} does not exist")
+    if not folder.is_dir():
+        raise OutputError(f"{out}: {folder} is not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputError(f"{out}: folder {folder} is not writable")
+    if out.is_dir():
+        raise OutputError(f"{out}: is a folder")
+    if out.exists() and not force:
+        raise OutputError(f"{out}: exists (--force overwrites it)")
+
+
+def claim_journal(out: str | Path) -> Path:
+    """The journal path for ``out``; a journal left there by a recorder that did not finish is renamed aside, never overwritten."""
+    journal = journal_path(out)
+    if not journal.exists():
+        return journal
+    if is_locked(journal):
+        raise OutputError(f"{journal}: in use by another recorder")
+    n = 1
+    while Path(f"{journal}.{n}").exists():
+        n += 1
+    aside = Path(f"{journal}.{n}")
+    os.rename(journal, aside)
+    log.warning("%s: left by a recorder that did not finish; kept as %s (tactiled recover %s -o OUT.npz)", journal, aside, aside)
+    return journal
+
+
+@dataclass
+class SinkResult:
+    """What a :class:`RecordingSink` kept: rows (samples, lost included) and, if it failed, the one-line reason."""
+
+    samples: int
+    samples_lost: int
+    error: str | None = None
+
+
+class RecordingSink:
+    """Decoded frames → the journal of ``out``, then ``out`` itself at :meth:`finish`.
+
+    :meth:`add` only queues the frame (cheap: a lock and an append; never blocks); every :data:`COMMIT_S` a
+    writer thread takes what is queued, places each frame at its position (``frame.index`` - the first frame's
+    index: gaps become lost ranges, never stored) and commits it as chunks of at most ``commit_s`` of sensor
+    time. With ``limit``, rows from position ``limit`` on are ignored and :attr:`done` turns True. A write error
+    (a full disk) stops the writing: :attr:`error` says so in one line, the journal keeps every chunk committed
+    before, ``on_error`` is called with the line.
+    """
+
+    def __init__(self, out: str | Path, *, fs: float, channels: int, volts_per_count: float, label: str | None = None,
+                 meta: dict[str, Any] | None = None, limit: int | None = None, force: bool = False,
+                 counters: Callable[[], dict[str, int]] | None = None, on_error: Callable[[str], None] | None = None,
+                 commit_s: float = COMMIT_S) -> None:
+        check_output(out, force)
+        self.out = Path(out)
+        self.journal = claim_journal(out)
+        self.channels = channels
+        self.fs = fs
+        self.limit = limit
+        self.first_index: int | None = None
+        self.restarts = 0
+        self.channel_errors = 0
+        self.queue_dropped = 0  # samples dropped because the writer fell behind (listed as lost)
+        self.error: str | None = None
+        self._counters = counters or dict
+        self._on_error = on_error
+        self._commit_s = commit_s
+        self._commit_rows = max(1, round(commit_s * fs))
+        self._end = 0  # position after the newest row queued
+        self._rows = 0  # rows committed
+        self._lost = 0  # lost rows committed
+        header = encode_header(fs, channels, volts_per_count, label, {**(meta or {}), "recorded_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+        try:
+            self._writer = JournalWriter(self.journal, header)
+        except OSError as exc:
+            raise OutputError(f"{self.journal}: cannot create: {exc.strerror or exc}") from None
+        self._batch: list[tuple[int, npt.NDArray[np.int16]]] = []  # (position, samples) the writer has not taken yet
+        self._queued = 0  # their bytes (bounded by QUEUE_BYTES)
+        self._lock = threading.Lock()
+        self._finishing = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"journal:{self.journal.name}", daemon=True)
+        self._thread.start()
+
+    @property
+    def done(self) -> bool:
+        """True once ``limit`` rows have been queued."""
+        return self.limit is not None and self._end >= self.limit
+
+    def add(self, frame: Frame | Batch) -> None:
+        """Queue one decoded frame or batch (never blocks; one the writer has no room for is lost, and counted)."""
+        if self.error is not None or self.done:
+            return
+        samples = frame.samples
+        if samples.shape[1] != self.channels:
+            self.channel_errors += 1
+            log.warning("frame at %d has %d channels, expected %d: skipped", frame.index, samples.shape[1], self.channels)
+            return
+        if self.first_index is None:
+            self.first_index = frame.index
+        self.restarts += frame.restart
+        position = frame.index - self.first_index
+        if self.limit is not None:
+            samples = samples[: max(0, self.limit - position)]
+        if not samples.shape[0]:
+            return
+        with self._lock:
+            if self._queued + samples.nbytes > QUEUE_BYTES:
+                self.queue_dropped += samples.shape[0]
+                return
+            self._queued += samples.nbytes
+            self._batch.append((position, samples))
+        self._end = position + samples.shape[0]
+
+    def _run(self) -> None:
+        start = end = 0  # the next chunk's first row; the row after the newest placed
+        pending: list[npt.NDArray[np.int16]] = []
+        lost: list[tuple[int, int]] = []
+        nbytes = 0
+        final = False
+        while not final and self.error is None:
+            final = self._finishing.wait(self._commit_s)  # the commit period (wall time), not synchronisation
+            with self._lock:
+                batch, self._batch, self._queued = self._batch, [], 0
+            for position, samples in batch:  # positions increase (the decoder's indices); add() keeps no empty rows
+                if position > end:
+                    lost.append((end, position - end))
+                pending.append(samples)
+                nbytes += samples.nbytes
+                end = position + samples.shape[0]
+                if end - start >= self._commit_rows or nbytes >= MAX_CHUNK_BYTES:  # bounded chunks, even after a burst
+                    start = self._commit(start, end, pending, lost)
+                    pending, lost, nbytes = [], [], 0
+            if end > start:
+                start = self._commit(start, end, pending, lost)
+                pending, lost, nbytes = [], [], 0
+
+    def _commit(self, start: int, end: int, pending: list[npt.NDArray[np.int16]], lost: list[tuple[int, int]]) -> int:
+        """Append rows ``start .. end`` as one chunk; returns where the next chunk starts (``end``, or ``start`` after an error)."""
+        if self.error is not None:
+            return start
+        received = np.concatenate(pending)  # never empty: a chunk ends on a row received
+        given = self._counters()
+        counters = {**given, "restarts": self.restarts, "channel_errors": given.get("channel_errors", 0) + self.channel_errors,
+                    "samples_dropped_writer_behind": self.queue_dropped}
+        assert self.first_index is not None
+        try:
+            self._writer.append(encode_chunk(start, self.first_index + start, end - start, lost, counters, received))
+        except OSError as exc:
+            self.error = (f"{self.journal}: {exc.strerror or exc}: capture stopped after {self._rows / self.fs:.3f} s, "
+                          f"kept in the journal: tactiled recover {self.journal} -o {self.out}")
+            if self._on_error is not None:
+                self._on_error(self.error)
+            return start
+        self._rows = end
+        self._lost += sum(n for _, n in lost)
+        return end
+
+    def finish(self, extra_meta: dict[str, Any] | None = None) -> SinkResult:
+        """Commit what is queued, then write ``out`` from the journal and remove the journal.
+
+        ``extra_meta`` (default: the ``counters`` callable's final values) is merged into the recording's meta.
+
+        On a write error (now or before) the journal is kept and :attr:`SinkResult.error` says how to recover it.
+        """
+        self._finishing.set()
+        self._thread.join()
+        self._writer.close()
+        if self.error is not None:
+            return SinkResult(self._rows, self._lost, self.error)
+        try:
+            recover(self.journal, self.out, self._counters() if extra_meta is None else extra_meta, allow_empty=True)
+        except OSError as exc:
+            return SinkResult(self._rows, self._lost, f"{self.out}: cannot write: {exc.strerror or exc}; the capture is kept in "
+                                                      f"{self.journal}: tactiled recover {self.journal} -o {self.out}")
+        os.unlink(self.journal)
+        fsync_dir(self.journal.parent)
+        return SinkResult(self._rows, self._lost)
+
+
+@dataclass
+class RecordSummary:
+    seconds: float
+    samples: int
+    samples_lost: int
+    crc_errors: int
+    reconnects: int
+    error: str | None = None  # the capture stopped on a write error (the journal keeps what was written)
+
+    def line(self) -> str:
+        return (f"recorded {self.seconds:.3f} s: {self.samples} samples, {self.samples_lost} lost, "
+                f"{self.crc_errors} CRC failures, {self.reconnects} reconnects")
+
+
+def link_counters(stats: DecoderStats, source: ByteSource | None) -> dict[str, int]:
+    """What the serial link did, for a recording's ``meta``: CRC failures, bytes discarded, reconnects, foreign-channel frames."""
+    return {"crc_errors": stats.crc_errors, "bytes_discarded": stats.bytes_discarded, "reconnects": source.reconnects if source else 0,
+            "channel_errors": stats.channel_errors}
+
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def record(port: str, seconds: float, out: str | Path, *, fs: float, channels: int, volts_per_count: float,
+           label: str | None = None, baudrate: int = 1_000_000, retry_max_s: float = 2.0,
+           meta: dict[str, Any] | None = None, force: bool = False, max_gap: int | None = None) -> RecordSummary:
+    """Record ``seconds`` of sensor time from ``port`` into ``out``; SIGINT, SIGTERM or SIGHUP stops early and saves.
+
+    The bytes go through the daemon's ingest core (tactiled/run/ingest.py): frames of another channel count
+    are counted and skipped, and a forward jump of the index beyond ``max_gap`` samples (default: 10 s)
+    is a board restart, recorded as continuing, never as a long run of lost samples.
+
+    The port and the output path are checked first (:class:`~tactiled.errors.DeviceError`,
+    :class:`~tactiled.errors.OutputError`); a write error during the capture stops it and is returned in
+    :attr:`RecordSummary.error`, the journal keeping what was written.
+    """
+    check_port(port)
+    chunks: queue.Queue[bytes | None] = queue.Queue()
+    ingest = Ingest(channels, max_gap=max_gap or max_gap_for(10.0, fs))
+    stats = ingest.stats
+    source: SerialSource | None = None
+
+    def counters() -> dict[str, int]:
+        return link_counters(stats, source)
+
+    sink = RecordingSink(out, fs=fs, channels=channels, volts_per_count=volts_per_count, label=label,
+                         meta={**(meta or {}), "port": port}, limit=max(1, round(seconds * fs)), force=force, counters=counters)
+
+    def on_state(state: str, detail: str) -> None:
+        if state == DISCONNECTED:
+            log.warning("%s: %s", port, detail)
+
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}  # a flag: never interrupts a write
+    source = SerialSource(port, chunks.put, on_state, baudrate=baudrate, retry_max_s=retry_max_s)
+    source.start()
+    log.info("recording %s -> %s (Ctrl-C stops and saves)", port, out)
+    try:
+        while not sink.done and sink.error is None and not stop.is_set():
+            try:
+                data = chunks.get(timeout=0.1)  # the stop flag's polling period
+            except queue.Empty:
+                continue
+            for batch in ingest.feed(data or b""):
+                sink.add(batch)
+        if stop.is_set():
+            log.info("stopped by a signal: saving what was captured")
+    finally:
+        source.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    while not chunks.empty():
+        for batch in ingest.feed(chunks.get_nowait() or b""):
+            sink.add(batch)
+    for batch in ingest.flush():
+        sink.add(batch)
+    result = sink.finish()
+    return RecordSummary(result.samples / fs, result.samples, result.samples_lost, stats.crc_errors, source.reconnects, result.error)

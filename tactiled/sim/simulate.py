@@ -1,0 +1,145 @@
+"""``tactiled simulate``: labelled datasets and the virtual board, from :mod:`tactiled.sim.sensor_model`."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from tactiled.errors import TactiledError
+from tactiled.files.recording import Recording, save_recording
+from tactiled.sim.sensor_model import SensorModel, SimParams, Surface, hot_gain, pick_surfaces, scene_params, simulate_file, with_mode
+from tactiled.sim.virtualboard import VirtualBoard
+
+
+def _surfaces(spec: str | None, family: str = "self-affine") -> list[Surface]:
+    try:
+        return pick_surfaces(spec, family)
+    except ValueError as exc:
+        raise TactiledError(str(exc)) from None
+
+
+def scene_for(scene: str | None, mode: str | None = None, fs: float | None = None, channels: int | None = None) -> tuple[str, SimParams]:
+    """(scene spec, parameters) from ``--scene`` (or the older ``--mode manual|robot``) and optional rate/channel overrides."""
+    spec = scene or {"manual": "hand", "robot": "robot", None: "hand"}[mode]
+    try:
+        params = scene_params(spec)
+    except ValueError as exc:
+        raise TactiledError(str(exc)) from None
+    if channels is not None and not 1 <= channels <= 8:
+        raise TactiledError(f"--channels: must be in 1..8, got {channels}")
+    if fs is not None and not 100 <= fs <= 200_000:
+        raise TactiledError(f"--fs: must be in 100..200000 Hz, got {fs:g}")
+    return spec, with_mode(params, None, fs, channels)
+
+
+def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surfaces: str | None = None, files_per_surface: int = 4,
+                  slides_per_file: int = 5, mode: str | None = None, fs: float | None = None, channels: int | None = None,
+                  progress: Callable[[str], None] | None = None) -> list[Path]:
+    """Write ``files_per_surface`` recordings per surface of ``scene`` (docs/simulator.md) with ground truth; returns their paths.
+
+    File names start with the scene (commas as ``+``): ``continuous+one-channel_Ra0.44_00.npz``.
+    """
+    if files_per_surface < 1 or slides_per_file < 1:
+        raise TactiledError("--files-per-surface and --slides-per-file must be >= 1")
+    spec, params = scene_for(scene, mode, fs, channels)
+    chosen = _surfaces(surfaces, params.family)
+    hot = "hot-gain" in spec.split(",")
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    prefix = spec.replace(",", "+")
+    for i, surface in enumerate(chosen):
+        file_params = replace(params, extra_gain=hot_gain(chosen, surface, params, seed + i)) if hot else params
+        for f in range(files_per_surface):
+            file_seed = int(np.random.SeedSequence([seed, i, f]).generate_state(1)[0])
+            sim = simulate_file(file_params, surface, slides_per_file, file_seed)
+            rec = Recording(
+                samples=sim.samples, fs=params.fs, volts_per_count=1.0 if params.float_output else params.volts_per_count,
+                slide_start=np.array([t.start for t in sim.truth]), slide_stop=np.array([t.stop for t in sim.truth]),
+                surface=np.array([t.surface.name for t in sim.truth]), ra_um=np.array([t.surface.ra_um for t in sim.truth]),
+                meta={"scene": spec, "simulator": file_params.to_meta(), "seed": file_seed, "surface": vars(surface),
+                      "v_max_mps": [t.v_max_mps for t in sim.truth], "force": [t.force for t in sim.truth]},
+            )
+            path = out / f"{prefix}_{surface.name}_{f:02d}.npz"
+            save_recording(path, rec)
+            paths.append(path)
+        if progress:
+            progress(f"simulate: {surface.name} ({i + 1}/{len(chosen)})")
+    return paths
+
+
+def run_virtual_board(args: argparse.Namespace) -> int:
+    """Run a virtual board until SIGINT/SIGTERM or ``--seconds``; prints the device path first."""
+    _, params = scene_for(getattr(args, "scene", None), args.mode, args.fs, args.channels)
+    if params.continuous:
+        params = replace(params, rest_s=(0.0, 0.0))  # back-to-back slides: the stream never rests
+    try:
+        unplug_at = [float(t) for t in args.unplug_at.split(",") if t.strip()]
+    except ValueError:
+        raise TactiledError(f"--unplug-at: not a list of seconds: {args.unplug_at!r}") from None
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):  # before the link exists, so that no stop leaves it behind
+        signal.signal(sig, lambda *_: stop.set())
+    log = open(args.log, "w", encoding="utf-8") if args.log else None  # noqa: SIM115 - closed below
+    board = None
+    try:
+        try:
+            board = VirtualBoard(SensorModel(params, args.seed), _surfaces(args.surfaces, params.family), link=args.link, speed=args.speed,
+                                 corrupt=args.corrupt, drop=args.drop, garbage=args.garbage, unplug_at=unplug_at,
+                                 unplug_s=args.unplug_s, seed=args.seed, log=log)
+        except ValueError as exc:
+            raise TactiledError(str(exc)) from None
+        path = board.open()
+        print(args.link or path, flush=True)
+        board.run(stop, args.seconds)
+    finally:
+        if board is not None:
+            board.remove_link()
+            board.close()
+        if log:
+            log.close()
+    sys.stdout.flush()
+    return 0
+
+
+def write_figure(out: Path, mode: str = "manual", seed: int = 0) -> None:
+    """One slide per surface class: film 1's raw signal and its spectrum (PNG; needs matplotlib)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise TactiledError("the figure needs matplotlib: pip install 'tactiled[report]'") from None
+    _, params = scene_for(None, mode, 20_000.0, 2)
+    surfaces = pick_surfaces(None)
+    fig, axes = plt.subplots(len(surfaces), 2, figsize=(11, 1.1 * len(surfaces)), sharex="col")
+    for row, surface in enumerate(surfaces):
+        model = SensorModel(params, seed + row)
+        model.add_rest(0.3)
+        truth = model.add_slide(surface, 1.3)
+        model.add_rest(0.3)
+        volts = model.read(model.scheduled_end).astype(np.float64) * params.volts_per_count
+        t = np.arange(volts.shape[0]) / params.fs
+        axes[row, 0].plot(t, volts[:, 0], lw=0.4)
+        axes[row, 0].axvspan(truth.start / params.fs, truth.stop / params.fs, color="orange", alpha=0.15)
+        axes[row, 0].set_ylabel(surface.name, rotation=0, ha="right", fontsize=8)
+        seg = volts[truth.start + round(0.3 * params.fs):truth.start + round(0.8 * params.fs), 0]
+        spec = np.abs(np.fft.rfft(seg * np.hanning(seg.size))) / seg.size
+        f = np.fft.rfftfreq(seg.size, 1 / params.fs)
+        axes[row, 1].semilogy(f, spec + 1e-9, lw=0.4)
+        axes[row, 1].set_xlim(0, 3000)
+        axes[row, 1].set_ylim(1e-6, 1e-1)
+    axes[-1, 0].set_xlabel("time, s (shaded: ground-truth slide)")
+    axes[-1, 1].set_xlabel("frequency, Hz (window 0.3-0.8 s after the start of motion)")
+    axes[0, 0].set_title(f"film 1, volts ({mode} sliding)")
+    axes[0, 1].set_title("amplitude spectrum, V")
+    fig.tight_layout()
+    fig.savefig(out, dpi=90)
+    plt.close(fig)

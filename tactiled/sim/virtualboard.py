@@ -1,0 +1,168 @@
+"""A virtual sensor board: the simulator's samples as frames on a pseudo-terminal.
+
+It opens a pty, keeps an optional symlink pointing at it, and streams frames per
+docs/sensor-frames.md in real time (or ``speed`` times faster). It can corrupt,
+drop and garble frames, and unplug (close the pty, keep sampling, open a new pty behind
+the same symlink). With a log it writes one JSON line per event (slides scheduled,
+frames dropped or corrupted, garbage, unplugs, overruns) so tests can check what arrived.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+import tty
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from tactiled.board.frames import encode_frame
+from tactiled.sim.sensor_model import SensorModel, Surface
+
+
+class VirtualBoard:
+    """Streams ``model`` over a pty; :meth:`run` until ``stop`` is set or ``seconds`` of sensor time."""
+
+    def __init__(self, model: SensorModel, surfaces: Sequence[Surface], *, link: str | None = None,
+                 speed: float = 1.0, corrupt: float = 0.0, drop: float = 0.0, garbage: float = 0.0,
+                 unplug_at: Sequence[float] = (), unplug_s: float = 0.3, frame_count: int = 20,
+                 seed: int = 0, log: TextIO | None = None, first_index: int = 0) -> None:
+        if speed <= 0:
+            raise ValueError("speed must be > 0")
+        for name, value in (("corrupt", corrupt), ("drop", drop), ("garbage", garbage)):
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name} must be a probability in [0, 1], got {value}")
+        self.model = model
+        self.surfaces = list(surfaces)
+        self.link = link
+        self.speed = speed
+        self.corrupt, self.drop, self.garbage = corrupt, drop, garbage
+        self.unplug_at = sorted(unplug_at)
+        self.unplug_s = unplug_s
+        self.frame_count = frame_count
+        self.first_index = first_index
+        self.rng = np.random.default_rng(seed + 0x5EED)
+        self.log = log
+        self.path = ""
+        self.sent_samples = 0
+        self._master = -1
+        self._slave = -1
+        self._logged_slides = 0
+        self.ready = threading.Event()
+        self._progress = threading.Condition()
+
+    def wait_sent(self, samples: int, timeout: float) -> bool:
+        """Block until at least ``samples`` have been sent (True) or ``timeout`` s pass (False)."""
+        with self._progress:
+            return self._progress.wait_for(lambda: self.sent_samples >= samples, timeout)
+
+    def _event(self, event: str, **fields: Any) -> None:
+        if self.log is not None:
+            self.log.write(json.dumps({"event": event, **fields}) + "\n")
+            self.log.flush()
+
+    def open(self) -> str:
+        """Open a new pty (raw, non-blocking master), point the link at it; returns its path."""
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        os.set_blocking(master, False)
+        self._master, self._slave = master, slave
+        self.path = os.ttyname(slave)
+        if self.link:
+            tmp = f"{self.link}.tmp{os.getpid()}"
+            if os.path.lexists(tmp):
+                os.unlink(tmp)
+            os.symlink(self.path, tmp)
+            os.replace(tmp, self.link)
+        self._event("open", path=self.path, index=self.first_index + self.sent_samples)
+        return self.path
+
+    def close(self) -> None:
+        """Close the pty (the link stays: an unplug reopens behind it)."""
+        for fd in (self._master, self._slave):
+            if fd >= 0:
+                os.close(fd)
+        self._master = self._slave = -1
+
+    def remove_link(self) -> None:
+        """Remove the symlink if it still points at this board's pty (so it never names a pty another program gets next)."""
+        if self.link and os.path.islink(self.link) and os.readlink(self.link) == self.path:
+            os.unlink(self.link)
+
+    def _log_slides(self) -> None:
+        for truth in self.model.truth[self._logged_slides:]:
+            self._event("slide", start=self.first_index + truth.start, stop=self.first_index + truth.stop,
+                        surface=truth.surface.name, ra_um=truth.surface.ra_um)
+        self._logged_slides = len(self.model.truth)
+
+    def _write(self, data: bytes, index: int) -> None:
+        try:
+            written = os.write(self._master, data)
+        except BlockingIOError:
+            written = 0
+        except OSError:
+            written = 0
+        if written < len(data):
+            self._event("overrun", index=index, bytes=len(data) - written)
+
+    def run(self, stop: threading.Event, seconds: float | None = None) -> None:
+        """Stream until ``stop`` is set (or ``seconds`` of sensor time have been sent)."""
+        fs = self.model.p.fs
+        n = self.frame_count
+        total = None if seconds is None else round(seconds * fs)
+        unplugs = [round(t * fs) for t in self.unplug_at]
+        if self._master < 0:
+            self.open()
+        self.ready.set()
+        t0 = time.monotonic()
+        down_until = -1
+        while not stop.is_set() and (total is None or self.sent_samples < total):
+            due = int((time.monotonic() - t0) * fs * self.speed)
+            if total is not None:
+                due = min(due, total)
+            if due - self.sent_samples < n:
+                time.sleep(min(0.005, n / fs / self.speed))  # pacing the stream, not synchronisation
+                continue
+            while self.sent_samples + n <= due and not stop.is_set():
+                self.model.schedule_random(self.surfaces, self.model.position + 10 * n)
+                self._log_slides()
+                block = self.model.read(n)
+                index = self.first_index + self.sent_samples
+                self.sent_samples += n
+                if unplugs and self.sent_samples >= unplugs[0]:
+                    unplugs.pop(0)
+                    self._event("unplug", index=index)
+                    self.close()
+                    down_until = self.sent_samples + round(self.unplug_s * fs)
+                if down_until >= 0:
+                    if self.sent_samples < down_until:
+                        continue
+                    down_until = -1
+                    self.open()
+                    continue
+                if self.rng.random() < self.drop:
+                    self._event("drop", index=index, count=n)
+                    continue
+                frame = bytearray(encode_frame(index, block))
+                if self.rng.random() < self.corrupt:
+                    at = int(self.rng.integers(2, len(frame)))
+                    frame[at] ^= int(self.rng.integers(1, 256))
+                    self._event("corrupt", index=index, count=n)
+                if self.rng.random() < self.garbage:
+                    junk = self.rng.integers(0, 256, int(self.rng.integers(1, 40)), dtype=np.uint8).tobytes()
+                    self._event("garbage", index=index, bytes=len(junk))
+                    frame = bytearray(junk) + frame
+                self._write(bytes(frame), index)
+                with self._progress:
+                    self._progress.notify_all()
+        self._event("end", index=self.first_index + self.sent_samples)
+
+
+def read_log(path: str | Path) -> list[dict[str, Any]]:
+    """The events of a virtual board's log file."""
+    with open(path, encoding="utf-8") as fh:
+        return [json.loads(line) for line in fh if line.strip()]
