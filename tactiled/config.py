@@ -195,7 +195,7 @@ class ClassifierConfig:
     ``max_saturated`` 1.0: clipped windows are labelled (their clipped fraction is in ``quality``)."""
 
     min_confidence: float = 0.0
-    provisional_confidence: float = 0.9
+    provisional_confidence: float = 0.5
     max_saturated: float = 1.0
     max_lost: float = 0.02
 

@@ -73,7 +73,7 @@ def test_svm_file_without_fitted_arrays_loads_through_sklearn(tmp_path: Path) ->
     from tactiled.files.recording import atomic_savez
 
     model = load_model(lean=False)
-    arrays = {k: v for k, v in model._arrays().items() if not k.startswith("svm_")}
+    arrays = {k: v for k, v in {**model._arrays(), **model._trust_arrays()}.items() if not k.startswith("svm_")}
     header = model._header()
     from tactiled.learn.model import _fingerprint
 

@@ -130,7 +130,7 @@ def test_a_model_trained_on_clipping_surfaces_knows_them_all_and_scores_every_sl
     from tactiled.learn.train import train
 
     paths = datasets["hot-gain"]
-    result = train(paths, Config(), folds=2, candidates=[Candidate(("psd",), "linear", 0.5)])
+    result = train(paths, Config(), folds=2, candidates=[Candidate(("psd",), "linear", 0.5)], group_by="slide")
     recs = [(str(p), load_recording(p)) for p in paths]
     surfaces = sorted({s for _, r in recs for _, _, s in r.slides()})
     assert sorted(result.model.classes) == surfaces

@@ -66,11 +66,11 @@ def test_replay_json_is_one_line_per_slide_with_its_provisional_labels(tmp_path:
     for obj in lines:
         assert set(obj) <= schema.ReplaySlide.wire_fields() and obj["final"] is True and obj["file"].endswith("r.npz")
     # provisional results (the pipeline's, while a slide goes on) fold into their slide's line
-    finals = replay_recording(rec, Config(), load_model())
+    finals = [r for r in replay_recording(rec, Config(), load_model()) if r.final]
     early = [SlideResult(**{**f.__dict__, "final": False, "used_s": 0.25, "label": "x"}) for f in finals]
     grouped = by_slide([early[0], early[1], finals[0], finals[1]])
     assert [(r.slide_id, [p.used_s for p in ps]) for r, ps in grouped] == [(0, [0.25]), (1, [0.25])]
     line = result_record("r.npz", rec, grouped[0][0], grouped[0][1]).to_map()
     assert line["provisional"] == [{"label": "x", "confidence": early[0].confidence, "used_s": 0.25, "top": [list(t) for t in early[0].top],
-                                    "reason": early[0].reason}]
+                                    "reason": early[0].reason, "novelty": early[0].novelty}]
     assert json.loads(json.dumps(line))["provisional"][0]["label"] == "x"

@@ -23,7 +23,7 @@ from typing import Any, ClassVar, Protocol, TypeVar
 
 import msgpack
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3  # 3: roughness messages carry novelty; reason unknown_surface
 ROUGHNESS, SLIDE, STATUS, SAMPLES = "roughness", "slide", "status", "samples"
 TOPICS = (ROUGHNESS, SLIDE, STATUS, SAMPLES)
 
@@ -34,7 +34,9 @@ REASON_SATURATED = "saturated"
 REASON_LOW_CONFIDENCE = "low_confidence"
 REASON_OVERWRITTEN = "overwritten"
 REASON_NO_MODEL = "no_model"
-REASONS = (REASON_WINDOW_TOO_SHORT, REASON_SAMPLES_LOST, REASON_SATURATED, REASON_LOW_CONFIDENCE, REASON_OVERWRITTEN, REASON_NO_MODEL)
+REASON_UNKNOWN_SURFACE = "unknown_surface"
+REASONS = (REASON_WINDOW_TOO_SHORT, REASON_SAMPLES_LOST, REASON_SATURATED, REASON_LOW_CONFIDENCE, REASON_OVERWRITTEN, REASON_NO_MODEL,
+           REASON_UNKNOWN_SURFACE)
 
 # status states
 STATE_CONNECTED, STATE_DISCONNECTED, STATE_IDLE, STATE_SLIDING, STATE_STOPPING = "connected", "disconnected", "idle", "sliding", "stopping"
@@ -117,8 +119,8 @@ class Roughness(Message):
 
     label: str | None = None
     reason: str | None = None
-    confidence: float | None = None
-    top: list[list[Any]] = field(default_factory=list)  # [[label, probability], ...] best first
+    confidence: float | None = None  # the probability that `label` (the top class) is right, calibrated in training
+    top: list[list[Any]] = field(default_factory=list)  # [[label, probability], ...] best first: the classifier's softmax, uncalibrated
     slide_id: int = 0
     start: int = 0  # sensor sample index of the slide's onset
     stop: int = 0  # sensor sample index one past the slide's end (provisional: one past the samples used)
@@ -135,6 +137,7 @@ class Roughness(Message):
     start_unix: float | None = None
     stop_mono: float | None = None  # host time of sample `stop`
     stop_unix: float | None = None
+    novelty: float | None = None  # > 1: unlike every surface the model was trained on (label nil, reason unknown_surface); nil: not known
 
 
 @dataclass
@@ -238,6 +241,7 @@ class ProvisionalLabel:
     used_s: float
     top: list[list[Any]]
     reason: str | None = None
+    novelty: float | None = None
 
     def to_map(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -281,6 +285,7 @@ class SlideOutcome(Protocol):
     compute_ms: float
     final: bool
     used_s: float
+    novelty: float | None
 
 
 def _head(kind: str, sensor: str) -> dict[str, Any]:
@@ -303,12 +308,13 @@ def roughness(sensor: str, r: SlideOutcome, *, fs: float, model: str, version: s
                      top=[[c, p] for c, p in r.top], slide_id=r.slide_id, start=r.start, stop=r.stop, window=[r.window[0], r.window[1]],
                      t_start=r.start / fs, t_stop=r.stop / fs, latency_ms=round(latency_ms, 3), model=model,
                      quality={**r.quality, "compute_ms": round(r.compute_ms, 3)}, version=version, final=r.final,
-                     used_s=round(r.used_s, 6), start_mono=start_mono, start_unix=start_unix, stop_mono=stop_mono, stop_unix=stop_unix)
+                     used_s=round(r.used_s, 6), start_mono=start_mono, start_unix=start_unix, stop_mono=stop_mono, stop_unix=stop_unix,
+                     novelty=r.novelty)
 
 
 def provisional_label(r: SlideOutcome) -> ProvisionalLabel:
     """The short form of a provisional result kept inside a replay line."""
-    return ProvisionalLabel(r.label, r.confidence, round(r.used_s, 6), [[c, p] for c, p in r.top], r.reason)
+    return ProvisionalLabel(r.label, r.confidence, round(r.used_s, 6), [[c, p] for c, p in r.top], r.reason, r.novelty)
 
 
 def slide_start(sensor: str, slide_id: int, start: int, fs: float, to_host: HostTime | None = None) -> Slide:

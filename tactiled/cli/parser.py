@@ -247,15 +247,24 @@ def _stderr(msg: str) -> None:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from tactiled.learn.train import train
+    from tactiled.service.record import check_output
 
     config = _config(args)
+    check_output(args.output, force=True)  # before minutes of search, not after
     result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
-                   scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True))
+                   scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by)
     print("leaderboard (slide accuracy, grouped by file: mean ± sd over folds; * the choice, the simplest within one standard error of the best):")
     width = max(len(row["candidate"]) for row in result.leaderboard)
     for row in result.leaderboard:
         mark = "*" if row.get("chosen") else " "
         print(f"{mark} {row['candidate']:<{width}s} {100 * row['mean']:5.1f} ± {100 * row['sd']:4.1f} %")
+    cal, nov = result.model.summary.get("calibration", {}), result.model.summary.get("novelty", {})
+    if cal:
+        print(f"confidence: calibrated ({cal['method']}) on {cal['slides']} out-of-fold slides")
+    if nov.get("threshold") is not None:
+        print(f"unknown surfaces: by cross-validation, {100 * nov['known_rejected']:.1f} % of slides of known surfaces are called unknown, "
+              + (f"{100 * nov['unseen_flagged']:.1f} % of slides of a surface left out of training" if nov.get("unseen_flagged") is not None
+                 else "and no surface could be left out to test it"))
     fingerprint = result.model.save(args.output)
     print(f"{args.output}: {result.model.describe()}; nested CV {100 * result.nested['mean']:.1f} ± {100 * result.nested['sd']:.1f} %; "
           f"fingerprint {fingerprint}")
@@ -717,6 +726,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--folds", type=_int_in(2, 1000), default=5, help="outer cross-validation folds, grouped by file")
     p.add_argument("--min-slides", type=_count, default=2, help="fewest slides a surface needs")
     p.add_argument("--drop-rare", action="store_true", help="train without surfaces that have too few slides instead of stopping")
+    p.add_argument("--group-by", choices=("file", "slide"), default="file",
+                   help="what cross-validation folds keep together: file (every surface needs two recordings) or slide "
+                        "(allows one recording per surface; the estimates are then optimistic, and train says so)")
     p.add_argument("--scheduler", help="dask.distributed scheduler address (tcp://host:port) to run the cross-validation on a cluster")
     p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP + " (the same files, options and seed give the same model file)")
     p.set_defaults(handler=cmd_train)

@@ -6,10 +6,12 @@ the sample index only: the same samples in any block sizes give the same events.
 
 A slide is cut into successive windows (:meth:`AnalysisSettings.spans`); each is analysed
 as soon as the ring holds it, while the slide goes on. After each window the scores so
-far are combined (:meth:`Classifier.slide_proba`); when the fused confidence first reaches
+far are combined (:meth:`Classifier.assess`: probabilities, the calibrated confidence that the
+top class is right, and the novelty); when the confidence first reaches
 ``classifier.provisional_confidence`` (and again whenever the leading label changes
-while above it), a provisional :class:`SlideResult` (``final=False``) is emitted. When
-the slide ends, the windows that lie inside it are fused into the final result. Windows
+while above it) and the slide is not novel, a provisional :class:`SlideResult` (``final=False``)
+is emitted. When the slide ends, the windows that lie inside it are fused into the final
+result; a novelty above 1 gives no label, with reason ``unknown_surface``. Windows
 that could not be analysed (lost samples, too short, ...) are skipped; a slide with
 none gets no label and the most common reason. :meth:`Pipeline.finish` ends the stream:
 a slide still running is analysed as far as it goes.
@@ -39,7 +41,7 @@ class Classifier(Protocol):
     fingerprint: str
     settings: AnalysisSettings
 
-    def slide_proba(self, features: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]: ...
+    def assess(self, features: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], float, float | None]: ...
 
 
 @dataclass
@@ -78,6 +80,7 @@ class SlideResult:
     compute_ms: float = 0.0
     final: bool = True  # False: a provisional label published while the slide goes on
     used_s: float = 0.0  # seconds of the slide (from its start) the label is based on
+    novelty: float | None = None  # > 1: unlike every surface the model was trained on (None: the model has no novelty data)
 
 
 PipelineEvent = SlideStarted | SlideEnded | SlideResult
@@ -186,9 +189,9 @@ class Pipeline:
     def _window(self, span: tuple[int, int]) -> _Window:
         return _Window(span, self._read(*span))
 
-    def _proba(self, used: list[_Window]) -> npt.NDArray[np.float64]:
+    def _assess(self, used: list[_Window]) -> tuple[npt.NDArray[np.float64], float, float | None]:
         assert self.model is not None
-        return self.model.slide_proba(np.stack([w.result.features for w in used if w.result.features is not None]))
+        return self.model.assess(np.stack([w.result.features for w in used if w.result.features is not None]))
 
     def _read(self, lo: int, hi: int) -> WindowResult:
         if hi - lo < self.min_samples:
@@ -204,13 +207,14 @@ class Pipeline:
         if self.model is None or self._onset is None or self.provisional_confidence >= 1.0:
             return None
         used = [w for w in self._windows if w.usable]
-        proba = self._proba(used)
-        best = int(np.argmax(proba))
-        label = self.model.classes[best]
-        if proba[best] < max(self.provisional_confidence, self.min_confidence) or label == self._provisional:
+        assessed = self._assess(used)
+        proba, confidence, novelty = assessed
+        label = self.model.classes[int(np.argmax(proba))]
+        if (confidence < max(self.provisional_confidence, self.min_confidence) or label == self._provisional
+                or (novelty is not None and novelty > 1.0)):
             return None
         self._provisional = label
-        return self._result(self._onset, used[-1].span[1], used, proba, t0, final=False)
+        return self._result(self._onset, used[-1].span[1], used, assessed, t0, final=False)
 
     def _final(self, start: int, stop: int) -> SlideResult:
         t0 = time.perf_counter()
@@ -224,22 +228,26 @@ class Pipeline:
             reason = "no_model" if self.model is None and any(w.result.features is not None for w in windows) else Counter(reasons).most_common(1)[0][0]
             return SlideResult(self._slide_id, start, stop, (spans[0][0], spans[-1][1]) if spans else (start, start), None, reason, None, [],
                                _quality(windows), None, (time.perf_counter() - t0) * 1e3, True, (stop - start) / self.fs)
-        return self._result(start, stop, used, self._proba(used), t0, final=True)
+        return self._result(start, stop, used, self._assess(used), t0, final=True)
 
-    def _result(self, start: int, stop: int, used: list[_Window], proba: npt.NDArray[np.float64], t0: float, final: bool) -> SlideResult:
+    def _result(self, start: int, stop: int, used: list[_Window], assessed: tuple[npt.NDArray[np.float64], float, float | None], t0: float,
+                final: bool) -> SlideResult:
         assert self.model is not None
+        proba, confidence, novelty = assessed
         order = np.argsort(proba)[::-1][:3]
         top = [(self.model.classes[i], round(float(proba[i]), 4)) for i in order]
-        confidence = float(proba[order[0]])
         label: str | None = self.model.classes[order[0]]
         reason = None
-        if confidence < self.min_confidence:
+        if novelty is not None and novelty > 1.0:
+            label, reason = None, "unknown_surface"
+        elif confidence < self.min_confidence:
             label, reason = None, "low_confidence"
         elif final:
             self.labels += 1
         feats = used[-1].result.features
-        return SlideResult(self._slide_id, start, stop, (used[0].span[0], used[-1].span[1]), label, reason, confidence, top, _quality(used),
-                           feats, (time.perf_counter() - t0) * 1e3, final, (used[-1].span[1] - start) / self.fs)
+        return SlideResult(self._slide_id, start, stop, (used[0].span[0], used[-1].span[1]), label, reason, round(confidence, 4), top,
+                           _quality(used), feats, (time.perf_counter() - t0) * 1e3, final, (used[-1].span[1] - start) / self.fs,
+                           None if novelty is None else round(novelty, 4))
 
 
 def _quality(windows: list[_Window]) -> dict[str, Any]:

@@ -201,7 +201,7 @@ def collect_windows(recs: Sequence[tuple[str, Recording]], config: Config, setti
             rows += s_rows
             spans += s_spans
             labels += [slide.label or ""] * len(s_rows)
-            groups += [g] * len(s_rows)
+            groups += [slide.file] * len(s_rows)  # the group of the slide: its recording (or itself, train --group-by slide)
             slide_idx += [k] * len(s_rows)
         if progress and ((g + 1) % 10 == 0 or g + 1 == len(recs)):
             progress(f"windows: {g + 1}/{len(recs)} files, {len(slides)} slides, {len(rows)} windows")

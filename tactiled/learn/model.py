@@ -12,18 +12,28 @@ multinomial logistic regression). Scores are the classifier's decision values (l
 probabilities for kNN); ``temperature`` is fitted on out-of-fold slides in training so
 that a slide's confidence is calibrated.
 
+A slide's label comes with two numbers (:meth:`Model.assess`): ``confidence``, the probability that the label is
+right, a monotone map (``calibration``, fitted in training on grouped out-of-fold slides: isotonic regression
+with 200 or more slides, else Platt scaling) of the top softmax probability; and ``novelty``, the mean
+distance of the slide (the mean of its windows' features, standardised as the classifier sees them) to its
+``novelty_k`` nearest training slides, divided by the threshold that grouped cross-validation set so that at
+most 5 % of slides of known surfaces exceed it: above 1, the slide is unlike every surface the model was taught.
+
 File arrays: ``header`` (0-d unicode, JSON), ``classes`` (K,) unicode, ``scaler_mean`` and
 ``scaler_scale`` (F,); per classifier: elm ``weights`` (F, L), ``biases`` (L,), ``beta``
 (L, K'), ``elm_temperature`` (); linear ``coef`` (K'', F), ``intercept`` (K'',); knn and
 svm ``train_x`` (n, F) standardised and ``train_y`` (n,) (both deterministic, refit at
 load; at most :data:`MAX_REFIT_ROWS` rows so a load never hangs); svm also the fitted
-``svm_support``, ``svm_dual_coef``, ``svm_intercept``, ``svm_n_support``, ``svm_gamma``
+``svm_support``, ``svm_dual_coef``, ``svm_intercept``, ``svm_n_support``, ``svm_gamma``; from format 3 on, every
+model also has ``calibration`` (2, m) knots (top probability, P(right)), both nondecreasing in [0, 1], and
+``novelty_x`` (n, F') the standardised mean features of its n training slides
 (optional: :mod:`tactiled.learn.infer` evaluates the model with numpy alone, no refit, no
 scikit-learn import; ``load_model(lean=False)`` takes the scikit-learn path; an svm that
 must be refit at load has at most :data:`MAX_SVM_REFIT_ROWS` rows). Only the arrays of the
 file's classifier are read, at most :data:`MAX_MODEL_BYTES` inflated. The header carries the
 format and its version, the method, the classifier and its parameters, the analysis
-settings (windows, spikes, feature names), fs, channels, temperature, a training summary
+settings (windows, spikes, feature names), fs, channels, temperature, ``novelty`` (``k`` and
+``threshold``; format 3), a training summary
 (including the cross-validated accuracy), and ``fingerprint``: the SHA-256 (first 16 hex
 digits) of the header without it and of every array's bytes. Loading checks all of it (types,
 ranges, shapes, and that the stream's channels hold the features), runs a probe (one window of
@@ -53,7 +63,9 @@ from tactiled.files.recording import atomic_savez
 from tactiled.learn.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, log_proba, pm_half, svm_arrays
 
 FORMAT = "tactiled-model"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+READ_VERSIONS = (2, 3)  # format 2 (before calibration and novelty) still loads: confidence uncalibrated, novelty None
+TRUST_ARRAYS = ("calibration", "novelty_x")
 CLASSIFIERS = ("elm", "knn", "svm", "linear")
 MAX_REFIT_ROWS = 20_000
 MAX_SVM_REFIT_ROWS = 4000  # an RBF SVM refit at load (a file without its fitted SVM, or lean=False): 4000 rows of noise take ~2 s, 20 000 minutes
@@ -201,6 +213,10 @@ class Model:
     summary: dict[str, Any] = field(default_factory=dict)
     fingerprint: str = ""
     refit: tuple[FloatArray, npt.NDArray[np.str_]] | None = None  # kNN/SVM: standardised training set and labels, stored in the file
+    calibration: FloatArray | None = None  # (2, m): top softmax probability -> P(label right); None: uncalibrated (format 2)
+    novelty_x: FloatArray | None = None  # (n, F'): standardised mean features of the training slides; None: no novelty (format 2)
+    novelty_k: int = 3
+    novelty_threshold: float = math.inf
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -231,6 +247,34 @@ class Model:
         if self.settings.fusion == "features":
             return softmax(self.scores(x.mean(axis=0, keepdims=True))[0], self.temperature)
         return self.fuse(self.scores(x))
+
+    def confidence(self, p_top: float) -> float:
+        """The probability that the label is right, from the top softmax probability of a slide (the calibration map)."""
+        if self.calibration is None:
+            return float(p_top)
+        return float(np.clip(np.interp(p_top, self.calibration[0], self.calibration[1]), 0.0, 1.0))
+
+    def novelty(self, features: FloatArray) -> float | None:
+        """How unlike the training slides a slide is, from its windows' raw features (w, F): > 1 is an unknown surface.
+
+        The mean Euclidean distance of the slide's standardised mean features to its ``novelty_k`` nearest
+        training slides, over the threshold set in training. None for a model without novelty data.
+        """
+        if self.novelty_x is None or not len(self.novelty_x):
+            return None
+        z = self.standardise(np.asarray(features, dtype=np.float64).reshape(-1, len(self.names)).mean(axis=0, keepdims=True))[0]
+        return float(knn_distance(z[None, :], self.novelty_x, self.novelty_k)[0] / self.novelty_threshold)
+
+    def assess(self, features: FloatArray) -> tuple[FloatArray, float, float | None]:
+        """(softmax probabilities (K,), confidence that the top class is right, novelty) of a slide's windows' raw features (w, F)."""
+        proba = self.slide_proba(features)
+        return proba, self.confidence(float(proba.max())), self.novelty(features)
+
+    def standardise(self, x: FloatArray) -> FloatArray:
+        """Classifier inputs (n, F') of raw features (n, F): log of scale features, standardised (the steps before the classifier)."""
+        if isinstance(self.pipeline, LeanPipeline):
+            return self.pipeline.transform(x)
+        return np.asarray(self.pipeline[:-1].transform(x), dtype=np.float64)
 
     def predict_proba(self, x: npt.ArrayLike) -> FloatArray:
         """(n, K) probabilities of single windows."""
@@ -273,14 +317,20 @@ class Model:
                 arrays.update(svm_arrays(clf))
         return arrays
 
+    def _trust_arrays(self) -> dict[str, Any]:
+        calibration = self.calibration if self.calibration is not None else np.array([[0.0, 1.0], [0.0, 1.0]])
+        novelty_x = self.novelty_x if self.novelty_x is not None else np.zeros((0, len(self.names)))
+        return {"calibration": np.asarray(calibration, dtype=np.float64), "novelty_x": np.asarray(novelty_x, dtype=np.float64)}
+
     def _header(self) -> dict[str, Any]:
         return {"format": FORMAT, "version": FORMAT_VERSION, "method": self.method, "classifier": self.kind, "params": self.params,
                 "seed": self.seed, "classes": self.classes, "settings": self.settings.to_dict(), "fs": self.fs, "channels": self.channels,
-                "temperature": self.temperature, "summary": self.summary}
+                "temperature": self.temperature, "summary": self.summary,
+                "novelty": {"k": self.novelty_k, "threshold": self.novelty_threshold if math.isfinite(self.novelty_threshold) else None}}
 
     def save(self, path: str | Path) -> str:
         """Write atomically; returns the fingerprint."""
-        arrays = self._arrays()
+        arrays = {**self._arrays(), **self._trust_arrays()}
         header = self._header()
         self.fingerprint = _fingerprint(header, arrays)
         header["fingerprint"] = self.fingerprint
@@ -293,13 +343,17 @@ def fit_pipeline(x: FloatArray, y: npt.NDArray[Any], names: list[str] | tuple[st
     """Fit :func:`make_pipeline` on raw features ``x`` (n, F).
 
     Returns the pipeline and, for kNN and SVM (refit at load), their standardised training
-    set, at most :data:`MAX_REFIT_ROWS` rows (a seeded subsample beyond that).
+    set. Both are fitted on at most :data:`MAX_REFIT_ROWS` rows (an SVM on at most
+    :data:`MAX_SVM_REFIT_ROWS`: its fit time grows with the square of the rows); beyond that, a
+    seeded subsample.
     """
-    if kind == "knn":  # never more neighbours than training rows
-        params = {**params, "n_neighbors": max(1, min(int(params.get("n_neighbors", 9)), x.shape[0]))}
+    if kind == "knn":  # never more neighbours than the rarest class has rows: more would outvote it wherever it is
+        fewest = int(np.unique(y, return_counts=True)[1].min()) if len(y) else 1
+        params = {**params, "n_neighbors": max(1, min(int(params.get("n_neighbors", 9)), x.shape[0], fewest))}
     pipe = make_pipeline(names, kind, params, seed)
-    if kind in ("svm", "knn") and x.shape[0] > MAX_REFIT_ROWS:
-        keep = np.sort(np.random.default_rng(seed).choice(x.shape[0], MAX_REFIT_ROWS, replace=False))
+    cap = MAX_SVM_REFIT_ROWS if kind == "svm" else MAX_REFIT_ROWS  # an RBF SVM's fit grows with the square of its rows
+    if kind in ("svm", "knn") and x.shape[0] > cap:
+        keep = np.sort(np.random.default_rng(seed).choice(x.shape[0], cap, replace=False))
         x, y = x[keep], y[keep]
     pipe.fit(x, y)
     refit = (pipe[:-1].transform(x), np.asarray(y, dtype=np.str_)) if kind in ("svm", "knn") else None
@@ -336,12 +390,13 @@ def load_model(path: str | Path | None = None, lean: bool = True) -> Model:
             except ValueError as exc:
                 raise ModelError(f"{path}: {exc}") from None
             _need(isinstance(header, dict) and header.get("format") == FORMAT, path, f"header.format: not a {FORMAT} file")
-            _need(header.get("version") == FORMAT_VERSION, path,
-                  f"header.version: {header.get('version')!r} is not the supported {FORMAT_VERSION} (retrain with this tactiled)")
+            _need(header.get("version") in READ_VERSIONS, path,
+                  f"header.version: {header.get('version')!r} is not one of the supported {READ_VERSIONS} (retrain with this tactiled)")
             kind = header.get("classifier")
             _need(kind in CLASSIFIERS, path, f"header.classifier: unknown {kind!r}")
             optional = [k for k in SVM_ARRAYS if k in reader] if kind == "svm" else []
-            keys = ("classes", "scaler_mean", "scaler_scale", *ARRAYS[kind], *optional)
+            trust = TRUST_ARRAYS if header.get("version") == FORMAT_VERSION else ()
+            keys = ("classes", "scaler_mean", "scaler_scale", *ARRAYS[kind], *optional, *trust)
             missing, extra = [k for k in keys if k not in reader], sorted(set(reader.keys()) - {"header", *keys})
             _need(not missing, path, f"{', '.join(missing)}: missing")
             _need(not extra, path, f"{', '.join(extra)}: not an array of a {kind} model (the fingerprint covers every array)")
@@ -472,8 +527,37 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
         pipe = _sklearn_pipeline(settings, kind, params, seed, classes, arrays)
     model = Model(str(header.get("method", kind)), kind, params, classes, settings, fs, channels, pipe, temperature, seed,
                   dict(summary), fingerprint or "", None if kind in ("elm", "linear") else (train_x, train_y))
+    if "calibration" in arrays:
+        _check_trust(path, model, header, arrays)
     _probe(path, model)
     return model
+
+
+def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[str, Any]) -> None:
+    """Check and attach a format-3 model's calibration and novelty data."""
+    cal, nx = arrays["calibration"], arrays["novelty_x"]
+    _need(cal.ndim == 2 and cal.shape[0] == 2 and 2 <= cal.shape[1] <= 10_000 and _finite(cal), path,
+          "calibration: must be (2, m) finite floats, 2 <= m <= 10000")
+    _need(bool(np.all((cal >= 0) & (cal <= 1)) and np.all(np.diff(cal, axis=1) >= 0)), path, "calibration: knots must be nondecreasing in [0, 1]")
+    width = model.standardise(np.zeros((1, len(model.names)))).shape[1]
+    _need(nx.ndim == 2 and nx.shape[1] == width and nx.shape[0] <= MAX_REFIT_ROWS and (nx.size == 0 or _finite(nx)), path,
+          f"novelty_x: must be (n, {width}) finite floats, at most {MAX_REFIT_ROWS} rows")
+    nov: Any = header.get("novelty")
+    _need(isinstance(nov, dict) and isinstance(nov.get("k"), int) and not isinstance(nov.get("k"), bool) and 1 <= nov["k"] <= 100, path,
+          "header.novelty.k: must be an integer in 1..100")
+    threshold = nov.get("threshold")
+    _need(threshold is None or (_is_number(threshold) and threshold > 0), path, "header.novelty.threshold: must be a number > 0 or null")
+    model.calibration, model.novelty_x, model.novelty_k = cal, nx, int(nov["k"])
+    model.novelty_threshold = float(threshold) if threshold is not None else math.inf
+
+
+def knn_distance(z: FloatArray, train: FloatArray, k: int) -> FloatArray:
+    """(q,) mean Euclidean distance of each row of ``z`` (q, F) to its ``k`` nearest rows of ``train`` (n, F) (k capped at n)."""
+    k = max(1, min(k, train.shape[0]))
+    d2 = (z * z).sum(axis=1)[:, None] - 2.0 * z @ train.T + (train * train).sum(axis=1)[None, :]
+    d = np.sqrt(np.maximum(d2, 0.0))
+    out: FloatArray = np.partition(d, k - 1, axis=1)[:, :k].mean(axis=1)
+    return out
 
 
 def _probe(path: Path, model: Model) -> None:
@@ -486,11 +570,12 @@ def _probe(path: Path, model: Model) -> None:
         assert window.features is not None
         two = np.stack([window.features, window.features * 1.5])
         scores = model.scores(two)
-        p = model.slide_proba(two)
+        p, confidence, novelty = model.assess(two)
     except (ValueError, FloatingPointError, ArithmeticError, IndexError, TypeError) as exc:
         raise ModelError(f"{path}: probe prediction failed: {exc}") from None
     _need(scores.shape == (2, len(model.classes)) and bool(np.all(np.isfinite(scores))), path, "probe prediction: scores are not finite")
     _need(bool(np.all(np.isfinite(p))) and abs(float(p.sum()) - 1.0) < 1e-6, path, "probe prediction is not a finite probability")
+    _need(0.0 <= confidence <= 1.0 and (novelty is None or math.isfinite(novelty)), path, "probe prediction: confidence or novelty not finite")
 
 
 def _sklearn_pipeline(settings: AnalysisSettings, kind: str, params: dict[str, Any], seed: int, classes: list[str], arrays: dict[str, Any]) -> Any:

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.core.pipeline import SlideResult
@@ -40,6 +41,8 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
     reasons: Counter[str] = Counter()
     extra = 0
     per_file = []
+    conf: list[float] = []
+    hit: list[bool] = []
     for (name, rec), res in zip(recs, results, strict=True):
         truth, paired, unpaired = pair_results(rec, res)
         extra += unpaired
@@ -52,15 +55,40 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
             elif r.label is None:
                 reasons[r.reason or "?"] += 1
             right += r is not None and r.label == t
+            if r is not None and r.confidence is not None and r.top:
+                conf.append(r.confidence)
+                hit.append(r.top[0][0] == t)  # the top class, labelled or not (an unknown surface still has one)
         per_file.append({"file": name, "slides": len(truth), "correct": right, "unpaired_detections": unpaired})
     n = len(y_true)
     correct = sum(p == t for p, t in zip(y_pred, y_true, strict=True))
     labelled = sum(p is not None for p in y_pred)
     out = {"n": n, "correct": correct, "accuracy": correct / n if n else 0.0, "labelled": labelled, "coverage": labelled / n if n else 0.0,
            "accuracy_of_labelled": correct / labelled if labelled else 0.0, "abstained": dict(reasons), "unpaired_detections": extra,
-           "files": per_file}
+           "files": per_file, "unknown": reasons.get("unknown_surface", 0)}
+    out.update(calibration_scores(np.array(conf), np.array(hit, dtype=bool)))
     out.update(confusion(y_true, y_pred, classes))
     return out
+
+
+def calibration_scores(confidence: npt.NDArray[np.float64], right: npt.NDArray[np.bool_], bins: int = 10) -> dict[str, Any]:
+    """How well ``confidence`` (n,) predicts ``right`` (n,): expected calibration error, Brier score and the reliability diagram.
+
+    ECE: over ``bins`` equal-width bins of confidence in [0, 1], the slide-weighted mean of |accuracy - mean confidence|.
+    Brier: the mean of (confidence - right)². ``reliability``: per non-empty bin, [low edge, slides, mean confidence, accuracy].
+    None for both when there is no slide.
+    """
+    n = len(confidence)
+    if not n:
+        return {"ece": None, "brier": None, "reliability": []}
+    which = np.minimum((np.clip(confidence, 0.0, 1.0) * bins).astype(int), bins - 1)
+    ece, table = 0.0, []
+    for b in range(bins):
+        m = which == b
+        if m.any():
+            c, a = float(confidence[m].mean()), float(right[m].mean())
+            ece += m.sum() / n * abs(a - c)
+            table.append([b / bins, int(m.sum()), round(c, 4), round(a, 4)])
+    return {"ece": ece, "brier": float(np.mean((confidence - right) ** 2)), "reliability": table}
 
 
 def score_recordings(recs: Sequence[tuple[str, Recording]], config: Config, model: Any) -> dict[str, Any]:

@@ -4,8 +4,11 @@ A candidate combines a feature family set (:data:`tactiled.core.features.FAMILIE
 DWT statistics, log band energies of the Welch PSD, texture descriptors), a classifier
 (ELM, kNN, SVM, regularised linear), a window placement (length, first window's offset
 from the slide's start, how many windows), and optionally forward feature selection. The
+default space (:func:`default_candidates`) leads with :data:`SPECTRUM`, the plain whole-slide
+spectral classifier (log band energies of the slide's Welch spectrum, log centroid, kurtosis;
+RBF SVM), so the search is never worse than it by more than the noise of its estimate. The
 papers' method (:data:`PAPER`: DWT statistics of one 0.5 s window 0.3 s after the start,
-sequential forward selection, ELM) is one of the candidates.
+sequential forward selection, ELM) is ``--method paper``: its forward selection alone takes minutes.
 
 Every candidate is scored by grouped cross-validation (folds never split a recording) at
 the level that matters: the label of each whole slide, from its windows' fused scores,
@@ -16,8 +19,9 @@ the best mean (:func:`choose`): with few recordings the top of the leaderboard i
 noise, and the simpler candidate is the safer bet on new data. Its accuracy is estimated
 honestly by nested cross-validation: in each outer fold, the same rule on an inner grouped
 CV of the training files alone picks a candidate, which is then scored on the held-out
-files. The winner is refitted on every recording; its temperature is fitted on its
-out-of-fold slide scores.
+files. The winner is refitted on every recording; its temperature and its confidence
+calibration (:func:`fit_calibration`) are fitted on its out-of-fold slide scores, and its
+novelty threshold (:func:`fit_novelty`) on distances between slides of different recordings.
 
 Work is spread over every core with joblib; ``scheduler`` (a dask.distributed address)
 sends it to a cluster through joblib's Dask backend instead.
@@ -26,6 +30,7 @@ sends it to a cluster through joblib's Dask backend instead.
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -40,33 +45,55 @@ from tactiled.core.features import name_family
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import Slide, SlideCounts, WindowSet, collect_windows, find_slides
-from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature
+from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature, softmax
 
 Progress = Callable[[str], None]
 FloatArray = npt.NDArray[np.float64]
 
 PARAMS: dict[str, dict[str, Any]] = {
     "elm": {"n_hidden": 200, "alpha": 1e-3},
-    "knn": {"n_neighbors": 9},
+    "knn": {"n_neighbors": 5},
     "svm": {"kernel": "rbf", "C": 10.0, "gamma": "scale"},
     "linear": {"C": 10.0, "max_iter": 2000},
 }
 KIND_RANK: dict[str, int] = {"linear": 0, "svm": 1, "knn": 2, "elm": 3}
 PAPER_PARAMS: dict[str, Any] = {"n_hidden": 200, "alpha": 1e-6}
-# (start_s, duration_s, max_windows): windows back to back from the slide's start, or from 0.3 s (after the onset transient)
-PLACEMENTS: tuple[tuple[float, float, int], ...] = ((0.0, 0.25, 0), (0.3, 0.25, 0), (0.0, 0.5, 0))
-# (families, classifier): cheap and robust first, so ties go to them; each window classified, scores averaged
+# named feature sets: "spectrum" is the plain whole-slide spectral classifier's input (log band energies of the
+# Welch PSD, log spectral centroid, kurtosis of each channel); "tex.<name>" is one texture descriptor
+ALIASES: dict[str, tuple[str, ...]] = {"spectrum": ("psd", "tex.centroid", "tex.kurtosis")}
+# whole-slide candidates: one row per slide, the mean of its windows' features (for psd, the slide's Welch spectrum);
+# windows of 0.25 s back to back over the whole slide
+SLIDE_PLACEMENTS: tuple[tuple[float, float, int], ...] = ((0.0, 0.25, 0),)
+SLIDE_COMBINATIONS: tuple[tuple[tuple[str, ...], str, int], ...] = (
+    (("spectrum",), "svm", 0), (("spectrum",), "linear", 0), (("spectrum",), "knn", 0), (("psd", "tex"), "svm", 0), (("dwt",), "svm", 8),
+)
+# per-window candidates: each window classified, the slide's scores averaged; (start_s, duration_s, max_windows)
+PLACEMENTS: tuple[tuple[float, float, int], ...] = ((0.0, 0.25, 0), (0.0, 0.5, 0))
 # (families, classifier, k): k > 0 keeps the k features with the largest ANOVA F (fitted in each training fold)
 COMBINATIONS: tuple[tuple[tuple[str, ...], str, int], ...] = (
-    (("psd",), "linear", 0), (("psd", "tex"), "linear", 0), (("psd",), "svm", 0), (("psd", "tex"), "svm", 0),
-    (("psd", "tex"), "svm", 8), (("psd", "tex"), "knn", 4), (("psd",), "elm", 0), (("dwt",), "svm", 8), (("dwt",), "linear", 0),
+    (("psd",), "linear", 0), (("psd", "tex"), "svm", 0), (("psd", "tex"), "knn", 4), (("dwt",), "svm", 8),
 )
-# whole-slide representations: the mean of the windows' features (for psd: the slide's spectrum), one row per slide
-SLIDE_PLACEMENTS: tuple[tuple[float, float, int], ...] = ((0.0, 0.25, 0), (0.3, 0.25, 0))
-SLIDE_COMBINATIONS: tuple[tuple[tuple[str, ...], str, int], ...] = (
-    (("psd",), "linear", 0), (("psd",), "svm", 0), (("psd", "tex"), "linear", 0), (("psd", "tex"), "svm", 8), (("psd", "tex"), "knn", 4),
-    (("dwt",), "svm", 8),
-)
+
+
+def base_families(families: Sequence[str]) -> list[str]:
+    """The feature families (:data:`tactiled.core.features.FAMILIES`) that ``families`` (names, aliases, ``tex.<name>``) need."""
+    out: list[str] = []
+    for f in families:
+        for part in ALIASES.get(f, (f,)):
+            base = part.split(".")[0]
+            if base not in out:
+                out.append(base)
+    return out
+
+
+def selects(families: Sequence[str], name: str) -> bool:
+    """Whether feature ``name`` belongs to ``families`` (families, :data:`ALIASES`, or ``tex.<name>`` for one descriptor)."""
+    fam = name_family(name)
+    for f in families:
+        for part in ALIASES.get(f, (f,)):
+            if part == fam or ("." in part and name.endswith("." + part)):
+                return True
+    return False
 
 
 @dataclass(frozen=True)
@@ -104,11 +131,17 @@ class Candidate:
 PAPER = Candidate(("dwt",), "elm", 0.5, 0.3, 1, True)
 
 
+# the plain whole-slide spectral classifier: log band energies, log centroid and kurtosis of the slide, standardised, RBF SVM
+SPECTRUM = Candidate(("spectrum",), "svm", 0.25, fusion="features")
+
+
 def default_candidates() -> list[Candidate]:
-    """The search space of ``tactiled train``: every combination at every placement, and the papers' method."""
-    return ([Candidate(fams, kind, d, start, n, kbest=k) for start, d, n in PLACEMENTS for fams, kind, k in COMBINATIONS]
-            + [Candidate(fams, kind, d, start, n, fusion="features", kbest=k) for start, d, n in SLIDE_PLACEMENTS for fams, kind, k in SLIDE_COMBINATIONS]
-            + [PAPER])
+    """The search space of ``tactiled train``: the whole-slide candidates first (the spectral baseline leads), then per-window ones.
+
+    The papers' method (forward selection over an ELM: minutes of fitting) is ``--method paper``, not part of the default.
+    """
+    return ([Candidate(fams, kind, d, start, n, fusion="features", kbest=k) for start, d, n in SLIDE_PLACEMENTS for fams, kind, k in SLIDE_COMBINATIONS]
+            + [Candidate(fams, kind, d, start, n, kbest=k) for start, d, n in PLACEMENTS for fams, kind, k in COMBINATIONS])
 
 
 def quick_candidates() -> list[Candidate]:
@@ -234,7 +267,7 @@ def _key(c: Candidate) -> tuple[Any, ...]:
 
 
 def _columns(ws: WindowSet, families: Sequence[str]) -> npt.NDArray[np.intp]:
-    return np.array([j for j, n in enumerate(ws.names) if name_family(n) in families], dtype=np.intp)
+    return np.array([j for j, n in enumerate(ws.names) if selects(families, n)], dtype=np.intp)
 
 
 def fit_candidate(ws: WindowSet, rows: npt.NDArray[np.intp], c: Candidate, seed: int, inner_folds: int = 3) -> tuple[list[int], Any, Any]:
@@ -289,7 +322,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     usable: list[Candidate] = []
     for c in wanted:
         key: tuple[Any, ...] = (*c.placement, c.families)
-        fams = sorted({f for w in wanted if w.placement == c.placement for f in w.families})
+        fams = sorted({f for w in wanted if w.placement == c.placement for f in base_families(w.families)})
         full = (*c.placement, tuple(fams))
         if full not in sets:
             st = window_settings(config, channels, fs, c.duration_s, fams, start_s=c.start_s, max_windows=c.max_windows)
@@ -298,7 +331,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
             if st is not None:
                 say(f"features of {c.duration_s:g} s windows from {c.start_s:g} s ({len(st.names)} features)")
                 sets[full] = (st, collect_windows(recs, config, st, progress, found=found))
-        if full in sets and all(any(name_family(n) == f for n in sets[full][1].names) for f in c.families):
+        if full in sets and all(any(name_family(n) == f for n in sets[full][1].names) for f in base_families(c.families)):
             if c.fusion == "features":
                 key = (*key, "features")
                 if key not in sets:
@@ -321,10 +354,10 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         splits = [(tr, te, _inner_folds(sets[_key(c)][1], tr, inner_folds, seed) if nested_on else []) for tr, te in outer]
         parts = [[sp] for sp in splits] if c.sfs else [splits]
         tasks += [(candidate_folds, (sets[_key(c)][1], c, part, classes, seed, inner_folds)) for part in parts]
-    n_fits = sum(len(outer) * (1 + (inner_folds if nested_on else 0)) for _ in usable)
+    fits = [sum(1 + len(inner) for _, _, inner in t[1][2]) for t in tasks]  # model fits per task: each outer fold and its inner folds
     say(f"cross-validating {len(usable)} candidate(s) over {len(outer)} outer" + (f" x {inner_folds} inner" if nested_on else "")
-        + f" folds: about {n_fits} fits")
-    results = iter(_run_with_progress(tasks, say, scheduler, [t[1][1].sfs for t in tasks]))
+        + f" folds: {sum(fits)} fits")
+    results = iter(_run_with_progress(tasks, say, scheduler, [t[1][1].sfs for t in tasks], fits))
     board: list[dict[str, Any]] = []
     oof: dict[str, FloatArray] = {}
     inner_acc: dict[str, list[list[float]]] = {}  # per candidate, per outer fold: the accuracy of each inner fold
@@ -375,6 +408,7 @@ def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: C
     """Candidate ``c`` fitted on every labelled slide, its temperature fitted on its out-of-fold slide scores ``oof``."""
     st, ws = sets[_key(c)]
     temperature = fit_temperature(oof, y_idx)
+    calibration, cal_info = fit_calibration(oof, y_idx, temperature)
     rows = np.flatnonzero(ws.y != "")
     cols, pipe, refit = fit_candidate(ws, rows, c, seed, inner_folds)
     names = [ws.names[j] for j in cols]
@@ -384,8 +418,77 @@ def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: C
     params = {k: v for k, v in c.params.items() if k != "kbest"}
     if c.kind == "knn":
         params["n_neighbors"] = int(pipe[-1].n_neighbors)
-    return Model(method, c.kind, params, [str(k) for k in pipe[-1].classes_], settings, fs, channels, pipe, temperature,
-                 seed, summary, "", refit)
+    model = Model(method, c.kind, params, [str(k) for k in pipe[-1].classes_], settings, fs, channels, pipe, temperature,
+                  seed, summary, "", refit, calibration)
+    slides = ws if c.fusion == "features" else ws.averaged()  # one row per slide: the mean of its windows' raw features
+    labelled = np.flatnonzero(slides.y != "")
+    z = model.standardise(slides.x[labelled][:, cols])
+    model.novelty_x = z
+    model.novelty_threshold, nov_info = fit_novelty(z, slides.groups[labelled], slides.y[labelled], model.novelty_k)
+    model.summary = {**summary, "calibration": cal_info, "novelty": nov_info}
+    return model
+
+
+def fit_calibration(oof: FloatArray, y_idx: npt.NDArray[np.intp], temperature: float) -> tuple[FloatArray, dict[str, Any]]:
+    """Knots (2, m) of the map from a slide's top softmax probability to the probability that its label is right.
+
+    Fitted on grouped out-of-fold slide scores ``oof`` (slides, K) against the true class ``y_idx``: isotonic
+    regression with 200 or more slides, else Platt scaling (a logistic fit on the logit of the top probability),
+    both made nondecreasing and kept within [1/(n+2), 1 - 1/(n+2)] so that no slide is ever called certain.
+    Slides without a score are left out; with fewer than 10 left, the map is the constant accuracy.
+    """
+    ok = (y_idx >= 0) & np.isfinite(oof).any(axis=1)
+    p = softmax(oof[ok], temperature)
+    top, right = p.max(axis=1), (np.argmax(p, axis=1) == y_idx[ok]).astype(np.float64)
+    n = len(top)
+    lo, hi = 1.0 / (n + 2), 1.0 - 1.0 / (n + 2)
+    grid = np.linspace(0.0, 1.0, 101)
+    if n < 10 or right.min() == right.max():
+        method = "constant"
+        value = np.full_like(grid, (right.sum() + 1.0) / (n + 2.0))
+    elif n >= 200:
+        from sklearn.isotonic import IsotonicRegression
+
+        method = "isotonic"
+        value = IsotonicRegression(y_min=0.0, y_max=1.0, out_of_bounds="clip").fit(top, right).predict(grid)
+    else:
+        from sklearn.linear_model import LogisticRegression
+
+        method = "platt"
+        logit = lambda q: np.log(np.clip(q, 1e-6, 1 - 1e-6) / np.clip(1 - q, 1e-6, 1 - 1e-6))  # noqa: E731
+        fit = LogisticRegression(C=100.0).fit(logit(top)[:, None], right)
+        value = fit.predict_proba(logit(grid)[:, None])[:, 1] if fit.coef_[0, 0] > 0 else np.full_like(grid, right.mean())
+    value = np.clip(np.maximum.accumulate(np.nan_to_num(value, nan=float(right.mean()) if n else 0.5)), lo, hi)
+    return np.vstack([grid, value]), {"method": method, "slides": n, "accuracy": float(right.mean()) if n else None}
+
+
+def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any], k: int, reject: float = 0.05) -> tuple[float, dict[str, Any]]:
+    """The novelty threshold of training slides ``z`` (n, F') (standardised mean features), and what cross-validation says of it.
+
+    Each slide's distance (mean over its ``k`` nearest) to the slides of *other recordings* stands for a new
+    recording of a known surface: the threshold is the (1 - ``reject``) quantile of those, so that about
+    ``reject`` of known slides are called unknown. Leaving each surface out in turn (its distance to the slides
+    of other surfaces) estimates how many slides of an untaught surface the threshold flags. A threshold of
+    inf (never unknown) when no slide has another recording to compare with.
+    """
+    from tactiled.learn.model import knn_distance
+
+    n = len(z)
+    known = np.full(n, np.nan)
+    unseen = np.full(n, np.nan)
+    for i in range(n):
+        other_file, other_surface = files != files[i], labels != labels[i]
+        if other_file.any():
+            known[i] = knn_distance(z[i:i + 1], z[other_file], k)[0]
+        if other_surface.any():
+            unseen[i] = knn_distance(z[i:i + 1], z[other_surface], k)[0]
+    have = known[np.isfinite(known)]
+    if not len(have):
+        return math.inf, {"k": k, "threshold": None, "known_rejected": None, "unseen_flagged": None}
+    threshold = max(float(np.quantile(have, 1.0 - reject, method="higher")), 1e-9)
+    flagged = unseen[np.isfinite(unseen)]
+    return threshold, {"k": k, "threshold": threshold, "known_rejected": float(np.mean(have > threshold)),
+                       "unseen_flagged": float(np.mean(flagged > threshold)) if len(flagged) else None}
 
 
 def complexity(c: Candidate) -> tuple[int, int, int]:
@@ -443,20 +546,38 @@ def _inner_folds(ws: WindowSet, train: npt.NDArray[np.intp], n: int, seed: int) 
 
 
 def _run_with_progress(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]], say: Progress, scheduler: str | None,
-                       first: Sequence[bool] | None = None) -> list[Any]:
-    """Results of ``tasks`` in order; the ``first`` ones are started first (the slowest), progress reported as they finish."""
+                       first: Sequence[bool] | None = None, units: Sequence[int] | None = None, unit: str = "fits") -> list[Any]:
+    """Results of ``tasks`` in order; the ``first`` ones are started first (the slowest).
+
+    Progress counts ``units`` (per task; default one each) as tasks finish, with the time elapsed and an
+    estimate of the time left (elapsed per unit so far, times the units left).
+    """
     from joblib import Parallel, delayed
 
     order = sorted(range(len(tasks)), key=lambda i: not (first[i] if first is not None else False))
+    weight = list(units) if units is not None else [1] * len(tasks)
+    total = max(1, sum(weight))
     out: list[Any] = [None] * len(tasks)
     step = max(1, len(tasks) // 20)
+    t0 = time.perf_counter()
     with parallel_backend(scheduler):
         results = Parallel(return_as="generator")(delayed(tasks[i][0])(*tasks[i][1]) for i in order)
+        done_units = 0
         for done, (i, result) in enumerate(zip(order, results, strict=True), 1):
             out[i] = result
+            done_units += weight[i]
             if done % step == 0 or done == len(tasks):
-                say(f"[{'#' * round(20 * done / len(tasks)):<20s}] {done}/{len(tasks)} tasks")
+                elapsed = time.perf_counter() - t0
+                left = elapsed / done_units * (total - done_units) if done_units else 0.0
+                say(f"[{'#' * round(20 * done_units / total):<20s}] {done_units}/{total} {unit}, {_clock(elapsed)} elapsed"
+                    + (f", about {_clock(left)} left" if done_units < total else ""))
     return out
+
+
+def _clock(seconds: float) -> str:
+    """``m:ss`` of a duration in seconds."""
+    m, s = divmod(round(seconds), 60)
+    return f"{m}:{s:02d}"
 
 
 # ---- the papers' method ----------------------------------------------------------------------------------------------------

@@ -8,6 +8,7 @@ silently: the slides of every surface are counted first, and a surface with fewe
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ from tactiled.learn.search import Candidate, SearchResult, paper, quick_candidat
 
 Progress = Callable[[str], None]
 METHODS = ("auto", "quick", "paper")
+GROUP_BY = ("file", "slide")
 
 
 def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None:
@@ -49,10 +51,12 @@ def class_table(per_file: list[list[Slide]]) -> dict[str, tuple[int, int, int]]:
 
 def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
           drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None,
-          candidates: Sequence[Candidate] | None = None, keep_models: bool = False) -> SearchResult:
+          candidates: Sequence[Candidate] | None = None, keep_models: bool = False, group_by: str = "file") -> SearchResult:
     """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save).
 
     ``candidates`` narrows the default search (``method="auto"``) to the given ones; ``keep_models``: see :func:`search`.
+    ``group_by``: ``file`` (folds never split a recording; every surface needs two) or ``slide`` (allowed with one
+    recording per surface, with a warning that the estimates are optimistic).
     """
     say = progress or (lambda m: None)
     if method not in METHODS:
@@ -61,6 +65,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         raise TactiledError(f"--folds: must be >= 2, got {folds}")
     if min_slides < 1:
         raise TactiledError(f"--min-slides: must be >= 1, got {min_slides}")
+    if group_by not in GROUP_BY:
+        raise TactiledError(f"--group-by: must be one of {', '.join(GROUP_BY)}, got {group_by!r}")
     if seed < 0:
         raise TactiledError(f"--seed: must be >= 0, got {seed}")
     recs = load_recordings(paths, say)
@@ -74,12 +80,25 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     say("slides per surface (slides, found by the detector, files):")
     for label, (n, det, files) in table.items():
         say(f"  {label}: {n}, {det}, {files}")
+    if not table:
+        raise TactiledError("no labelled slides: the recordings carry neither per-slide ground truth nor a file label "
+                            "(tactiled record --label SURFACE, or docs/recordings.md)")
     rare = [k for k, (n, _, _) in table.items() if n < min_slides]
     if rare and not drop_rare:
         raise TactiledError(f"too few slides (< {min_slides}) for surface(s) {', '.join(rare)}; record more, or pass --drop-rare to train without them")
     if rare:
         say(f"training without {', '.join(rare)} (--drop-rare)")
         per_file = [[s for s in slides if s.label not in rare] for slides in per_file]
+    single = [k for k, (_, _, files) in table.items() if files < 2 and k not in rare]
+    if group_by == "file" and single:
+        raise TactiledError(f"surface(s) {', '.join(single)} have a single recording: cross-validation grouped by recording cannot "
+                            "test them on a recording it did not train on; record a second file of each, or pass --group-by slide "
+                            "(an optimistic estimate)")
+    if group_by == "slide":
+        say("warning: --group-by slide: folds split recordings, so slides of one recording are both trained and tested on; "
+            "the cross-validated accuracy, the calibration and the novelty threshold are optimistic")
+        serial = iter(range(sum(len(s) for s in per_file)))
+        per_file = [[replace(s, file=next(serial)) for s in slides] for slides in per_file]
     found: tuple[list[list[Slide]], SlideCounts] = (per_file, counts)
     if method == "paper":
         result = paper(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found)

@@ -1,0 +1,171 @@
+"""What a label's numbers mean: calibrated confidence, novelty (unknown surfaces), and training that refuses what it cannot estimate."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tactiled.core.analysis import Analyser, AnalysisSettings
+from tactiled.errors import ModelError
+from tactiled.learn.model import Model, fit_pipeline, knn_distance, load_model
+from tactiled.learn.score import calibration_scores
+from tactiled.learn.search import fit_calibration, fit_novelty
+from tests.conftest import run_cli
+
+NAMES = ("film1.psd.20-200Hz.power", "film1.psd.200-2000Hz.power", "film1.tex.centroid", "film1.tex.kurtosis")
+
+
+def _oof(n: int, k: int, accuracy: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Scores (n, k) whose top class is right with probability ``accuracy``, and the true class indices."""
+    rng = np.random.default_rng(seed)
+    y = rng.integers(0, k, n)
+    scores = rng.standard_normal((n, k))
+    right = rng.random(n) < accuracy
+    top = np.where(right, y, (y + 1) % k)
+    scores[np.arange(n), top] += 3.0
+    return scores, y
+
+
+@pytest.mark.parametrize("n", [5, 60, 400])
+def test_calibration_is_a_monotone_probability_map_that_matches_accuracy(n: int) -> None:
+    scores, y = _oof(n, 5, 0.7)
+    knots, info = fit_calibration(scores, y, 1.0)
+    assert knots.shape[0] == 2 and np.all(np.isfinite(knots)) and np.all(np.diff(knots, axis=1) >= 0)
+    assert knots[1].min() >= 1 / (n + 2) - 1e-12 and knots[1].max() <= 1 - 1 / (n + 2) + 1e-12
+    assert info["method"] == {5: "constant", 60: "platt", 400: "isotonic"}[n]
+    if n == 400:  # on its own data, the calibrated confidence averages to the accuracy
+        p = np.exp(scores - scores.max(axis=1, keepdims=True))
+        p /= p.sum(axis=1, keepdims=True)
+        conf = np.interp(p.max(axis=1), knots[0], knots[1])
+        assert abs(conf.mean() - info["accuracy"]) < 0.02
+
+
+@pytest.mark.parametrize("case", ["all_right", "all_wrong", "no_scores", "one_class", "constant_scores", "huge_scores"])
+def test_calibration_stays_finite_on_degenerate_slides(case: str) -> None:
+    scores, y = _oof(50, 4, 0.6)
+    if case == "all_right":
+        y = np.argmax(scores, axis=1)
+    elif case == "all_wrong":
+        y = (np.argmax(scores, axis=1) + 1) % 4
+    elif case == "no_scores":
+        scores[:] = -np.inf
+    elif case == "one_class":
+        scores, y = scores[:, :1], np.zeros(50, dtype=np.intp)
+    elif case == "constant_scores":
+        scores[:] = 0.0
+    elif case == "huge_scores":
+        scores *= 1e300
+    knots, _ = fit_calibration(scores, y, 1.0)
+    assert np.all(np.isfinite(knots)) and np.all((knots >= 0) & (knots <= 1)) and np.all(np.diff(knots, axis=1) >= 0)
+
+
+def test_novelty_threshold_rejects_five_percent_of_known_and_flags_a_far_surface() -> None:
+    rng = np.random.default_rng(1)
+    centres = np.array([[0.0, 0.0], [5.0, 0.0], [0.0, 5.0], [5.0, 5.0]])
+    labels = np.repeat(np.arange(4), 40)
+    files = np.repeat(np.arange(16), 10)  # four recordings per surface
+    z = centres[labels] + 0.5 * rng.standard_normal((160, 2))
+    threshold, info = fit_novelty(z, files, labels, 3)
+    assert math.isfinite(threshold) and info["known_rejected"] <= 0.05 + 1e-9 and info["unseen_flagged"] > 0.9
+    far = knn_distance(np.array([[20.0, 20.0], [0.1, 0.1]]), z, 3) / threshold
+    assert far[0] > 1.0 > far[1]
+
+
+@pytest.mark.parametrize("case", ["one_recording", "identical_slides", "one_slide"])
+def test_novelty_stays_finite_when_cross_validation_cannot_judge(case: str) -> None:
+    n = {"one_slide": 1}.get(case, 12)
+    z = np.zeros((n, 3)) if case == "identical_slides" else np.random.default_rng(0).standard_normal((n, 3))
+    files = np.zeros(n, dtype=int) if case in ("one_recording", "one_slide") else np.arange(n) % 4
+    threshold, info = fit_novelty(z, files, np.arange(n) % 2, 3)
+    if case == "identical_slides":
+        assert threshold == 1e-9 and info["known_rejected"] == 0.0
+    else:
+        assert threshold == math.inf and info["threshold"] is None
+
+
+def _model(tmp_path: Path) -> Model:
+    rng = np.random.default_rng(0)
+    y = np.repeat(["a", "b", "c"], 20)
+    x = np.abs(rng.standard_normal((60, 4))) + np.repeat([1.0, 3.0, 9.0], 20)[:, None]
+    pipe, refit = fit_pipeline(x, y, list(NAMES), "svm", {"C": 10.0})
+    settings = AnalysisSettings(duration_s=0.25, names=NAMES, fusion="features")
+    model = Model("test", "svm", {"C": 10.0}, ["a", "b", "c"], settings, 20000.0, 1, pipe, 1.0, 0, {}, "", refit,
+                  np.array([[0.0, 0.5, 1.0], [0.2, 0.4, 0.9]]))
+    model.novelty_x = model.standardise(x)
+    model.novelty_threshold = 0.8
+    model.save(tmp_path / "m.npz")
+    return load_model(tmp_path / "m.npz")
+
+
+def test_model_file_keeps_calibration_and_novelty(tmp_path: Path) -> None:
+    model = _model(tmp_path)
+    assert model.calibration is not None and model.novelty_x is not None and model.novelty_threshold == 0.8
+    assert model.confidence(0.5) == pytest.approx(0.4) and model.confidence(0.75) == pytest.approx(0.65)
+
+
+@pytest.mark.parametrize("signal", ["silent", "saturated", "constant", "spiky"])
+def test_assessment_is_finite_on_extreme_windows(signal: str, tmp_path: Path) -> None:
+    model = _model(tmp_path)
+    n = round(0.25 * 20000)
+    x = {"silent": np.zeros((n, 1)), "saturated": np.full((n, 1), 32767.0), "constant": np.full((n, 1), 3.0),
+         "spiky": np.where(np.arange(n)[:, None] % 97 == 0, 1e6, 1e-3)}[signal]
+    window = Analyser(model.settings, 20000.0, 1.0, integer=False).analyse(x)
+    assert window.features is not None
+    proba, confidence, novelty = model.assess(np.stack([window.features, window.features]))
+    assert np.all(np.isfinite(proba)) and 0.0 <= confidence <= 1.0 and novelty is not None and math.isfinite(novelty)
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"calibration": np.array([[0.0, 1.0], [0.9, 0.1]])}, "calibration: knots must be nondecreasing"),
+    ({"calibration": np.array([[0.0, np.nan], [0.0, 1.0]])}, "calibration: must be (2, m) finite floats"),
+    ({"novelty_x": np.zeros((3, 7))}, "novelty_x: must be (n, 4) finite floats"),
+])
+def test_bad_trust_arrays_are_refused_in_one_line(change: dict, message: str, tmp_path: Path) -> None:
+    from tactiled.files.recording import atomic_savez
+    from tactiled.learn.model import _fingerprint
+
+    model = _model(tmp_path)
+    arrays = {**model._arrays(), **model._trust_arrays(), **change}
+    header = model._header()
+    header["fingerprint"] = _fingerprint(header, arrays)
+    atomic_savez(tmp_path / "bad.npz", {"header": np.str_(json.dumps(header, sort_keys=True)), **arrays})
+    with pytest.raises(ModelError, match=message.replace("(", r"\(").replace(")", r"\)")) as info:
+        load_model(tmp_path / "bad.npz")
+    assert "\n" not in str(info.value)
+
+
+def test_calibration_scores_of_a_perfect_and_an_overconfident_model() -> None:
+    right = np.array([True] * 8 + [False] * 2)
+    assert calibration_scores(np.full(10, 0.8), right)["ece"] == pytest.approx(0.0)
+    over = calibration_scores(np.full(10, 1.0), right)
+    assert over["ece"] == pytest.approx(0.2) and over["brier"] == pytest.approx(0.2) and over["reliability"] == [[0.9, 10, 1.0, 0.8]]
+    assert calibration_scores(np.array([]), np.array([], dtype=bool))["ece"] is None
+
+
+def test_train_refuses_a_surface_with_one_recording_and_allows_it_by_slide(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    res = run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "1", "--slides-per-file", "4",
+                  "--scene", "robot", "--fs", "2200", "--channels", "1")
+    assert res.returncode == 0, res.stderr
+    files = sorted(str(p) for p in data.glob("*.npz"))
+    res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick")
+    assert res.returncode == 2 and not (tmp_path / "m.npz").exists()
+    error = res.stderr.strip().splitlines()[-1]
+    assert "single recording" in error and "Ra0.44" in error and "--group-by slide" in error
+    res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick", "--group-by", "slide")
+    assert res.returncode == 0, res.stderr
+    assert "optimistic" in res.stderr and "confidence: calibrated" in res.stdout and load_model(tmp_path / "m.npz").novelty_x is not None
+
+
+def test_train_on_unlabelled_recordings_says_so_at_once(tmp_path: Path) -> None:
+    from tactiled.files.recording import Recording, save_recording
+
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        save_recording(tmp_path / f"u{i}.npz", Recording(samples=(rng.standard_normal((22000, 1)) * 100).astype(np.int16), fs=2200.0))
+    res = run_cli("train", str(tmp_path / "u0.npz"), str(tmp_path / "u1.npz"), "-o", str(tmp_path / "m.npz"))
+    assert res.returncode == 2 and "no labelled slides" in res.stderr.strip().splitlines()[-1]
