@@ -42,6 +42,9 @@ def test_evaluate_writes_all_six_experiments(tmp_path: Path) -> None:
                     "(g) The default method", "Quick run: forward selection among the 16 features"):
         assert heading in md
     assert (report / "error_vs_runtime.png").stat().st_size > 10_000 and (report / "error_vs_decision_time.png").stat().st_size > 10_000
+    cal = out["default_method"]["calibration"]
+    assert 0.0 <= cal["ece"] <= 1.0 and 0.0 <= cal["brier"] <= 1.0 and sum(n for _, n, _, _ in cal["reliability"]) == 27
+    assert "expected calibration error" in md and (report / "reliability.png").stat().st_size > 10_000
 
 
 def test_evaluate_needs_ground_truth(tmp_path: Path) -> None:

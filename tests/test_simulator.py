@@ -92,3 +92,50 @@ def test_dataset_cli(tmp_path: Path) -> None:
     assert np.all(rec.slide_stop > rec.slide_start)
     bad = run_cli("simulate", "dataset", "--out", str(tmp_path), "--surfaces", "Ra9")
     assert bad.returncode == 2 and "unknown surface 'Ra9'" in bad.stderr
+
+
+# ---- another unit of the fingertip, new specimens of the same grades ------------------------------------------------
+
+
+def test_other_units_differ_within_the_stated_tolerance() -> None:
+    from tactiled.sim.sensor_model import TOLERANCE, SimParams, other_unit
+
+    base = SimParams()
+    assert other_unit(base, 0) is base
+    for unit in range(1, 20):
+        p = other_unit(base, unit)
+        assert p == other_unit(base, unit)  # deterministic in the unit number
+        for k, (f, g) in enumerate(zip(p.fn_hz, p.film_gain, strict=True)):
+            assert abs(f / base.fn_hz[k] - 1) <= TOLERANCE.resonance + 1e-12 and f <= 0.45 * base.fs
+            assert abs(g / base.film_gain[k] - 1) <= TOLERANCE.film_gain + 1e-12
+        assert abs(p.zeta / base.zeta - 1) <= TOLERANCE.damping + 1e-12 and abs(p.crosstalk / base.crosstalk - 1) <= TOLERANCE.crosstalk + 1e-12
+        assert abs(p.tau_hp_s / base.tau_hp_s - 1) <= TOLERANCE.tau_hp + 1e-12
+        assert TOLERANCE.noise[0] <= p.noise_v / base.noise_v <= TOLERANCE.noise[1]
+    assert other_unit(base, 1).fn_hz != other_unit(base, 2).fn_hz
+
+
+def test_new_specimens_keep_the_grades() -> None:
+    from tactiled.sim.sensor_model import TOLERANCE, default_surfaces, grating_surfaces, new_specimens
+
+    for nominal in (default_surfaces(), grating_surfaces()):
+        assert new_specimens(nominal, 0) == nominal
+        other = new_specimens(nominal, 1)
+        assert [s.name for s in other] == [s.name for s in nominal] and other == new_specimens(nominal, 1)
+        assert [s.period_um for s in other] == [s.period_um for s in nominal]
+        assert all(abs(o.ra_um / s.ra_um - 1) <= TOLERANCE.ra + 1e-12 and 0.5 <= o.hurst <= 0.95 for o, s in zip(other, nominal, strict=True))
+        assert other != nominal
+
+
+def test_simulate_dataset_of_another_unit_and_specimen(tmp_path: Path) -> None:
+    from tactiled.cli.parser import main
+    from tactiled.files.recording import load_recording
+    from tactiled.sim.sensor_model import SimParams, other_unit
+
+    assert main(["simulate", "dataset", "--out", str(tmp_path / "a"), "--scene", "robot", "--surfaces", "1", "--files-per-surface", "1",
+                 "--slides-per-file", "1"]) == 0
+    assert main(["simulate", "dataset", "--out", str(tmp_path / "b"), "--scene", "robot", "--surfaces", "1", "--files-per-surface", "1",
+                 "--slides-per-file", "1", "--unit", "1", "--specimen", "1"]) == 0
+    a, b = (load_recording(next((tmp_path / d).glob("*.npz"))) for d in "ab")
+    assert (a.meta["unit"], a.meta["specimen"], b.meta["unit"], b.meta["specimen"]) == (0, 0, 1, 1)
+    assert b.meta["simulator"]["fn_hz"] == list(other_unit(SimParams(), 1).fn_hz) and a.meta["simulator"]["fn_hz"] == [900.0, 1200.0]
+    assert b.meta["surface"]["name"] == a.meta["surface"]["name"] and b.meta["surface"]["ra_um"] != a.meta["surface"]["ra_um"]

@@ -104,7 +104,7 @@ def cmd_simulate_dataset(args: argparse.Namespace) -> int:
 
     paths = write_dataset(Path(args.out), scene=args.scene, seed=args.seed, surfaces=args.surfaces, files_per_surface=args.files_per_surface,
                           slides_per_file=args.slides_per_file, mode=args.mode, fs=args.fs, channels=args.channels,
-                          progress=lambda msg: print(msg, file=sys.stderr))
+                          progress=lambda msg: print(msg, file=sys.stderr), unit=args.unit, specimen=args.specimen)
     print(f"{args.out}: wrote {len(paths)} recordings")
     return EXIT_OK
 
@@ -628,6 +628,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=("manual", "robot"), default=None, help="older spelling of --scene hand / --scene robot")
     p.add_argument("--fs", type=_positive_float, default=None, help="sample rate, Hz (default: the scene's, 20000 or 2200)")
     p.add_argument("--channels", type=_channels, default=None, help="channels (default: the scene's, 2 or 1)")
+    p.add_argument("--unit", type=_seed, default=0,
+                   help="which unit of the fingertip: 0 the nominal one, N another with its films' resonance, damping, gain, cross-talk "
+                        "and noise drawn within the manufacturing tolerance (docs/simulator.md)")
+    p.add_argument("--specimen", type=_seed, default=0,
+                   help="which specimens of the grades: 0 the nominal ones, N new ones of the same grades (docs/simulator.md)")
     p.set_defaults(handler=cmd_simulate_dataset)
 
     p = sim.add_parser("figure", help="PNG of one slide per surface class: signal and spectrum")

@@ -8,9 +8,9 @@
 (e) without labels: K-means (squared Euclidean, cityblock, cosine) and a SOM, Hungarian-scored;
 (f) error against run time: accuracy beside the compute time per slide (features + inference)
     and the slide time that must pass before the decision;
-(g) the default method (what ``tactiled train`` picks): its leaderboard, and its accuracy
+(g) the default method (what ``tactiled train`` picks): its leaderboard, its accuracy
     against the slide time used before deciding (windows fused so far) with the compute per
-    decision.
+    decision, and how well its confidence is calibrated (ECE, Brier, reliability diagram).
 
 (a)–(f) use the papers' single window per slide (DWT statistics, forward selection inside
 each training fold). Slides come from the daemon's detector paired with the ground truth
@@ -35,11 +35,14 @@ from tactiled.core.features import FeaturePlan, classifier_inputs
 from tactiled.files.recording import Recording
 from tactiled.learn.cluster import hungarian_accuracy, kmeans, som_clusters
 from tactiled.learn.dataset import Slide, SlideCounts, WindowSet, collect_windows, find_slides
-from tactiled.learn.model import decision_scores, fit_pipeline
+from tactiled.learn.model import decision_scores, fit_pipeline, softmax
+from tactiled.learn.score import calibration_scores
 from tactiled.learn.search import (
     Candidate,
     accuracy_of,
+    fit_calibration,
     fold_slide_scores,
+    grouped_splits,
     search,
     sfs_columns,
     slide_folds,
@@ -255,7 +258,22 @@ class Evaluator:
                           "compute_ms": float((feat_ms + infer_ms) * (n_used[decided].mean() if decided.any() else 0.0))})
         self.progress(f"(g) default method {res.winner}: nested CV {res.nested['mean']:.3f}")
         return {"winner": res.winner, "nested": res.nested, "leaderboard": res.leaderboard, "feature_ms": feat_ms, "infer_ms": infer_ms,
-                "curve": curve}
+                "curve": curve, "calibration": self.calibration(res, model.temperature)}
+
+    def calibration(self, res: Any, temperature: float) -> dict[str, Any]:
+        """(g) ECE, Brier and the reliability table of the chosen model's confidence, cross-fitted: each outer fold's slides
+        are calibrated by a map fitted on the other folds' out-of-fold scores (the model file's map is fitted on all of them)."""
+        if res.oof is None:
+            return calibration_scores(np.zeros(0), np.zeros(0, dtype=bool))
+        scores, y_idx, groups = res.oof
+        ok = (y_idx >= 0) & np.isfinite(scores).any(axis=1)
+        confidence, right = np.zeros(len(y_idx)), np.zeros(len(y_idx), dtype=bool)
+        for train, test in grouped_splits(y_idx, groups, self.n_folds, self.seed):
+            knots, _ = fit_calibration(scores[train], y_idx[train], temperature)
+            p = softmax(scores[test], temperature)
+            confidence[test] = np.interp(p.max(axis=1), knots[0], knots[1])
+            right[test] = np.argmax(p, axis=1) == y_idx[test]
+        return calibration_scores(confidence[ok], right[ok])
 
 
 def decimate(rec: Recording, rate: float) -> Recording:
@@ -373,13 +391,19 @@ def markdown(res: dict[str, Any], figures: list[str]) -> str:
                    "| slide time used | accuracy | decided | windows | compute ms |\n|---|---|---|---|---|")
         out += [f"| {'whole slide' if r['time_s'] is None else str(r['time_s']) + ' s'} | {100 * r['accuracy']:.1f} % | {100 * r['decided']:.0f} % | "
                 f"{r['windows']:.1f} | {r['compute_ms']:.2f} |" for r in g["curve"]]
+        cal = g.get("calibration", {})
+        if cal.get("ece") is not None:
+            out.append(f"\nConfidence (the probability that the label is right), cross-fitted on held-out recordings: expected calibration "
+                       f"error {cal['ece']:.3f} (10 equal-width bins), Brier score {cal['brier']:.3f}.\n\n"
+                       "| confidence bin | slides | mean confidence | accuracy |\n|---|---|---|---|")
+            out += [f"| {lo:.1f}–{lo + 0.1:.1f} | {n} | {c:.3f} | {a:.3f} |" for lo, n, c, a in cal["reliability"]]
         out.append("")
     out += [f"![{f}]({f})\n" for f in figures]
     return "\n".join(out) + "\n"
 
 
 def write_figures(res: dict[str, Any], report: Path) -> list[str]:
-    """error_vs_decision_time.png ((g)) and error_vs_runtime.png ((f)); [] when matplotlib is missing."""
+    """error_vs_decision_time.png and reliability.png ((g)) and error_vs_runtime.png ((f)); [] when matplotlib is missing."""
     try:
         import matplotlib
 
@@ -406,6 +430,24 @@ def write_figures(res: dict[str, Any], report: Path) -> list[str]:
         fig.savefig(report / "error_vs_decision_time.png", dpi=110)
         plt.close(fig)
         names.append("error_vs_decision_time.png")
+        table = g.get("calibration", {}).get("reliability", [])
+        if table:
+            fig, ax = plt.subplots(figsize=(4.5, 4.5))
+            ax.plot([0, 1], [0, 1], ls="--", color="grey", label="calibrated")
+            ax.plot([r[2] for r in table], [r[3] for r in table], "o-", label=f"default method (ECE {g['calibration']['ece']:.3f})")
+            for _, n, c, a in table:
+                ax.annotate(str(n), (c, a), textcoords="offset points", xytext=(4, -10), fontsize=7)
+            ax.set_xlabel("confidence (mean in bin)")
+            ax.set_ylabel("accuracy in bin")
+            ax.set_xlim(0, 1)
+            ax.set_ylim(0, 1)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+            ax.set_title("Reliability diagram (labels: slides)")
+            fig.tight_layout()
+            fig.savefig(report / "reliability.png", dpi=110)
+            plt.close(fig)
+            names.append("reliability.png")
     if "window_grid" not in res:
         return names
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))

@@ -164,6 +164,7 @@ class SearchResult:
     seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
     models: dict[str, Model] = field(default_factory=dict)
+    oof: tuple[FloatArray, npt.NDArray[np.intp], npt.NDArray[Any]] | None = None  # the winner's out-of-fold slide scores, true class, group
 
 
 # ---- folds and slide-level scoring ------------------------------------------------------------------------------
@@ -395,7 +396,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     model = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary)
     ws = sets[_key(best)][1]
     result = SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
-                          time.perf_counter() - t0)
+                          time.perf_counter() - t0, oof=(oof[best.name], y_idx, np.array([sl.file for sl in ws.slides])))
     if keep_models:
         result.models = {c.name: model if c == best else _refit(sets, c, oof[c.name], y_idx, classes, config, fs, channels, seed,
                                                                    inner_folds, method, summary) for c in usable}

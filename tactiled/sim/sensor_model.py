@@ -70,6 +70,65 @@ def grating_surfaces() -> list[Surface]:
     return [Surface(f"G{p / 1000:.2f}mm", float(ra), float(c), 0.8, float(p), 0.8) for p, ra, c in zip(periods, ras, corr, strict=True)]
 
 
+@dataclass(frozen=True)
+class Tolerance:
+    """How much two units of the same fingertip, or two specimens of the same grade, differ: uniform, relative ± half-widths.
+
+    A unit's films are hand-glued: each film's resonance, damping and gain, the cross-talk between
+    them, the buffer's high-pass time constant and the noise level vary from unit to unit. A new
+    specimen of a grade (a second sheet of the same sandpaper, a second polished sample) has the grade's
+    nominal roughness within its tolerance and its own correlation length and Hurst exponent.
+    """
+
+    resonance: float = 0.15  # each film's fn, independently
+    damping: float = 0.2
+    film_gain: float = 0.2  # each film's gain, independently
+    crosstalk: float = 0.3
+    tau_hp: float = 0.1
+    noise: tuple[float, float] = (0.7, 1.5)  # factor on noise_v (a range, not ±)
+    ra: float = 0.1  # a specimen's Ra around its grade's nominal value
+    corr: float = 0.15
+    hurst: float = 0.05  # absolute, clipped to [0.5, 0.95]
+
+
+TOLERANCE = Tolerance()
+
+
+def other_unit(params: SimParams, unit: int, tol: Tolerance = TOLERANCE) -> SimParams:
+    """The parameters of unit ``unit`` of the same fingertip model: unit 0 is ``params``; others are drawn within ``tol``.
+
+    Deterministic in ``unit`` alone. A film's resonance stays below 0.45 fs; damping in (0.05, 0.95).
+    """
+    if unit == 0:
+        return params
+    rng = np.random.default_rng([20261124, unit])
+
+    def vary(value: float, width: float) -> float:
+        return float(value * (1.0 + rng.uniform(-width, width)))
+
+    films = max(params.channels, len(params.fn_hz), len(params.film_gain))
+    fn = tuple(min(vary(params.for_channel(params.fn_hz, k, 1.2), tol.resonance), 0.45 * params.fs) for k in range(films))
+    gain = tuple(vary(params.for_channel(params.film_gain, k, 0.7), tol.film_gain) for k in range(films))
+    return replace(params, fn_hz=fn, film_gain=gain, zeta=float(np.clip(vary(params.zeta, tol.damping), 0.05, 0.95)),
+                   crosstalk=vary(params.crosstalk, tol.crosstalk), tau_hp_s=vary(params.tau_hp_s, tol.tau_hp),
+                   noise_v=float(params.noise_v * rng.uniform(*tol.noise)))
+
+
+def new_specimens(surfaces: Sequence[Surface], specimen: int, tol: Tolerance = TOLERANCE) -> list[Surface]:
+    """Specimen ``specimen`` of each grade in ``surfaces``: 0 is ``surfaces``; others keep the names (the grades) and a
+    grating's period, and draw Ra, correlation length and Hurst exponent within ``tol``. Deterministic in ``specimen``."""
+    if specimen == 0:
+        return list(surfaces)
+    rng = np.random.default_rng([20261125, specimen])
+    out = []
+    for s in surfaces:
+        ra = s.ra_um * (1.0 + rng.uniform(-tol.ra, tol.ra))
+        corr = s.corr_um * (1.0 + rng.uniform(-tol.corr, tol.corr))
+        hurst = float(np.clip(s.hurst + rng.uniform(-tol.hurst, tol.hurst), 0.5, 0.95))
+        out.append(replace(s, ra_um=float(ra), corr_um=float(corr), hurst=hurst))
+    return out
+
+
 def family_surfaces(family: str) -> list[Surface]:
     """The 15 specimens of a surface family (self-affine: :func:`default_surfaces`; grating: :func:`grating_surfaces`)."""
     return grating_surfaces() if family == "grating" else default_surfaces()

@@ -14,7 +14,18 @@ import numpy as np
 
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording, save_recording
-from tactiled.sim.sensor_model import SensorModel, SimParams, Surface, hot_gain, pick_surfaces, scene_params, simulate_file, with_mode
+from tactiled.sim.sensor_model import (
+    SensorModel,
+    SimParams,
+    Surface,
+    hot_gain,
+    new_specimens,
+    other_unit,
+    pick_surfaces,
+    scene_params,
+    simulate_file,
+    with_mode,
+)
 from tactiled.sim.virtualboard import VirtualBoard
 
 
@@ -41,15 +52,20 @@ def scene_for(scene: str | None, mode: str | None = None, fs: float | None = Non
 
 def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surfaces: str | None = None, files_per_surface: int = 4,
                   slides_per_file: int = 5, mode: str | None = None, fs: float | None = None, channels: int | None = None,
-                  progress: Callable[[str], None] | None = None) -> list[Path]:
+                  progress: Callable[[str], None] | None = None, unit: int = 0, specimen: int = 0) -> list[Path]:
     """Write ``files_per_surface`` recordings per surface of ``scene`` (docs/simulator.md) with ground truth; returns their paths.
 
-    File names start with the scene (commas as ``+``): ``continuous+one-channel_Ra0.44_00.npz``.
+    File names start with the scene (commas as ``+``): ``continuous+one-channel_Ra0.44_00.npz``. ``unit``: another unit of
+    the same fingertip (:func:`other_unit`; 0 is the nominal one); ``specimen``: other specimens of the same grades
+    (:func:`new_specimens`; 0 are the nominal ones).
     """
     if files_per_surface < 1 or slides_per_file < 1:
         raise TactiledError("--files-per-surface and --slides-per-file must be >= 1")
+    if unit < 0 or specimen < 0:
+        raise TactiledError("--unit and --specimen must be >= 0")
     spec, params = scene_for(scene, mode, fs, channels)
-    chosen = _surfaces(surfaces, params.family)
+    params = other_unit(params, unit)
+    chosen = new_specimens(_surfaces(surfaces, params.family), specimen)
     hot = "hot-gain" in spec.split(",")
     out.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -63,7 +79,7 @@ def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surface
                 samples=sim.samples, fs=params.fs, volts_per_count=1.0 if params.float_output else params.volts_per_count,
                 slide_start=np.array([t.start for t in sim.truth]), slide_stop=np.array([t.stop for t in sim.truth]),
                 surface=np.array([t.surface.name for t in sim.truth]), ra_um=np.array([t.surface.ra_um for t in sim.truth]),
-                meta={"scene": spec, "simulator": file_params.to_meta(), "seed": file_seed, "surface": vars(surface),
+                meta={"scene": spec, "simulator": file_params.to_meta(), "seed": file_seed, "surface": vars(surface), "unit": unit, "specimen": specimen,
                       "v_max_mps": [t.v_max_mps for t in sim.truth], "force": [t.force for t in sim.truth]},
             )
             path = out / f"{prefix}_{surface.name}_{f:02d}.npz"
