@@ -2,6 +2,9 @@
 
 Run a daemon (``tactiled run``, or ``tactiled demo``), then:
     python clients/example_controller.py tcp://127.0.0.1:7350
+
+Or against a recorded session, without any daemon (``python -m tactiled_client record ENDPOINT session.tlog``):
+    python clients/example_controller.py --replay session.tlog
 """
 
 from __future__ import annotations
@@ -9,14 +12,18 @@ from __future__ import annotations
 import asyncio
 import sys
 
-from tactiled_client import NoData, Roughness, Status, Subscriber
+from tactiled_client import EndOfLog, NoData, Replay, Roughness, Status, Subscriber
 
 
-async def main(endpoint: str) -> None:
-    async with Subscriber(endpoint, topics=["roughness", "status"], timeout=3.0) as sub:
+async def main(endpoint: str, replay: str | None = None) -> None:
+    source = Replay(replay, topics=["roughness", "status"], timeout=3.0) if replay else Subscriber(endpoint, topics=["roughness", "status"], timeout=3.0)
+    async with source as sub:
         while True:
             try:
                 msg = await sub.receive()
+            except EndOfLog:
+                print("end of the recorded session")
+                return
             except NoData:
                 print("no data from the daemon for 3 s: stopping the arm")
                 continue
@@ -35,4 +42,8 @@ async def main(endpoint: str) -> None:
 
 
 if __name__ == "__main__":
-    asyncio.run(main(sys.argv[1] if len(sys.argv) > 1 else "tcp://127.0.0.1:7350"))
+    args = sys.argv[1:]
+    if args[:1] == ["--replay"] and len(args) == 2:
+        asyncio.run(main("", replay=args[1]))
+    else:
+        asyncio.run(main(args[0] if args else "tcp://127.0.0.1:7350"))

@@ -30,14 +30,16 @@ import zmq
 import zmq.asyncio
 
 from tactiled_client import schema
+from tactiled_client.errors import NoData, UsageError
 
-
-class NoData(TimeoutError):
-    """Nothing arrived within the subscriber's timeout."""
+__all__ = ["BlockingSubscriber", "NoData", "Subscriber"]
 
 
 class _Tracker:
-    """seq bookkeeping and the freshest roughness message, shared by both subscribers."""
+    """seq bookkeeping and the freshest roughness message, shared by the subscribers and the replays.
+
+    Ages are measured on :meth:`now` (the host's monotonic clock; a replay's own clock in recorded time).
+    """
 
     def __init__(self) -> None:
         self.last_seq: dict[str, int] = {}
@@ -55,11 +57,16 @@ class _Tracker:
         self.missed[topic] = self.missed.get(topic, 0) + gap
         msg.missed = gap
         if isinstance(msg, schema.Roughness):
-            self._latest = (time.monotonic(), msg)
+            self._latest = (self.now(), msg)
         return msg
 
+    def now(self) -> float:
+        """The clock ages are measured on, s."""
+        return time.monotonic()
+
     def latest(self, max_age_s: float) -> schema.Roughness | None:
-        if self._latest is None or time.monotonic() - self._latest[0] > max_age_s:
+        """The newest roughness message if it arrived at most ``max_age_s`` ago, else None."""
+        if self._latest is None or self.now() - self._latest[0] > max_age_s:
             return None
         return self._latest[1]
 
@@ -69,7 +76,7 @@ def _prefixes(topics: Sequence[str] | None, sensor: str | None) -> list[bytes]:
     out = []
     for kind in kinds:
         if kind and kind not in schema.TOPICS:
-            raise ValueError(f"unknown topic {kind!r}; choose from {', '.join(schema.TOPICS)}")
+            raise UsageError(f"unknown topic {kind!r}; choose from {', '.join(schema.TOPICS)}")
         out.append((f"{kind}/{sensor}" if kind and sensor else kind).encode())
     return out
 
@@ -87,7 +94,7 @@ def _secure(sock: Any, curve: tuple[str, str] | None) -> None:
     server_public, _ = zmq.auth.load_certificate(curve[0])
     public, secret = zmq.auth.load_certificate(curve[1])
     if not secret:
-        raise ValueError(f"{curve[1]}: holds no secret key")
+        raise UsageError(f"{curve[1]}: holds no secret key")
     sock.curve_serverkey = server_public
     sock.curve_publickey = public
     sock.curve_secretkey = secret
@@ -124,7 +131,8 @@ class Subscriber(_Tracker):
 
     async def receive(self) -> schema.Message:
         """The next message; :class:`NoData` after ``timeout`` seconds of silence."""
-        assert self._socket is not None, "use 'async with Subscriber(...)'"
+        if self._socket is None:
+            raise UsageError("receive() before 'async with Subscriber(...)' (or after it ended)")
         if self.timeout is not None and not await self._socket.poll(int(self.timeout * 1000)):
             raise NoData(f"no message from {', '.join(self.endpoints)} for {self.timeout} s")
         return self.accept(await self._socket.recv_multipart())

@@ -1,0 +1,101 @@
+"""``python -m tactiled_client record|replay``: capture a session's messages, and play them back (pyzmq + msgpack only).
+
+    python -m tactiled_client record tcp://robot:7350 session.tlog --seconds 600 --topics roughness slide status
+    python -m tactiled_client replay session.tlog --json
+    python -m tactiled_client replay session.tlog --publish tcp://127.0.0.1:7350 --speed 2
+
+Exit status: 0 done, 2 bad arguments or a file that cannot be read (one line on stderr), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import signal
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+from tactiled_client import schema
+from tactiled_client.errors import ClientError
+from tactiled_client.log import check_body
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m tactiled_client", description="record and replay tactiled sessions (docs/messages.md)")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p = sub.add_parser("record", help="record what a daemon publishes to a session log")
+    p.add_argument("endpoint", nargs="+", help="daemon endpoint(s), e.g. tcp://127.0.0.1:7350, then the output file")
+    p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C or SIGTERM)")
+    p.add_argument("--topics", nargs="+", choices=schema.TOPICS, default=None, help="only these topics (default: every one)")
+    p.add_argument("--sensor", default=None, help="only this sensor id")
+    p.add_argument("--curve", nargs=2, metavar=("DAEMON_PUBLIC", "MY_SECRET"), default=None, help="CURVE certificate files")
+    p.add_argument("--force", action="store_true", help="overwrite the output file")
+    p = sub.add_parser("replay", help="play a session log, tactiled MCAP file or tactiled replay --json output")
+    p.add_argument("file", help="the recorded file")
+    out = p.add_mutually_exclusive_group(required=True)
+    out.add_argument("--json", action="store_true", help="print the messages as JSON lines (bytes as base64)")
+    out.add_argument("--publish", metavar="ENDPOINT", help="publish on ENDPOINT as the daemon would (fresh per-topic seq)")
+    p.add_argument("--speed", type=float, default=None, help="1 = recorded pace, 2 = twice as fast (default: --json as fast as possible, "
+                                                           "--publish at the recorded pace)")
+    p.add_argument("--topics", nargs="+", choices=schema.TOPICS, default=None, help="only these topics")
+    p.add_argument("--sensor", default=None, help="only this sensor id")
+    p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="S", help="--publish: wait up to S s for a first subscriber")
+    return ap
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, bytes):
+        return base64.b64encode(v).decode()
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_jsonable(x) for x in v]
+    return v
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """The command; returns the exit status."""
+    args = _parser().parse_args(argv)
+    stopping = False
+
+    def stop(signum: int, frame: object) -> None:
+        nonlocal stopping
+        stopping = True
+
+    try:
+        if args.command == "record":
+            from tactiled_client.record import record
+
+            if len(args.endpoint) < 2:
+                raise ClientError("record needs an endpoint and an output file")
+            signal.signal(signal.SIGTERM, stop)
+            signal.signal(signal.SIGINT, stop)
+            *endpoints, out = args.endpoint
+            n = record(endpoints, out, seconds=args.seconds, topics=args.topics, sensor=args.sensor,
+                       curve=tuple(args.curve) if args.curve else None, stop=lambda: stopping, overwrite=args.force)
+            print(f"{out}: {n} messages", file=sys.stderr)
+            return 0
+        from tactiled_client.replay import BlockingReplay, publish
+
+        if args.publish:
+            n = publish(args.file, args.publish, speed=args.speed if args.speed is not None else 1.0, topics=args.topics, sensor=args.sensor,
+                        wait_subscriber_s=args.wait_subscriber)
+            print(f"{args.file}: published {n} messages on {args.publish}", file=sys.stderr)
+            return 0
+        with BlockingReplay(args.file, args.topics, args.sensor, speed=args.speed) as rep:
+            for entry in rep.entries():  # every field exactly as recorded
+                print(json.dumps({"topic": entry.topic, **_jsonable(check_body(entry.body, args.file))}), flush=True)
+            if rep.reader.truncated:
+                print(f"warning: {rep.reader.truncated}", file=sys.stderr)
+        return 0
+    except ClientError as exc:
+        print(f"tactiled_client: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

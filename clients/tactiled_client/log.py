@@ -1,0 +1,259 @@
+"""Session logs: what a subscriber received, on disk, and the files that replay like one.
+
+The log format (``.tlog``; docs/messages.md, "Session logs") is a 16-byte header, ``TACTILEDLOG`` and a
+zero byte, the format version (uint16 little-endian, 1) and two zero bytes, then one record per received
+message::
+
+    uint32 length, uint32 CRC-32 of the payload (both little-endian) | payload: msgpack [recv_mono, recv_unix, topic, body]
+
+``recv_mono`` and ``recv_unix`` are the host's monotonic and wall clocks (s) when the message arrived, ``topic``
+the first frame (str) and ``body`` the second, the msgpack map exactly as the daemon sent it (bin). Each record
+is written with one ``write`` as it arrives, so a recorder killed at any moment leaves every message before the
+last complete; a reader replays up to there and says where the file ends.
+
+:func:`open_log` also reads the files tactiled writes: an MCAP file's ``roughness`` channels (needs the
+``mcap`` package: ``pip install 'tactiled-client[mcap]'``) and ``tactiled replay --json`` lines (each slide's
+provisional labels, then its final one). Memory stays bounded by one record; nothing is ever unpickled.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import msgpack
+
+from tactiled_client import schema
+from tactiled_client.errors import LogError
+
+MAGIC = b"TACTILEDLOG\x00"
+VERSION = 1
+HEADER = MAGIC + struct.pack("<H", VERSION) + b"\x00\x00"
+RECORD = struct.Struct("<II")  # payload length, CRC-32
+MAX_RECORD = 64 << 20  # bytes of one record's payload (a samples message of 0.1 s at 8 channels is ~16 kB)
+MAX_LINE = 16 << 20  # bytes of one replay --json line
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One message of a session: when it arrived (s, host monotonic and wall clocks), its topic and its msgpack body."""
+
+    time_mono: float
+    time_unix: float
+    topic: str
+    body: bytes
+
+    def frames(self) -> list[bytes]:
+        """The two ZeroMQ frames the message came in."""
+        return [self.topic.encode(), self.body]
+
+
+class LogWriter:
+    """Append received messages to a session log, each with one ``write`` (crash-safe; see the module docstring)."""
+
+    def __init__(self, path: str | Path, *, overwrite: bool = False) -> None:
+        self.path = Path(path)
+        flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
+        try:
+            self._fd: int | None = os.open(self.path, flags, 0o644)
+        except FileExistsError:
+            raise LogError(f"{self.path}: exists (overwrite it with --force)") from None
+        except OSError as exc:
+            raise LogError(f"{self.path}: cannot write: {exc.strerror}") from None
+        self.count = 0
+        self._write(HEADER)
+
+    def _write(self, data: bytes) -> None:
+        if self._fd is None:
+            raise LogError(f"{self.path}: already closed")
+        view = memoryview(data)
+        while view:
+            view = view[os.write(self._fd, view):]
+
+    def write(self, frames: list[bytes], time_mono: float, time_unix: float) -> None:
+        """Append one received two-frame message with its receive times (s)."""
+        payload = msgpack.packb([time_mono, time_unix, frames[0].decode("utf-8", "replace"), bytes(frames[1])], use_bin_type=True)
+        self._write(RECORD.pack(len(payload), zlib.crc32(payload)) + payload)
+        self.count += 1
+
+    def close(self) -> None:
+        """Flush to disk and close."""
+        if self._fd is not None:
+            os.fsync(self._fd)
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self) -> LogWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class LogReader:
+    """The messages of a session log, tactiled MCAP file or ``replay --json`` output, in file order (:class:`Entry`).
+
+    Iterate once. ``truncated``: after iterating, a one-line note if the file ended inside a record (what a
+    killed recorder leaves); every complete message before it was read. Anything else wrong is a
+    :class:`LogError` naming the file and the byte or line.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.truncated: str | None = None
+        self.count = 0
+        try:
+            with open(self.path, "rb") as fh:
+                head = fh.read(len(HEADER))
+        except FileNotFoundError:
+            raise LogError(f"{self.path}: no such file") from None
+        except OSError as exc:
+            raise LogError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+        if not self.path.is_file():
+            raise LogError(f"{self.path}: not a regular file")
+        if head.startswith(MAGIC):
+            version = struct.unpack("<H", head[len(MAGIC):len(MAGIC) + 2])[0] if len(head) >= len(MAGIC) + 2 else None
+            if version != VERSION:
+                raise LogError(f"{self.path}: session log version {version}, this client reads version {VERSION} (upgrade tactiled-client)")
+            self.kind = "log"
+        elif head.startswith(MCAP_MAGIC):
+            self.kind = "mcap"
+        elif head.lstrip()[:1] == b"{":
+            self.kind = "json"
+        else:
+            raise LogError(f"{self.path}: not a session log, an MCAP file or tactiled replay --json output")
+
+    def __iter__(self) -> Iterator[Entry]:
+        entries = {"log": self._log, "mcap": self._mcap, "json": self._json}[self.kind]()
+        for entry in entries:
+            self.count += 1
+            yield entry
+
+    def _fail(self, where: str, what: str) -> LogError:
+        return LogError(f"{self.path}: {where}: {what}")
+
+    def _log(self) -> Iterator[Entry]:
+        size = self.path.stat().st_size
+        with open(self.path, "rb") as fh:
+            fh.seek(len(HEADER))
+            while True:
+                at = fh.tell()
+                head = fh.read(RECORD.size)
+                if not head:
+                    return
+                if len(head) < RECORD.size:
+                    self.truncated = f"{self.path}: ends inside a record at byte {at} (a recorder stopped mid-write); read the messages before it"
+                    return
+                length, crc = RECORD.unpack(head)
+                if length > MAX_RECORD:
+                    raise self._fail(f"byte {at}", f"record declares {length} bytes, more than the {MAX_RECORD} a record may hold")
+                if at + RECORD.size + length > size:
+                    self.truncated = f"{self.path}: ends inside a record at byte {at} (a recorder stopped mid-write); read the messages before it"
+                    return
+                payload = fh.read(length)
+                if zlib.crc32(payload) != crc:
+                    raise self._fail(f"byte {at}", "record fails its CRC-32 (corrupt)")
+                yield self._entry(at, payload)
+
+    def _entry(self, at: int, payload: bytes) -> Entry:
+        try:
+            rec = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+        except (ValueError, msgpack.UnpackException, TypeError) as exc:
+            raise self._fail(f"byte {at}", f"record is not msgpack: {exc}") from None
+        ok = (isinstance(rec, list) and len(rec) == 4 and all(isinstance(t, (int, float)) for t in rec[:2]) and isinstance(rec[2], str)
+              and isinstance(rec[3], bytes))
+        if not ok:
+            raise self._fail(f"byte {at}", "record is not [recv_mono, recv_unix, topic, body]")
+        check_body(rec[3], f"{self.path}: byte {at}")
+        return Entry(float(rec[0]), float(rec[1]), rec[2], rec[3])
+
+    def _mcap(self) -> Iterator[Entry]:
+        try:
+            from mcap.exceptions import McapError
+            from mcap.reader import make_reader
+        except ImportError:
+            raise LogError(f"{self.path}: reading MCAP needs the mcap package: pip install 'tactiled-client[mcap]'") from None
+        with open(self.path, "rb") as fh:
+            try:
+                for _schema, channel, message in make_reader(fh).iter_messages(log_time_order=True):
+                    parts = channel.topic.strip("/").split("/")
+                    if len(parts) != 3 or parts[0] != "tactiled" or parts[2] != schema.ROUGHNESS:
+                        continue  # samples and ground-truth slides are not wire messages
+                    body = _json_map(message.data, f"{self.path}: {channel.topic} message {message.sequence}")
+                    t = message.log_time / 1e9
+                    yield Entry(t, t, schema.topic(schema.ROUGHNESS, parts[1]), _pack(body))
+            except LogError:
+                raise
+            except (McapError, ValueError, KeyError, EOFError, OSError, struct.error) as exc:  # what the mcap reader raises on a bad file
+                raise LogError(f"{self.path}: not a readable MCAP file: {type(exc).__name__}: {exc}") from None
+
+    def _json(self) -> Iterator[Entry]:
+        fields = schema.Roughness.wire_fields()
+        with open(self.path, "rb") as fh:
+            for number, line in enumerate(_lines(fh, self.path), 1):
+                if not line.strip():
+                    continue
+                where = f"{self.path}: line {number}"
+                obj = _json_map(line, where)
+                final = {k: v for k, v in obj.items() if k in fields}
+                sensor = str(final.get("sensor", ""))
+                start = float(final.get("t_start", 0.0) or 0.0)
+                for p in obj.get("provisional", []) or []:
+                    if not isinstance(p, dict):
+                        raise LogError(f"{where}: provisional: not a map")
+                    early = {**final, **{k: v for k, v in p.items() if k in fields}, "final": False}
+                    t = start + float(p.get("used_s", 0.0) or 0.0)
+                    yield Entry(t, t, schema.topic(schema.ROUGHNESS, sensor), _pack(early))
+                t = float(final.get("t_stop", start) or start)
+                yield Entry(t, t, schema.topic(schema.ROUGHNESS, sensor), _pack(final))
+
+
+def _lines(fh: IO[bytes], path: Path) -> Iterator[bytes]:
+    while True:
+        line = fh.readline(MAX_LINE + 1)
+        if not line:
+            return
+        if len(line) > MAX_LINE:
+            raise LogError(f"{path}: a line longer than {MAX_LINE} bytes")
+        yield line
+
+
+def _json_map(data: bytes, where: str) -> dict[str, Any]:
+    try:
+        obj = json.loads(data)
+    except (ValueError, RecursionError) as exc:
+        raise LogError(f"{where}: not JSON: {str(exc)[:80]}") from None
+    if not isinstance(obj, dict):
+        raise LogError(f"{where}: not a JSON object")
+    _check_version(obj, where)
+    return obj
+
+
+def _pack(body: dict[str, Any]) -> bytes:
+    out: bytes = msgpack.packb(body, use_bin_type=True)
+    return out
+
+
+def check_body(body: bytes, where: str) -> dict[str, Any]:
+    """The decoded message map of ``body``, or :class:`LogError` (not a map, too deep, a schema newer than this client's)."""
+    try:
+        obj = msgpack.unpackb(body, raw=False, strict_map_key=False)
+    except (ValueError, msgpack.UnpackException, TypeError, RecursionError) as exc:
+        raise LogError(f"{where}: message body is not msgpack: {exc}") from None
+    if not isinstance(obj, dict):
+        raise LogError(f"{where}: message body is not a map")
+    _check_version(obj, where)
+    return obj
+
+
+def _check_version(obj: dict[str, Any], where: str) -> None:
+    v = obj.get("v")
+    if isinstance(v, int) and v > schema.SCHEMA_VERSION:
+        raise LogError(f"{where}: schema version {v}, newer than this client's {schema.SCHEMA_VERSION} (upgrade tactiled-client)")

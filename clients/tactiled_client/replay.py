@@ -1,0 +1,204 @@
+"""Replay a recorded session through the subscriber's interface, or onto a socket as the daemon would.
+
+A controller switches from live to file by changing one constructor::
+
+    async with Subscriber("tcp://127.0.0.1:7350", topics=["roughness"]) as sub:    # live
+    async with Replay("session.tlog", topics=["roughness"]) as sub:                # recorded
+        async for msg in sub:
+            ...
+
+``speed``: 1.0 replays at the recorded pace, 2.0 twice as fast, None as fast as possible. ``receive(timeout=)``
+raises :class:`NoData` when the next message is further away than the timeout (in replay time), and
+:class:`EndOfLog` (a :class:`NoData`) at the end of the file, where ``async for`` and ``for`` simply stop.
+``latest(max_age_s)`` measures ages on the recorded clock. Files: :mod:`tactiled_client.log`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator, Iterator, Sequence
+from pathlib import Path
+from types import TracebackType
+
+from tactiled_client import schema
+from tactiled_client.errors import EndOfLog, NoData, UsageError
+from tactiled_client.log import Entry, LogReader
+from tactiled_client.subscriber import _prefixes, _Tracker
+
+__all__ = ["BlockingReplay", "Replay", "publish"]
+
+
+class _Player(_Tracker):
+    """What both replays share: the file's entries filtered as a SUB socket would, and the recorded clock."""
+
+    def __init__(self, path: str | Path, topics: Sequence[str] | None, sensor: str | None, timeout: float | None, speed: float | None) -> None:
+        super().__init__()
+        if speed is not None and not speed > 0:
+            raise UsageError(f"speed must be > 0 or None (as fast as possible), got {speed}")
+        self.path = Path(path)
+        self.timeout = timeout
+        self.speed = speed
+        self.reader = LogReader(self.path)
+        self._prefixes = _prefixes(topics, sensor)
+        self._entries: Iterator[Entry] | None = None
+        self._pending: Entry | None = None
+        self._origin: tuple[float, float] | None = None  # (recorded time, wall time) of the first message
+        self._recorded_now = 0.0
+
+    def _open(self) -> None:
+        self._entries = iter(self.reader)
+
+    def _next(self) -> Entry | None:
+        if self._entries is None:
+            raise UsageError(f"receive() before entering the replay of {self.path} ('async with' / 'with')")
+        if self._pending is None:
+            self._pending = next((e for e in self._entries if e.topic.encode().startswith(tuple(self._prefixes))), None)
+        return self._pending
+
+    def _wait(self, entry: Entry) -> float:
+        """Seconds of wall time until ``entry`` is due (0 when replaying as fast as possible)."""
+        if self._origin is None:
+            self._origin = (entry.time_mono, time.monotonic())
+        if self.speed is None:
+            return 0.0
+        due = self._origin[1] + (entry.time_mono - self._origin[0]) / self.speed
+        return max(0.0, due - time.monotonic())
+
+    def _deliver(self) -> schema.Message:
+        entry = self._pending
+        if entry is None:
+            raise UsageError("nothing to deliver")  # only reached after _next gave an entry
+        self._pending = None
+        self._recorded_now = entry.time_mono
+        return self.accept(entry.frames())
+
+    def _silence(self, t: float) -> NoData:
+        return NoData(f"{self.path}: no message for {t} s of replay time")
+
+    def _end(self) -> EndOfLog:
+        return EndOfLog(f"{self.path}: end of file after {self.reader.count} messages")
+
+    def now(self) -> float:
+        """The recorded clock: the recorded time of the replay's position, s."""
+        if self._origin is None or self.speed is None:
+            return self._recorded_now
+        return self._origin[0] + (time.monotonic() - self._origin[1]) * self.speed
+
+
+class Replay(_Player):
+    """Async replay of a recorded session with :class:`tactiled_client.Subscriber`'s interface."""
+
+    def __init__(self, path: str | Path, topics: Sequence[str] | None = None, sensor: str | None = None, timeout: float | None = None,
+                 speed: float | None = 1.0) -> None:
+        super().__init__(path, topics, sensor, timeout, speed)
+
+    async def __aenter__(self) -> Replay:
+        self._open()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self._entries = None
+
+    async def receive(self, timeout: float | None = None) -> schema.Message:
+        """The next message, at its time; :class:`NoData` if it is further than ``timeout`` away, :class:`EndOfLog` at the end."""
+        t = self.timeout if timeout is None else timeout
+        entry = self._next()
+        if entry is None:
+            raise self._end()
+        wait = self._wait(entry)
+        if t is not None and wait > t:
+            await asyncio.sleep(t)
+            raise self._silence(t)
+        if wait > 0:
+            await asyncio.sleep(wait)
+        return self._deliver()
+
+    def __aiter__(self) -> AsyncIterator[schema.Message]:
+        return self
+
+    async def __anext__(self) -> schema.Message:
+        try:
+            return await self.receive()
+        except EndOfLog:
+            raise StopAsyncIteration from None
+
+
+class BlockingReplay(_Player):
+    """Blocking replay with :class:`tactiled_client.BlockingSubscriber`'s interface: ``with BlockingReplay(path) as sub: for msg in sub``."""
+
+    def __init__(self, path: str | Path, topics: Sequence[str] | None = None, sensor: str | None = None, timeout: float | None = None,
+                 speed: float | None = 1.0) -> None:
+        super().__init__(path, topics, sensor, timeout, speed)
+        self._open()
+
+    def receive(self, timeout: float | None = None) -> schema.Message:
+        """The next message, at its time; :class:`NoData` if it is further than ``timeout`` away, :class:`EndOfLog` at the end."""
+        t = self.timeout if timeout is None else timeout
+        entry = self._next()
+        if entry is None:
+            raise self._end()
+        wait = self._wait(entry)
+        if t is not None and wait > t:
+            time.sleep(t)
+            raise self._silence(t)
+        if wait > 0:
+            time.sleep(wait)
+        return self._deliver()
+
+    def __iter__(self) -> Iterator[schema.Message]:
+        while True:
+            try:
+                yield self.receive()
+            except EndOfLog:
+                return
+
+    def entries(self) -> Iterator[Entry]:
+        """The file's messages as recorded (topic, body bytes, receive times), paced and filtered, without parsing them."""
+        while (entry := self._next()) is not None:
+            wait = self._wait(entry)
+            if wait > 0:
+                time.sleep(wait)
+            self._pending = None
+            self._recorded_now = entry.time_mono
+            yield entry
+
+    def close(self) -> None:
+        self._entries = None
+
+    def __enter__(self) -> BlockingReplay:
+        return self
+
+    def __exit__(self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None) -> None:
+        self.close()
+
+
+def publish(path: str | Path, endpoint: str, *, speed: float | None = 1.0, topics: Sequence[str] | None = None, sensor: str | None = None,
+            wait_subscriber_s: float = 0.0) -> int:
+    """Publish a recorded session on ``endpoint`` (bound) as the daemon would: the same topics and two-frame msgpack framing,
+    a fresh gapless ``seq`` per topic. Waits up to ``wait_subscriber_s`` for a first subscriber. Returns the messages sent."""
+    import msgpack
+    import zmq
+
+    from tactiled_client.log import check_body
+
+    player = BlockingReplay(path, topics, sensor, None, speed)
+    sock: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.XPUB)
+    sock.setsockopt(zmq.LINGER, 2000)
+    try:
+        sock.bind(endpoint)
+    except zmq.ZMQError as exc:
+        sock.close(linger=0)
+        raise UsageError(f"--publish {endpoint}: {exc}") from None
+    sent: dict[str, int] = {}
+    try:
+        if wait_subscriber_s > 0 and sock.poll(int(wait_subscriber_s * 1000)):
+            sock.recv()  # the first subscription
+        for entry in player.entries():
+            body = check_body(entry.body, str(path))
+            body["seq"] = sent.get(entry.topic, 0)
+            sent[entry.topic] = body["seq"] + 1
+            sock.send_multipart([entry.topic.encode(), msgpack.packb(body, use_bin_type=True)])
+    finally:
+        sock.close()
+    return sum(sent.values())
