@@ -65,6 +65,15 @@ class _Player(_Tracker):
         due = self._origin[1] + (entry.time_mono - self._origin[0]) / self.speed
         return max(0.0, due - time.monotonic())
 
+    def _plan(self, timeout: float | None) -> tuple[float, bool]:
+        """(seconds to wait, whether the wait ends in silence) before the next message; :class:`EndOfLog` if none is left."""
+        t = self.timeout if timeout is None else timeout
+        entry = self._next()
+        if entry is None:
+            raise self._end()
+        wait = self._wait(entry)
+        return (t, True) if t is not None and wait > t else (wait, False)
+
     def _deliver(self) -> schema.Message:
         entry = self._pending
         if entry is None:
@@ -102,16 +111,11 @@ class Replay(_Player):
 
     async def receive(self, timeout: float | None = None) -> schema.Message:
         """The next message, at its time; :class:`NoData` if it is further than ``timeout`` away, :class:`EndOfLog` at the end."""
-        t = self.timeout if timeout is None else timeout
-        entry = self._next()
-        if entry is None:
-            raise self._end()
-        wait = self._wait(entry)
-        if t is not None and wait > t:
-            await asyncio.sleep(t)
-            raise self._silence(t)
+        wait, silent = self._plan(timeout)
         if wait > 0:
             await asyncio.sleep(wait)
+        if silent:
+            raise self._silence(wait)
         return self._deliver()
 
     def __aiter__(self) -> AsyncIterator[schema.Message]:
@@ -134,16 +138,11 @@ class BlockingReplay(_Player):
 
     def receive(self, timeout: float | None = None) -> schema.Message:
         """The next message, at its time; :class:`NoData` if it is further than ``timeout`` away, :class:`EndOfLog` at the end."""
-        t = self.timeout if timeout is None else timeout
-        entry = self._next()
-        if entry is None:
-            raise self._end()
-        wait = self._wait(entry)
-        if t is not None and wait > t:
-            time.sleep(t)
-            raise self._silence(t)
+        wait, silent = self._plan(timeout)
         if wait > 0:
             time.sleep(wait)
+        if silent:
+            raise self._silence(wait)
         return self._deliver()
 
     def __iter__(self) -> Iterator[schema.Message]:
