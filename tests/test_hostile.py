@@ -8,6 +8,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
 import socket
 import struct
 import subprocess
@@ -408,3 +409,20 @@ def test_xpub_publisher_drops_a_huge_subscription_too(tmp_path: Path) -> None:
     finally:
         publisher.close()
         ctx.destroy(linger=0)
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device", "folder"])
+@pytest.mark.parametrize("role", ["recording", "model"])
+def test_a_non_regular_file_is_refused_in_one_line_without_reading_it(kind: str, role: str, tmp_path: Path) -> None:
+    """A FIFO would hang a reader and /dev/zero never ends: neither is opened as a recording or a model."""
+    if kind == "fifo":
+        path = tmp_path / "x.npz"
+        os.mkfifo(path)
+    elif kind == "folder":
+        path = tmp_path / "d.npz"
+        path.mkdir()
+    else:
+        path = Path("/dev/zero")
+    args = ("replay", str(path)) if role == "recording" else ("replay", "--model", str(path), str(REPO / "tests" / "hostile" / "rec-good.npz"))
+    res = run_cli(*args, timeout=60)
+    assert res.returncode == 2 and "not a regular file" in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr

@@ -5,8 +5,10 @@ from __future__ import annotations
 import itertools
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pytest
 
 from tactiled.files.recording import load_recording
 from tactiled.sim.sensor_model import SensorModel, SimParams, Surface, _self_affine_profile, default_surfaces, simulate_file
@@ -112,18 +114,59 @@ def test_other_units_differ_within_the_stated_tolerance() -> None:
         assert abs(p.tau_hp_s / base.tau_hp_s - 1) <= TOLERANCE.tau_hp + 1e-12
         assert TOLERANCE.noise[0] <= p.noise_v / base.noise_v <= TOLERANCE.noise[1]
     assert other_unit(base, 1).fn_hz != other_unit(base, 2).fn_hz
+    with pytest.raises(ValueError, match="unit must be >= 0"):
+        other_unit(base, -1)
 
 
 def test_new_specimens_keep_the_grades() -> None:
     from tactiled.sim.sensor_model import TOLERANCE, default_surfaces, grating_surfaces, new_specimens
 
-    for nominal in (default_surfaces(), grating_surfaces()):
-        assert new_specimens(nominal, 0) == nominal
-        other = new_specimens(nominal, 1)
-        assert [s.name for s in other] == [s.name for s in nominal] and other == new_specimens(nominal, 1)
-        assert [s.period_um for s in other] == [s.period_um for s in nominal]
-        assert all(abs(o.ra_um / s.ra_um - 1) <= TOLERANCE.ra + 1e-12 and 0.5 <= o.hurst <= 0.95 for o, s in zip(other, nominal, strict=True))
-        assert other != nominal
+    for make in (default_surfaces, grating_surfaces):
+        nominal = make()
+        assert new_specimens(nominal, 0) == nominal and make(0) == nominal
+        for specimen in (1, 2, 7):
+            other = make(specimen)
+            assert other == new_specimens(nominal, specimen) == make(specimen)  # deterministic in the specimen number
+            assert [s.name for s in other] == [s.name for s in nominal]
+            assert [s.grade_ra_um for s in other] == [s.ra_um for s in nominal]  # the grade's nominal Ra: the label
+            assert [s.period_um for s in other] == [s.period_um for s in nominal]
+            for o, s in zip(other, nominal, strict=True):
+                assert abs(o.ra_um / s.ra_um - 1) <= TOLERANCE.ra + 1e-12 and abs(o.corr_um / s.corr_um - 1) <= TOLERANCE.corr + 1e-12
+                assert abs(o.hurst - s.hurst) <= TOLERANCE.hurst + 1e-12 and 0.5 <= o.hurst <= 0.95
+            assert all(o.ra_um != s.ra_um and o.corr_um != s.corr_um for o, s in zip(other, nominal, strict=True))
+        assert make(1) != make(2)
+        assert new_specimens(make(1), 1)[0].grade_ra_um == nominal[0].ra_um  # a specimen of a specimen: still the grade's Ra
+
+
+def test_specimen_zero_is_todays_surfaces_and_another_has_another_profile() -> None:
+    from tactiled.sim.sensor_model import default_surfaces, grating_surfaces, pick_surfaces
+
+    first, last = default_surfaces()[0], default_surfaces()[-1]
+    assert (first.name, first.ra_um, first.corr_um, first.hurst) == ("Ra0.44", 0.44, 39.515203688996024, 0.6421936392931707)
+    assert (last.name, last.ra_um, last.corr_um, last.hurst) == ("Ra4.43", 4.43, 53.556153988663176, 0.6178969548598209)
+    assert grating_surfaces()[0] == Surface("G0.10mm", 2.243832942507452, 53.029437444115175, 0.8, 100.0, 0.8)
+    assert all(s.nominal_ra_um == 0.0 and s.grade_ra_um == s.ra_um for s in default_surfaces())
+    # the same grade, another profile: the same random draws give another height profile with the same Ra label
+    nominal, other = default_surfaces(0)[7], default_surfaces(1)[7]
+    assert other.name == nominal.name and other.grade_ra_um == nominal.ra_um
+    z0, z1 = (np.fft.irfft(_self_affine_profile(4096, 2e-6, s, np.random.default_rng(0))[0], 4096) for s in (nominal, other))
+    assert not np.allclose(z0, z1)
+    # a grade's specimen does not depend on which surfaces are picked
+    assert pick_surfaces("Ra4.43", specimen=3) == [default_surfaces(3)[-1]]
+    assert pick_surfaces(2, "grating", specimen=3) == [grating_surfaces(3)[0], grating_surfaces(3)[-1]]
+
+
+def test_unit_zero_and_specimen_zero_write_todays_files(tmp_path: Path) -> None:
+    from tactiled.sim.simulate import write_dataset
+
+    kwargs: dict[str, Any] = {"scene": "robot", "surfaces": "Ra1.00", "files_per_surface": 1, "slides_per_file": 1, "seed": 5}
+    today = load_recording(write_dataset(tmp_path / "a", **kwargs)[0])
+    zero = load_recording(write_dataset(tmp_path / "b", unit=0, specimen=0, **kwargs)[0])
+    other = load_recording(write_dataset(tmp_path / "c", unit=1, specimen=0, **kwargs)[0])
+    assert np.array_equal(today.samples, zero.samples) and today.meta == zero.meta
+    sim = simulate_file(replace(SimParams(), mode="robot"), default_surfaces()[5], 1, int(today.meta["seed"]))
+    assert default_surfaces()[5].name == "Ra1.00" and np.array_equal(today.samples, sim.samples)
+    assert not np.array_equal(today.samples, other.samples)
 
 
 def test_simulate_dataset_of_another_unit_and_specimen(tmp_path: Path) -> None:
@@ -139,3 +182,6 @@ def test_simulate_dataset_of_another_unit_and_specimen(tmp_path: Path) -> None:
     assert (a.meta["unit"], a.meta["specimen"], b.meta["unit"], b.meta["specimen"]) == (0, 0, 1, 1)
     assert b.meta["simulator"]["fn_hz"] == list(other_unit(SimParams(), 1).fn_hz) and a.meta["simulator"]["fn_hz"] == [900.0, 1200.0]
     assert b.meta["surface"]["name"] == a.meta["surface"]["name"] and b.meta["surface"]["ra_um"] != a.meta["surface"]["ra_um"]
+    assert b.meta["surface"]["nominal_ra_um"] == a.meta["surface"]["ra_um"]
+    assert a.ra_um is not None and b.ra_um is not None and list(b.ra_um) == list(a.ra_um) == [0.44]  # the grade's label
+    assert not np.array_equal(a.samples, b.samples)

@@ -294,6 +294,9 @@ def cmd_score(args: argparse.Namespace) -> int:
               f"({report['labelled']} labelled); accuracy of the labelled {report['accuracy_of_labelled']:.4f}")
         if report["abstained"]:
             print("no label: " + ", ".join(f"{k} {v}" for k, v in sorted(report["abstained"].items())))
+        print(f"unknown surfaces: {report['unknown']} of {report['n']} true slides")
+        if report["ece"] is not None:
+            print(f"confidence: expected calibration error {report['ece']:.3f} (10 bins), Brier score {report['brier']:.3f}")
         if report["unpaired_detections"]:
             print(f"detections outside any true slide: {report['unpaired_detections']}")
         for c, r in report["recall"].items():
@@ -629,10 +632,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fs", type=_positive_float, default=None, help="sample rate, Hz (default: the scene's, 20000 or 2200)")
     p.add_argument("--channels", type=_channels, default=None, help="channels (default: the scene's, 2 or 1)")
     p.add_argument("--unit", type=_seed, default=0,
-                   help="which unit of the fingertip: 0 the nominal one, N another with its films' resonance, damping, gain, cross-talk "
-                        "and noise drawn within the manufacturing tolerance (docs/simulator.md)")
+                   help="which unit of the fingertip: 0 the nominal one, N another of the same model with its films' resonance, damping, "
+                        "gain, cross-talk, high-pass and noise drawn within the manufacturing tolerance (docs/simulator.md)")
     p.add_argument("--specimen", type=_seed, default=0,
-                   help="which specimens of the grades: 0 the nominal ones, N new ones of the same grades (docs/simulator.md)")
+                   help="which specimens of the grades: 0 the nominal ones, N new ones of the same grades (same names and nominal Ra "
+                        "labels; their own Ra, correlation length and Hurst exponent drawn within the grade's tolerance; docs/simulator.md)")
     p.set_defaults(handler=cmd_simulate_dataset)
 
     p = sim.add_parser("figure", help="PNG of one slide per surface class: signal and spectrum")

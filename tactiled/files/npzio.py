@@ -20,7 +20,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
+import stat
 import tokenize
 import zipfile
 from collections.abc import Iterable
@@ -32,6 +34,7 @@ import numpy as np
 import numpy.typing as npt
 
 MAX_MEMBERS = 64
+MAX_FILE_BYTES = 1 << 34  # 16 GiB: a recording, model or feature file larger than this is refused before it is opened
 MAX_RATIO = 200
 RATIO_FLOOR = 16 << 20
 CHUNK = 1 << 20
@@ -67,6 +70,11 @@ class NpzReader:
         self.remaining = max_bytes
         self.max_bytes = max_bytes
         try:
+            info = os.stat(path)
+            if not stat.S_ISREG(info.st_mode):
+                raise NpzError("", "not a regular file (a device, FIFO or folder is never read)")
+            if info.st_size > MAX_FILE_BYTES:
+                raise NpzError("", f"{info.st_size} bytes, more than the {MAX_FILE_BYTES} a tactiled file may have")
             count = _entry_count(path)
             if count is not None and count > MAX_MEMBERS:
                 raise NpzError("", f"lists {count} members, more than the {MAX_MEMBERS} a tactiled file has")

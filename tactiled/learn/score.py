@@ -43,6 +43,7 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
     per_file = []
     conf: list[float] = []
     hit: list[bool] = []
+    top_right = 0  # the top class right, labelled or not (what the accuracy would be without abstaining)
     for (name, rec), res in zip(recs, results, strict=True):
         truth, paired, unpaired = pair_results(rec, res)
         extra += unpaired
@@ -58,13 +59,14 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
             if r is not None and r.confidence is not None and r.top:
                 conf.append(r.confidence)
                 hit.append(r.top[0][0] == t)  # the top class, labelled or not (an unknown surface still has one)
+            top_right += r is not None and bool(r.top) and r.top[0][0] == t
         per_file.append({"file": name, "slides": len(truth), "correct": right, "unpaired_detections": unpaired})
     n = len(y_true)
     correct = sum(p == t for p, t in zip(y_pred, y_true, strict=True))
     labelled = sum(p is not None for p in y_pred)
     out = {"n": n, "correct": correct, "accuracy": correct / n if n else 0.0, "labelled": labelled, "coverage": labelled / n if n else 0.0,
            "accuracy_of_labelled": correct / labelled if labelled else 0.0, "abstained": dict(reasons), "unpaired_detections": extra,
-           "files": per_file, "unknown": reasons.get("unknown_surface", 0)}
+           "files": per_file, "unknown": reasons.get("unknown_surface", 0), "top_accuracy": top_right / n if n else 0.0}
     out.update(calibration_scores(np.array(conf), np.array(hit, dtype=bool)))
     out.update(confusion(y_true, y_pred, classes))
     return out

@@ -70,10 +70,11 @@ def pair_results(rec: Recording, results: Sequence[SlideResult]) -> tuple[list[s
 
 
 def summary_line(results: list[SlideResult], rec: Recording) -> str:
-    """``N slides, L labelled[, C of T true slides right]`` for one replayed recording."""
+    """``N slides, L labelled, U unknown surface[, C of T true slides right]`` for one replayed recording."""
     finals = [r for r in results if r.final]
     labelled = sum(r.label is not None for r in finals)
-    line = f"{len(finals)} slides, {labelled} labelled"
+    unknown = sum(r.reason == "unknown_surface" for r in finals)
+    line = f"{len(finals)} slides, {labelled} labelled, {unknown} unknown surface"
     truth = rec.slides()
     if truth or rec.label is not None:
         t, paired, _ = pair_results(rec, results)

@@ -41,7 +41,8 @@ class Surface:
     """A specimen: name, arithmetic roughness Ra (µm), lateral correlation length ℓc (µm), Hurst H.
 
     A grating (``period_um`` > 0) is a sinusoid of that spatial period carrying ``grating_share``
-    of the roughness power, on a random self-affine background carrying the rest.
+    of the roughness power, on a random self-affine background carrying the rest. Another specimen
+    of a grade (:func:`new_specimens`) keeps the name and holds the grade's nominal Ra in ``nominal_ra_um``.
     """
 
     name: str
@@ -50,34 +51,51 @@ class Surface:
     hurst: float
     period_um: float = 0.0
     grating_share: float = 0.0
+    nominal_ra_um: float = 0.0  # the grade's nominal Ra (µm) when this is another specimen of it (:func:`new_specimens`); 0: ``ra_um``
+
+    @property
+    def grade_ra_um(self) -> float:
+        """The grade's nominal Ra, µm: the label a lab writes on the specimen (``ra_um`` is what the specimen has)."""
+        return self.nominal_ra_um if self.nominal_ra_um > 0 else self.ra_um
 
 
-def default_surfaces() -> list[Surface]:
-    """The 15 polished surfaces, Ra 0.44 … 4.43 µm spaced geometrically, named ``Ra0.44`` …."""
+def default_surfaces(specimen: int = 0) -> list[Surface]:
+    """The 15 polished surfaces, Ra 0.44 … 4.43 µm spaced geometrically, named ``Ra0.44`` ….
+
+    ``specimen`` 0: the nominal specimens (fixed seed, the same in every run); N >= 1: new specimens of the same grades
+    (:func:`new_specimens`)."""
     ras = np.geomspace(0.44, 4.43, 15)
     rng = np.random.default_rng(20180649)  # fixed: the specimens are the same in every run
     corr = rng.uniform(20.0, 60.0, ras.size)
     hurst = rng.uniform(0.6, 0.9, ras.size)
-    return [Surface(f"Ra{ra:.2f}", float(ra), float(c), float(h)) for ra, c, h in zip(ras, corr, hurst, strict=True)]
+    nominal = [Surface(f"Ra{ra:.2f}", float(ra), float(c), float(h)) for ra, c, h in zip(ras, corr, hurst, strict=True)]
+    return new_specimens(nominal, specimen)
 
 
-def grating_surfaces() -> list[Surface]:
-    """15 gratings: spatial periods 100 µm … 1 mm (geometric), Ra 1 … 3 µm, on a weak random background; named ``G0.10mm`` …."""
+def grating_surfaces(specimen: int = 0) -> list[Surface]:
+    """15 gratings: spatial periods 100 µm … 1 mm (geometric), Ra 1 … 3 µm, on a weak random background; named ``G0.10mm`` ….
+
+    ``specimen`` as in :func:`default_surfaces` (a new specimen keeps its grating's period)."""
     periods = np.geomspace(100.0, 1000.0, 15)
     rng = np.random.default_rng(20171211)
     ras = rng.uniform(1.0, 3.0, periods.size)
     corr = rng.uniform(20.0, 60.0, periods.size)
-    return [Surface(f"G{p / 1000:.2f}mm", float(ra), float(c), 0.8, float(p), 0.8) for p, ra, c in zip(periods, ras, corr, strict=True)]
+    nominal = [Surface(f"G{p / 1000:.2f}mm", float(ra), float(c), 0.8, float(p), 0.8) for p, ra, c in zip(periods, ras, corr, strict=True)]
+    return new_specimens(nominal, specimen)
 
 
 @dataclass(frozen=True)
 class Tolerance:
     """How much two units of the same fingertip, or two specimens of the same grade, differ: uniform, relative ± half-widths.
 
-    A unit's films are hand-glued: each film's resonance, damping and gain, the cross-talk between
-    them, the buffer's high-pass time constant and the noise level vary from unit to unit. A new
-    specimen of a grade (a second sheet of the same sandpaper, a second polished sample) has the grade's
-    nominal roughness within its tolerance and its own correlation length and Hurst exponent.
+    A unit's PVDF films are cut, glued and embedded in silicone by hand: the film's position in the
+    silicone and the silicone's cure set each film's resonance (±15 %, independently per film) and
+    damping (±20 %); the glue layer and the film's area set its gain (±20 %, independently per film);
+    the films' spacing the cross-talk (±30 %); the buffer's RC (1 %–10 % parts, a 10 % capacitor) its
+    high-pass time constant (±10 %); cable and shielding the white-noise level (×0.7…1.5). A new
+    specimen of a grade (a second sheet of the same sandpaper, a second polished sample) keeps the
+    grade's name and nominal Ra; what it has lies within the grade's tolerance: Ra ±10 %, correlation
+    length ±15 %, Hurst exponent ±0.05 (absolute).
     """
 
     resonance: float = 0.15  # each film's fn, independently
@@ -92,13 +110,19 @@ class Tolerance:
 
 
 TOLERANCE = Tolerance()
+"""The manufacturing tolerances :func:`other_unit` and :func:`new_specimens` draw within (docs/simulator.md)."""
 
 
 def other_unit(params: SimParams, unit: int, tol: Tolerance = TOLERANCE) -> SimParams:
     """The parameters of unit ``unit`` of the same fingertip model: unit 0 is ``params``; others are drawn within ``tol``.
 
-    Deterministic in ``unit`` alone. A film's resonance stays below 0.45 fs; damping in (0.05, 0.95).
+    Drawn uniformly, deterministically from ``unit`` alone: each film's resonance ``fn_hz`` (Hz) and gain ``film_gain``
+    (relative) independently, the damping ratio ``zeta``, the cross-talk (relative), the buffer's high-pass time constant
+    ``tau_hp_s`` (s) and the white-noise level ``noise_v`` (V RMS). A film's resonance stays below 0.45 fs; damping in
+    (0.05, 0.95). ValueError for a negative ``unit``.
     """
+    if unit < 0:
+        raise ValueError(f"unit must be >= 0, got {unit}")
     if unit == 0:
         return params
     rng = np.random.default_rng([20261124, unit])
@@ -115,8 +139,13 @@ def other_unit(params: SimParams, unit: int, tol: Tolerance = TOLERANCE) -> SimP
 
 
 def new_specimens(surfaces: Sequence[Surface], specimen: int, tol: Tolerance = TOLERANCE) -> list[Surface]:
-    """Specimen ``specimen`` of each grade in ``surfaces``: 0 is ``surfaces``; others keep the names (the grades) and a
-    grating's period, and draw Ra, correlation length and Hurst exponent within ``tol``. Deterministic in ``specimen``."""
+    """Specimen ``specimen`` of each grade in ``surfaces`` (a whole family, in order: the draws follow it).
+
+    0 is ``surfaces``; N >= 1 keeps the names (the grades), each grade's nominal Ra (``grade_ra_um``, µm) and a grating's
+    period, and draws the specimen's own Ra (µm), correlation length (µm) and Hurst exponent within ``tol``, uniformly,
+    deterministically from ``specimen``. ValueError for a negative ``specimen``."""
+    if specimen < 0:
+        raise ValueError(f"specimen must be >= 0, got {specimen}")
     if specimen == 0:
         return list(surfaces)
     rng = np.random.default_rng([20261125, specimen])
@@ -125,18 +154,21 @@ def new_specimens(surfaces: Sequence[Surface], specimen: int, tol: Tolerance = T
         ra = s.ra_um * (1.0 + rng.uniform(-tol.ra, tol.ra))
         corr = s.corr_um * (1.0 + rng.uniform(-tol.corr, tol.corr))
         hurst = float(np.clip(s.hurst + rng.uniform(-tol.hurst, tol.hurst), 0.5, 0.95))
-        out.append(replace(s, ra_um=float(ra), corr_um=float(corr), hurst=hurst))
+        out.append(replace(s, ra_um=float(ra), corr_um=float(corr), hurst=hurst, nominal_ra_um=s.grade_ra_um))
     return out
 
 
-def family_surfaces(family: str) -> list[Surface]:
-    """The 15 specimens of a surface family (self-affine: :func:`default_surfaces`; grating: :func:`grating_surfaces`)."""
-    return grating_surfaces() if family == "grating" else default_surfaces()
+def family_surfaces(family: str, specimen: int = 0) -> list[Surface]:
+    """The 15 specimens of a surface family (self-affine: :func:`default_surfaces`; grating: :func:`grating_surfaces`);
+    ``specimen`` as there."""
+    return grating_surfaces(specimen) if family == "grating" else default_surfaces(specimen)
 
 
-def pick_surfaces(spec: str | int | None, family: str = "self-affine") -> list[Surface]:
-    """``None``: all 15 of ``family``; an int N (or "N"): N spread over the range; else names, e.g. ``Ra0.44,Ra4.43``."""
-    surfaces = family_surfaces(family)
+def pick_surfaces(spec: str | int | None, family: str = "self-affine", specimen: int = 0) -> list[Surface]:
+    """``None``: all 15 of ``family``; an int N (or "N"): N spread over the range; else names, e.g. ``Ra0.44,Ra4.43``.
+
+    ``specimen``: which specimens of the grades (:func:`new_specimens`); a grade's specimen does not depend on the pick."""
+    surfaces = family_surfaces(family, specimen)
     if spec is None or spec == "":
         return surfaces
     if isinstance(spec, int) or str(spec).isdigit():

@@ -19,7 +19,6 @@ from tactiled.sim.sensor_model import (
     SimParams,
     Surface,
     hot_gain,
-    new_specimens,
     other_unit,
     pick_surfaces,
     scene_params,
@@ -29,9 +28,9 @@ from tactiled.sim.sensor_model import (
 from tactiled.sim.virtualboard import VirtualBoard
 
 
-def _surfaces(spec: str | None, family: str = "self-affine") -> list[Surface]:
+def _surfaces(spec: str | None, family: str = "self-affine", specimen: int = 0) -> list[Surface]:
     try:
-        return pick_surfaces(spec, family)
+        return pick_surfaces(spec, family, specimen)
     except ValueError as exc:
         raise TactiledError(str(exc)) from None
 
@@ -57,7 +56,8 @@ def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surface
 
     File names start with the scene (commas as ``+``): ``continuous+one-channel_Ra0.44_00.npz``. ``unit``: another unit of
     the same fingertip (:func:`other_unit`; 0 is the nominal one); ``specimen``: other specimens of the same grades
-    (:func:`new_specimens`; 0 are the nominal ones).
+    (:func:`new_specimens`; 0 are the nominal ones). Both are recorded in each file's ``meta``; the ``ra_um`` labels are
+    the grades' nominal Ra (µm), the specimen's own values are in ``meta["surface"]``.
     """
     if files_per_surface < 1 or slides_per_file < 1:
         raise TactiledError("--files-per-surface and --slides-per-file must be >= 1")
@@ -65,7 +65,7 @@ def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surface
         raise TactiledError("--unit and --specimen must be >= 0")
     spec, params = scene_for(scene, mode, fs, channels)
     params = other_unit(params, unit)
-    chosen = new_specimens(_surfaces(surfaces, params.family), specimen)
+    chosen = _surfaces(surfaces, params.family, specimen)
     hot = "hot-gain" in spec.split(",")
     out.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -78,7 +78,7 @@ def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surface
             rec = Recording(
                 samples=sim.samples, fs=params.fs, volts_per_count=1.0 if params.float_output else params.volts_per_count,
                 slide_start=np.array([t.start for t in sim.truth]), slide_stop=np.array([t.stop for t in sim.truth]),
-                surface=np.array([t.surface.name for t in sim.truth]), ra_um=np.array([t.surface.ra_um for t in sim.truth]),
+                surface=np.array([t.surface.name for t in sim.truth]), ra_um=np.array([t.surface.grade_ra_um for t in sim.truth]),
                 meta={"scene": spec, "simulator": file_params.to_meta(), "seed": file_seed, "surface": vars(surface), "unit": unit, "specimen": specimen,
                       "v_max_mps": [t.v_max_mps for t in sim.truth], "force": [t.force for t in sim.truth]},
             )

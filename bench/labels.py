@@ -1,0 +1,202 @@
+"""Labels a robot can act on, per simulator scene: accuracy against a plain spectral baseline, on the same unit and on another.
+
+For each scene: a training set (unit 0), a same-unit test set (other tracks of the same specimens) and an
+other-unit test set (another unit of the sensor, new specimens of the same grades; docs/simulator.md).
+Trains the default (``tactiled train``) and the papers' method (``--method paper``), and the plain
+whole-slide spectral classifier described below on the true slides; scores each end to end on both test
+sets (the daemon's pipeline, every true slide counted), with the calibration error (ECE, 10 equal-width
+bins) and Brier score of the confidence, the unknown-surface rate on known surfaces, and the provisional
+labels (time from slide start to the first one the final label confirmed; how often one was wrong). Every
+candidate of the default search is refitted and scored on the same-unit test, beside its cross-validated
+accuracy. Then three of the fifteen surfaces are left out of training: how many of their test slides come
+out unknown, and how many of the known ones.
+
+The plain baseline, outside tactiled's code: for each true slide, the Welch PSD of each channel over the
+whole slide (segments of 1024 samples at 20 kHz, scaled to the rate), the log energy in 24 log-spaced bands
+from 20 Hz to 0.45 fs, the log spectral centroid and the kurtosis; StandardScaler; RBF SVM (C=10).
+
+Usage: python bench/labels.py [--scenes "hand;robot;..."] [--files 3] [--test-files 2] [--slides 3] [--out DIR] [--json FILE]
+       [--no-paper] [--leave-out-scenes "hand;robot;one-channel"]
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import signal, stats
+
+from tactiled.config import Config
+from tactiled.files.recording import Recording
+from tactiled.learn.dataset import load_recordings
+from tactiled.learn.score import score
+from tactiled.learn.train import train
+from tactiled.run.replay import by_slide, pair_results, replay_recording
+from tactiled.sim.simulate import write_dataset
+
+DEFAULT = "hand;robot;continuous;fluctuating;hot-gain;one-channel;grating;continuous,one-channel;fluctuating,one-channel;hand,hot-gain"
+LEAVE_OUT = (2, 7, 12)  # of the 15 surfaces, in Ra order: three inside the range, none at its ends
+
+
+def plain_features(x: np.ndarray, fs: float) -> list[float]:
+    """The plain baseline's features of one slide (n, C): per channel 24 log band energies, log centroid, kurtosis."""
+    nper = max(64, round(1024 * fs / 20000))
+    out: list[float] = []
+    edges = np.geomspace(20.0, 0.45 * fs, 25)
+    for c in range(x.shape[1]):
+        f, p = signal.welch(x[:, c], fs=fs, nperseg=min(nper, len(x)))
+        out += [float(np.log(p[(f >= a) & (f < b)].sum() + 1e-20)) for a, b in itertools.pairwise(edges)]
+        out += [float(np.log((f * p).sum() / (p.sum() + 1e-30) + 1e-9)), float(np.nan_to_num(stats.kurtosis(x[:, c])))]
+    return out
+
+
+def plain_rows(recs: list[tuple[str, Recording]]) -> tuple[np.ndarray, np.ndarray]:
+    """(features, labels) of every true slide of ``recs``."""
+    rows, labels = [], []
+    for _, rec in recs:
+        volts = rec.samples.astype(np.float64) * rec.volts_per_count
+        for a, b, surface in rec.slides():
+            rows.append(plain_features(volts[a:b], rec.fs))
+            labels.append(surface)
+    return np.array(rows), np.array(labels)
+
+
+def plain_baseline(train_recs: list[tuple[str, Recording]], tests: dict[str, list[tuple[str, Recording]]]) -> dict[str, float]:
+    """The plain whole-slide spectral classifier's accuracy on each test set."""
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+    from sklearn.svm import SVC
+
+    x, y = plain_rows(train_recs)
+    clf = make_pipeline(StandardScaler(), SVC(C=10.0)).fit(x, y)
+    out = {}
+    for name, recs in tests.items():
+        xt, yt = plain_rows(recs)
+        out[name] = float(np.mean(clf.predict(xt) == yt))
+    return out
+
+
+def end_to_end(recs: list[tuple[str, Recording]], config: Config, model: Any) -> dict[str, Any]:
+    """Scores (accuracy, coverage, ECE, Brier, unknowns) and provisional-label timing over every true slide of ``recs``."""
+    results = [replay_recording(rec, config, model) for _, rec in recs]
+    sc = score(recs, results, model.classes)
+    first_right, provisional, wrong = [], 0, 0
+    for (_, rec), res in zip(recs, results, strict=True):
+        truth, paired, _ = pair_results(rec, res)
+        early = {r.slide_id: ps for r, ps in by_slide(res)}
+        for t, r in zip(truth, paired, strict=True):
+            if r is None:
+                continue
+            ps = early.get(r.slide_id, [])
+            provisional += len(ps)
+            wrong += sum(p.label != t for p in ps)
+            confirmed = [p.used_s for p in ps if r.label is not None and p.label == r.label]
+            if confirmed:
+                first_right.append(confirmed[0])
+    return {"accuracy": sc["accuracy"], "top_accuracy": sc["top_accuracy"], "coverage": sc["coverage"], "n": sc["n"], "ece": sc["ece"], "brier": sc["brier"],
+            "unknown": sc["unknown"], "abstained": sc["abstained"], "reliability": sc["reliability"],
+            "provisional": {"slides_with_confirmed": len(first_right), "median_s": float(np.median(first_right)) if first_right else None,
+                            "p90_s": float(np.percentile(first_right, 90)) if first_right else None, "labels": provisional,
+                            "wrong": wrong / provisional if provisional else None}}
+
+
+def leave_out(spec: str, tr: list[Path], test: list[tuple[str, Recording]], config: Config) -> dict[str, Any]:
+    """Train on 12 of 15 surfaces; the unknown rate on test slides of the 3 left out and of the 12 known."""
+    surfaces = sorted({s for _, r in test for _, _, s in r.slides()}, key=lambda s: float("".join(c for c in s if c.isdigit() or c == ".")))
+    gone = {surfaces[i] for i in LEAVE_OUT if i < len(surfaces)}
+    keep = [p for p in tr if not any(f"_{g}_" in p.name for g in gone)]
+    res = train(keep, config, progress=lambda m: None)
+    flagged = {True: [0, 0], False: [0, 0]}
+    for _, rec in test:
+        results = replay_recording(rec, config, res.model)
+        truth, paired, _ = pair_results(rec, results)
+        for t, r in zip(truth, paired, strict=True):
+            row = flagged[t in gone]
+            row[0] += r is not None and r.reason == "unknown_surface"
+            row[1] += 1
+    return {"scene": spec, "left_out": sorted(gone), "unseen_unknown": flagged[True][0] / max(1, flagged[True][1]),
+            "known_unknown": flagged[False][0] / max(1, flagged[False][1]), "unseen_slides": flagged[True][1], "known_slides": flagged[False][1],
+            "cv_estimate": res.model.summary.get("novelty")}
+
+
+def main() -> None:
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scenes", default=DEFAULT, help="scene specs separated by ';'")
+    ap.add_argument("--files", type=int, default=3, help="training files per surface")
+    ap.add_argument("--test-files", type=int, default=2, help="test files per surface, per test set")
+    ap.add_argument("--slides", type=int, default=3, help="slides per file")
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--no-paper", action="store_true", help="skip the papers' method (its forward selection takes minutes)")
+    ap.add_argument("--leave-out-scenes", default="hand;robot;one-channel", help="scenes for the unknown-surface test ('' for none)")
+    args = ap.parse_args()
+    config = Config()
+    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-labels-"))
+    rows: list[dict[str, Any]] = []
+    print("| scene | nested CV | default: same unit | other unit (top class, unknowns included) | plain baseline: same / other "
+          "| papers' method: same / other | ECE same / other | Brier same | unknown on known (same / other) | provisional: median / p90 s, wrong "
+          "| train s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|", flush=True)
+    for spec in args.scenes.split(";"):
+        name = spec.replace(",", "+")
+        tr = write_dataset(root / name / "train", scene=spec, seed=100, files_per_surface=args.files, slides_per_file=args.slides)
+        same = load_recordings(write_dataset(root / name / "same", scene=spec, seed=200, files_per_surface=args.test_files,
+                                             slides_per_file=args.slides))
+        other = load_recordings(write_dataset(root / name / "other", scene=spec, seed=300, files_per_surface=args.test_files,
+                                              slides_per_file=args.slides, unit=1, specimen=1))
+        train_recs = load_recordings(tr)
+        out: dict[str, Any] = {"scene": spec, "plain": plain_baseline(train_recs, {"same": same, "other": other})}
+        t0 = time.perf_counter()
+        res = train(tr, config, progress=lambda m: None, keep_models=True)
+        out["train_s"] = time.perf_counter() - t0
+        out["winner"], out["nested_cv"] = res.winner, res.nested["mean"]
+        out["same"], out["other"] = end_to_end(same, config, res.model), end_to_end(other, config, res.model)
+        out["candidates"] = [{"candidate": r["candidate"], "cv": r["mean"], "same": end_to_end(same, config, res.models[r["candidate"]])["accuracy"]}
+                             for r in res.leaderboard]
+        if not args.no_paper:
+            pres = train(tr, config, method="paper", progress=lambda m: None)
+            out["paper"] = {"same": end_to_end(same, config, pres.model)["accuracy"], "other": end_to_end(other, config, pres.model)["accuracy"],
+                            "nested_cv": pres.nested["mean"]}
+        rows.append(out)
+        s, o, pl = out["same"], out["other"], out["plain"]
+        pp = out.get("paper")
+        prov = s["provisional"]
+        print(f"| {spec} | {100 * out['nested_cv']:.1f} % | **{100 * s['accuracy']:.1f} %** | **{100 * o['accuracy']:.1f} %** "
+              f"({100 * o['top_accuracy']:.1f} %) | "
+              f"{100 * pl['same']:.1f} / {100 * pl['other']:.1f} % | "
+              + (f"{100 * pp['same']:.1f} / {100 * pp['other']:.1f} % | " if pp else "- | ")
+              + f"{s['ece']:.3f} / {o['ece']:.3f} | {s['brier']:.3f} | {100 * s['unknown'] / s['n']:.1f} / {100 * o['unknown'] / o['n']:.1f} % | "
+              + (f"{prov['median_s']:.2f} / {prov['p90_s']:.2f}, {100 * prov['wrong']:.0f} % |" if prov["median_s"] is not None else "none |")
+              + f" {out['train_s']:.0f} |", flush=True)
+        if args.json:
+            Path(args.json).write_text(json.dumps({"scenes": rows}, indent=1, default=float))
+    gaps = [(r["scene"], c["candidate"], c["cv"] - c["same"]) for r in rows for c in r["candidates"]]
+    worst = max(gaps, key=lambda g: abs(g[2])) if gaps else None
+    print("\nlargest gap between a candidate's cross-validated and same-unit test accuracy: "
+          + (f"{100 * worst[2]:+.1f} points ({worst[1]} on {worst[0]})" if worst else "-"), file=sys.stderr)
+    leave = []
+    for spec in [s for s in args.leave_out_scenes.split(";") if s]:
+        name = "leave-" + spec.replace(",", "+")
+        tr = write_dataset(root / name / "train", scene=spec, seed=100, files_per_surface=args.files, slides_per_file=args.slides)
+        test = load_recordings(write_dataset(root / name / "test", scene=spec, seed=200, files_per_surface=args.test_files,
+                                             slides_per_file=args.slides))
+        leave.append(leave_out(spec, tr, test, config))
+        lo = leave[-1]
+        print(f"leave out {', '.join(lo['left_out'])} ({spec}): {100 * lo['unseen_unknown']:.1f} % of their {lo['unseen_slides']} slides unknown, "
+              f"{100 * lo['known_unknown']:.1f} % of {lo['known_slides']} known ones", flush=True)
+        if args.json:
+            Path(args.json).write_text(json.dumps({"scenes": rows, "leave_out": leave}, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()
