@@ -71,3 +71,17 @@ def test_record_format_mcap(tmp_path: Path) -> None:
     volts, valid, _, _ = read_mcap_samples(tmp_path / "r.mcap")
     assert volts.shape == (20_000, 2) and valid.all() and np.abs(volts).max() > 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.mcap", "tty"]  # the intermediate .npz is gone
+
+
+def test_export_marks_a_thousand_lost_ranges_exactly(tmp_path: Path) -> None:
+    """Lost ranges are swept once with the batches (linear), and each batch carries exactly the ones inside it."""
+    rng = np.random.default_rng(3)
+    n = 200_000
+    starts = np.sort(rng.choice(np.arange(0, n - 50, 150), 1000, replace=False))
+    lost = np.column_stack([starts, rng.integers(1, 120, 1000)])
+    rec = Recording(rng.integers(-1000, 1000, (n, 2)).astype(np.int16), 20000.0, 5.0 / 32768.0, lost=lost)
+    save_recording(tmp_path / "r.npz", rec)
+    res = run_cli("export", str(tmp_path / "r.npz"), "-o", str(tmp_path / "r.mcap"), "--no-model", "--batch", "37")
+    assert res.returncode == 0, res.stderr
+    _, valid, _, _ = read_mcap_samples(tmp_path / "r.mcap")
+    assert np.array_equal(valid, rec.valid_mask())

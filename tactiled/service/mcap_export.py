@@ -100,9 +100,18 @@ def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", 
             writer.add_message(chan[kind], log_time=t, publish_time=t, data=json.dumps(body).encode(), sequence=counts[kind])
             counts[kind] += 1
 
+        lost = lost[np.argsort(lost[:, 0], kind="stable")] if len(lost) else lost
+        first = 0  # the first lost range that may still reach the current batch: one sweep, linear in batches + ranges
         for lo in range(0, n, batch):
             hi = min(lo + batch, n)
-            inside = [[int(max(p, lo) - lo), int(min(p + c, hi) - max(p, lo))] for p, c in lost if p < hi and p + c > lo]
+            while first < len(lost) and lost[first, 0] + lost[first, 1] <= lo:
+                first += 1
+            inside = []
+            for p, c in lost[first:]:
+                if p >= hi:
+                    break
+                if p + c > lo:
+                    inside.append([int(max(p, lo) - lo), int(min(p + c, hi) - max(p, lo))])
             body: dict[str, Any] = {"index": rec.first_index + lo, "n": hi - lo, "fs": rec.fs, "volts_per_count": rec.volts_per_count,
                                     "lost": inside}
             for k, name in enumerate(film):
