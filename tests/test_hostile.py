@@ -426,3 +426,16 @@ def test_a_non_regular_file_is_refused_in_one_line_without_reading_it(kind: str,
     args = ("replay", str(path)) if role == "recording" else ("replay", "--model", str(path), str(REPO / "tests" / "hostile" / "rec-good.npz"))
     res = run_cli(*args, timeout=60)
     assert res.returncode == 2 and "not a regular file" in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+
+
+@pytest.mark.parametrize("target", ["existing", "device"])
+def test_run_record_never_replaces_a_file_unasked_nor_writes_a_device(target: str, tmp_path: Path) -> None:
+    out = tmp_path / "old.npz"
+    if target == "existing":
+        out.write_bytes(b"a recording a lab cares about")
+    path = str(out) if target == "existing" else "/dev/null"
+    res = run_cli("run", "--port", str(tmp_path / "no-such-tty"), "--no-wait", "--publish", f"ipc://{tmp_path}/p", "--record", path, timeout=60)
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert ("exists (--force overwrites it)" if target == "existing" else "not a regular file") in res.stderr
+    if target == "existing":
+        assert out.read_bytes() == b"a recording a lab cares about"

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Samples, Slide, Status, schema
+from tactiled_client.truth import overlapping
 
 TRACE_LEN = 120  # points per film trace (one per 10 ms of signal)
 SPECTRUM_N = 4096  # samples per spectrum
@@ -114,8 +115,7 @@ class MonitorModel:
             return None
         if not self._truth or self._truth[-1][1] < stop:
             self._truth = read_truth(self.truth_log)
-        best = max(((min(stop, b) - max(start, a), s) for a, b, s in self._truth), default=(0, None))
-        return best[1] if best[0] > 0 else None
+        return overlapping(self._truth, start, stop)
 
 
 def render(model: MonitorModel, endpoint: str) -> Any:

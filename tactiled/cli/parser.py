@@ -319,6 +319,11 @@ def cmd_run(args: argparse.Namespace) -> int:
             raise TactiledError("no model fits this sensor (train one with tactiled train, or pass --no-model)")
         _say_model_settings(config, model)
 
+    from tactiled.service.record import check_output
+
+    for out in (args.record, args.raw):
+        if out:
+            check_output(out, args.force)  # before the port opens: never replace a file (or write a device) unasked
     if args.no_wait:
         from tactiled.board.serialsource import check_port
 
@@ -403,15 +408,12 @@ def _headless(endpoint: str, seconds: float, board_log: str, daemon_log: str) ->
     import time
 
     from tactiled_client import BlockingSubscriber, NoData, Roughness
+    from tactiled_client.truth import overlapping
 
-    from tactiled.sim.virtualboard import read_log
+    from tactiled.apps.monitor import read_truth
 
     def truth(start: int, stop: int) -> str:
-        best, overlap = "?", 0
-        for e in read_log(board_log):
-            if e.get("event") == "slide" and min(stop, e["stop"]) - max(start, e["start"]) > overlap:
-                best, overlap = e["surface"], min(stop, e["stop"]) - max(start, e["start"])
-        return best
+        return overlapping(read_truth(board_log), start, stop) or "?"
 
     labels = 0
     deadline = time.monotonic() + seconds
@@ -670,10 +672,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--publish", help="ZeroMQ endpoint to bind (overrides publish.endpoint)")
     p.add_argument("--sensor-id", help="sensor id in topics (overrides sensor.id)")
     p.add_argument("--record", help="also write every sample received to this .npz, streamed to disk as OUT.npz.journal (tactiled recover) "
-                   "and converted on exit; overwrites")
+                   "and converted on exit (an existing file needs --force)")
     p.add_argument("--samples", action="store_true", help="also publish the raw samples on samples/<id> (sets publish.samples)")
     p.add_argument("--raw", metavar="OUT.bin", help="also write every byte read from the port, as read (replay it with tactiled replay OUT.bin)")
     p.add_argument("--no-wait", action="store_true", help="exit 2 at once if the serial device is missing (default: wait for it)")
+    p.add_argument("--force", action="store_true", help="let --record and --raw replace existing files")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("curve-keys", help="create a ZeroMQ CURVE certificate pair (NAME.key, NAME.key_secret) in DIR")

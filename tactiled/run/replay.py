@@ -14,6 +14,7 @@ from dataclasses import replace
 from typing import Any
 
 from tactiled_client import schema
+from tactiled_client.truth import overlapping
 
 from tactiled import __version__
 from tactiled.config import Config
@@ -27,12 +28,8 @@ BLOCK = 65536  # samples per block fed to the pipeline by default
 
 def truth_of(rec: Recording, start: int, stop: int) -> str | None:
     """The surface of the true slide overlapping [start, stop) most (the file's label without per-slide truth)."""
-    best, overlap = None, 0
-    for a, b, surface in rec.slides():
-        o = min(b, stop) - max(a, start)
-        if o > overlap:
-            best, overlap = surface, o
-    return best if rec.slides() else rec.label
+    truth = rec.slides()
+    return overlapping(truth, start, stop) if truth else rec.label
 
 
 def result_record(file: str, rec: Recording, r: SlideResult, provisional: Sequence[SlideResult] = (), sensor: str = "",

@@ -48,6 +48,8 @@ def check_output(out: str | Path, force: bool) -> None:
         raise OutputError(f"{out}: folder {folder} is not writable")
     if out.is_dir():
         raise OutputError(f"{out}: is a folder")
+    if out.exists() and not out.is_file():
+        raise OutputError(f"{out}: not a regular file (a device or FIFO is never written)")
     if out.exists() and not force:
         raise OutputError(f"{out}: exists (--force overwrites it)")
 
