@@ -439,3 +439,9 @@ def test_run_record_never_replaces_a_file_unasked_nor_writes_a_device(target: st
     assert ("exists (--force overwrites it)" if target == "existing" else "not a regular file") in res.stderr
     if target == "existing":
         assert out.read_bytes() == b"a recording a lab cares about"
+
+
+def test_a_recording_given_as_a_model_is_named_as_such() -> None:
+    res = run_cli("replay", "--model", str(CORPUS / "rec-good.npz"), str(CORPUS / "rec-good.npz"), timeout=60)
+    assert res.returncode == 2 and "a recording (it holds samples), not a model file" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1

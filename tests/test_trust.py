@@ -169,3 +169,22 @@ def test_train_on_unlabelled_recordings_says_so_at_once(tmp_path: Path) -> None:
         save_recording(tmp_path / f"u{i}.npz", Recording(samples=(rng.standard_normal((22000, 1)) * 100).astype(np.int16), fs=2200.0))
     res = run_cli("train", str(tmp_path / "u0.npz"), str(tmp_path / "u1.npz"), "-o", str(tmp_path / "m.npz"))
     assert res.returncode == 2 and "no labelled slides" in res.stderr.strip().splitlines()[-1]
+
+
+def test_a_surface_unlike_every_training_slide_gets_no_label_and_is_counted() -> None:
+    """Every final result of a model that finds everything novel abstains with unknown_surface; the pipeline counts them for status."""
+    from tactiled.config import Config
+    from tactiled.core.pipeline import Pipeline, SlideResult
+    from tactiled.sim.sensor_model import SimParams, pick_surfaces, simulate_file
+
+    model = load_model()
+    model.novelty_threshold = 1e-9  # nothing is near enough to a training slide
+    params = SimParams(mode="robot")
+    sim = simulate_file(params, pick_surfaces("Ra1.00")[0], 2, 5)
+    pipe = Pipeline(Config(), params.fs, params.channels, params.volts_per_count, model=model)
+    events = pipe.feed(0, sim.samples) + pipe.finish()
+    finals = [e for e in events if isinstance(e, SlideResult) and e.final]
+    assert len(finals) == 2 and all(r.label is None and r.reason == "unknown_surface" and r.novelty is not None and r.novelty > 1 for r in finals)
+    assert all(r.top and r.confidence is not None for r in finals)  # what it resembles most is still said
+    assert pipe.unknown == 2 and pipe.labels == 0
+    assert not [e for e in events if isinstance(e, SlideResult) and not e.final]  # no provisional label for a novel slide

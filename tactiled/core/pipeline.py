@@ -107,6 +107,7 @@ class Pipeline:
         self.settings = model.settings if model is not None else (settings or AnalysisSettings.from_config(config, channels, fs))
         self.min_confidence = config.classifier.min_confidence
         self.provisional_confidence = config.classifier.provisional_confidence
+        self.unknown = 0  # final results withheld as unknown_surface
         self.analyser = Analyser(self.settings, fs, volts_per_count, integer, config.classifier.max_saturated, config.classifier.max_lost)
         self.min_samples = self.analyser.plan.min_samples()
         window = round(self.settings.duration_s * fs)
@@ -240,6 +241,7 @@ class Pipeline:
         reason = None
         if novelty is not None and novelty > 1.0:
             label, reason = None, "unknown_surface"
+            self.unknown += final
         elif confidence < self.min_confidence:
             label, reason = None, "low_confidence"
         elif final:

@@ -382,6 +382,8 @@ def load_model(path: str | Path | None = None, lean: bool = True) -> Model:
     path = Path(path) if path else default_model_path()
     try:
         with NpzReader(path, MAX_MODEL_BYTES) as reader:
+            _need("header" in reader or "samples" not in reader, path,
+                  "a recording (it holds samples), not a model file: make a model with tactiled train")
             _need("header" in reader, path, "header: missing or not a string")
             text = reader.read("header")
             _need(text.shape == () and text.dtype.kind == "U", path, "header: missing or not a string")

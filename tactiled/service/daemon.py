@@ -217,7 +217,7 @@ class Daemon:
         return schema.status(self.config.sensor.id, state=state, samples=stats.samples, samples_lost=stats.samples_lost, crc_errors=stats.crc_errors,
                              bytes_discarded=stats.bytes_discarded, bad_headers=stats.bad_headers,
                              reconnects=self.source.reconnects if self.source else 0, restarts=stats.restarts,
-                             slides=self.pipeline.slides, labels=self.pipeline.labels, fs_nominal=self.config.sensor.fs,
+                             slides=self.pipeline.slides, labels=self.pipeline.labels, unknown=self.pipeline.unknown, fs_nominal=self.config.sensor.fs,
                              fs_measured=round(st.samples_window / interval, 1) if interval > 0 else 0.0, model=self.fingerprint,
                              uptime_s=round(time.monotonic() - st.started, 3), index=st.last_index, level=level, version=__version__,
                              dropped_messages=self.publisher.dropped, channel_errors=stats.channel_errors, clock_index=clock_index,
