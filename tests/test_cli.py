@@ -152,3 +152,14 @@ def test_a_model_says_once_that_the_configs_analysis_sections_are_not_used(tmp_p
     assert len(said) == 1 and said[0].endswith("the config's [window], [spikes]"), res.stderr
     plain = run_cli("replay", *files)
     assert plain.returncode == 0 and "its own settings" not in plain.stderr
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (("demo", "--headless", "--scene", "nonsense"), "unknown scene 'nonsense'"),
+    (("curve-keys", "README.md", "daemon"), "README.md: exists and is not a folder"),
+    (("features", "tests/hostile/rec-good.npz", "-o", "/no/such/folder/f.npz"), "folder /no/such/folder does not exist"),
+    (("train", "tests/hostile/rec-good.npz", "-o", "/no/such/folder/m.npz"), "folder /no/such/folder does not exist"),
+])
+def test_first_day_mistakes_get_one_line_before_any_work(argv: tuple[str, ...], message: str) -> None:
+    res = run_cli(*argv, timeout=60)
+    assert res.returncode == 2 and message in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr

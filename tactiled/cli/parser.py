@@ -230,8 +230,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
 def cmd_features(args: argparse.Namespace) -> int:
     from tactiled.learn.dataset import load_recordings
     from tactiled.learn.features_file import write_features
+    from tactiled.service.record import check_output
 
     config = _config(args)
+    check_output(args.output, force=True)  # before every window is analysed, not after
     recs = load_recordings(args.files, _stderr)
     if not recs:
         raise TactiledError("no readable recordings")
@@ -381,9 +383,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     import tempfile
 
     from tactiled.apps.monitor import run_monitor
+    from tactiled.sim.simulate import scene_for
 
     if args.seconds is not None and not args.headless:
         raise TactiledError("--seconds needs --headless")
+    scene_for(args.scene)  # an unknown scene is one line now, not a board that never starts
     with tempfile.TemporaryDirectory(prefix="tactiled-demo-") as tmp:
         link, board_log = f"{tmp}/tty", f"{tmp}/board.jsonl"
         endpoint = args.publish or f"ipc://{tmp}/pub"
@@ -457,8 +461,13 @@ def cmd_curve_keys(args: argparse.Namespace) -> int:
     import zmq.auth
 
     out = Path(args.dir)
-    out.mkdir(parents=True, exist_ok=True)
-    public, secret = zmq.auth.create_certificates(str(out), args.name)
+    if out.exists() and not out.is_dir():
+        raise TactiledError(f"{out}: exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        public, secret = zmq.auth.create_certificates(str(out), args.name)
+    except OSError as exc:
+        raise TactiledError(f"{out}: cannot write the certificates: {exc.strerror or exc}") from None
     print(f"{public}\n{secret}")
     return EXIT_OK
 
