@@ -445,3 +445,14 @@ def test_a_recording_given_as_a_model_is_named_as_such() -> None:
     res = run_cli("replay", "--model", str(CORPUS / "rec-good.npz"), str(CORPUS / "rec-good.npz"), timeout=60)
     assert res.returncode == 2 and "a recording (it holds samples), not a model file" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_a_rate_too_low_for_the_features_is_one_line_naming_the_file(tmp_path: Path) -> None:
+    from tactiled.files.recording import Recording, save_recording
+
+    save_recording(tmp_path / "slow.npz", Recording((np.random.default_rng(0).standard_normal((4000, 1)) * 100).astype(np.int16), 40.0, label="a"))
+    res = run_cli("replay", "--no-model", str(tmp_path / "slow.npz"), str(CORPUS / "rec-good.npz"), timeout=60)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    errors = [line for line in res.stderr.splitlines() if "error" in line]
+    assert len(errors) == 1 and "slow.npz" in errors[0] and "cannot be computed" in errors[0] and "40 Hz" in errors[0]
+    assert "rec-good.npz:" in res.stdout  # the other file is still replayed

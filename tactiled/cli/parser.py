@@ -177,7 +177,7 @@ def _replay_capture(path: str, config: Config, args: argparse.Namespace, publish
 def cmd_replay(args: argparse.Namespace) -> int:
     import json
 
-    from tactiled.errors import RecordingError
+    from tactiled.errors import RecordingError, WindowError
     from tactiled.files.recording import load_recording
     from tactiled.run.replay import BLOCK, by_slide, replay_recording, result_record, summary_line
 
@@ -208,7 +208,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 on_event = None
                 if publisher is not None:
                     on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""), args.speed)
-                results = replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event)
+                try:
+                    results = replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event)
+                except WindowError as exc:  # this file's rate or windows cannot be analysed: say which, go on with the others
+                    print(f"tactiled: error: {path}: {exc}", file=sys.stderr)
+                    failed += 1
+                    continue
             for r, provisional in by_slide(results):
                 obj = result_record(path, rec, r, provisional, config.sensor.id, getattr(model, "fingerprint", ""))
                 if args.json:

@@ -52,7 +52,9 @@ class AnalysisSettings:
         if st is None and "dwt" in fams and len(fams) > 1:
             st = window_settings(config, channels, fs, w.duration_s, [f for f in fams if f != "dwt"], w.start_s, w.max_windows, w.hop_s)
         if st is None:
-            raise WindowError("window_too_short", f"window.duration_s = {w.duration_s:g} s is too short for the feature families at {fs:g} Hz")
+            raise WindowError("window_too_short", f"the feature families {', '.join(fams)} cannot be computed on {w.duration_s:g} s windows at "
+                              f"{fs:g} Hz (the DWT needs longer windows; psd and tex need 0.45 fs above features.psd_low_hz = "
+                              f"{config.features.psd_low_hz:g} Hz)")
         return st
 
     def to_dict(self) -> dict[str, Any]:
@@ -127,7 +129,10 @@ def window_settings(config: Config, channels: int, fs: float, duration_s: float,
                 return None
             names += feature_names(channels, level, config.features.domains, config.features.stats)
         else:
-            names += family_names(fam, channels, fs, config.features)
+            try:
+                names += family_names(fam, channels, fs, config.features)
+            except ValueError:  # no band fits below 0.45 fs at this rate
+                return None
     s = config.spikes
     st = AnalysisSettings(start_s, duration_s, hop_s, max_windows, s.method, s.half_width, s.nsigma, config.features.wavelet, level,
                           config.features.mode, tuple(names))
