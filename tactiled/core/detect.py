@@ -63,12 +63,16 @@ from tactiled.core.spikes import median_last
 
 @dataclass(frozen=True)
 class SlideStart:
+    """The detector saw a slide begin: its onset, as an absolute sample index (the pipeline turns it into :class:`SlideStarted`)."""
+
     start: int  # absolute sample index of the onset (may lie before the samples just fed: see the module docstring)
     at: int = -1  # the index up to which the detector had seen samples when it decided (for ordering; -1: unknown)
 
 
 @dataclass(frozen=True)
 class SlideEnd:
+    """The detector saw a slide end: [start, stop) in absolute sample indices, and why (the pipeline's :class:`SlideEnded`)."""
+
     start: int
     stop: int  # absolute index one past the last sample of the slide
     reason: str = "quiet"  # quiet | max_duration | end_of_stream | too_short

@@ -46,12 +46,16 @@ class Classifier(Protocol):
 
 @dataclass
 class SlideStarted:
+    """A slide began at sample ``start`` (absolute index); ``slide_id`` counts slides since the pipeline started."""
+
     slide_id: int
     start: int
 
 
 @dataclass
 class SlideEnded:
+    """Slide ``slide_id`` covered samples [start, stop) (absolute indices); a :class:`SlideResult` follows unless it was too short."""
+
     slide_id: int
     start: int
     stop: int
