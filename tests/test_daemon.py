@@ -195,3 +195,62 @@ def test_curve_subscriber_without_the_key_receives_nothing(tmp_path: Path) -> No
         proc.terminate()
         proc.wait(10)
     assert proc.returncode == 0
+
+
+def test_sighup_swaps_the_model_between_slides_and_refuses_a_bad_file(tmp_path: Path) -> None:
+    """systemctl reload: the new model takes over at a slide boundary, no sample is lost, every slide gets its label; a bad file is refused."""
+    import os
+    import shutil
+    import signal
+
+    from tactiled.learn.model import default_model_path
+
+    shipped = load_model()
+    other = tmp_path / "other.npz"
+    shipped.summary = {**shipped.summary, "note": "the same classifier under another fingerprint"}
+    b = shipped.save(other)
+    a = load_model().fingerprint
+    assert a != b
+    live = tmp_path / "model.npz"
+    shutil.copy(default_model_path(), live)
+    config = tmp_path / "c.toml"
+    config.write_text(f'[model]\npath = "{live}"\n')
+    link, endpoint = str(tmp_path / "tty"), f"ipc://{tmp_path}/pub"
+    stop = threading.Event()
+    board = VirtualBoard(SensorModel(SimParams(mode="robot"), seed=6), pick_surfaces(3), link=link, speed=3.0, seed=6)
+    board.open()
+    thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
+    thread.start()
+    proc = subprocess.Popen(tactiled_cmd("run", "--config", str(config), "--port", link, "--publish", endpoint), stderr=subprocess.PIPE, text=True)
+    got: list[object] = []
+    try:
+        with BlockingSubscriber(endpoint, topics=["roughness", "slide", "status"], timeout=30) as sub:
+            def final_by(fingerprint: str) -> bool:
+                got.append(sub.receive())
+                return isinstance(got[-1], Roughness) and got[-1].final and got[-1].model == fingerprint
+
+            wait_for(lambda: final_by(a), timeout=60, what="a label by the first model")
+            os.replace(other, live)
+            proc.send_signal(signal.SIGHUP)
+            wait_for(lambda: final_by(b), timeout=60, what="a label by the reloaded model")
+            live.write_bytes(b"PK\x03\x04 not a model")
+            proc.send_signal(signal.SIGHUP)
+            wait_for(lambda: final_by(b), timeout=60, what="another label by the model that stayed")
+            proc.terminate()
+            proc.wait(30)
+    finally:
+        stop.set()
+        thread.join(10)
+        if proc.poll() is None:
+            proc.kill()
+    err = proc.stderr.read() if proc.stderr else ""
+    assert proc.returncode == 0, err
+    refused = [line for line in err.splitlines() if "reload refused" in line]
+    assert len(refused) == 1 and str(live) in refused[0] and b in refused[0]
+    ends = [m.slide_id for m in got if isinstance(m, Slide) and m.event == "end"]
+    finals = [m for m in got if isinstance(m, Roughness) and m.final]
+    assert {m.slide_id for m in finals} >= set(ends[:-1]) and all(m.label is not None or m.reason for m in finals)
+    assert [m.model for m in finals] == sorted((m.model for m in finals), key=lambda fp: fp == b)  # a, then b: never back
+    first = next(i for i, m in enumerate(got) if isinstance(m, Roughness) and m.final)
+    statuses = [m for m in got[first:] if isinstance(m, Status)]  # (the samples a late start finds stale are lost before it)
+    assert statuses and len({m.samples_lost for m in statuses}) == 1 and statuses[-1].model == b  # no sample lost across the swaps

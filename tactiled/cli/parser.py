@@ -325,6 +325,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         if model is None:
             raise TactiledError("no model fits this sensor (train one with tactiled train, or pass --no-model)")
         _say_model_settings(config, model)
+    from tactiled.learn.model import default_model_path
+
+    model_path = None if model is None else (config.model.path or str(default_model_path()))  # what SIGHUP (systemctl reload) loads again
 
     from tactiled.service.record import check_output
 
@@ -337,7 +340,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         check_port(config.sensor.port)
 
     async def main() -> None:
-        daemon = Daemon(config, model, args.record, raw_to=args.raw)  # type: ignore[arg-type]
+        daemon = Daemon(config, model, args.record, raw_to=args.raw, model_path=model_path)  # type: ignore[arg-type]
         print(f"tactiled: sensor {config.sensor.id} on {config.sensor.port}, publishing on {daemon.endpoint}", file=sys.stderr, flush=True)
         await daemon.run()
 

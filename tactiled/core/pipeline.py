@@ -31,7 +31,7 @@ from tactiled.config import Config
 from tactiled.core.analysis import Analyser, AnalysisSettings, WindowResult
 from tactiled.core.detect import Event, SlideDetector, SlideEnd, SlideStart
 from tactiled.core.ringbuffer import RingBuffer
-from tactiled.errors import OverwrittenError
+from tactiled.errors import OverwrittenError, WindowError
 
 
 class Classifier(Protocol):
@@ -85,6 +85,7 @@ class SlideResult:
     final: bool = True  # False: a provisional label published while the slide goes on
     used_s: float = 0.0  # seconds of the slide (from its start) the label is based on
     novelty: float | None = None  # > 1: unlike every surface the model was trained on (None: the model has no novelty data)
+    model: str = ""  # fingerprint of the model that made this result (models can be swapped between slides)
 
 
 PipelineEvent = SlideStarted | SlideEnded | SlideResult
@@ -112,8 +113,10 @@ class Pipeline:
         self.min_confidence = config.classifier.min_confidence
         self.provisional_confidence = config.classifier.provisional_confidence
         self.unknown = 0  # final results withheld as unknown_surface
-        self.analyser = Analyser(self.settings, fs, volts_per_count, integer, config.classifier.max_saturated, config.classifier.max_lost)
+        self._analyser_args = (fs, volts_per_count, integer, config.classifier.max_saturated, config.classifier.max_lost)
+        self.analyser = Analyser(self.settings, *self._analyser_args)
         self.min_samples = self.analyser.plan.min_samples()
+        self._pending_model: Classifier | None = None
         window = round(self.settings.duration_s * fs)
         capacity = max(round(config.ring.seconds * fs), 2 * window + round(config.detector.off_hold_s * fs) + round(fs))
         self.ring = RingBuffer(capacity, channels, np.int16 if integer else np.float64)
@@ -130,6 +133,27 @@ class Pipeline:
     @property
     def sliding(self) -> bool:
         return self._onset is not None
+
+    def swap_model(self, model: Classifier) -> None:
+        """Use ``model`` from the next slide on (at once if no slide is in progress): a slide ends with the model it began with.
+
+        The new model's windows and features replace the old ones with it; the ring must hold two of its windows.
+        """
+        window = round(model.settings.duration_s * self.fs)
+        if 2 * window > self.ring.capacity:
+            raise WindowError("window_too_short", f"the model's {model.settings.duration_s:g} s windows do not fit the ring "
+                              f"({self.ring.capacity / self.fs:g} s): raise ring.seconds")
+        self._pending_model = model
+        if self._onset is None:
+            self._take_pending_model()
+
+    def _take_pending_model(self) -> None:
+        if self._pending_model is None:
+            return
+        self.model, self._pending_model = self._pending_model, None
+        self.settings = self.model.settings
+        self.analyser = Analyser(self.settings, *self._analyser_args)
+        self.min_samples = self.analyser.plan.min_samples()
 
     def will_analyse(self, end: int) -> bool:
         """True if feeding samples up to absolute index ``end`` completes a window of the slide in progress (feature work)."""
@@ -168,6 +192,7 @@ class Pipeline:
                     events.append(self._final(ev.start, ev.stop))
                 self._onset = None
                 self._next = None
+                self._take_pending_model()
                 self._windows = []
         return events
 
@@ -253,7 +278,7 @@ class Pipeline:
         feats = used[-1].result.features
         return SlideResult(self._slide_id, start, stop, (used[0].span[0], used[-1].span[1]), label, reason, round(confidence, 4), top,
                            _quality(used), feats, (time.perf_counter() - t0) * 1e3, final, (used[-1].span[1] - start) / self.fs,
-                           None if novelty is None else round(novelty, 4))
+                           None if novelty is None else round(novelty, 4), self.model.fingerprint)
 
 
 def _quality(windows: list[_Window]) -> dict[str, Any]:

@@ -7,7 +7,10 @@ batches of ``serial.batch_s``) into the pipeline and the publisher: batches that
 analysis window run in a worker thread so feature extraction never stalls the loop,
 detection-only batches run inline, cheaper than a thread hop; ``status`` (at least once a
 second, and the systemd watchdog, fed only while the reader is alive); ``stop`` (SIGTERM,
-SIGINT, SIGHUP). A finite source (tests) ends the stream explicitly and the daemon stops.
+SIGINT). A finite source (tests) ends the stream explicitly and the daemon stops. SIGHUP
+(``systemctl reload``) loads the model file again: validated as at start-up (a bad file is refused
+in one line and the running model stays), it takes over at the next slide, so a slide in progress
+ends with the model it began with and no sample is lost.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import signal
 import socket
 import time
 from collections.abc import Awaitable, Callable
@@ -28,8 +32,9 @@ from tactiled import __version__
 from tactiled.board.clockmap import ClockMap
 from tactiled.board.serialsource import CONNECTED, ByteSource, SerialSource
 from tactiled.config import Config
-from tactiled.core.pipeline import Pipeline, PipelineEvent
-from tactiled.learn.model import Model
+from tactiled.core.pipeline import Pipeline, PipelineEvent, SlideResult
+from tactiled.errors import TactiledError
+from tactiled.learn.model import Model, load_model
 from tactiled.run.ingest import Batch, Ingest, feed_pipeline, max_gap_for
 from tactiled.service.publish import Publisher
 from tactiled.service.rawbatch import raw_batches
@@ -70,9 +75,11 @@ class Daemon:
     """
 
     def __init__(self, config: Config, model: Model | None, record_to: str | None = None, *, raw_to: str | None = None,
-                 source_factory: Callable[[Callable[[bytes], Awaitable[None]], Callable[[str, str], None]], ByteSource] | None = None) -> None:
+                 source_factory: Callable[[Callable[[bytes], Awaitable[None]], Callable[[str, str], None]], ByteSource] | None = None,
+                 model_path: str | None = None) -> None:
         self.config = config
         self.model = model
+        self.model_path = model_path  # what SIGHUP loads again
         s = config.sensor
         self.fingerprint = model.fingerprint if model else ""
         self.ingest = Ingest(s.channels, max_gap=max_gap_for(config.ring.seconds, s.fs), min_batch=round(config.serial.batch_s * s.fs))
@@ -109,7 +116,9 @@ class Daemon:
         tee = open(self.raw_to, "wb") if self.raw_to else None  # noqa: SIM115 - closed in finally
         self.source = self._make_source(tee)
         for sig in STOP_SIGNALS:
-            loop.add_signal_handler(sig, self.stop_event.set)
+            if sig != signal.SIGHUP:
+                loop.add_signal_handler(sig, self.stop_event.set)
+        loop.add_signal_handler(signal.SIGHUP, lambda: loop.create_task(self.reload()))
         log.info("tactiled %s: sensor %s on %s, publishing on %s, model %s", __version__, s.id, s.port, self.endpoint, self.fingerprint or "none")
         sd_notify("READY=1")
         try:
@@ -128,8 +137,25 @@ class Daemon:
                 tee.close()
             if self.recorder is not None:
                 self._save_recording()
-            for sig in STOP_SIGNALS:
+            for sig in STOP_SIGNALS:  # SIGHUP (reload) among them
                 loop.remove_signal_handler(sig)
+
+    async def reload(self) -> bool:
+        """Load :attr:`model_path` again and swap it in at the next slide; a bad file is refused in one line (the old model stays)."""
+        if not self.model_path:
+            log.error("reload: no model file to load (the daemon runs without a model)")
+            return False
+        s = self.config.sensor
+        try:
+            model = await asyncio.to_thread(load_model, self.model_path)
+            model.check_stream(s.fs, s.channels, f"sensor {s.id}")
+            self.pipeline.swap_model(model)
+        except TactiledError as exc:
+            log.error("reload refused, model %s stays: %s", self.fingerprint or "none", exc)
+            return False
+        log.info("reload: model %s from %s takes over at the next slide (was %s)", model.fingerprint, self.model_path, self.fingerprint or "none")
+        self.model, self.fingerprint = model, model.fingerprint
+        return True
 
     async def _read(self) -> None:
         """The source until it ends (a finite source: then the explicit end of stream), or until cancelled."""
@@ -173,8 +199,9 @@ class Daemon:
     def _publish(self, events: list[PipelineEvent], detected_at: float) -> None:
         sensor = self.config.sensor
         to_host = self.clock.host if self.clock.ready else None
-        for ev in events:
-            self.publisher.publish_event(sensor.id, ev, sensor.fs, self.fingerprint, detected_at, to_host)
+        for ev in events:  # a result names the model that made it (a reloaded one takes over between slides)
+            model = ev.model if isinstance(ev, SlideResult) and ev.model else self.fingerprint
+            self.publisher.publish_event(sensor.id, ev, sensor.fs, model, detected_at, to_host)
 
     def _publish_samples(self, batches: list[Batch]) -> None:
         """The batch's raw samples on ``samples/<id>``: every index from the last batch's end on, lost ones as zero rows."""
