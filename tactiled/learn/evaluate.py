@@ -421,15 +421,8 @@ def write_figures(res: dict[str, Any], report: Path) -> list[str]:
         ax.axhline(whole, ls="--", color="grey", label=f"whole slide: {whole:.1f} %")
         for t, e, c in pts:
             ax.annotate(f"{c:.1f} ms", (t, e), textcoords="offset points", xytext=(4, 4), fontsize=7)
-        ax.set_xlabel("slide time used before deciding, s (labels: compute per decision)")
-        ax.set_ylabel("error, %")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-        ax.set_title("Default method: error against decision time")
-        fig.tight_layout()
-        fig.savefig(report / "error_vs_decision_time.png", dpi=110)
-        plt.close(fig)
-        names.append("error_vs_decision_time.png")
+        names.append(_save_axes(plt, fig, ax, report / "error_vs_decision_time.png", "slide time used before deciding, s (labels: compute per "
+                                "decision)", "error, %", "Default method: error against decision time"))
         table = g.get("calibration", {}).get("reliability", [])
         if table:
             fig, ax = plt.subplots(figsize=(4.5, 4.5))
@@ -437,17 +430,10 @@ def write_figures(res: dict[str, Any], report: Path) -> list[str]:
             ax.plot([r[2] for r in table], [r[3] for r in table], "o-", label=f"default method (ECE {g['calibration']['ece']:.3f})")
             for _, n, c, a in table:
                 ax.annotate(str(n), (c, a), textcoords="offset points", xytext=(4, -10), fontsize=7)
-            ax.set_xlabel("confidence (mean in bin)")
-            ax.set_ylabel("accuracy in bin")
             ax.set_xlim(0, 1)
             ax.set_ylim(0, 1)
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=8)
-            ax.set_title("Reliability diagram (labels: slides)")
-            fig.tight_layout()
-            fig.savefig(report / "reliability.png", dpi=110)
-            plt.close(fig)
-            names.append("reliability.png")
+            names.append(_save_axes(plt, fig, ax, report / "reliability.png", "confidence (mean in bin)", "accuracy in bin",
+                                    "Reliability diagram (labels: slides)"))
     if "window_grid" not in res:
         return names
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
@@ -470,3 +456,16 @@ def write_figures(res: dict[str, Any], report: Path) -> list[str]:
     fig.savefig(report / "error_vs_runtime.png", dpi=110)
     plt.close(fig)
     return [*names, "error_vs_runtime.png"]
+
+
+def _save_axes(plt: Any, fig: Any, ax: Any, path: Path, xlabel: str, ylabel: str, title: str) -> str:
+    """Label, grid, legend and title ``ax``; write ``fig`` to ``path`` (PNG) and close it; returns the file's name."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
