@@ -380,20 +380,16 @@ def test_run_record_streams_to_the_journal_and_sigterm_saves(tmp_path: Path) -> 
     assert not (tmp_path / "d.npz.journal").exists()
 
 
-def test_record_takes_a_board_restart_far_ahead_as_a_restart_not_as_lost_samples(tmp_path: Path) -> None:
-    """A 2**31 forward jump of the index (a board reset past half its counter) is a restart: the capture goes on, nothing zero-filled."""
+def _record_bytes(tmp_path: Path, data: bytes, seconds: float) -> tuple[Path, str]:
+    """``tactiled record`` of a pty to which ``data`` (board frames) is written once the recorder holds the port; (output, stderr)."""
     import tty
 
-    from tactiled.board.frames import encode_frames
-
-    rng = np.random.default_rng(4)
-    before, after = (rng.integers(-900, 900, (800, 2)).astype(np.int16) for _ in range(2))
     master, slave = os.openpty()
     tty.setraw(slave)
-    out = tmp_path / "jump.npz"
+    out = tmp_path / "r.npz"
     name = os.ttyname(slave)
     try:
-        with spawned("-v", "record", "--port", name, "--seconds", "0.08", "-o", str(out)) as proc:
+        with spawned("-v", "record", "--port", name, "--seconds", str(seconds), "-o", str(out)) as proc:
             assert proc.stderr is not None
             assert "recording" in proc.stderr.readline()  # the port checked, the reader started
 
@@ -404,16 +400,38 @@ def test_record_takes_a_board_restart_far_ahead_as_a_restart_not_as_lost_samples
                     return any(os.path.realpath(fd) == name for fd in Path(f"/proc/{proc.pid}/fd").iterdir() if fd.is_symlink())
                 raise AssertionError(f"record ended before opening the port: {proc.communicate()[1]}")
             wait_for(port_open, timeout=30, what="the recorder to open the port")
-            os.write(master, encode_frames(1000, before) + encode_frames((1000 + 800 + 2**31) % 2**32, after))
+            os.write(master, data)
             try:
                 _stdout, stderr = proc.communicate(timeout=60)
             except subprocess.TimeoutExpired:
                 proc.kill()
-                pytest.fail(f"record did not finish on the {before.shape[0] + after.shape[0]} samples sent: {proc.communicate()[1]}")
+                pytest.fail(f"record did not finish on the {len(data)} bytes sent: {proc.communicate()[1]}")
     finally:
         os.close(master)
         os.close(slave)
     assert proc.returncode == 0, stderr
+    return out, stderr
+
+
+def test_record_takes_a_board_restart_far_ahead_as_a_restart_not_as_lost_samples(tmp_path: Path) -> None:
+    """A 2**31 forward jump of the index (a board reset past half its counter) is a restart: the capture goes on, nothing zero-filled."""
+    from tactiled.board.frames import encode_frames
+
+    rng = np.random.default_rng(4)
+    before, after = (rng.integers(-900, 900, (800, 2)).astype(np.int16) for _ in range(2))
+    out, _ = _record_bytes(tmp_path, encode_frames(1000, before) + encode_frames((1000 + 800 + 2**31) % 2**32, after), 0.08)
     rec = load_recording(out)
     assert rec.first_index == 1000 and rec.lost.size == 0 and rec.meta["restarts"] == 1
+    assert np.array_equal(rec.samples, np.concatenate([before, after]))
+
+
+def test_record_drops_a_duplicated_frame_and_counts_it_in_meta(tmp_path: Path) -> None:
+    from tactiled.board.frames import encode_frames
+
+    rng = np.random.default_rng(5)
+    before, after = (rng.integers(-900, 900, (800, 2)).astype(np.int16) for _ in range(2))
+    again = encode_frames(1400, before[400:420])  # a frame the board sent twice
+    out, _ = _record_bytes(tmp_path, encode_frames(1000, before) + again + encode_frames(1800, after), 0.08)
+    rec = load_recording(out)
+    assert rec.lost.size == 0 and rec.meta["duplicate_frames"] == 1
     assert np.array_equal(rec.samples, np.concatenate([before, after]))

@@ -186,6 +186,7 @@ class Status(Message):
     clock_mono: float | None = None  # ... its host monotonic time, s ...
     clock_unix: float | None = None  # ... and its host unix time, s (nil until samples arrive)
     fs_clock: float = 0.0  # sample indices per second of host monotonic time (the measured rate), Hz
+    duplicate_frames: int = 0  # frames dropped as duplicates of ones already placed (an index that went back a little)
     unknown: int = 0  # final labels withheld as unknown_surface since start (most slides unknown: another unit, or untaught surfaces)
 
     def host_mono(self, index: int) -> float | None:

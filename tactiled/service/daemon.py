@@ -247,7 +247,8 @@ class Daemon:
                              slides=self.pipeline.slides, labels=self.pipeline.labels, unknown=self.pipeline.unknown, fs_nominal=self.config.sensor.fs,
                              fs_measured=round(st.samples_window / interval, 1) if interval > 0 else 0.0, model=self.fingerprint,
                              uptime_s=round(time.monotonic() - st.started, 3), index=st.last_index, level=level, version=__version__,
-                             dropped_messages=self.publisher.dropped, channel_errors=stats.channel_errors, clock_index=clock_index,
+                             dropped_messages=self.publisher.dropped, channel_errors=stats.channel_errors, duplicate_frames=stats.duplicates,
+                             clock_index=clock_index,
                              clock_mono=clock_mono, clock_unix=clock_unix, fs_clock=round(self.clock.fs, 3))
 
     def reader_alive(self, now: float) -> bool:

@@ -235,9 +235,10 @@ class RecordSummary:
 
 
 def link_counters(stats: DecoderStats, source: ByteSource | None) -> dict[str, int]:
-    """What the serial link did, for a recording's ``meta``: CRC failures, bytes discarded, reconnects, foreign-channel frames."""
+    """What the serial link did, for a recording's ``meta``: CRC failures, bytes discarded, reconnects, foreign-channel frames,
+    duplicated frames dropped."""
     return {"crc_errors": stats.crc_errors, "bytes_discarded": stats.bytes_discarded, "reconnects": source.reconnects if source else 0,
-            "channel_errors": stats.channel_errors}
+            "channel_errors": stats.channel_errors, "duplicate_frames": stats.duplicates}
 
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
