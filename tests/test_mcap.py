@@ -85,3 +85,21 @@ def test_export_marks_a_thousand_lost_ranges_exactly(tmp_path: Path) -> None:
     assert res.returncode == 0, res.stderr
     _, valid, _, _ = read_mcap_samples(tmp_path / "r.mcap")
     assert np.array_equal(valid, rec.valid_mask())
+
+
+def test_export_never_replaces_its_input_nor_a_file_unasked(tmp_path: Path) -> None:
+    import shutil
+
+    from tests.conftest import REPO
+
+    src = tmp_path / "a.npz"
+    shutil.copy(REPO / "tests" / "hostile" / "rec-good.npz", src)
+    before = src.read_bytes()
+    res = run_cli("export", str(src), "-o", str(src))
+    assert res.returncode == 2 and "is the recording being exported" in res.stderr and src.read_bytes() == before
+    res = run_cli("export", str(src), "-o", str(tmp_path / "no" / "x.mcap"))
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1 and "does not exist" in res.stderr
+    (tmp_path / "x.mcap").write_bytes(b"keep")
+    res = run_cli("export", str(src), "-o", str(tmp_path / "x.mcap"))
+    assert res.returncode == 2 and "--force" in res.stderr and (tmp_path / "x.mcap").read_bytes() == b"keep"
+    assert run_cli("export", str(src), "-o", str(tmp_path / "x.mcap"), "--force").returncode == 0

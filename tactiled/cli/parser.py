@@ -94,6 +94,11 @@ def _export(path: str, output: str, config: Config, model_path: str | None, expl
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    from tactiled.service.record import check_output
+
+    if Path(args.output).resolve() == Path(args.file).resolve():
+        raise TactiledError(f"{args.output}: is the recording being exported; write the MCAP file elsewhere")
+    check_output(args.output, args.force)
     counts = _export(args.file, args.output, _config(args), args.model, explicit_model=args.no_model, batch=args.batch)
     print(f"{args.output}: {counts['samples']} samples, {counts['slides']} slides, {counts['roughness']} roughness messages")
     return EXIT_OK
@@ -636,6 +641,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", help=MODEL_HELP)
     p.add_argument("--no-model", action="store_true", help="slides only, no classification")
     p.add_argument("--batch", type=_count, default=None, help="samples per message (default 20: one board frame)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.set_defaults(handler=cmd_export)
 
     sim = sub.add_parser("simulate", help="the simulated fingertip").add_subparsers(dest="what", required=True, metavar="WHAT",
