@@ -103,3 +103,12 @@ def test_export_never_replaces_its_input_nor_a_file_unasked(tmp_path: Path) -> N
     res = run_cli("export", str(src), "-o", str(tmp_path / "x.mcap"))
     assert res.returncode == 2 and "--force" in res.stderr and (tmp_path / "x.mcap").read_bytes() == b"keep"
     assert run_cli("export", str(src), "-o", str(tmp_path / "x.mcap"), "--force").returncode == 0
+
+
+def test_replay_of_an_mcap_file_says_what_to_use_instead(tmp_path: Path) -> None:
+    from tests.conftest import REPO
+
+    assert run_cli("export", str(REPO / "tests" / "hostile" / "rec-good.npz"), "-o", str(tmp_path / "r.mcap")).returncode == 0
+    res = run_cli("replay", str(tmp_path / "r.mcap"))
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1
+    assert "an MCAP file" in res.stderr and "python -m tactiled_client replay" in res.stderr

@@ -197,6 +197,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
         publisher.wait_subscriber(args.wait_subscriber)
     try:
         for path in args.files:
+            if path.endswith(".mcap"):
+                print(f"tactiled: error: {path}: an MCAP file: replay reads .npz recordings and .bin captures "
+                      f"(the MCAP's labels replay with python -m tactiled_client replay {path})", file=sys.stderr)
+                failed += 1
+                continue
             try:
                 rec = load_recording(path) if not path.endswith(".bin") else None
             except RecordingError as exc:
