@@ -109,15 +109,15 @@ class LogReader:
         self.path = Path(path)
         self.truncated: str | None = None
         self.count = 0
+        if not self.path.exists():
+            raise LogError(f"{self.path}: no such file")
+        if not self.path.is_file():  # before opening: a FIFO would block the open, /dev/zero never ends
+            raise LogError(f"{self.path}: not a regular file")
         try:
             with open(self.path, "rb") as fh:
                 head = fh.read(len(HEADER))
-        except FileNotFoundError:
-            raise LogError(f"{self.path}: no such file") from None
         except OSError as exc:
             raise LogError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
-        if not self.path.is_file():
-            raise LogError(f"{self.path}: not a regular file")
         if head.startswith(MAGIC):
             version = struct.unpack("<H", head[len(MAGIC):len(MAGIC) + 2])[0] if len(head) >= len(MAGIC) + 2 else None
             if version != VERSION:

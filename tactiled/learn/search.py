@@ -45,7 +45,7 @@ from tactiled.core.features import name_family
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import Slide, SlideCounts, WindowSet, collect_windows, find_slides
-from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature, softmax
+from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature, knn_distance, softmax
 
 Progress = Callable[[str], None]
 FloatArray = npt.NDArray[np.float64]
@@ -478,8 +478,6 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     of other surfaces) estimates how many slides of an untaught surface the threshold flags. A threshold of
     inf (never unknown) when no slide has another recording to compare with.
     """
-    from tactiled.learn.model import knn_distance
-
     n = len(z)
     known = np.full(n, np.nan)
     unseen = np.full(n, np.nan)
