@@ -52,6 +52,15 @@ def test_monitor_shows_state_traces_spectrum_and_labels_with_truth(tmp_path: Pat
     truths = [model.truth_for(r.start, r.stop) for r in finals]
     assert all(truths) and all(t in screen for t in truths)  # the simulator's true surface of each labelled slide
     assert all(r.label in screen for r in finals) and isinstance(finals[0], Roughness)
+    small = Console(file=io.StringIO(), width=80, height=24, record=True, color_system=None)
+    small.print(render(model, endpoint, 80, 24))
+    lines = small.export_text().rstrip("\n").splitlines()
+    assert len(lines) <= 24 and max(len(line) for line in lines) <= 80  # fits 80×24 without wrapping
+    text = "\n".join(lines)
+    assert any(state in text for state in (" IDLE ", " SLIDING ")) and "lost " in text and "crc " in text
+    films = [line for line in lines if line.startswith(("film1 ", "film2 "))]
+    assert len(films) == 2 and all(sum(ch in SPARK for ch in line) >= 40 for line in films)
+    assert all(r.label in text for r in finals[:5])  # the last labels are on screen
 
 
 def test_monitor_highlights_abstentions_and_provisional_labels() -> None:
@@ -70,3 +79,8 @@ def test_monitor_highlights_abstentions_and_provisional_labels() -> None:
     assert " DISCONNECTED " in text and "provisional" in text and "samples_lost" in text and "(waiting for raw samples)" in text
     styled = console.export_text(styles=True)
     assert "\x1b[1;31m" in styled  # bold red: the abstention and the disconnected state
+    small = Console(file=io.StringIO(), width=80, height=24, record=True, color_system=None)
+    small.print(render(model, "ipc://x", 80, 24))
+    lines = small.export_text().rstrip("\n").splitlines()
+    assert len(lines) <= 24 and max(len(line) for line in lines) <= 80
+    assert " DISCONNECTED " in lines[1] and any("samples_lost" in line for line in lines) and any("prov." in line for line in lines)

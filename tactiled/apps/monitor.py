@@ -28,6 +28,8 @@ from tactiled_client import BlockingSubscriber, NoData, Roughness, Samples, Slid
 from tactiled_client.truth import overlapping
 
 TRACE_LEN = 120  # points per film trace (one per 10 ms of signal)
+LABEL_HISTORY = 40  # labels kept; as many as fit are shown
+FULL_SIZE = (100, 40)  # (columns, lines) from which the screen also shows the spectrum and every label column
 SPECTRUM_N = 4096  # samples per spectrum
 SPARK = "▁▂▃▄▅▆▇█"
 
@@ -60,7 +62,7 @@ class MonitorModel:
     def __init__(self, truth_log: str | None = None) -> None:
         self.status: Status | None = None
         self.slide: Slide | None = None
-        self.labels: deque[Roughness] = deque(maxlen=12)
+        self.labels: deque[Roughness] = deque(maxlen=LABEL_HISTORY)
         self.missed = 0
         self.last_message = 0.0
         self.traces: list[deque[float]] = []
@@ -118,8 +120,14 @@ class MonitorModel:
         return overlapping(self._truth, start, stop)
 
 
-def render(model: MonitorModel, endpoint: str) -> Any:
-    """The whole screen as one rich renderable."""
+def render(model: MonitorModel, endpoint: str, width: int = 140, height: int = 50) -> Any:
+    """The whole screen, for a terminal of ``width`` columns and ``height`` lines, as one rich renderable.
+
+    From :data:`FULL_SIZE` up: state, counters, film traces, the spectrum and the labels with every column.
+    Smaller (down to 80×24): state, loss counters, film levels and the last labels, each on one line.
+    """
+    if width < FULL_SIZE[0] or height < FULL_SIZE[1]:
+        return render_compact(model, endpoint, width, height)
     from rich.console import Group
     from rich.panel import Panel
     from rich.table import Table
@@ -159,9 +167,9 @@ def render(model: MonitorModel, endpoint: str) -> Any:
     if db.size:
         floor = float(db.max()) - 60
         rows = 6
-        height = np.clip((db - floor) / 60 * rows * 8, 0, rows * 8)
+        level = np.clip((db - floor) / 60 * rows * 8, 0, rows * 8)
         for row in range(rows - 1, -1, -1):
-            spec.append("".join(" " if h <= row * 8 else SPARK[min(int(h - row * 8), 8) - 1] for h in height) + "\n", style="magenta")
+            spec.append("".join(" " if h <= row * 8 else SPARK[min(int(h - row * 8), 8) - 1] for h in level) + "\n", style="magenta")
         spec.append(f"0 Hz{'':{max(len(db) - 12, 1)}}{hz * len(db):.0f} Hz   ({hz:.0f} Hz per column, top {db.max():.0f} dB, 60 dB span)")
     else:
         spec.append("(waiting for raw samples)")
@@ -171,13 +179,56 @@ def render(model: MonitorModel, endpoint: str) -> Any:
                       ("abstained: reason", "left")):
         labels.add_column(col, justify=just)  # type: ignore[arg-type]
     fs = s.fs_nominal or 1.0
-    for r in model.labels:
+    for r in itertools.islice(model.labels, max(height - 35, 5)):
         truth = model.truth_for(r.start, r.stop)
         style = "bold red" if r.label is None else ("dim" if not r.final else ("green" if truth in (None, r.label) else "yellow"))
         labels.add_row(str(r.slide_id), "final" if r.final else "provisional", r.label or "-",
                        "" if r.confidence is None else f"{r.confidence:.2f}", f"{r.used_s:.2f}", f"{(r.stop - r.start) / fs:.2f}",
                        f"{r.latency_ms:.1f}", truth or "", r.reason or "", style=style)
     return Group(Panel(head), levels, Panel(spec, title="spectrum of the raw samples (films summed)", title_align="left"), labels)
+
+
+def render_compact(model: MonitorModel, endpoint: str, width: int, height: int) -> Any:
+    """The screen for a small terminal (80×24 and up): nothing wraps, the labels take the lines left."""
+    from rich import box
+    from rich.console import Group
+    from rich.table import Table
+    from rich.text import Text
+
+    def line(text: Text) -> Text:
+        text.no_wrap, text.overflow = True, "ellipsis"
+        return text
+
+    s = model.status
+    title = line(Text.assemble(("tactiled monitor ", "bold"), f"{endpoint} (q quits)"))
+    if s is None:
+        return Group(title, line(Text("waiting for the daemon's status ...", style="yellow")))
+    colour = {schema.STATE_DISCONNECTED: "bold red", schema.STATE_SLIDING: "bold green", "no data": "bold red"}.get(s.state, "bold cyan")
+    sliding = f"  slide {model.slide.slide_id} since {model.slide.start}" if model.slide is not None else ""
+    state = line(Text.assemble(f"{s.sensor} ", (f" {s.state.upper()} ", f"reverse {colour}"),
+                               f"{sliding}  up {s.uptime_s:.0f} s  {s.fs_measured:.0f} Hz  model {s.model or '-'}"))
+    counters = line(Text(f"lost {s.samples_lost}  crc {s.crc_errors}  discarded {s.bytes_discarded}  reconnects {s.reconnects}  "
+                         f"missed msgs {model.missed}  samples {s.samples}"))
+    levels = [line(Text("film levels, mV RMS per 10 ms (now, max, trace)", style="bold"))]
+    if model.traces:
+        for k, trace in enumerate(model.traces):
+            values = np.array(trace)
+            top = max(float(values.max()), 1e-6)
+            head = f"film{k + 1} {values[-1] * 1e3:7.2f} {top * 1e3:7.2f} "
+            levels.append(line(Text(head + sparkline(values[-max(width - len(head) - 1, 0):], top))))
+    else:
+        levels.append(line(Text("  ".join(f"film{k + 1} {v * 1e3:.2f}" for k, v in enumerate(s.level)) + "  (traces: run the daemon with --samples)")))
+    labels = Table(box=box.SIMPLE_HEAD, expand=True, show_edge=False, pad_edge=False, title="last labels (newest first)",
+                   title_justify="left", title_style="bold")
+    for col, just in (("slide", "right"), ("kind", "left"), ("label", "left"), ("conf", "right"), ("truth", "left"), ("reason", "left")):
+        labels.add_column(col, justify=just, no_wrap=True, overflow="ellipsis")  # type: ignore[arg-type]
+    rows = max(height - 4 - len(levels) - 4, 1)  # title, state, counters, levels, and the table's title, header, rule, a spare line
+    for r in itertools.islice(model.labels, rows):
+        truth = model.truth_for(r.start, r.stop)
+        style = "bold red" if r.label is None else ("dim" if not r.final else ("green" if truth in (None, r.label) else "yellow"))
+        labels.add_row(str(r.slide_id), "final" if r.final else "prov.", r.label or "-", "" if r.confidence is None else f"{r.confidence:.2f}",
+                       truth or "", r.reason or "", style=style)
+    return Group(title, state, counters, *levels, labels)
 
 
 def run_monitor(endpoint: str, truth_log: str | None = None) -> int:
@@ -203,7 +254,8 @@ def run_monitor(endpoint: str, truth_log: str | None = None) -> int:
                     pass
                 if model.last_message and time.monotonic() - model.last_message > 3 and model.status is not None:
                     model.status.state = "no data"
-                live.update(render(model, endpoint), refresh=True)
+                size = live.console.size
+                live.update(render(model, endpoint, size.width, size.height), refresh=True)
                 if tty and select.select([sys.stdin], [], [], 0)[0] and os.read(sys.stdin.fileno(), 1) in (b"q", b"Q"):
                     return 0
     except KeyboardInterrupt:
