@@ -1,7 +1,8 @@
-"""Labels a robot can act on, per simulator scene: accuracy against a plain spectral baseline, on the same unit and on another.
+"""Labels a robot can act on, per simulator scene: accuracy against a plain spectral baseline, on the same unit and on others.
 
-For each scene: a training set (unit 0), a same-unit test set (other tracks of the same specimens) and an
-other-unit test set (another unit of the sensor, new specimens of the same grades; docs/simulator.md).
+For each scene: a training set (unit 0), a same-unit test set (other tracks of the same specimens) and one
+other-unit test set per ``--other-units`` (another unit of the sensor, new specimens of the same grades;
+docs/simulator.md; two units, because one draw of the tolerances says little).
 Trains the default (``tactiled train``) and the papers' method (``--method paper``), and the plain
 whole-slide spectral classifier described below on the true slides; scores each end to end on both test
 sets (the daemon's pipeline, every true slide counted), with the calibration error (ECE, 10 equal-width
@@ -16,7 +17,7 @@ whole slide (segments of 1024 samples at 20 kHz, scaled to the rate), the log en
 from 20 Hz to 0.45 fs, the log spectral centroid and the kurtosis; StandardScaler; RBF SVM (C=10).
 
 Usage: python bench/labels.py [--scenes "hand;robot;..."] [--files 3] [--test-files 2] [--slides 3] [--out DIR] [--json FILE]
-       [--no-paper] [--leave-out-scenes "hand;robot;one-channel"]
+       [--other-units 1,2] [--no-paper] [--leave-out-scenes "hand;robot;one-channel"]
 """
 
 from __future__ import annotations
@@ -126,6 +127,23 @@ def leave_out(spec: str, tr: list[Path], test: list[tuple[str, Recording]], conf
             "cv_estimate": res.model.summary.get("novelty")}
 
 
+def table_row(out: dict[str, Any], units: list[int]) -> str:
+    """One scene's row of the table in docs/evaluation.md."""
+    s, o, pl, pp, prov = out["same"], out["other"], out["plain"], out.get("paper"), out["same"]["provisional"]
+
+    def each(f: Any) -> str:
+        return " / ".join(f(u) for u in units)
+
+    return (f"| {out['scene']} | {100 * out['nested_cv']:.1f} % | **{100 * s['accuracy']:.1f} %** | "
+            + each(lambda u: f"**{100 * o[u]['accuracy']:.1f}** ({100 * o[u]['top_accuracy']:.1f})") + " % | "
+            f"{100 * pl['same']:.1f} / " + each(lambda u: f"{100 * pl[f'other{u}']:.1f}") + " % | "
+            + (f"{100 * pp['same']:.1f} / " + each(lambda u: f"{100 * pp[f'other{u}']:.1f}") + " % | " if pp else "- | ")
+            + f"{s['ece']:.3f} / " + each(lambda u: f"{o[u]['ece']:.3f}") + f" | {s['brier']:.3f} | {100 * s['unknown'] / s['n']:.1f} / "
+            + each(lambda u: f"{100 * o[u]['unknown'] / o[u]['n']:.1f}") + " % | "
+            + (f"{prov['median_s']:.2f} / {prov['p90_s']:.2f}, {100 * prov['wrong']:.0f} % |" if prov["median_s"] is not None else "none |")
+            + f" {out['train_s']:.0f} |")
+
+
 def main() -> None:
     from threadpoolctl import threadpool_limits
 
@@ -137,47 +155,40 @@ def main() -> None:
     ap.add_argument("--slides", type=int, default=3, help="slides per file")
     ap.add_argument("--out", default=None)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--other-units", default="1,2", help="the other units of the sensor to test on, each with its own new specimens")
     ap.add_argument("--no-paper", action="store_true", help="skip the papers' method (its forward selection takes minutes)")
     ap.add_argument("--leave-out-scenes", default="hand;robot;one-channel", help="scenes for the unknown-surface test ('' for none)")
     args = ap.parse_args()
     config = Config()
+    units = [int(u) for u in args.other_units.split(",") if u]
     root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-labels-"))
     rows: list[dict[str, Any]] = []
-    print("| scene | nested CV | default: same unit | other unit (top class, unknowns included) | plain baseline: same / other "
-          "| papers' method: same / other | ECE same / other | Brier same | unknown on known (same / other) | provisional: median / p90 s, wrong "
-          "| train s |")
+    print("| scene | nested CV | default: same unit | other units (top class, unknowns included) | plain baseline: same / other units "
+          "| papers' method: same / other units | ECE same / other units | Brier same | unknown on known (same / other units) "
+          "| provisional: median / p90 s, wrong | train s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|", flush=True)
     for spec in args.scenes.split(";"):
         name = spec.replace(",", "+")
         tr = write_dataset(root / name / "train", scene=spec, seed=100, files_per_surface=args.files, slides_per_file=args.slides)
         same = load_recordings(write_dataset(root / name / "same", scene=spec, seed=200, files_per_surface=args.test_files,
                                              slides_per_file=args.slides))
-        other = load_recordings(write_dataset(root / name / "other", scene=spec, seed=300, files_per_surface=args.test_files,
-                                              slides_per_file=args.slides, unit=1, specimen=1))
+        others = {u: load_recordings(write_dataset(root / name / f"other{u}", scene=spec, seed=200 + 100 * u, files_per_surface=args.test_files,
+                                                   slides_per_file=args.slides, unit=u, specimen=u)) for u in units}
         train_recs = load_recordings(tr)
-        out: dict[str, Any] = {"scene": spec, "plain": plain_baseline(train_recs, {"same": same, "other": other})}
+        out: dict[str, Any] = {"scene": spec, "plain": plain_baseline(train_recs, {"same": same, **{f"other{u}": r for u, r in others.items()}})}
         t0 = time.perf_counter()
         res = train(tr, config, progress=lambda m: None, keep_models=True)
         out["train_s"] = time.perf_counter() - t0
         out["winner"], out["nested_cv"] = res.winner, res.nested["mean"]
-        out["same"], out["other"] = end_to_end(same, config, res.model), end_to_end(other, config, res.model)
+        out["same"], out["other"] = end_to_end(same, config, res.model), {u: end_to_end(r, config, res.model) for u, r in others.items()}
         out["candidates"] = [{"candidate": r["candidate"], "cv": r["mean"], "same": end_to_end(same, config, res.models[r["candidate"]])["accuracy"]}
                              for r in res.leaderboard]
         if not args.no_paper:
             pres = train(tr, config, method="paper", progress=lambda m: None)
-            out["paper"] = {"same": end_to_end(same, config, pres.model)["accuracy"], "other": end_to_end(other, config, pres.model)["accuracy"],
-                            "nested_cv": pres.nested["mean"]}
+            out["paper"] = {"same": end_to_end(same, config, pres.model)["accuracy"], "nested_cv": pres.nested["mean"],
+                            **{f"other{u}": end_to_end(r, config, pres.model)["accuracy"] for u, r in others.items()}}
         rows.append(out)
-        s, o, pl = out["same"], out["other"], out["plain"]
-        pp = out.get("paper")
-        prov = s["provisional"]
-        print(f"| {spec} | {100 * out['nested_cv']:.1f} % | **{100 * s['accuracy']:.1f} %** | **{100 * o['accuracy']:.1f} %** "
-              f"({100 * o['top_accuracy']:.1f} %) | "
-              f"{100 * pl['same']:.1f} / {100 * pl['other']:.1f} % | "
-              + (f"{100 * pp['same']:.1f} / {100 * pp['other']:.1f} % | " if pp else "- | ")
-              + f"{s['ece']:.3f} / {o['ece']:.3f} | {s['brier']:.3f} | {100 * s['unknown'] / s['n']:.1f} / {100 * o['unknown'] / o['n']:.1f} % | "
-              + (f"{prov['median_s']:.2f} / {prov['p90_s']:.2f}, {100 * prov['wrong']:.0f} % |" if prov["median_s"] is not None else "none |")
-              + f" {out['train_s']:.0f} |", flush=True)
+        print(table_row(out, units), flush=True)
         if args.json:
             Path(args.json).write_text(json.dumps({"scenes": rows}, indent=1, default=float))
     gaps = [(r["scene"], c["candidate"], c["cv"] - c["same"]) for r in rows for c in r["candidates"]]
