@@ -44,6 +44,9 @@ class WindowError(TactiledError, ValueError):
         super().__init__(message)
         self.reason = reason
 
+    def __reduce__(self) -> tuple[type[WindowError], tuple[str, str]]:  # raised again in the parent when a worker process raises it
+        return WindowError, (self.reason, str(self))
+
 
 class RingBufferError(TactiledError, LookupError):
     """A requested sample range is not available in the ring buffer."""

@@ -116,6 +116,13 @@ def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
     assert res.returncode == 0, res.stderr
     report = json.loads(res.stdout)
     assert report["n"] == 18 and report["accuracy"] > 0.6 and report["coverage"] > 0.6
+    serial = run_cli("score", str(model), *files, "--json", "--jobs", "1")  # every core (the default) or this process: the same report
+    assert serial.returncode == 0 and json.loads(serial.stdout) == report, serial.stderr
+    for jobs in ("1", "2"):
+        res = run_cli("features", *files, "-o", str(tmp_path / f"f{jobs}.npz"), "--jobs", jobs)
+        assert res.returncode == 0, res.stderr
+    with np.load(tmp_path / "f1.npz") as one, np.load(tmp_path / "f2.npz") as two:
+        assert one.files == two.files and all(np.array_equal(one[k], two[k]) for k in one.files)
     res = run_cli("replay", "--json", "--model", str(model), files[0])
     lines = [json.loads(line) for line in res.stdout.splitlines()]
     assert res.returncode == 0 and len(lines) == 3, res.stdout
@@ -259,7 +266,7 @@ def test_monitor_shows_live_labels_in_a_terminal(tmp_path: Path) -> None:
 
         deadline = time.monotonic() + 90
         def shown() -> bool:
-            return b"latency" in screen and b"Ra" in screen and (b"IDLE" in screen or b"SLIDING" in screen)
+            return b"final" in screen and b"Ra" in screen and (b"IDLE" in screen or b"SLIDING" in screen)
 
         while time.monotonic() < deadline and not shown():
             ready, _, _ = select.select([master], [], [], 1.0)
@@ -275,5 +282,5 @@ def test_monitor_shows_live_labels_in_a_terminal(tmp_path: Path) -> None:
             proc.kill()
         os.close(master)
     assert b"tactiled monitor" in screen and b"last labels" in screen
-    assert b"latency" in screen and b"Ra" in screen
+    assert b"final" in screen and b"Ra" in screen  # 100x30: the compact screen, a final label on it
     assert proc.returncode == 0

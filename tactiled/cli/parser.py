@@ -252,7 +252,7 @@ def cmd_features(args: argparse.Namespace) -> int:
     recs = load_recordings(args.files, _stderr)
     if not recs:
         raise TactiledError("no readable recordings")
-    ws = write_features(args.output, recs, config)
+    ws = write_features(args.output, recs, config, args.jobs)
     print(f"{args.output}: {ws.x.shape[0]} windows of {len(ws.slides)} slides x {ws.x.shape[1]} features"
           + (f" (slides without a window: {ws.skipped})" if ws.skipped else ""))
     return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
@@ -260,6 +260,16 @@ def cmd_features(args: argparse.Namespace) -> int:
 
 def _stderr(msg: str) -> None:
     print(f"tactiled: {msg}", file=sys.stderr, flush=True)
+
+
+def _files_done(what: str) -> Callable[[int, int], None]:
+    """Progress over files on one line of stderr (rewritten in place on a terminal; only the last count otherwise)."""
+    tty = sys.stderr.isatty()
+
+    def done(i: int, n: int) -> None:
+        if tty or i == n:
+            print(f"\r{what}: {i}/{n} files", end="\n" if i == n else "", file=sys.stderr, flush=True)
+    return done
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -303,7 +313,7 @@ def cmd_score(args: argparse.Namespace) -> int:
     scored = [(n, r) for n, r in recs if r.slides() or r.label is not None]
     if not scored:
         raise TactiledError("no recording with ground truth (per-slide surfaces or a file label) to score")
-    report = score_recordings(scored, config, model)
+    report = score_recordings(scored, config, model, args.jobs, _files_done("score"))
     if args.json:
         print(json.dumps(report))
     else:
@@ -577,6 +587,7 @@ _count, _seed, _channels = _int_in(1), _int_in(0, 2**32 - 1), _int_in(1, 8)
 _probability, _wait_s = _float_in(0.0, 1.0, "probability"), _float_in(0.0, 3600.0, "seconds")
 
 CONFIG_HELP = "TOML config file (every key is explained in configs/tactiled.toml; default: the built-in defaults)"
+JOBS_HELP = "worker processes over the files (default 0: one per core; 1: in this process)"
 SCENE_HELP = ("scene, or scenes joined by commas: hand (default), robot, continuous, fluctuating, hot-gain, one-channel, grating "
               "(docs/simulator.md), e.g. continuous,one-channel")
 SURFACES_HELP = ("N surfaces spread over the range, or names such as Ra0.44,Ra4.43 (the grating scene: G0.10mm,G1.00mm) "
@@ -753,6 +764,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("files", nargs="+", help="recordings (.npz) whose slides to analyse")
     p.add_argument("-o", "--output", required=True, help="features file to write (.npz: one row per window, docs/features.md)")
     p.add_argument("--config", help=CONFIG_HELP)
+    p.add_argument("--jobs", type=_int_in(0, 4096), default=0, metavar="N", help=JOBS_HELP)
     p.set_defaults(handler=cmd_features)
 
     p = sub.add_parser("train", help="train a model from labelled recordings (finds what works on them)")
@@ -790,6 +802,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth or a file label, unseen in training")
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--json", action="store_true", help="the report as one JSON object")
+    p.add_argument("--jobs", type=_int_in(0, 4096), default=0, metavar="N", help=JOBS_HELP)
     p.set_defaults(handler=cmd_score)
     _describe(parser)
     return parser

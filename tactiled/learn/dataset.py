@@ -174,38 +174,65 @@ def find_slides(recs: Sequence[tuple[str, Recording]], config: Config) -> tuple[
 
 
 def collect_windows(recs: Sequence[tuple[str, Recording]], config: Config, settings: AnalysisSettings, progress: Progress | None = None,
-                    require_labels: bool = True, found: tuple[list[list[Slide]], SlideCounts] | None = None) -> WindowSet:
+                    require_labels: bool = True, found: tuple[list[list[Slide]], SlideCounts] | None = None,
+                    jobs: int | None = 1) -> WindowSet:
     """Analyse every window of every slide of ``recs`` with ``settings`` (all of ``settings.names``).
 
-    ``found``: the slides from :func:`find_slides`, if already known (else they are found here).
+    ``found``: the slides from :func:`find_slides`, if already known (else they are found here). ``jobs``: worker
+    processes over the recordings (None or 0: every core; :func:`tactiled.run.pool.map_files`).
     """
+    from tactiled.run.pool import map_files
+
     rows: list[Any] = []
     labels, groups, slide_idx, spans = [], [], [], []
     slides: list[Slide] = []
     reasons: list[str | None] = []
     per_file, counts = found if found is not None else find_slides(recs, config)
     skipped: dict[str, int] = {}
-    for g, (_name, rec) in enumerate(recs):
-        analyser = Analyser(settings, rec.fs, rec.volts_per_count, rec.is_integer, config.classifier.max_saturated, config.classifier.max_lost)
-        valid = rec.valid_mask()
-        for slide in per_file[g]:
-            if require_labels and slide.label is None:
-                skipped["unlabelled"] = skipped.get("unlabelled", 0) + 1
-                continue
-            s_spans, s_rows, why = analyse_slide(analyser, rec, valid, slide)
-            k = len(slides)
-            slides.append(slide)
+
+    def done(g: int, n: int) -> None:
+        if progress and (g % 10 == 0 or g == n):
+            progress(f"windows: {g}/{n} files")
+
+    tasks = [(rec, per_file[g], config, settings, require_labels) for g, (_name, rec) in enumerate(recs)]
+    for kept, per_slide, file_skipped in map_files(file_windows, tasks, jobs, done):
+        for k, (slide, (s_spans, s_rows, why)) in enumerate(zip(kept, per_slide, strict=True), len(slides)):
             reasons.append(why)
-            if why is not None:
-                skipped[why] = skipped.get(why, 0) + 1
             rows += s_rows
             spans += s_spans
             labels += [slide.label or ""] * len(s_rows)
             groups += [slide.file] * len(s_rows)  # the group of the slide: its recording (or itself, train --group-by slide)
             slide_idx += [k] * len(s_rows)
-        if progress and ((g + 1) % 10 == 0 or g + 1 == len(recs)):
-            progress(f"windows: {g + 1}/{len(recs)} files, {len(slides)} slides, {len(rows)} windows")
+        slides += kept
+        for why, c in file_skipped.items():
+            skipped[why] = skipped.get(why, 0) + c
+    if progress and recs:
+        progress(f"windows: {len(recs)} files, {len(slides)} slides, {len(rows)} windows")
     f = len(settings.names)
     return WindowSet(np.asarray(rows, dtype=np.float64).reshape(-1, f), np.asarray(labels, dtype=np.str_), np.asarray(groups, dtype=np.int64),
                      np.asarray(slide_idx, dtype=np.int64), np.asarray(spans, dtype=np.int64).reshape(-1, 2), list(settings.names),
                      [n for n, _ in recs], slides, reasons, counts, skipped)
+
+
+def file_windows(task: tuple[Recording, list[Slide], Config, AnalysisSettings, bool]
+                 ) -> tuple[list[Slide], list[tuple[list[tuple[int, int]], list[Any], str | None]], dict[str, int]]:
+    """One recording's part of :func:`collect_windows`: (the slides kept, their :func:`analyse_slide`, what was skipped and why).
+
+    ``task``: (recording, its slides, config, settings, whether unlabelled slides are skipped).
+    """
+    rec, file_slides, config, settings, require_labels = task
+    analyser = Analyser(settings, rec.fs, rec.volts_per_count, rec.is_integer, config.classifier.max_saturated, config.classifier.max_lost)
+    valid = rec.valid_mask()
+    kept: list[Slide] = []
+    per_slide: list[tuple[list[tuple[int, int]], list[Any], str | None]] = []
+    skipped: dict[str, int] = {}
+    for slide in file_slides:
+        if require_labels and slide.label is None:
+            skipped["unlabelled"] = skipped.get("unlabelled", 0) + 1
+            continue
+        result = analyse_slide(analyser, rec, valid, slide)
+        if result[2] is not None:
+            skipped[result[2]] = skipped.get(result[2], 0) + 1
+        kept.append(slide)
+        per_slide.append(result)
+    return kept, per_slide, skipped

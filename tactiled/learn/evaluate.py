@@ -92,7 +92,7 @@ class Evaluator:
         if k not in self._features:
             if key not in self.found:
                 self.found[key] = find_slides(recs or self.recs, self.config)
-            self._features[k] = collect_windows(recs or self.recs, self.config, st, found=self.found[key])
+            self._features[k] = collect_windows(recs or self.recs, self.config, st, found=self.found[key], jobs=None)
         return self._features[k]
 
     def folds(self, ws: WindowSet) -> Folds:

@@ -28,11 +28,12 @@ KEYS = ("header", "x", "names", "label", "file", "slide", "span", "files")
 MAX_FEATURES_BYTES = 1 << 30  # inflated, all arrays together
 
 
-def write_features(path: str | Path, recs: Sequence[tuple[str, Recording]], config: Config) -> WindowSet:
-    """Analyse every slide of ``recs`` with the config's feature families and windows; write the file; return the windows."""
+def write_features(path: str | Path, recs: Sequence[tuple[str, Recording]], config: Config, jobs: int | None = None) -> WindowSet:
+    """Analyse every slide of ``recs`` with the config's feature families and windows (on ``jobs`` processes, None: every
+    core); write the file; return the windows."""
     fs, channels = recs[0][1].fs, min(r.channels for _, r in recs)
     settings = AnalysisSettings.from_config(config, channels, fs)
-    ws = collect_windows(recs, config, settings, require_labels=False)
+    ws = collect_windows(recs, config, settings, require_labels=False, jobs=jobs)
     header = {"format": FORMAT, "version": VERSION, "settings": settings.to_dict(), "fs": fs, "channels": channels}
     atomic_savez(path, {"header": np.str_(json.dumps(header)), "x": ws.x, "names": np.array(ws.names, dtype=np.str_), "label": ws.y,
                         "file": ws.groups, "slide": ws.slide, "span": ws.spans, "files": np.array(ws.files, dtype=np.str_)})

@@ -10,7 +10,7 @@ true slide; coverage is the fraction that got a label; abstentions are listed by
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -19,7 +19,7 @@ import numpy.typing as npt
 from tactiled.config import Config
 from tactiled.core.pipeline import SlideResult
 from tactiled.files.recording import Recording
-from tactiled.run.replay import pair_results, replay_recording
+from tactiled.run.replay import pair_results, replay_all
 
 
 def confusion(y_true: Sequence[str], y_pred: Sequence[str | None], classes: Sequence[str]) -> dict[str, Any]:
@@ -93,7 +93,8 @@ def calibration_scores(confidence: npt.NDArray[np.float64], right: npt.NDArray[n
     return {"ece": ece, "brier": float(np.mean((confidence - right) ** 2)), "reliability": table}
 
 
-def score_recordings(recs: Sequence[tuple[str, Recording]], config: Config, model: Any) -> dict[str, Any]:
-    """Replay every recording through the pipeline with ``model`` and score it (:func:`score`)."""
-    results = [replay_recording(rec, config, model) for _, rec in recs]
+def score_recordings(recs: Sequence[tuple[str, Recording]], config: Config, model: Any, jobs: int | None = None,
+                     done: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """Replay every recording through the pipeline with ``model`` (on ``jobs`` processes, None: every core) and score it (:func:`score`)."""
+    results = list(replay_all([rec for _, rec in recs], config, model, jobs, done))
     return score(recs, results, model.classes)

@@ -331,7 +331,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
                 st = window_settings(config, channels, fs, c.duration_s, [f for f in fams if f != "dwt"], c.start_s, c.max_windows)
             if st is not None:
                 say(f"features of {c.duration_s:g} s windows from {c.start_s:g} s ({len(st.names)} features)")
-                sets[full] = (st, collect_windows(recs, config, st, progress, found=found))
+                sets[full] = (st, collect_windows(recs, config, st, progress, found=found, jobs=None))
         if full in sets and all(any(name_family(n) == f for n in sets[full][1].names) for f in base_families(c.families)):
             if c.fusion == "features":
                 key = (*key, "features")

@@ -9,7 +9,7 @@ decoder included (:func:`replay_bytes`).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -22,6 +22,7 @@ from tactiled.core.matching import match_slides
 from tactiled.core.pipeline import Pipeline, PipelineEvent, SlideResult
 from tactiled.files.recording import Recording
 from tactiled.run.ingest import Batch, BatchCollector, Ingest, max_gap_for, run_bytes
+from tactiled.run.pool import map_files
 
 BLOCK = 65536  # samples per block fed to the pipeline by default
 
@@ -116,6 +117,16 @@ def replay_recording(rec: Recording, config: Config, model: Any | None, *, block
         handle(pipeline.feed(base + lo, rec.samples[lo:hi], None if all_valid else valid[lo:hi]))
     handle(pipeline.finish())  # a slide still in progress at the end of the file ends there
     return results
+
+
+def replay_all(recs: Sequence[Recording], config: Config, model: Any | None, jobs: int | None = None,
+               done: Callable[[int, int], None] | None = None) -> Iterator[list[SlideResult]]:
+    """:func:`replay_recording` of every recording, spread over ``jobs`` processes (None: every core), in order."""
+    return map_files(_replay_task, [(rec, config, model) for rec in recs], jobs, done)
+
+
+def _replay_task(task: tuple[Recording, Config, Any]) -> list[SlideResult]:
+    return replay_recording(*task)
 
 
 def replay_bytes(chunks: Iterable[bytes], config: Config, model: Any | None, *, speed: float | None = None,
