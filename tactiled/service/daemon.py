@@ -211,7 +211,7 @@ class Daemon:
             n = b.samples.shape[0]
             self.publisher.publish(schema.samples(s.id, b.index, b.samples.astype("<i2", copy=False).tobytes(), n, s.channels, fs=s.fs,
                                                   volts_per_count=s.volts_per_count, lost=b.lost, lost_before=b.lost_before,
-                                                  to_host=to_host, fs_clock=round(self.clock.fs, 3)))
+                                                  to_host=to_host, fs_clock=round(self.clock.rate(b.index, b.index + n), 3)))
             self._raw_next = b.index + n
 
     def _save_recording(self) -> None:

@@ -1,0 +1,110 @@
+"""The sensor-to-host time map (tactiled.board.clockmap): monotonic, smooth, and close to the truth after settling.
+
+Arrivals are synthetic (a board whose crystal is 0.05 % fast, reads every 2-5 ms, 2-6 ms of
+transport, a first read 31.8 ms later than the rest, host stalls of 0.3 s and 2 s), and the
+stamps are computed exactly as a samples-topic subscriber does: ``index_mono + k / fs_clock``
+with the daemon's rounding.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tactiled.board.clockmap import ClockMap
+
+FS, TRUE_FS, T0 = 20_000.0, 20_010.0, 100.0
+SETTLE_S = 3.0  # docs/integrations.md and docs/messages.md state this settling time
+
+
+def stream(seed: int, seconds: float = 30.0) -> tuple[np.ndarray, np.ndarray, ClockMap]:
+    """(row stamps, row indices) of every published batch, and the map."""
+    rng = np.random.default_rng(seed)
+    clock = ClockMap(FS)
+    end = int(0.035 * TRUE_FS)
+    t = T0 + 0.035 + 0.002 + 0.0318  # an early burst: 35 ms of samples in the first read, 31.8 ms late
+    a = 0
+    stamps, rows = [], []
+    stalled = False
+    while t < T0 + seconds:
+        clock.observe(end, t)
+        if end > a and (end - a >= 500 or rng.random() < 0.3):  # batches of any size, never past what arrived
+            mono, rate = round(clock.mono(a), 6), round(clock.rate(a, end), 3)  # as the daemon publishes them
+            stamps.append(mono + np.arange(end - a) / rate)
+            rows.append(np.arange(a, end))
+            a = end
+        t += 0.002 + rng.uniform(0, 0.003) + (0.3 if rng.random() < 0.002 else 0.0)
+        if not stalled and t > T0 + 15:
+            t, stalled = t + 2.0, True  # a 2 s host stall: one late read, then the backlog
+        end = max(end, int((t - T0 - 0.002 - rng.uniform(0, 0.004)) * TRUE_FS))
+    return np.concatenate(stamps), np.concatenate(rows), clock
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_stamps_never_go_back_and_settle_near_the_truth(seed: int) -> None:
+    stamps, rows, clock = stream(seed)
+    assert np.array_equal(rows, np.arange(len(rows)))
+    steps = np.diff(stamps)
+    assert steps.min() > (1 - clock.max_slew) / TRUE_FS - 2e-6  # strictly increasing: half a sample period at the least
+    err = stamps - (T0 + rows / TRUE_FS)  # the truth plus the transport: 2 ms at least
+    settled = rows / TRUE_FS > SETTLE_S
+    assert err[0] > 0.03  # the first read was late: the map starts late ...
+    assert err[settled].min() >= 0.0015 and err[settled].max() <= 0.0025  # ... and is within 0.5 ms of the smallest transport after 3 s
+    assert abs(clock.fs - TRUE_FS) < 1.0 and clock.resets == 0 and clock.steps == 0
+    local = 1 / steps[settled[1:]]  # samples per second, row to row (1 us rounding of index_mono is 2 % of a period)
+    assert local.min() > TRUE_FS * 0.97 and local.max() < TRUE_FS * 1.03
+
+
+def test_once_settled_the_map_runs_within_half_a_percent_of_the_estimate() -> None:
+    _, _, clock = stream(0)
+    ki, kt = np.array(clock._ki), np.array(clock._kt)
+    slope = np.diff(kt) / np.diff(ki) * clock.fs  # relative to the rate now (it moved by ppm since)
+    late = ki[1:] > SETTLE_S * TRUE_FS
+    assert (slope > 0).all() and slope.min() >= 1 - clock.max_slew - 1e-4
+    assert np.all(np.abs(slope[late] - 1) <= 0.005)
+
+
+def test_times_handed_out_never_change() -> None:
+    clock = ClockMap(FS)
+    given: dict[int, float] = {}
+    rng = np.random.default_rng(3)
+    for k in range(1, 3000):
+        end = k * 40
+        clock.observe(end, T0 + end / TRUE_FS + 0.002 + rng.uniform(0, 0.01) + (0.04 if k == 1 else 0.0))
+        i = int(rng.integers(0, end + 1))
+        given.setdefault(i, clock.mono(i))
+    assert max(abs(clock.mono(i) - t) for i, t in given.items()) < 1e-8
+
+
+def test_a_restart_steps_forward_and_an_index_jump_squeezes_without_going_back() -> None:
+    clock = ClockMap(FS)
+    for k in range(1, 500):
+        clock.observe(k * 400, T0 + k * 400 / FS + 0.002)
+    before = clock.mono(499 * 400)
+    for k in range(100):  # a board restart that continues the timeline: late by about 60 s, for more than persist_s
+        clock.observe(500 * 400 + k * 400, T0 + 70.0 + k * 0.02)
+    assert clock.resets == 1 and clock.steps == 1
+    assert abs(clock.mono(599 * 400) - (T0 + 71.98)) < 0.01 and clock.mono(500 * 400) > before
+    last = clock.mono(599 * 400)
+    clock.observe(10**9, T0 + 73.0)  # the index leaps ahead of the time that passed
+    assert clock.steps == 2 and abs(clock.mono(10**9) - (T0 + 73.0)) < 1e-6
+    assert last < clock.mono(10**6) < clock.mono(10**9)
+
+
+def test_unix_times_follow_the_wall_clock_slowly_and_its_steps_at_once() -> None:
+    clock = ClockMap(FS)
+    wall = 1.7e9
+    for k in range(1, 201):
+        clock.observe(k * 200, T0 + k * 200 / FS + 0.002, wall + (0.001 if k > 100 else 0.0))  # NTP moved the wall clock 1 ms
+    mono, unix = clock.host(200 * 200)
+    assert 0 < unix - mono - wall < 0.001  # followed at most 500 ppm: 1 s of map moves it 0.5 ms
+    assert np.all(np.diff([clock.host(i)[1] for i in range(0, 200 * 200, 100)]) > 0)
+    clock.observe(201 * 200, T0 + 201 * 200 / FS + 0.002, wall - 5.0)  # a wall-clock step back by 5 s is followed at once
+    assert abs(clock.host(201 * 200)[1] - clock.mono(201 * 200) - (wall - 5.0)) < 1e-6
+
+
+def test_before_any_arrival_there_is_no_time() -> None:
+    clock = ClockMap(FS)
+    assert not clock.ready and clock.rate(0, 100) == FS
+    with pytest.raises(ValueError):
+        clock.mono(0)
