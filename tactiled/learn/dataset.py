@@ -195,7 +195,7 @@ def collect_windows(recs: Sequence[tuple[str, Recording]], config: Config, setti
             progress(f"windows: {g}/{n} files")
 
     tasks = [(rec, per_file[g], config, settings, require_labels) for g, (_name, rec) in enumerate(recs)]
-    for kept, per_slide, file_skipped in map_files(file_windows, tasks, jobs, done):
+    for kept, per_slide, file_skipped in map_files(file_windows, tasks, jobs, done, signal_s=sum(rec.samples.shape[0] / rec.fs for _, rec in recs)):
         for k, (slide, (s_spans, s_rows, why)) in enumerate(zip(kept, per_slide, strict=True), len(slides)):
             reasons.append(why)
             rows += s_rows

@@ -11,6 +11,7 @@ import os
 from collections.abc import Callable, Iterator, Sequence
 from typing import TypeVar
 
+AUTO_MIN_SIGNAL_S = 600.0  # below this much signal in all, "every core" stays in this process: starting workers costs more
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -23,22 +24,28 @@ def cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def workers(jobs: int | None, items: int) -> int:
-    """How many processes ``jobs`` means for ``items`` tasks: None or 0 every core, never more than the tasks."""
+def workers(jobs: int | None, items: int, signal_s: float | None = None) -> int:
+    """How many processes ``jobs`` means for ``items`` tasks: None or 0 every core, never more than the tasks.
+
+    ``signal_s``: seconds of signal in all the tasks; with less than :data:`AUTO_MIN_SIGNAL_S`, None or 0 means 1
+    (a worker takes about half a second to start; replay runs at hundreds of times real time).
+    """
     if jobs is not None and jobs < 0:
         raise ValueError(f"jobs: must be >= 0, got {jobs}")
+    if not jobs and signal_s is not None and signal_s < AUTO_MIN_SIGNAL_S:
+        return 1
     return max(1, min(jobs or cores(), items))
 
 
 def map_files(fn: Callable[[T], R], items: Sequence[T], jobs: int | None = None,
-              done: Callable[[int, int], None] | None = None) -> Iterator[R]:
+              done: Callable[[int, int], None] | None = None, signal_s: float | None = None) -> Iterator[R]:
     """``fn(item)`` for every item, yielded in order as soon as each and those before it are ready.
 
     ``fn`` must be a module-level function (it is sent to the workers by name). ``jobs``: processes (None or 0:
     every core). ``done(finished, total)`` is called after each result. An exception in ``fn`` is raised here,
-    at its item, after the results before it.
+    at its item, after the results before it. ``signal_s``: see :func:`workers`.
     """
-    n = workers(jobs, len(items))
+    n = workers(jobs, len(items), signal_s)
     if n == 1:
         results: Iterator[R] = (fn(item) for item in items)
     else:

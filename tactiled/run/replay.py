@@ -122,7 +122,7 @@ def replay_recording(rec: Recording, config: Config, model: Any | None, *, block
 def replay_all(recs: Sequence[Recording], config: Config, model: Any | None, jobs: int | None = None,
                done: Callable[[int, int], None] | None = None) -> Iterator[list[SlideResult]]:
     """:func:`replay_recording` of every recording, spread over ``jobs`` processes (None: every core), in order."""
-    return map_files(_replay_task, [(rec, config, model) for rec in recs], jobs, done)
+    return map_files(_replay_task, [(rec, config, model) for rec in recs], jobs, done, signal_s=sum(r.samples.shape[0] / r.fs for r in recs))
 
 
 def _replay_task(task: tuple[Recording, Config, Any]) -> list[SlideResult]:
