@@ -8,6 +8,7 @@ namespace has no interface but ``lo`` (the script refuses to run otherwise).
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import subprocess
@@ -34,45 +35,80 @@ def in_private_netns(kind: str, folder: Path) -> dict[str, Any]:
     return out
 
 
-def expected(out: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(volts (n, 2), valid (n,), host index) of the batches sent after the consumer was connected."""
-    volts = np.array(out["counts"], dtype=np.float64) * out["vpc"]
-    valid = np.ones(len(volts), dtype=bool)
-    for p, c in out["lost"]:
-        valid[p:p + c] = False
-    return volts, valid, out["first"] + np.arange(len(volts))
+def expected(out: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(volts (n, 2), valid (n,), sensor index (n,), host monotonic time (n,)) of every row sent, in order."""
+    counts = np.array(out["counts"], dtype=np.float64)
+    volts, valid, index, mono = [], [], [], []
+    for (first, n, lost, _), sent in zip(out["batches"], out["sent"], strict=True):
+        ok = np.ones(n, dtype=bool)
+        for p, c in lost:
+            ok[p:p + c] = False
+        volts.append(counts[first:first + n] * out["vpc"])
+        valid.append(ok)
+        index.append(first + np.arange(n))
+        mono.append(sent["index_mono"] + np.arange(n) / sent["fs_clock"])
+    return np.concatenate(volts), np.concatenate(valid), np.concatenate(index), np.concatenate(mono)
 
 
-def test_lsl_outlets_carry_every_intact_sample_and_label_with_mapped_times(tmp_path: Path) -> None:
+def lost_expected(out: dict[str, Any]) -> list[tuple[int, int]]:
+    ranges = []
+    for first, _, lost, lost_before in out["batches"]:
+        if lost_before:
+            ranges.append((first - lost_before, lost_before))
+        ranges += [(first + p, c) for p, c in lost]
+    return ranges
+
+
+def test_lsl_outlets_exist_from_start_up_carry_every_intact_sample_with_increasing_times_and_mark_every_loss(tmp_path: Path) -> None:
     pytest.importorskip("pylsl", reason="pylsl (tactiled[lsl]) does not import here")
     out = in_private_netns("lsl", tmp_path)
     got = out["got"]
+    assert got["resolved_before_samples"]  # both outlets resolved and opened before the first samples were sent
     assert (got["channels"], got["nominal"], got["type"]) == (2, 20_000.0, "Tactile")
-    assert got["labels"] == [["film1", "volts"], ["film2", "volts"]]
-    volts, valid, index = expected(out)
+    assert got["labels"] == [["film1", "volts", repr(out["vpc"])], ["film2", "volts", repr(out["vpc"])]]
+    assert got["acquisition"] == {"manufacturer": "tactiled", "sensor_id": "tip7", "fs_firmware": "20000.0",
+                                  "volts_per_count": repr(out["vpc"]), "model_fingerprint": "abc123"}
+    volts, valid, _, mono = expected(out)
     assert np.allclose(np.array(got["values"]), volts[valid], rtol=1e-6, atol=0)  # float32 of the volts, lost ones not pushed
-    assert np.allclose(got["stamps"], out["base"] + index[valid] / out["fs"], rtol=0, atol=1e-6)  # the daemon's host times
+    stamps = np.array(got["stamps"])
+    assert np.allclose(stamps, mono[valid], rtol=0, atol=1e-6)  # the daemon's host times
+    assert np.diff(stamps).min() > 0  # increasing, the first read 31.8 ms late notwithstanding
     markers = [(json.loads(m), t) for m, t in got["markers"]]
-    assert [(m["label"], m["final"], m["reason"]) for m, _ in markers] == [("Ra1.00", False, None), ("Ra1.18", True, None),
-                                                                          (None, True, "low_confidence")]
-    assert all(abs(t - (out["base"] + 2000 / out["fs"])) < 1e-6 for _, t in markers)  # stamped at the slide's stop
+    lost = [(m["index"], m["count"]) for m, _ in markers if m["event"] == "lost"]
+    assert lost == lost_expected(out)
+    labels = [m for m, _ in markers if m["event"] == "roughness"]
+    assert [(m["label"], m["final"], m["reason"], m["model"]) for m in labels] == [("Ra1.00", False, None, "m"), ("Ra1.18", True, None, "m"),
+                                                                                    (None, True, "low_confidence", "m")]
+    assert all(abs(t - out["stop_mono"]) < 1e-6 for m, t in markers if m["event"] == "roughness")  # stamped at the slide's stop
 
 
-def test_ros2_bridge_publishes_labels_diagnostics_and_stamped_samples(tmp_path: Path) -> None:
+def test_ros2_bridge_takes_ros_args_and_publishes_self_stamped_samples_and_json(tmp_path: Path) -> None:
     pytest.importorskip("rclpy", reason="the ROS 2 Jazzy wheels (tactiled[ros2]) do not import here")
     out = in_private_netns("ros2", tmp_path)
     got = out["got"]
-    volts, valid, index = expected(out)
-    n = out["n"]
-    arrays = got["samples"][-(len(volts) // n):]
-    stamps = got["stamp"][-(len(volts) // n):]
-    assert [s[0] for s in stamps] == [str(i) for i in range(out["first"], out["first"] + len(volts), n)]
-    assert np.allclose([s[1] for s in stamps], 1.7e9 + index[::n] / out["fs"], rtol=0, atol=2e-6)
-    assert all(dims == [["samples", n, 2 * n], ["films", 2, 2]] for dims, _ in arrays)
-    data = np.concatenate([np.array(d, dtype=np.float64).reshape(n, 2) for _, d in arrays])
-    assert np.isnan(data[~valid]).all() and np.allclose(data[valid], volts[valid], rtol=1e-6, atol=0)
+    assert out["sink"] == {"sensor": "tip7", "endpoint": f"ipc://{tmp_path}/pub", "frame_id": "tip_link"}  # -p parameters
+    assert got["publishers_before_samples"] == [1]  # under the remapped namespace /robot1, before any samples
+    volts, valid, index, _ = expected(out)
+    by_index = {s["index"][0]: s for s in got["samples"]}
+    assert len(by_index) >= len(out["batches"]) - 2  # sensor-data QoS is best effort: a message may be lost, none here in practice
+    for (first, n, lost, _), sent in zip(out["batches"], out["sent"], strict=True):
+        s = by_index.get(first)
+        if s is None:
+            continue
+        assert s["frame"] == "tip_link" and s["width"] == n and s["dense"] is (not lost)
+        assert s["fields"] == [["film1", 0, 7], ["film2", 4, 7], ["t", 8, 7], ["index", 12, 8]]
+        assert abs(s["stamp"] - sent["index_unix"]) < 2e-6  # its own stamp: the daemon's unix time of its first row
+        assert s["index"] == list(range(first, first + n))
+        assert np.allclose(s["t"], np.arange(n) / sent["fs_clock"], rtol=0, atol=1e-7)
+        rows = (index >= first) & (index < first + n)
+        data = np.column_stack([s["film1"], s["film2"]])
+        assert np.isnan(data[~valid[rows]]).all() and np.allclose(data[valid[rows]], volts[rows][valid[rows]], rtol=1e-6, atol=0)
+    stamps = [by_index[k]["stamp"] for k in sorted(by_index)]
+    assert all(b > a for a, b in itertools.pairwise(stamps))
     assert got["label"] == ["Ra1.18", ""]  # final labels only; "" when abstaining
-    assert [(lvl, msg, kv["final"]) for lvl, msg, kv in got["detail"]] == [(0, "Ra1.00", "False"), (0, "Ra1.18", "True"),
-                                                                           (1, "low_confidence", "True")]
-    name, message, values = got["diag"][0][0]
-    assert (name, message, values["state"]) == ("tactiled/tip7", "idle", "idle")
+    assert [(j["label"], j["final"], j["reason"], j["top"]) for j in got["json"]] == [
+        ("Ra1.00", False, None, [["Ra1.18", 0.8]]), ("Ra1.18", True, None, [["Ra1.18", 0.8]]), (None, True, "low_confidence", [["Ra1.18", 0.8]])]
+    assert abs(got["json"][1]["stop_unix"] - out["stop_unix"]) < 2e-6
+    assert got["status"][-1]["state"] == "idle" and got["status"][-1]["level"] == [0.01, 0.02]
+    name, message, values = got["diag"][-1][0]
+    assert (name, message, values["state"], values["level"], values["clock_index"]) == ("tactiled/tip7", "idle", "idle", "[0.01, 0.02]", "null")

@@ -375,34 +375,16 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     return run_monitor(endpoint, args.truth)
 
 
-def _bridge(args: argparse.Namespace, make_sink: Callable[[str], object]) -> int:
-    import signal
-    import threading
-
-    from tactiled.apps.bridges import run_bridge
-
-    config = _config(args)
-    endpoint = args.connect or config.publish.endpoint
-    sensor = args.sensor_id or config.sensor.id
-    sink = make_sink(sensor)
-    stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
-    print(f"tactiled: {args.command} bridge for sensor {sensor} from {endpoint}", file=sys.stderr, flush=True)
-    run_bridge(endpoint, sink, stop, sensor)  # type: ignore[arg-type]
-    return EXIT_OK
-
-
 def cmd_lsl(args: argparse.Namespace) -> int:
-    from tactiled.apps.bridges.lsl import LslSink
+    from tactiled.apps.bridges import serve
 
-    return _bridge(args, LslSink)
+    return serve("lsl", _config(args), args.connect, args.sensor_id, nan_lost=args.nan_lost)
 
 
 def cmd_ros2(args: argparse.Namespace) -> int:
-    from tactiled.apps.bridges.ros2 import Ros2Sink
+    from tactiled.apps.bridges import serve
 
-    return _bridge(args, Ros2Sink)
+    return serve("ros2", _config(args), args.connect, args.sensor_id, ros_args=args.ros_args)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -611,7 +593,7 @@ EXAMPLES: dict[str, str] = {
     "curve-keys": "tactiled curve-keys keys/ daemon",
     "monitor": "tactiled monitor --connect tcp://127.0.0.1:7350",
     "lsl": "tactiled lsl --connect tcp://127.0.0.1:7350",
-    "ros2": "tactiled ros2 --connect tcp://127.0.0.1:7350 --sensor-id fingertip0",
+    "ros2": "tactiled ros2 --connect tcp://127.0.0.1:7350 --sensor-id fingertip0 --ros-args -r __ns:=/robot1",
     "demo": "tactiled demo --scene robot",
     "replay": "tactiled replay --model my_model.npz data/sim/hand_Ra0.44_00.npz",
     "features": "tactiled features data/sim/*.npz -o features.npz",
@@ -735,6 +717,13 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--connect", help=CONNECT_HELP)
         p.add_argument("--config", help=CONFIG_HELP)
         p.add_argument("--sensor-id", help="sensor to bridge (default: sensor.id of --config)")
+        if name == "lsl":
+            p.add_argument("--nan-lost", action="store_true", help="push lost samples as NaN rows (a regular stream); each lost range "
+                                                                   "is a marker either way")
+        else:
+            p.add_argument("--ros-args", nargs=argparse.REMAINDER, default=None, metavar="ARG",
+                           help="the rest goes to ROS: -r __ns:=/robot1, -r __node:=NAME, -r FROM:=TO, -p endpoint:=…, -p sensor_id:=…, "
+                                "-p frame_id:=…, --params-file F (docs/integrations.md)")
         p.set_defaults(handler=handler)
 
     p = sub.add_parser("demo", help="simulated sensor + daemon + monitor")

@@ -1,17 +1,30 @@
 """Bridges from a daemon's ZeroMQ topics to other middleware (ROS 2, LSL).
 
 A bridge is a :class:`Sink` fed by :func:`run_bridge`, which subscribes to a daemon (or to
-``tactiled replay --publish``) and hands every samples, roughness and status message to it.
-The sinks take the messages' own fields, host times included (docs/messages.md), so they
-never rebuild a message body. Their heavy imports live in their own modules.
+``tactiled replay --publish``) and hands every samples, roughness and status message of one
+sensor to it. The sinks take the messages' own fields, host times included (docs/messages.md),
+so they never rebuild a message body. Their heavy imports live in their own modules.
+
+:func:`run_bridge` also says, in one line each, what a user would otherwise wait for in silence:
+a sensor id the daemon does not publish (an error: exit 2), nothing at all from the endpoint,
+and status without samples (the daemon runs without ``--samples``).
 """
 
 from __future__ import annotations
 
+import json
+import sys
 import threading
-from typing import Protocol
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Samples, Status
+
+from tactiled.errors import TactiledError
+
+PATIENCE_S = 3.0  # six status intervals of the daemon: long enough to know what it publishes
 
 
 class Sink(Protocol):
@@ -26,23 +39,84 @@ class Sink(Protocol):
     def close(self) -> None: ...
 
 
-def run_bridge(endpoint: str, sink: Sink, stop: threading.Event, sensor: str | None = None, poll_s: float = 0.2) -> int:
-    """Forward messages from ``endpoint`` to ``sink`` until ``stop`` is set; returns how many were forwarded."""
+@dataclass
+class StreamMeta:
+    """What a bridge announces before any samples arrive: from the config, then from the daemon's first status."""
+
+    sensor: str
+    channels: int
+    fs: float  # the board's (firmware) nominal rate, Hz
+    volts_per_count: float  # ADC scale, V per count
+    model: str = ""  # fingerprint of the daemon's model ("" unknown: no status yet)
+    version: str = ""  # the daemon's tactiled version
+
+
+def _say(line: str) -> None:
+    print(f"tactiled: {line}", file=sys.stderr, flush=True)
+
+
+def first_status(endpoint: str, sensor: str, timeout: float) -> Status | None:
+    """The first status message of ``sensor`` within ``timeout`` s, or None (no daemon, or not that sensor)."""
+    deadline = time.monotonic() + timeout
+    with BlockingSubscriber(endpoint, topics=["status"]) as sub:
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                msg = sub.receive(timeout=left)
+            except NoData:
+                return None
+            if isinstance(msg, Status) and msg.sensor == sensor:
+                return msg
+    return None
+
+
+def run_bridge(endpoint: str, sink: Sink, stop: threading.Event, sensor: str | None = None, poll_s: float = 0.2,
+               patience_s: float = PATIENCE_S, say: Callable[[str], None] = _say, raw_name: str = "raw samples") -> int:
+    """Forward ``sensor``'s messages (every sensor's when None) from ``endpoint`` to ``sink`` until ``stop`` is set.
+
+    Returns how many were forwarded. After ``patience_s`` s: raises :class:`TactiledError` if only
+    other sensors were heard (a wrong ``--sensor-id``), says once if nothing was heard, and says
+    once if status came but no samples (``raw_name`` stays empty).
+    """
     forwarded = 0
-    with BlockingSubscriber(endpoint, topics=["samples", "roughness", "status"], sensor=sensor) as sub:
+    started = time.monotonic()
+    others: set[str] = set()
+    ours_at: float | None = None  # when the first message of the sensor came
+    samples_seen = heard_any = said_silent = said_no_samples = False
+    with BlockingSubscriber(endpoint, topics=["samples", "roughness", "status"]) as sub:
         try:
             while not stop.is_set():
                 try:
                     msg = sub.receive(timeout=poll_s)
                 except NoData:
+                    msg = None
+                if msg is not None:
+                    heard_any = True
+                    if sensor is not None and msg.sensor != sensor:
+                        others.add(msg.sensor)
+                        msg = None
+                if msg is not None:
+                    ours_at = ours_at or time.monotonic()
+                    if isinstance(msg, Samples):
+                        samples_seen = True
+                        sink.samples(msg)
+                    elif isinstance(msg, Roughness):
+                        sink.roughness(msg)
+                    elif isinstance(msg, Status):
+                        sink.status(msg)
+                    forwarded += 1
+                now = time.monotonic()
+                if now - started < patience_s:
                     continue
-                if isinstance(msg, Samples):
-                    sink.samples(msg)
-                elif isinstance(msg, Roughness):
-                    sink.roughness(msg)
-                elif isinstance(msg, Status):
-                    sink.status(msg)
-                forwarded += 1
+                if ours_at is None and others:
+                    raise TactiledError(f"{endpoint} publishes sensor {', '.join(sorted(others))}, not {sensor!r}: nothing to bridge "
+                                        "(--sensor-id, or sensor.id of --config)")
+                if not heard_any and not said_silent:
+                    say(f"nothing from {endpoint} in {patience_s:g} s; waiting (is a daemon or tactiled replay --publish there?)")
+                    said_silent = True
+                if ours_at is not None and now - ours_at >= patience_s and not samples_seen and not said_no_samples:
+                    say(f"sensor {sensor or '(any)'}: status and labels but no samples in {patience_s:g} s: the {raw_name} stay empty "
+                        "until the daemon publishes them (tactiled run --samples, or publish.samples = true)")
+                    said_no_samples = True
         finally:
             sink.close()
     return forwarded
@@ -55,3 +129,50 @@ def volts(msg: Samples) -> tuple[object, object, object]:
     v = (msg.counts().astype(np.float64) * msg.volts_per_count).astype(np.float32)
     t = None if msg.index_mono is None else msg.index_mono + np.arange(msg.n) / (msg.fs_clock or msg.fs)
     return v, msg.valid(), t
+
+
+def lost_ranges(msg: Samples) -> list[tuple[int, int]]:
+    """(first sensor index, count) of every sample lost in or just before ``msg``, in index order."""
+    out = [(msg.index - msg.lost_before, msg.lost_before)] if msg.lost_before else []
+    return out + [(msg.index + p, c) for p, c in msg.lost]
+
+
+def json_value(value: Any) -> str:
+    """A field as text for a key/value list: strings as they are, everything else as JSON (null, true, lists)."""
+    return value if isinstance(value, str) else json.dumps(value)
+
+
+def serve(kind: str, config: Any, connect: str | None = None, sensor_id: str | None = None, *, nan_lost: bool = False,
+          ros_args: list[str] | None = None, status_wait_s: float = 2.0) -> int:
+    """``tactiled lsl`` / ``tactiled ros2``: make the sink at once, then bridge until SIGTERM or SIGINT; returns the exit code (0).
+
+    ``config``: a :class:`tactiled.config.Config` (endpoint, sensor id, channels, rate and scale
+    before the daemon says otherwise). LSL waits up to ``status_wait_s`` for the daemon's first
+    status, for the model fingerprint in the stream description.
+    """
+    import signal
+
+    endpoint = connect or config.publish.endpoint
+    sensor = sensor_id or config.sensor.id
+    sink: Any
+    if kind == "lsl":
+        from tactiled.apps.bridges.lsl import LslSink
+
+        s = config.sensor
+        first = first_status(endpoint, sensor, status_wait_s)
+        meta = StreamMeta(sensor, s.channels, first.fs_nominal if first and first.fs_nominal else s.fs, s.volts_per_count,
+                          first.model if first else "", first.version if first else "")
+        sink = LslSink(meta, nan_lost=nan_lost)
+        raw_name = f"outlet tactiled-{sensor} (raw samples)"
+    else:
+        from tactiled.apps.bridges.ros2 import Ros2Sink
+
+        sink = Ros2Sink(sensor, endpoint, ros_args)
+        endpoint, sensor = sink.endpoint or endpoint, sink.sensor  # the node's parameters may say otherwise
+        raw_name = f"topic tactiled/{sensor}/samples"
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    _say(f"{kind} bridge for sensor {sensor} from {endpoint}")
+    run_bridge(endpoint, sink, stop, sensor, raw_name=raw_name)
+    return 0

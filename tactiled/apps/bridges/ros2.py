@@ -1,31 +1,47 @@
 """ROS 2 bridge (``tactiled ros2``, extra ``tactiled[ros2]``: the ros-jazzy-* wheels, no colcon build).
 
-Topics, for sensor ``<id>`` (standard message types only):
+One node, ``tactiled_<id>`` (remap with ``__node``), standard message types only. Topic names are
+relative, so ``--ros-args -r __ns:=/robot1`` moves them all and ``-r <name>:=<other>`` renames one;
+``/diagnostics`` is the ROS convention and stays absolute. For sensor ``<id>``:
 
-- ``/tactiled/<id>/roughness`` std_msgs/String: the final label ("" when abstaining);
-- ``/tactiled/<id>/roughness/detail`` diagnostic_msgs/DiagnosticStatus: every roughness message
-  (final and provisional), level OK with a label, WARN when abstaining (``message`` = the reason),
-  every field as a key/value;
-- ``/diagnostics`` diagnostic_msgs/DiagnosticArray: the status (OK connected/idle/sliding, ERROR
-  disconnected, STALE stopping), every field as a key/value, stamped now;
-- ``/tactiled/<id>/samples`` std_msgs/Float32MultiArray: each raw batch in volts, row-major
-  (dim 0 "samples" = n, dim 1 "films" = channels; lost samples NaN). Float32MultiArray has no
-  header, so each is preceded on ``/tactiled/<id>/samples/stamp`` by a std_msgs/Header whose
-  stamp is the host time (unix) of the batch's first sample from the daemon's clock mapping and
-  whose ``frame_id`` is that sample's index: pair them by order (both reliable, depth 100).
+- ``tactiled/<id>/samples`` sensor_msgs/PointCloud2 used as a typed table, one message per raw
+  batch (no x, y, z: not for rviz). ``header.stamp`` is the host (unix) time of the batch's
+  first row from the daemon's clock mapping (docs/messages.md; the node's clock now when the
+  daemon gives none), ``header.frame_id`` the ``frame_id`` parameter (default: the sensor id).
+  ``height`` 1, ``width`` n rows, one row per sample with fields ``film1`` … ``filmC`` (float32,
+  volts, NaN when lost: ``is_dense`` false), ``t`` (float32, s after ``header.stamp``) and
+  ``index`` (float64, the sensor sample index, exact below 2**53). :func:`table_dtype` is its numpy
+  dtype: ``np.frombuffer(msg.data, table_dtype(C))``. QoS: sensor data (best effort, depth 5).
+- ``tactiled/<id>/roughness`` std_msgs/String: the final label ("" when abstaining). Reliable, depth 10.
+- ``tactiled/<id>/roughness/json`` std_msgs/String: every roughness message (final and
+  provisional) as the JSON object of docs/messages.md (host times in ``start_unix`` …). Reliable, depth 10.
+- ``tactiled/<id>/status`` std_msgs/String: every status message as JSON. Reliable, depth 10.
+- ``/diagnostics`` diagnostic_msgs/DiagnosticArray, stamped now: the status as a DiagnosticStatus
+  (OK connected/idle/sliding, ERROR disconnected, STALE stopping), every field a key/value whose
+  value is the string itself or JSON (``null``, ``[0.01, 0.02]``). Reliable, depth 10.
+
+Parameters (``-p name:=value``, or a params file): ``endpoint`` (the daemon's, default
+``--connect``), ``sensor_id`` (default ``--sensor-id``) and ``frame_id``.
 """
 
 from __future__ import annotations
 
+import array
+import contextlib
+import json
+import re
+import threading
 from typing import Any
 
 import numpy as np
 from tactiled_client import Roughness, Samples, Status, schema
 
-from tactiled.apps.bridges import volts
+from tactiled.apps.bridges import json_value, volts
+from tactiled.errors import TactiledError
 from tactiled.extras import need
 
 LEVEL = {schema.STATE_DISCONNECTED: 2, schema.STATE_STOPPING: 3}  # DiagnosticStatus ERROR, STALE; others OK
+FLOAT32, FLOAT64 = 7, 8  # sensor_msgs/PointField datatypes
 
 
 def stamp(unix: float | None, now: Any) -> Any:
@@ -37,63 +53,109 @@ def stamp(unix: float | None, now: Any) -> Any:
     return time_cls(sec=sec, nanosec=min(round((unix - sec) * 1e9), 999_999_999))
 
 
-def key_values(kv_cls: Any, body: dict[str, Any]) -> list[Any]:
-    return [kv_cls(key=k, value=str(v)) for k, v in body.items() if k not in ("data",)]
+def table_dtype(channels: int) -> np.dtype[Any]:
+    """The numpy dtype of one row of a samples PointCloud2: film1 … filmC (<f4), t (<f4), index (<f8); packed, 4 C + 12 bytes."""
+    return np.dtype([*((f"film{k + 1}", "<f4") for k in range(channels)), ("t", "<f4"), ("index", "<f8")])
+
+
+def samples_table(msg: Samples) -> tuple[bytes, float | None, bool]:
+    """(rows as bytes of :func:`table_dtype`, unix time of row 0 or None, no row lost) of a samples message."""
+    v, valid, _ = volts(msg)
+    assert isinstance(v, np.ndarray) and isinstance(valid, np.ndarray)
+    rows = np.zeros(msg.n, dtype=table_dtype(msg.channels))
+    for k in range(msg.channels):
+        rows[f"film{k + 1}"] = np.where(valid, v[:, k], np.float32(np.nan))
+    rows["t"] = np.arange(msg.n) / (msg.fs_clock or msg.fs)
+    rows["index"] = msg.index + np.arange(msg.n, dtype=np.float64)
+    return rows.tobytes(), msg.index_unix, bool(valid.all())
+
+
+def status_values(msg: Status) -> list[tuple[str, str]]:
+    """(key, value) of every status field for a DiagnosticStatus: strings as they are, the rest as JSON."""
+    return [(k, json_value(v)) for k, v in msg.to_map().items()]
+
+
+def node_name(sensor: str) -> str:
+    """``tactiled_<id>`` with every character a ROS name may not hold replaced by ``_``."""
+    return re.sub(r"[^A-Za-z0-9_]", "_", f"tactiled_{sensor}")
 
 
 class Ros2Sink:
-    """One rclpy node ``tactiled_<id>``; call :meth:`spin_once` or let the publishers run (they need no spinning)."""
+    """One rclpy node spun in a thread (parameters, introspection); publishing needs no spinning."""
 
-    def __init__(self, sensor: str, node_name: str | None = None) -> None:
+    def __init__(self, sensor: str, endpoint: str = "", ros_args: list[str] | None = None) -> None:
+        """``ros_args``: what followed ``--ros-args`` on the command line (remapping, namespace, parameters)."""
         self.rclpy: Any = need("rclpy", "ros2")
         std = need("std_msgs.msg", "ros2")
         diag = need("diagnostic_msgs.msg", "ros2")
-        self.String, self.Float32MultiArray, self.MultiArrayDimension, self.Header = (std.String, std.Float32MultiArray,
-                                                                                    std.MultiArrayDimension, std.Header)
+        sensor_msgs = need("sensor_msgs.msg", "ros2")
+        qos = need("rclpy.qos", "ros2")
+        executors = need("rclpy.executors", "ros2")
+        self.String = std.String
+        self.PointCloud2, self.PointField = sensor_msgs.PointCloud2, sensor_msgs.PointField
         self.DiagnosticStatus, self.DiagnosticArray, self.KeyValue = diag.DiagnosticStatus, diag.DiagnosticArray, diag.KeyValue
         self._owns_rclpy = not self.rclpy.ok()
         if self._owns_rclpy:
-            self.rclpy.init()
-        self.node = self.rclpy.create_node(node_name or f"tactiled_{sensor}")
-        base = f"/tactiled/{sensor}"
-        self.sensor = sensor
+            signals = need("rclpy.signals", "ros2")
+            args = ["tactiled", "--ros-args", *ros_args] if ros_args else None
+            bad = need("rclpy._rclpy_pybind11", "ros2")
+            try:
+                self.rclpy.init(args=args, signal_handler_options=signals.SignalHandlerOptions.NO)  # SIGINT/SIGTERM stop the bridge
+            except (bad.UnknownROSArgsError, bad.RCLInvalidROSArgsError) as exc:
+                raise TactiledError(f"--ros-args {' '.join(ros_args or [])}: ROS does not take them: {str(exc).splitlines()[0]}") from None
+        self.node = self.rclpy.create_node(node_name(sensor))
+        self.endpoint = str(self.node.declare_parameter("endpoint", endpoint).value)
+        self.sensor = str(self.node.declare_parameter("sensor_id", sensor).value)
+        self.frame_id = str(self.node.declare_parameter("frame_id", self.sensor).value)
+        base = f"tactiled/{self.sensor}"
         self.pub_label = self.node.create_publisher(self.String, f"{base}/roughness", 10)
-        self.pub_detail = self.node.create_publisher(self.DiagnosticStatus, f"{base}/roughness/detail", 10)
+        self.pub_json = self.node.create_publisher(self.String, f"{base}/roughness/json", 10)
+        self.pub_status = self.node.create_publisher(self.String, f"{base}/status", 10)
         self.pub_diag = self.node.create_publisher(self.DiagnosticArray, "/diagnostics", 10)
-        self.pub_samples = self.node.create_publisher(self.Float32MultiArray, f"{base}/samples", 100)
-        self.pub_stamp = self.node.create_publisher(self.Header, f"{base}/samples/stamp", 100)
+        self.pub_samples = self.node.create_publisher(self.PointCloud2, f"{base}/samples", qos.qos_profile_sensor_data)
+        self._fields: list[Any] = []
+        self.executor = executors.SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self._spin = threading.Thread(target=self._spin_until_shutdown, name="ros2-spin", daemon=True)
+        self._spin.start()
+
+    def _spin_until_shutdown(self) -> None:
+        ex = need("rclpy.executors", "ros2")
+        with contextlib.suppress(ex.ExternalShutdownException):
+            self.executor.spin()
 
     def _now(self) -> Any:
         return self.node.get_clock().now().to_msg()
 
     def samples(self, msg: Samples) -> None:
-        v, valid, _ = volts(msg)
-        assert isinstance(v, np.ndarray) and isinstance(valid, np.ndarray)
-        v[~valid] = np.nan
-        self.pub_stamp.publish(self.Header(stamp=stamp(msg.index_unix, self._now()), frame_id=str(msg.index)))
-        arr = self.Float32MultiArray()
-        arr.layout.dim = [self.MultiArrayDimension(label="samples", size=msg.n, stride=msg.n * msg.channels),
-                          self.MultiArrayDimension(label="films", size=msg.channels, stride=msg.channels)]
-        arr.data = v.ravel().tolist()
-        self.pub_samples.publish(arr)
+        data, unix, dense = samples_table(msg)
+        if len(self._fields) != msg.channels + 2:
+            names = [f"film{k + 1}" for k in range(msg.channels)] + ["t"]
+            self._fields = [self.PointField(name=n, offset=4 * k, datatype=FLOAT32, count=1) for k, n in enumerate(names)]
+            self._fields.append(self.PointField(name="index", offset=4 * len(names), datatype=FLOAT64, count=1))
+        cloud = self.PointCloud2(height=1, width=msg.n, fields=self._fields, is_bigendian=False, point_step=4 * msg.channels + 12,
+                                 row_step=(4 * msg.channels + 12) * msg.n, is_dense=dense)
+        cloud.header.stamp = stamp(unix, self._now())
+        cloud.header.frame_id = self.frame_id
+        cloud.data = array.array("B", data)
+        self.pub_samples.publish(cloud)
 
     def roughness(self, msg: Roughness) -> None:
         if msg.final:
             self.pub_label.publish(self.String(data=msg.label or ""))
-        status = self.DiagnosticStatus(level=bytes([0 if msg.label else 1]), name=f"tactiled/{self.sensor}/roughness",
-                                       message=msg.label or msg.reason or "", hardware_id=self.sensor,
-                                       values=key_values(self.KeyValue, msg.to_map()))
-        self.pub_detail.publish(status)
+        self.pub_json.publish(self.String(data=json.dumps(msg.to_map())))
 
     def status(self, msg: Status) -> None:
-        level = LEVEL.get(msg.state, 0)
-        st = self.DiagnosticStatus(level=bytes([level]), name=f"tactiled/{self.sensor}", message=msg.state, hardware_id=self.sensor,
-                                   values=key_values(self.KeyValue, msg.to_map()))
+        self.pub_status.publish(self.String(data=json.dumps(msg.to_map())))
+        st = self.DiagnosticStatus(level=bytes([LEVEL.get(msg.state, 0)]), name=f"tactiled/{self.sensor}", message=msg.state,
+                                   hardware_id=self.sensor, values=[self.KeyValue(key=k, value=v) for k, v in status_values(msg)])
         arr = self.DiagnosticArray(status=[st])
         arr.header.stamp = self._now()
         self.pub_diag.publish(arr)
 
     def close(self) -> None:
+        self.executor.shutdown(timeout_sec=5.0)
+        self._spin.join(5.0)
         self.node.destroy_node()
         if self._owns_rclpy and self.rclpy.ok():
             self.rclpy.shutdown()
