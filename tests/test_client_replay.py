@@ -166,7 +166,10 @@ def test_tactiled_mcap_and_replay_json_replay_as_roughness_messages(tmp_path: Pa
     assert run_cli("export", str(path), "-o", str(tmp_path / "r.mcap")).returncode == 0
     with BlockingReplay(tmp_path / "r.mcap", speed=None) as rep:
         from_mcap = [m for m in rep if isinstance(m, Roughness)]
-    assert [(m.start, m.label) for m in from_mcap if m.final] == [(p["start"], p["label"]) for p in printed]  # MCAP: positions in the file
+    from tactiled.files.recording import load_recording
+
+    base = load_recording(path).first_index  # MCAP: sensor indices, as on the wire; replay --json: positions in the file
+    assert [(m.start, m.label) for m in from_mcap if m.final] == [(p["start"] + base, p["label"]) for p in printed]
 
 
 @pytest.fixture(scope="module")

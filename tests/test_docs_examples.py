@@ -54,6 +54,18 @@ def test_lsl_demo_runs_as_written(tmp_path: Path) -> None:
     assert m and int(m.group(1)) > 0, out
 
 
+def test_mcap_demo_runs_as_written(tmp_path: Path) -> None:
+    pytest.importorskip("mcap", reason="mcap (tactiled[mcap]) does not import here")
+    pytest.importorskip("rosbags", reason="rosbags (tactiled[ros2bag]) does not import here")
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    res = subprocess.run(["sh", str(EXAMPLES / "mcap_demo.sh"), str(tmp_path / "demo")], capture_output=True, text=True, timeout=300,
+                         cwd=tmp_path, env=env)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert re.search(r"slides.mcap: \d+ samples messages, 3 slides, \d+ roughness messages", res.stdout), res.stdout
+    assert re.search(r"slides_ros2.mcap: \d+ samples messages, 3 slides", res.stdout), res.stdout
+    assert len(re.findall(r"^/tactiled/fingertip0/roughness \d \d+ Ra[\d.]+ [\d.]+$", res.stdout, flags=re.M)) == 3, res.stdout
+
+
 def test_ros2_demo_runs_as_written(tmp_path: Path) -> None:
     pytest.importorskip("rclpy", reason="the ROS 2 Jazzy wheels (tactiled[ros2]) do not import here")
     out = run_demo("ros2_demo.sh", tmp_path)

@@ -5,12 +5,13 @@ from __future__ import annotations
 import json
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
 from mcap.reader import make_reader
 
-from tactiled.files.recording import Recording, save_recording
+from tactiled.files.recording import Recording, load_recording, save_recording
 from tactiled.service.mcap_export import read_mcap_samples
 from tactiled.sim.sensor_model import SensorModel, SimParams, default_surfaces, pick_surfaces, simulate_file
 from tactiled.sim.virtualboard import VirtualBoard
@@ -42,13 +43,22 @@ def test_export_round_trips_every_sample_slide_and_label(tmp_path: Path) -> None
         assert {c.message_encoding for c in summary.channels.values()} == {"json"}
         for _schema, channel, message in reader.iter_messages():
             by_topic.setdefault(channel.topic, []).append((message.log_time, json.loads(message.data)))
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}["tactiled.recording"]
     assert set(by_topic) == {"/tactiled/fingertip0/samples", "/tactiled/fingertip0/slides", "/tactiled/fingertip0/roughness"}
+    # one frame of reference: absolute sensor indices everywhere; log time is host time from the file's modification time
+    assert (meta["log_time_origin"], meta["first_index"], meta["fs"]) == ("file_mtime", "123456", repr(params.fs))
+    origin = (tmp_path / "r.npz").stat().st_mtime - len(rec.samples) / params.fs
+    assert by_topic["/tactiled/fingertip0/samples"][0] == (round(origin * 1e9), by_topic["/tactiled/fingertip0/samples"][0][1])
+    assert by_topic["/tactiled/fingertip0/samples"][0][1]["index"] == 123_456
     slides = by_topic["/tactiled/fingertip0/slides"]
-    assert [(b["start"], b["stop"], b["surface"]) for _, b in slides] == rec.slides()
-    assert slides[0][0] == round((123_456 + rec.slides()[0][0]) / params.fs * 1e9)
+    assert [(b["start"] - 123_456, b["stop"] - 123_456, b["surface"]) for _, b in slides] == rec.slides()
+    assert slides[0][0] == round(origin * 1e9) + round(rec.slides()[0][0] * 1e9 / params.fs)
     labels = [b for _, b in by_topic["/tactiled/fingertip0/roughness"]]
     finals = [b for b in labels if b["final"]]  # and the provisional labels given while each slide went on
     assert len(finals) == 3 and sum(b["label"] == "Ra2.29" for b in finals) >= 2
+    truth = [(a + 123_456, b + 123_456) for a, b, _ in rec.slides()]
+    assert all(any(a <= f["start"] < b for a, b in truth) for f in finals)  # the same index base as the samples and the slides
+    assert all(f["t_start"] == f["start"] / params.fs and f["model"] for f in finals)
     assert all(b["used_s"] < (b["stop"] - b["start"]) / params.fs + 1e-9 for b in labels if not b["final"])
     assert f"{res.stdout}".strip().endswith(f"3 slides, {len(labels)} roughness messages")
 
@@ -58,19 +68,29 @@ def test_record_format_mcap(tmp_path: Path) -> None:
     board = VirtualBoard(SensorModel(SimParams(), seed=2), default_surfaces()[:2], link=link, speed=2.0, seed=2)
     board.open()
     stop = threading.Event()
-    proc = subprocess.Popen(tactiled_cmd("record", "--port", link, "--seconds", "1", "--format", "mcap", "-o", str(tmp_path / "r.mcap")),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(tactiled_cmd("record", "--port", link, "--seconds", "8", "--format", "mcap", "--label", "Ra0.44",
+                                         "-o", str(tmp_path / "r.mcap")), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
     thread.start()
     try:
-        _, err = proc.communicate(timeout=60)
+        out, err = proc.communicate(timeout=60)
     finally:
         stop.set()
         thread.join(10)
     assert proc.returncode == 0, err
-    volts, valid, _, _ = read_mcap_samples(tmp_path / "r.mcap")
-    assert volts.shape == (20_000, 2) and valid.all() and np.abs(volts).max() > 0
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.mcap", "tty"]  # the intermediate .npz is gone
+    volts, valid, first, _ = read_mcap_samples(tmp_path / "r.mcap")
+    assert volts.shape == (160_000, 2) and valid.all() and np.abs(volts).max() > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.mcap", "r.npz", "tty"] and "the recording stays in" in out  # both kept
+    rec = load_recording(tmp_path / "r.npz")
+    assert rec.label == "Ra0.44" and np.array_equal(np.rint(volts / rec.volts_per_count).astype(np.int16), rec.samples)
+    with open(tmp_path / "r.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}["tactiled.recording"]
+        labels = [(m.log_time, json.loads(m.data)) for _, c, m in reader.iter_messages(topics=["/tactiled/fingertip0/roughness"])]
+    assert meta["label"] == "Ra0.44" and meta["log_time_origin"] == "recorded_at" and json.loads(meta["meta"])["port"] == link
+    assert labels and all(b["reason"] != "no_model" and b["model"] for _, b in labels)  # labelled by the shipped model
+    assert all(b["start"] >= first for _, b in labels)
+    assert abs(labels[0][0] / 1e9 - time.time()) < 120  # host time, not sensor time from 1970
 
 
 def test_export_marks_a_thousand_lost_ranges_exactly(tmp_path: Path) -> None:

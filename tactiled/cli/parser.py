@@ -48,12 +48,15 @@ def cmd_record(args: argparse.Namespace) -> int:
                             "sensor.channels": args.channels})
     if args.seconds <= 0:
         raise TactiledError("--seconds: must be > 0")
-    # --format mcap: record the .npz as usual beside the output, then convert it (the same as tactiled export)
-    npz = args.output if args.format == "npz" else f"{args.output}.npz"
+    # --format mcap: record the .npz as usual beside the output (kept: the recording itself), then convert it as tactiled export does
+    npz = args.output if args.format == "npz" else str(Path(args.output).with_suffix(".npz"))
     if args.format == "mcap":
         from tactiled.service.record import check_output
 
+        if Path(npz).resolve() == Path(args.output).resolve():
+            raise TactiledError(f"{args.output}: --format mcap writes the recording beside it as .npz; name the output .mcap")
         check_output(args.output, args.force)
+        check_output(npz, args.force)
     summary = record(config.sensor.port, args.seconds, npz, fs=config.sensor.fs, channels=config.sensor.channels,
                      volts_per_count=config.sensor.volts_per_count, label=args.label, baudrate=config.sensor.baudrate,
                      retry_max_s=config.serial.retry_max_s, meta={"sensor": config.sensor.id}, force=args.force,
@@ -62,10 +65,9 @@ def cmd_record(args: argparse.Namespace) -> int:
         print(f"tactiled: error: {summary.error}", file=sys.stderr)
         return EXIT_FAIL
     if args.format == "mcap":
-        import os
-
-        _export(npz, args.output, config, None, explicit_model=True)
-        os.unlink(npz)
+        counts = _export(npz, args.output, config, args.model, explicit_model=args.no_model)
+        print(f"{args.output}: {summary.line()}; {counts['roughness']} roughness messages; the recording stays in {npz}")
+        return EXIT_OK
     print(f"{args.output}: {summary.line()}")
     return EXIT_OK
 
@@ -80,17 +82,23 @@ def cmd_recover(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _export(path: str, output: str, config: Config, model_path: str | None, explicit_model: bool, batch: int | None = None) -> dict[str, int]:
+def _export(path: str, output: str, config: Config, model_path: str | None, explicit_model: bool, batch: int | None = None,
+            profile: str = "json") -> dict[str, int]:
     """Recording ``path`` → MCAP ``output``, with the pipeline's results (by the model that fits, unless ``explicit_model`` and none given)."""
     from tactiled.files.recording import load_recording
     from tactiled.run.replay import replay_recording
-    from tactiled.service.mcap_export import BATCH, export_mcap
+    from tactiled.service.mcap_export import BATCH, ROS2_BATCH, export_mcap, export_ros2_mcap
 
+    if profile == "ros2":
+        from tactiled.extras import need
+
+        need("rosbags.typesys", "ros2bag")  # before the replay, not after it
     rec = load_recording(path)
     model = _model_for(model_path, rec.fs, rec.channels, path, explicit=explicit_model)
     results = replay_recording(rec, config, model)
-    return export_mcap(rec, output, sensor=str(rec.meta.get("sensor", config.sensor.id)), results=results,
-                       model=getattr(model, "fingerprint", ""), batch=batch or BATCH)
+    write, default = (export_ros2_mcap, ROS2_BATCH) if profile == "ros2" else (export_mcap, BATCH)
+    return write(rec, output, sensor=str(rec.meta.get("sensor", config.sensor.id)), results=results,
+                 model=getattr(model, "fingerprint", ""), batch=batch or default, source=path)
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -99,8 +107,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     if Path(args.output).resolve() == Path(args.file).resolve():
         raise TactiledError(f"{args.output}: is the recording being exported; write the MCAP file elsewhere")
     check_output(args.output, args.force)
-    counts = _export(args.file, args.output, _config(args), args.model, explicit_model=args.no_model, batch=args.batch)
-    print(f"{args.output}: {counts['samples']} samples, {counts['slides']} slides, {counts['roughness']} roughness messages")
+    counts = _export(args.file, args.output, _config(args), args.model, explicit_model=args.no_model, batch=args.batch, profile=args.profile)
+    print(f"{args.output}: {counts['samples']} samples messages, {counts['slides']} slides, {counts['roughness']} roughness messages")
     return EXIT_OK
 
 
@@ -622,7 +630,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fs", type=_positive_float, help="sample rate, Hz (overrides sensor.fs)")
     p.add_argument("--channels", type=_channels, help="channels (overrides sensor.channels)")
     p.add_argument("--volts-per-count", type=_positive_float, help="ADC scale, V per count (overrides sensor.volts_per_count)")
-    p.add_argument("--format", choices=("npz", "mcap"), default="npz", help="npz recording, or MCAP (converted at the end, as export)")
+    p.add_argument("--format", choices=("npz", "mcap"), default="npz",
+                   help="npz recording, or MCAP: the .npz is recorded beside it (same name, kept) and converted at the end, as export does")
+    p.add_argument("--model", help="with --format mcap: " + MODEL_HELP)
+    p.add_argument("--no-model", action="store_true", help="with --format mcap: slides only, no classification")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.set_defaults(handler=cmd_record)
 
@@ -638,7 +649,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--model", help=MODEL_HELP)
     p.add_argument("--no-model", action="store_true", help="slides only, no classification")
-    p.add_argument("--batch", type=_count, default=None, help="samples per message (default 20: one board frame)")
+    p.add_argument("--batch", type=_count, default=None, help="samples per message (default 20: one board frame; 500 with --profile ros2)")
+    p.add_argument("--profile", choices=("json", "ros2"), default="json",
+                   help="json: JSON messages for Foxglove and PlotJuggler; ros2: a ROS 2 bag (CDR, the topics of tactiled ros2) for ros2 bag "
+                        "play and rosbags (tactiled[ros2bag])")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.set_defaults(handler=cmd_export)
 

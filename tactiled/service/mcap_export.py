@@ -5,20 +5,28 @@ Channels, for sensor ``<id>``:
 - ``/tactiled/<id>/samples``: the raw samples in batches of ``batch`` rows: ``index``, ``n``,
   ``fs``, ``volts_per_count``, ``lost`` ([[position, count], ...] as on the samples topic),
   and ``film1`` … ``filmC`` (volts, lost samples 0.0);
-- ``/tactiled/<id>/slides``: the recording's ground-truth slides (``start``, ``stop`` as file
-  positions, ``t_start``, ``t_stop``, ``surface``, ``ra_um``);
+- ``/tactiled/<id>/slides``: the recording's ground-truth slides (``start``, ``stop``, ``t_start``,
+  ``t_stop``, ``surface``, ``ra_um``);
 - ``/tactiled/<id>/roughness``: the pipeline's results, one roughness message per slide (and
   provisional ones), built by :func:`tactiled_client.schema.roughness`.
 
-``log_time`` and ``publish_time`` are the sensor clock: sample position / fs, in ns (the file
-holds no host time); for samples the time of the batch's first row, for slides and labels
-the slide's onset.
+One frame of reference: every ``index``, ``start`` and ``stop`` is the sensor's absolute sample
+index (as on the wire: the recording's ``first_index`` plus the position in the file), and
+``t_start`` / ``t_stop`` are those indices / fs. ``log_time`` and ``publish_time`` are host wall
+time (unix ns) of the message's first sample (samples), the slide's onset (slides, labels): the
+recording's start (``recorded_at`` in its meta, to the second; a file without it, such as a
+simulated one: the time its last sample was written, the file's modification time less its
+duration) plus position / fs. The metadata record ``tactiled.recording`` says which origin was
+used and carries the recording's label, meta and scale.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+import os
+from collections.abc import Iterator, Sequence
+from dataclasses import replace
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -61,9 +69,49 @@ def json_schema(title: str, example: dict[str, Any], nullable: Sequence[str] = (
     return json.dumps({"title": title, "type": "object", "properties": props}).encode()
 
 
+def batches(n: int, lost: np.ndarray, batch: int) -> Iterator[tuple[int, int, list[list[int]]]]:
+    """(lo, hi, lost ranges inside as [[position from lo, count], ...]) of every batch of ``batch`` rows out of ``n``.
+
+    ``lost``: (k, 2) [[position, count], ...] in the file. One sweep, linear in batches + ranges.
+    """
+    lost = lost[np.argsort(lost[:, 0], kind="stable")] if len(lost) else lost
+    first = 0  # the first lost range that may still reach the current batch
+    for lo in range(0, n, batch):
+        hi = min(lo + batch, n)
+        while first < len(lost) and lost[first, 0] + lost[first, 1] <= lo:
+            first += 1
+        inside = []
+        for p, c in lost[first:]:
+            if p >= hi:
+                break
+            if p + c > lo:
+                inside.append([int(max(p, lo) - lo), int(min(p + c, hi) - max(p, lo))])
+        yield lo, hi, inside
+
+
+def host_origin(rec: Recording, source: str | Path | None = None) -> tuple[float, str]:
+    """(unix time of the recording's first sample, s; where it comes from): ``recorded_at``, else ``source``'s mtime less the duration, else 0."""
+    stamp = rec.meta.get("recorded_at")
+    if isinstance(stamp, str):
+        try:
+            return datetime.strptime(stamp, "%Y-%m-%dT%H:%M:%S%z").timestamp(), "recorded_at"
+        except ValueError:
+            pass  # not the recorder's format: the file's time instead
+    if source is not None:
+        try:
+            return os.stat(source).st_mtime - rec.samples.shape[0] / rec.fs, "file_mtime"
+        except OSError:
+            pass
+    return 0.0, "none"
+
+
 def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", results: Sequence[SlideResult] = (), model: str = "",
-                batch: int = BATCH) -> dict[str, int]:
-    """Write ``rec`` (and the pipeline's ``results``, positions in the file) to ``out``; returns messages per channel."""
+                batch: int = BATCH, source: str | Path | None = None) -> dict[str, int]:
+    """Write ``rec`` (and the pipeline's ``results``, positions in the file) to ``out``; returns messages per channel.
+
+    ``source``: the recording's file (its modification time is the host-time origin when the
+    recording has no ``recorded_at``).
+    """
     writer_mod = need("mcap.writer", "mcap")
     if batch < 1:
         raise TactiledError(f"--batch: must be >= 1, got {batch}")
@@ -74,12 +122,18 @@ def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", 
     lost = np.asarray(rec.lost, dtype=np.int64).reshape(-1, 2)
     counts = {"samples": 0, "slides": 0, "roughness": 0}
 
+    origin, origin_kind = host_origin(rec, source)
+
     def ns(position: int) -> int:
-        return round((rec.first_index + position) / rec.fs * 1e9)
+        return round(origin * 1e9) + round(position * 1e9 / rec.fs)  # in two parts: a float of unix ns has a 256 ns grain
 
     with open(out, "wb") as fh:
         writer = writer_mod.Writer(fh, compression=writer_mod.CompressionType.ZSTD)
         writer.start(profile="", library=f"tactiled {__version__}")
+        writer.add_metadata("tactiled.recording", {
+            "sensor": sensor, "label": rec.label or "", "fs": repr(rec.fs), "channels": str(channels), "volts_per_count": repr(rec.volts_per_count),
+            "first_index": str(rec.first_index), "model": model, "log_time_origin": origin_kind, "log_time_origin_unix": repr(origin),
+            "meta": json.dumps(rec.meta, default=str)})
         film = [f"film{k + 1}" for k in range(channels)]
         example: dict[str, Any] = {"index": 0, "n": 0, "fs": 0.0, "volts_per_count": 0.0, "lost": [], **{f: [] for f in film}}
         chan = {
@@ -100,29 +154,20 @@ def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", 
             writer.add_message(chan[kind], log_time=t, publish_time=t, data=json.dumps(body).encode(), sequence=counts[kind])
             counts[kind] += 1
 
-        lost = lost[np.argsort(lost[:, 0], kind="stable")] if len(lost) else lost
-        first = 0  # the first lost range that may still reach the current batch: one sweep, linear in batches + ranges
-        for lo in range(0, n, batch):
-            hi = min(lo + batch, n)
-            while first < len(lost) and lost[first, 0] + lost[first, 1] <= lo:
-                first += 1
-            inside = []
-            for p, c in lost[first:]:
-                if p >= hi:
-                    break
-                if p + c > lo:
-                    inside.append([int(max(p, lo) - lo), int(min(p + c, hi) - max(p, lo))])
+        for lo, hi, inside in batches(n, lost, batch):
             body: dict[str, Any] = {"index": rec.first_index + lo, "n": hi - lo, "fs": rec.fs, "volts_per_count": rec.volts_per_count,
                                     "lost": inside}
             for k, name in enumerate(film):
                 body[name] = volts[lo:hi, k].tolist()
             put("samples", lo, body)
         ra = rec.ra_um.tolist() if rec.ra_um is not None else None
+        base = rec.first_index
         for k, (start, stop, surface) in enumerate(rec.slides()):
-            put("slides", start, {"start": start, "stop": stop, "t_start": start / rec.fs, "t_stop": stop / rec.fs, "surface": surface,
-                                  "ra_um": None if ra is None else ra[k]})
-        for r in results:
-            put("roughness", r.start, schema.roughness(sensor, r, fs=rec.fs, model=model, version=__version__).to_map())
+            put("slides", start, {"start": base + start, "stop": base + stop, "t_start": (base + start) / rec.fs, "t_stop": (base + stop) / rec.fs,
+                                  "surface": surface, "ra_um": None if ra is None else ra[k]})
+        for r in results:  # positions in the file -> sensor indices, as the daemon publishes them
+            at = replace(r, start=base + r.start, stop=base + r.stop, window=(base + r.window[0], base + r.window[1]))
+            put("roughness", r.start, schema.roughness(sensor, at, fs=rec.fs, model=r.model or model, version=__version__).to_map())
         writer.finish()
     return counts
 
@@ -149,3 +194,100 @@ def read_mcap_samples(path: str | Path) -> tuple[np.ndarray, np.ndarray, int, fl
     if not rows:
         raise TactiledError(f"{path}: no samples channel")
     return np.concatenate(rows), np.concatenate(valid), first, fs
+
+
+ROS2_BATCH = 500  # rows per PointCloud2 with --profile ros2 (25 ms at 20 kHz; the live bridge sends about 800)
+
+
+def export_ros2_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", results: Sequence[SlideResult] = (), model: str = "",
+                     batch: int = ROS2_BATCH, source: str | Path | None = None) -> dict[str, int]:
+    """Write ``rec`` as a ROS 2 bag in one MCAP file (profile ``ros2``, ``ros2msg`` schemas, CDR), the topics of ``tactiled ros2``.
+
+    ``/tactiled/<id>/samples`` sensor_msgs/PointCloud2 (the bridge's table: film volts, NaN when
+    lost, ``t``, ``index``), ``/tactiled/<id>/roughness`` std_msgs/String (final labels),
+    ``/tactiled/<id>/roughness/json`` and ``/tactiled/<id>/slides`` std_msgs/String (JSON).
+    Stamps and log times are host time as in :func:`export_mcap`; indices absolute. Needs
+    ``rosbags`` (extra ``tactiled[ros2bag]``) for the message definitions and CDR; no ROS install.
+    Returns messages per topic kind.
+    """
+    from tactiled.apps.bridges.ros2 import FLOAT32, FLOAT64, table_dtype
+
+    writer_mod = need("mcap.writer", "ros2bag")
+    typesys = need("rosbags.typesys", "ros2bag")
+    if batch < 1:
+        raise TactiledError(f"--batch: must be >= 1, got {batch}")
+    ts = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
+    cloud_t, field_t = ts.types["sensor_msgs/msg/PointCloud2"], ts.types["sensor_msgs/msg/PointField"]
+    header_t, time_t, string_t = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"], ts.types["std_msgs/msg/String"]
+    volts = rec.volts()
+    valid = rec.valid_mask()
+    n, channels = volts.shape
+    lost = np.asarray(rec.lost, dtype=np.int64).reshape(-1, 2)
+    origin, origin_kind = host_origin(rec, source)
+    base = rec.first_index
+    names = [f"film{k + 1}" for k in range(channels)] + ["t"]
+    fields = [field_t(name=x, offset=4 * k, datatype=FLOAT32, count=1) for k, x in enumerate(names)]
+    fields.append(field_t(name="index", offset=4 * len(names), datatype=FLOAT64, count=1))
+    counts = {"samples": 0, "slides": 0, "roughness": 0}
+
+    def ns(position: int) -> int:
+        return round(origin * 1e9) + round(position * 1e9 / rec.fs)  # in two parts: a float of unix ns has a 256 ns grain
+
+    with open(out, "wb") as fh:
+        writer = writer_mod.Writer(fh, compression=writer_mod.CompressionType.ZSTD)
+        writer.start(profile="ros2", library=f"tactiled {__version__}")
+        writer.add_metadata("tactiled.recording", {
+            "sensor": sensor, "label": rec.label or "", "fs": repr(rec.fs), "channels": str(channels), "volts_per_count": repr(rec.volts_per_count),
+            "first_index": str(base), "model": model, "log_time_origin": origin_kind, "log_time_origin_unix": repr(origin),
+            "meta": json.dumps(rec.meta, default=str)})
+        schemas: dict[str, int] = {}
+        seq: dict[str, int] = {}
+
+        def channel(topic: str, typename: str) -> int:
+            if typename not in schemas:
+                text, _ = ts.generate_msgdef(typename, ros_version=2)
+                schemas[typename] = writer.register_schema(typename, "ros2msg", text.encode())
+            return int(writer.register_channel(topic, "cdr", schemas[typename]))
+
+        topic = f"/tactiled/{sensor}"
+        chan = {"samples": channel(f"{topic}/samples", "sensor_msgs/msg/PointCloud2"),
+                "label": channel(f"{topic}/roughness", "std_msgs/msg/String"),
+                "roughness": channel(f"{topic}/roughness/json", "std_msgs/msg/String"),
+                "slides": channel(f"{topic}/slides", "std_msgs/msg/String")}
+
+        def put(kind: str, position: int, msg: Any, typename: str) -> None:
+            t = ns(position)
+            writer.add_message(chan[kind], log_time=t, publish_time=t, data=bytes(ts.serialize_cdr(msg, typename)), sequence=seq.get(kind, 0))
+            seq[kind] = seq.get(kind, 0) + 1
+
+        def stamp(position: int) -> Any:
+            t = ns(position)
+            return header_t(stamp=time_t(sec=t // 1_000_000_000, nanosec=t % 1_000_000_000), frame_id=sensor)
+
+        step = table_dtype(channels).itemsize
+        for lo, hi, inside in batches(n, lost, batch):
+            rows = np.zeros(hi - lo, dtype=table_dtype(channels))
+            ok = valid[lo:hi]
+            for k in range(channels):
+                rows[f"film{k + 1}"] = np.where(ok, volts[lo:hi, k], np.nan)
+            rows["t"] = np.arange(hi - lo) / rec.fs
+            rows["index"] = base + lo + np.arange(hi - lo, dtype=np.float64)
+            cloud = cloud_t(header=stamp(lo), height=1, width=hi - lo, fields=fields, is_bigendian=False, point_step=step,
+                            row_step=step * (hi - lo), data=np.frombuffer(rows.tobytes(), dtype=np.uint8), is_dense=not inside)
+            put("samples", lo, cloud, "sensor_msgs/msg/PointCloud2")
+            counts["samples"] += 1
+        ra = rec.ra_um.tolist() if rec.ra_um is not None else None
+        for k, (start, stop, surface) in enumerate(rec.slides()):
+            body = {"start": base + start, "stop": base + stop, "t_start": (base + start) / rec.fs, "t_stop": (base + stop) / rec.fs,
+                    "surface": surface, "ra_um": None if ra is None else ra[k]}
+            put("slides", start, string_t(data=json.dumps(body)), "std_msgs/msg/String")
+            counts["slides"] += 1
+        for r in results:
+            at = replace(r, start=base + r.start, stop=base + r.stop, window=(base + r.window[0], base + r.window[1]))
+            msg = schema.roughness(sensor, at, fs=rec.fs, model=r.model or model, version=__version__)
+            if msg.final:
+                put("label", r.stop, string_t(data=msg.label or ""), "std_msgs/msg/String")
+            put("roughness", r.stop, string_t(data=json.dumps(msg.to_map())), "std_msgs/msg/String")
+            counts["roughness"] += 1
+        writer.finish()
+    return counts
