@@ -192,7 +192,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     from tactiled.errors import RecordingError, WindowError
     from tactiled.files.recording import load_recording
-    from tactiled.run.replay import BLOCK, by_slide, replay_recording, result_record, summary_line
+    from tactiled.run.replay import BLOCK, ReplayFeed, by_slide, replay_recording, result_record, summary_line
 
     config = _config(args)
     failed = 0
@@ -223,11 +223,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 if model is not None and not said:
                     _say_model_settings(config, model)
                     said = True
-                on_event = None
-                if publisher is not None:
-                    on_event = publisher.replay_handler(config.sensor.id, rec, getattr(model, "fingerprint", ""), args.speed)
+                feed = None
+                if publisher is not None:  # the daemon's messages: slides and labels, status, and the samples with --samples
+                    feed = ReplayFeed(publisher, config, rec, getattr(model, "fingerprint", ""), args.speed, samples=args.samples)
                 try:
-                    results = replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed, on_event=on_event)
+                    results = replay_recording(rec, config, model, block=args.block or BLOCK, speed=args.speed,
+                                               on_event=feed.event if feed else None, on_block=feed.block if feed else None)
+                    if feed:
+                        feed.finish(last=path == args.files[-1])
                 except WindowError as exc:  # this file's rate or windows cannot be analysed: say which, go on with the others
                     print(f"tactiled: error: {path}: {exc}", file=sys.stderr)
                     failed += 1
@@ -756,10 +759,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", type=_positive_float, default=None, help="pace at X times real time (default: as fast as possible)")
     p.add_argument("--model", help=MODEL_HELP)
     p.add_argument("--no-model", action="store_true", help="no classification (labels are null)")
-    p.add_argument("--publish", help="also publish the daemon's messages on this ZeroMQ endpoint")
+    p.add_argument("--publish", help="also publish the daemon's messages on this ZeroMQ endpoint: slides, labels and status (and the "
+                                     "raw samples with --samples), so bridges and the monitor work on a replay as on a live sensor")
     p.add_argument("--wait-subscriber", type=_wait_s, default=1.0, metavar="S",
                    help="with --publish: wait up to S s for a first subscriber before sending, so that one already started misses "
                         "nothing (0: send at once)")
+    p.add_argument("--samples", action="store_true", help="with --publish: also publish the raw samples on samples/<id>, as run --samples "
+                                                         "(.npz recordings)")
     p.add_argument("--block", type=_count, default=None, help="samples per block fed to the pipeline (default 65536)")
     p.set_defaults(handler=cmd_replay)
 

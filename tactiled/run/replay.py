@@ -13,13 +13,14 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
 from tactiled_client import schema
 from tactiled_client.truth import overlapping
 
 from tactiled import __version__
 from tactiled.config import Config
 from tactiled.core.matching import match_slides
-from tactiled.core.pipeline import Pipeline, PipelineEvent, SlideResult
+from tactiled.core.pipeline import Pipeline, PipelineEvent, SlideEnded, SlideResult, SlideStarted
 from tactiled.files.recording import Recording
 from tactiled.run.ingest import Batch, BatchCollector, Ingest, max_gap_for, run_bytes
 from tactiled.run.pool import map_files
@@ -82,7 +83,8 @@ def summary_line(results: list[SlideResult], rec: Recording) -> str:
 
 
 def replay_recording(rec: Recording, config: Config, model: Any | None, *, block: int = BLOCK, speed: float | None = None,
-                     on_event: Callable[[PipelineEvent], None] | None = None) -> list[SlideResult]:
+                     on_event: Callable[[PipelineEvent], None] | None = None,
+                     on_block: Callable[[int, np.ndarray, np.ndarray], None] | None = None) -> list[SlideResult]:
     """Run ``rec`` through a fresh pipeline in blocks of ``block`` samples, then end the stream; returns every slide result.
 
     Provisional results (``final`` False) come before their slide's final one.
@@ -91,7 +93,8 @@ def replay_recording(rec: Recording, config: Config, model: Any | None, *, block
     daemon saw them; results are converted back to positions in the file.
 
     ``speed``: pace the stream at that many times real time (None: as fast as possible).
-    ``on_event`` sees every pipeline event as it happens.
+    ``on_event`` sees every pipeline event as it happens; ``on_block`` every block before the
+    pipeline does: (sensor index of its first row, samples (n, C), valid (n,) bool).
     """
     pipeline = Pipeline(config, rec.fs, rec.channels, rec.volts_per_count, rec.is_integer, model)
     valid = rec.valid_mask()
@@ -114,6 +117,8 @@ def replay_recording(rec: Recording, config: Config, model: Any | None, *, block
             ahead = lo / rec.fs / speed - (time.monotonic() - t0)
             if ahead > 0:
                 time.sleep(ahead)  # pacing the replay at --speed, not synchronisation
+        if on_block:
+            on_block(base + lo, rec.samples[lo:hi], valid[lo:hi])
         handle(pipeline.feed(base + lo, rec.samples[lo:hi], None if all_valid else valid[lo:hi]))
     handle(pipeline.finish())  # a slide still in progress at the end of the file ends there
     return results
@@ -163,3 +168,90 @@ def replay_bytes(chunks: Iterable[bytes], config: Config, model: Any | None, *, 
     info = {**(meta or {}), "crc_errors": st.crc_errors, "bytes_discarded": st.bytes_discarded, "restarts": st.restarts,
             "channel_errors": st.channel_errors}
     return results, collector.recording(s.fs, s.volts_per_count, info)
+
+
+class ReplayFeed:
+    """What ``replay --publish`` sends for one recording: the daemon's messages, so a bridge on a replay works as on a live sensor.
+
+    Slide and roughness messages (:meth:`event`); with ``samples`` the raw samples on
+    ``samples/<id>`` in messages of ``fs / 25`` rows, lost rows zero and listed (:meth:`block`);
+    and a status message every ``config.publish.status_interval_s`` of sensor time, counters and
+    film levels as the daemon's (state idle or sliding; :meth:`finish` sends the last, ``stopping``).
+    Host times: paced (``speed``), when the replay reached each sample; as fast as possible, nil.
+    """
+
+    def __init__(self, publisher: Any, config: Config, rec: Recording, model: str, speed: float | None = None, samples: bool = False) -> None:
+        self.publisher, self.config, self.rec, self.model, self.speed, self.samples = publisher, config, rec, model, speed, samples
+        self.sensor = config.sensor.id
+        self._on_event = publisher.replay_handler(self.sensor, rec, model, speed)
+        self.t0 = time.monotonic()
+        self.chunk = max(1, round(rec.fs / 25))
+        self.sliding = False
+        self.slides = self.labels = self.unknown = 0
+        self.count = self.lost = 0
+        self.index = rec.first_index
+        self._sumsq = np.zeros(rec.channels)
+        self._window = 0
+        self._next_status = rec.first_index
+
+    def _to_host(self, index: int) -> tuple[float, float]:
+        assert self.speed
+        mono = self.t0 + (index - self.rec.first_index) / self.rec.fs / self.speed
+        return mono, mono + (time.time() - time.monotonic())
+
+    def event(self, ev: PipelineEvent) -> None:
+        """One pipeline event: published as the daemon does, and counted for the status."""
+        if isinstance(ev, SlideStarted):
+            self.sliding = True
+        elif isinstance(ev, SlideEnded):
+            self.sliding = False
+        elif isinstance(ev, SlideResult) and ev.final:
+            self.slides += 1
+            self.labels += ev.label is not None
+            self.unknown += ev.reason == schema.REASON_UNKNOWN_SURFACE
+        self._on_event(ev)
+
+    def block(self, index: int, samples: np.ndarray, valid: np.ndarray) -> None:
+        """One block of the replay (sensor index of row 0, (n, C) samples, (n,) valid), before the pipeline sees it."""
+        rec = self.rec
+        for lo in range(0, samples.shape[0], self.chunk):
+            rows, ok = samples[lo:lo + self.chunk], valid[lo:lo + self.chunk]
+            first = index + lo
+            n = rows.shape[0]
+            edges = np.flatnonzero(np.diff(np.concatenate([[0], (~ok).astype(np.int8), [0]])))
+            lost = [[int(a), int(b - a)] for a, b in zip(edges[::2], edges[1::2], strict=True)]
+            if self.samples:
+                counts = rows if rec.is_integer else np.clip(np.rint(rows / rec.volts_per_count), -32768, 32767)
+                data = np.where(ok[:, None], counts, 0).astype("<i2").tobytes()
+                self.publisher.publish(schema.samples(self.sensor, first, data, n, rec.channels, fs=rec.fs, volts_per_count=rec.volts_per_count,
+                                                      lost=lost, to_host=self._to_host if self.speed else None,
+                                                      fs_clock=rec.fs * self.speed if self.speed else rec.fs))
+            good = rows[ok].astype(np.float64)
+            self._sumsq += np.einsum("ij,ij->j", good, good)
+            self._window += len(good)
+            self.count += int(ok.sum())
+            self.lost += n - int(ok.sum())
+            self.index = first + n
+            if self.index >= self._next_status:
+                self._status()
+                self._next_status = self.index + max(1, round(self.config.publish.status_interval_s * rec.fs))
+
+    def _status(self, state: str | None = None) -> None:
+        rec = self.rec
+        scale = rec.volts_per_count if rec.is_integer else 1.0
+        level = [round(float(np.sqrt(v / self._window)) * scale, 6) for v in self._sumsq] if self._window else []
+        clock: dict[str, Any] = {}
+        if self.speed:
+            mono, unix = self._to_host(self.index)
+            clock = {"clock_index": self.index, "clock_mono": round(mono, 6), "clock_unix": round(unix, 6), "fs_clock": rec.fs * self.speed}
+        self.publisher.publish(schema.status(
+            self.sensor, state=state or (schema.STATE_SLIDING if self.sliding else schema.STATE_IDLE), samples=self.count,
+            samples_lost=self.lost, slides=self.slides, labels=self.labels, unknown=self.unknown, fs_nominal=rec.fs, model=self.model,
+            uptime_s=round(time.monotonic() - self.t0, 3), index=self.index, level=level, version=__version__,
+            dropped_messages=self.publisher.dropped, **clock))
+        self._sumsq[:] = 0.0
+        self._window = 0
+
+    def finish(self, last: bool = False) -> None:
+        """After the recording: a status with the final counters (``last``: state ``stopping``, as the daemon's last)."""
+        self._status(schema.STATE_STOPPING if last else None)

@@ -1,0 +1,85 @@
+"""A bridge on ``tactiled replay --publish --samples``: the raw samples, status and labels arrive as from a live daemon.
+
+A real replay process publishes on an ipc socket; :func:`run_bridge` (no middleware: a sink that
+records) subscribes, as ``tactiled lsl`` / ``tactiled ros2`` do.
+"""
+
+from __future__ import annotations
+
+import itertools
+import subprocess
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tactiled_client import Roughness, Samples, Status, schema
+
+from tactiled.apps.bridges import lost_ranges, run_bridge
+from tactiled.files.recording import Recording, save_recording
+from tactiled.sim.sensor_model import SimParams, pick_surfaces, simulate_file
+from tests.conftest import REPO, tactiled_cmd
+
+
+class Recorder:
+    def __init__(self) -> None:
+        self.got: list[Any] = []
+        self.stopping = threading.Event()
+
+    def samples(self, msg: Samples) -> None:
+        self.got.append(msg)
+
+    def roughness(self, msg: Roughness) -> None:
+        self.got.append(msg)
+
+    def status(self, msg: Status) -> None:
+        self.got.append(msg)
+        if msg.state == schema.STATE_STOPPING:
+            self.stopping.set()
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_bridge_on_a_replay_gets_every_sample_its_losses_status_and_labels(tmp_path: Path) -> None:
+    params = SimParams()
+    sim = simulate_file(params, pick_surfaces("Ra2.29")[0], 2, 5)
+    lost = np.array([[1000, 37], [30_000, 2000]])
+    samples = sim.samples.copy()
+    for p, c in lost:
+        samples[p:p + c] = 0
+    first = 7_000_000
+    rec = Recording(samples, params.fs, params.volts_per_count, slide_start=np.array([t.start for t in sim.truth]),
+                    slide_stop=np.array([t.stop for t in sim.truth]), surface=np.array([t.surface.name for t in sim.truth]),
+                    first_index=first, lost=lost)
+    save_recording(tmp_path / "r.npz", rec)
+    endpoint = f"ipc://{tmp_path}/pub"
+    sink, stop = Recorder(), threading.Event()
+    bridge = threading.Thread(target=run_bridge, args=(endpoint, sink, stop, "fingertip0"), kwargs={"say": lambda line: None}, daemon=True)
+    bridge.start()
+    res = subprocess.run(tactiled_cmd("replay", str(tmp_path / "r.npz"), "--publish", endpoint, "--samples", "--speed", "20",
+                                      "--wait-subscriber", "20"), capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert res.returncode == 0, res.stderr
+    assert sink.stopping.wait(20), "no last (stopping) status"
+    stop.set()
+    bridge.join(10)
+    raw = [m for m in sink.got if isinstance(m, Samples)]
+    assert raw[0].index == first and all(b.index == a.index + a.n for a, b in itertools.pairwise(raw))  # every index once
+    rows = np.concatenate([m.counts() for m in raw])
+    valid = np.concatenate([m.valid() for m in raw])
+    assert np.array_equal(valid, rec.valid_mask()) and np.array_equal(rows, samples)  # intact samples exact, lost rows zero and listed
+    merged: list[list[int]] = []
+    for a, c in sorted(r for m in raw for r in lost_ranges(m)):  # a range is split where messages split, as on a live daemon
+        if merged and merged[-1][0] + merged[-1][1] == a:
+            merged[-1][1] += c
+        else:
+            merged.append([a, c])
+    assert merged == [[first + 1000, 37], [first + 30_000, 2000]]
+    stamps = np.concatenate([m.index_mono + np.arange(m.n) / m.fs_clock for m in raw])  # type: ignore[operator]
+    assert np.diff(stamps).min() > 0  # paced: host times that increase
+    status = [m for m in sink.got if isinstance(m, Status)]
+    assert len(status) >= 2 and status[-1].state == schema.STATE_STOPPING
+    assert (status[-1].samples, status[-1].samples_lost, status[-1].index) == (len(samples) - 2037, 2037, first + len(samples))
+    assert status[-1].slides == 2 and status[-1].model and len(status[-2].level) == 2 and status[-2].level[0] > 0
+    labels = [m for m in sink.got if isinstance(m, Roughness) and m.final]
+    assert len(labels) == 2 and all(first <= m.start < first + len(samples) for m in labels)
