@@ -387,13 +387,13 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def cmd_lsl(args: argparse.Namespace) -> int:
-    from tactiled.apps.bridges import serve
+    from tactiled.apps.bridges.cli import serve
 
     return serve("lsl", _config(args), args.connect, args.sensor_id, nan_lost=args.nan_lost)
 
 
 def cmd_ros2(args: argparse.Namespace) -> int:
-    from tactiled.apps.bridges import serve
+    from tactiled.apps.bridges.cli import serve
 
     return serve("ros2", _config(args), args.connect, args.sensor_id, ros_args=args.ros_args)
 

@@ -38,6 +38,7 @@ from tactiled.core.pipeline import SlideResult
 from tactiled.errors import TactiledError
 from tactiled.extras import need
 from tactiled.files.recording import Recording
+from tactiled.rostable import field_names, table_dtype
 
 BATCH = 20  # rows per samples message: one board frame (1 ms at 20 kHz)
 
@@ -210,8 +211,6 @@ def export_ros2_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingerti
     ``rosbags`` (extra ``tactiled[ros2bag]``) for the message definitions and CDR; no ROS install.
     Returns messages per topic kind.
     """
-    from tactiled.apps.bridges.ros2 import FLOAT32, FLOAT64, table_dtype
-
     writer_mod = need("mcap.writer", "ros2bag")
     typesys = need("rosbags.typesys", "ros2bag")
     if batch < 1:
@@ -225,9 +224,7 @@ def export_ros2_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingerti
     lost = np.asarray(rec.lost, dtype=np.int64).reshape(-1, 2)
     origin, origin_kind = host_origin(rec, source)
     base = rec.first_index
-    names = [f"film{k + 1}" for k in range(channels)] + ["t"]
-    fields = [field_t(name=x, offset=4 * k, datatype=FLOAT32, count=1) for k, x in enumerate(names)]
-    fields.append(field_t(name="index", offset=4 * len(names), datatype=FLOAT64, count=1))
+    fields = [field_t(name=x, offset=o, datatype=d, count=1) for x, o, d in field_names(channels)]
     counts = {"samples": 0, "slides": 0, "roughness": 0}
 
     def ns(position: int) -> int:

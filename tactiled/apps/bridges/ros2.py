@@ -10,7 +10,7 @@ relative, so ``--ros-args -r __ns:=/robot1`` moves them all and ``-r <name>:=<ot
   daemon gives none), ``header.frame_id`` the ``frame_id`` parameter (default: the sensor id).
   ``height`` 1, ``width`` n rows, one row per sample with fields ``film1`` … ``filmC`` (float32,
   volts, NaN when lost: ``is_dense`` false), ``t`` (float32, s after ``header.stamp``) and
-  ``index`` (float64, the sensor sample index, exact below 2**53). :func:`table_dtype` is its numpy
+  ``index`` (float64, the sensor sample index, exact below 2**53). :func:`tactiled.rostable.table_dtype` is its numpy
   dtype: ``np.frombuffer(msg.data, table_dtype(C))``. QoS: sensor data (best effort, depth 5).
 - ``tactiled/<id>/roughness`` std_msgs/String: the final label ("" when abstaining). Reliable, depth 10.
 - ``tactiled/<id>/roughness/json`` std_msgs/String: every roughness message (final and
@@ -39,9 +39,11 @@ from tactiled_client import Roughness, Samples, Status, schema
 from tactiled.apps.bridges import json_value, volts
 from tactiled.errors import TactiledError
 from tactiled.extras import need
+from tactiled.rostable import field_names, table_dtype
+
+__all__ = ["Ros2Sink", "node_name", "samples_table", "stamp", "status_values", "table_dtype"]
 
 LEVEL = {schema.STATE_DISCONNECTED: 2, schema.STATE_STOPPING: 3}  # DiagnosticStatus ERROR, STALE; others OK
-FLOAT32, FLOAT64 = 7, 8  # sensor_msgs/PointField datatypes
 
 
 def stamp(unix: float | None, now: Any) -> Any:
@@ -51,11 +53,6 @@ def stamp(unix: float | None, now: Any) -> Any:
     time_cls = type(now)
     sec = int(unix // 1)
     return time_cls(sec=sec, nanosec=min(round((unix - sec) * 1e9), 999_999_999))
-
-
-def table_dtype(channels: int) -> np.dtype[Any]:
-    """The numpy dtype of one row of a samples PointCloud2: film1 … filmC (<f4), t (<f4), index (<f8); packed, 4 C + 12 bytes."""
-    return np.dtype([*((f"film{k + 1}", "<f4") for k in range(channels)), ("t", "<f4"), ("index", "<f8")])
 
 
 def samples_table(msg: Samples) -> tuple[bytes, float | None, bool]:
@@ -130,9 +127,7 @@ class Ros2Sink:
     def samples(self, msg: Samples) -> None:
         data, unix, dense = samples_table(msg)
         if len(self._fields) != msg.channels + 2:
-            names = [f"film{k + 1}" for k in range(msg.channels)] + ["t"]
-            self._fields = [self.PointField(name=n, offset=4 * k, datatype=FLOAT32, count=1) for k, n in enumerate(names)]
-            self._fields.append(self.PointField(name="index", offset=4 * len(names), datatype=FLOAT64, count=1))
+            self._fields = [self.PointField(name=n, offset=o, datatype=d, count=1) for n, o, d in field_names(msg.channels)]
         cloud = self.PointCloud2(height=1, width=msg.n, fields=self._fields, is_bigendian=False, point_step=4 * msg.channels + 12,
                                  row_step=(4 * msg.channels + 12) * msg.n, is_dense=dense)
         cloud.header.stamp = stamp(unix, self._now())
