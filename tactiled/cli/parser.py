@@ -242,7 +242,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 else:
                     conf = "" if r.confidence is None else f" ({r.confidence:.2f})"
                     why = f" [{r.reason}]" if r.reason else ""
-                    truth = f" truth {obj.truth}" if obj.truth else ""
+                    truth = f", truth {obj.truth}" if obj.truth else ""
                     early = f", provisional {provisional[0].label or '-'} at {provisional[0].used_s:.2f} s" if provisional else ""
                     print(f"{path}: slide {r.slide_id}: {r.start}-{r.stop} ({obj.duration_s:.2f} s), {r.quality.get('windows', 0)} windows: "
                           f"{r.label or '-'}{conf}{why}{early}{truth}", flush=True)
@@ -304,8 +304,7 @@ def cmd_train(args: argparse.Namespace) -> int:
               + (f"{100 * nov['unseen_flagged']:.1f} % of slides of a surface left out of training" if nov.get("unseen_flagged") is not None
                  else "and no surface could be left out to test it"))
     fingerprint = result.model.save(args.output)
-    print(f"{args.output}: {result.model.describe()}; nested CV {100 * result.nested['mean']:.1f} ± {100 * result.nested['sd']:.1f} %; "
-          f"fingerprint {fingerprint}")
+    print(f"{args.output}: {result.model.describe()}; fingerprint {fingerprint}")
     return EXIT_OK
 
 

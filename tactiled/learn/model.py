@@ -293,7 +293,7 @@ class Model:
     def describe(self) -> str:
         """One line: method, classifier, features, windows, cross-validated accuracy."""
         cv = self.summary.get("cv_accuracy")
-        acc = f", CV accuracy {cv['mean']:.3f} ± {cv['sd']:.3f}" if isinstance(cv, dict) else ""
+        acc = f", nested CV accuracy {100 * cv['mean']:.1f} ± {100 * cv['sd']:.1f} %" if isinstance(cv, dict) else ""
         s = self.settings
         return (f"{self.method}: {self.kind} on {len(self.names)} features, windows {s.duration_s:g} s every {s.hop():g} s from "
                 f"{s.start_s:g} s{' (at most ' + str(s.max_windows) + ')' if s.max_windows else ''}, {len(self.classes)} classes{acc}")
