@@ -185,3 +185,26 @@ def test_simulate_dataset_of_another_unit_and_specimen(tmp_path: Path) -> None:
     assert b.meta["surface"]["nominal_ra_um"] == a.meta["surface"]["ra_um"]
     assert a.ra_um is not None and b.ra_um is not None and list(b.ra_um) == list(a.ra_um) == [0.44]  # the grade's label
     assert not np.array_equal(a.samples, b.samples)
+
+
+def test_board_log_stays_bounded_when_nothing_reads_the_port(tmp_path: Path) -> None:
+    """Nobody reads the pty: every frame overruns, yet the log gets one overrun line per second, and read_log gives every frame back."""
+    import io
+    import threading
+
+    from tactiled.sim.sensor_model import SensorModel, SimParams, pick_surfaces
+    from tactiled.sim.virtualboard import VirtualBoard, read_log
+
+    log = io.StringIO()
+    board = VirtualBoard(SensorModel(SimParams(), seed=2), pick_surfaces(2), link=str(tmp_path / "tty"), speed=20.0, seed=2, log=log)
+    board.open()
+    try:
+        board.run(threading.Event(), seconds=20.0)  # 20 s of sensor time at 20x: about 1 s of wall time, 20 000 frames
+    finally:
+        board.close()
+    (tmp_path / "board.jsonl").write_text(log.getvalue())
+    lines = [line for line in log.getvalue().splitlines() if '"overrun"' in line]
+    events = read_log(tmp_path / "board.jsonl")
+    frames = [e["index"] for e in events if e["event"] == "overrun"]
+    assert 1 <= len(lines) <= 4  # one line per second of wall time, plus the last
+    assert len(frames) > 15_000 and frames == sorted(set(frames)) and all(e["count"] == 20 for e in events if e["event"] == "overrun")

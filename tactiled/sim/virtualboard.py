@@ -4,7 +4,9 @@ It opens a pty, keeps an optional symlink pointing at it, and streams frames per
 docs/sensor-frames.md in real time (or ``speed`` times faster). It can corrupt,
 drop and garble frames, and unplug (close the pty, keep sampling, open a new pty behind
 the same symlink). With a log it writes one JSON line per event (slides scheduled,
-frames dropped or corrupted, garbage, unplugs, overruns) so tests can check what arrived.
+frames dropped or corrupted, garbage, unplugs) so tests can check what arrived; frames the pty would not take
+(nothing reading the port) are summed up in one ``overrun`` line per second at most, so the log stays bounded
+(:func:`read_log` gives them back one event per frame).
 """
 
 from __future__ import annotations
@@ -52,6 +54,9 @@ class VirtualBoard:
         self._master = -1
         self._slave = -1
         self._logged_slides = 0
+        self._overruns: list[list[int]] = []  # [first frame index, frames] not taken by the pty since _overrun_t0
+        self._overrun_bytes = 0
+        self._overrun_t0 = 0.0
         self.ready = threading.Event()
         self._progress = threading.Condition()
 
@@ -64,6 +69,24 @@ class VirtualBoard:
         if self.log is not None:
             self.log.write(json.dumps({"event": event, **fields}) + "\n")
             self.log.flush()
+
+    def _overrun(self, index: int, lost: int) -> None:
+        """Note a frame at ``index`` the pty would not take (``lost`` bytes): one log line per second sums them up."""
+        if not self._overruns:
+            self._overrun_t0 = time.monotonic()
+        last = self._overruns[-1] if self._overruns else None
+        if last is not None and last[0] + last[1] * self.frame_count == index:
+            last[1] += 1
+        else:
+            self._overruns.append([index, 1])
+        self._overrun_bytes += lost
+
+    def _flush_overruns(self, force: bool = False) -> None:
+        """Write the overruns noted so far as one line, once a second has passed since the first (or ``force``)."""
+        if self._overruns and (force or time.monotonic() - self._overrun_t0 >= 1.0):
+            self._event("overrun", index=self._overruns[0][0], ranges=self._overruns, frame_samples=self.frame_count,
+                        bytes=self._overrun_bytes)
+            self._overruns, self._overrun_bytes = [], 0
 
     def open(self) -> str:
         """Open a new pty (raw, non-blocking master), point the link at it; returns its path."""
@@ -107,7 +130,8 @@ class VirtualBoard:
         except OSError:
             written = 0
         if written < len(data):
-            self._event("overrun", index=index, bytes=len(data) - written)
+            self._overrun(index, len(data) - written)
+        self._flush_overruns()
 
     def run(self, stop: threading.Event, seconds: float | None = None) -> None:
         """Stream until ``stop`` is set (or ``seconds`` of sensor time have been sent)."""
@@ -135,6 +159,7 @@ class VirtualBoard:
                 self.sent_samples += n
                 if unplugs and self.sent_samples >= unplugs[0]:
                     unplugs.pop(0)
+                    self._flush_overruns(force=True)
                     self._event("unplug", index=index)
                     self.close()
                     down_until = self.sent_samples + round(self.unplug_s * fs)
@@ -159,10 +184,22 @@ class VirtualBoard:
                 self._write(bytes(frame), index)
                 with self._progress:
                     self._progress.notify_all()
+        self._flush_overruns(force=True)
         self._event("end", index=self.first_index + self.sent_samples)
 
 
 def read_log(path: str | Path) -> list[dict[str, Any]]:
-    """The events of a virtual board's log file."""
+    """The events of a virtual board's log file; an overrun line (up to a second of frames the pty would not take,
+    as ``ranges`` of [first frame index, frames]) becomes one ``overrun`` event per frame (``index``, ``count``)."""
+    out: list[dict[str, Any]] = []
     with open(path, encoding="utf-8") as fh:
-        return [json.loads(line) for line in fh if line.strip()]
+        for line in fh:
+            if not line.strip():
+                continue
+            event = json.loads(line)
+            if event.get("event") == "overrun" and "ranges" in event:
+                n = int(event["frame_samples"])
+                out += [{"event": "overrun", "index": first + k * n, "count": n} for first, frames in event["ranges"] for k in range(frames)]
+            else:
+                out.append(event)
+    return out
