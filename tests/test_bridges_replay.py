@@ -10,51 +10,22 @@ import itertools
 import subprocess
 import threading
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from tactiled_client import Roughness, Samples, Status, schema
 
 from tactiled.apps.bridges import lost_ranges, run_bridge
-from tactiled.files.recording import Recording, save_recording
-from tactiled.sim.sensor_model import SimParams, pick_surfaces, simulate_file
-from tests.conftest import REPO, tactiled_cmd
-
-
-class Recorder:
-    def __init__(self) -> None:
-        self.got: list[Any] = []
-        self.stopping = threading.Event()
-
-    def samples(self, msg: Samples) -> None:
-        self.got.append(msg)
-
-    def roughness(self, msg: Roughness) -> None:
-        self.got.append(msg)
-
-    def status(self, msg: Status) -> None:
-        self.got.append(msg)
-        if msg.state == schema.STATE_STOPPING:
-            self.stopping.set()
-
-    def close(self) -> None:
-        pass
+from tactiled.files.recording import save_recording
+from tests.conftest import REPO, BridgeSink, lossy_recording, tactiled_cmd
 
 
 def test_a_bridge_on_a_replay_gets_every_sample_its_losses_status_and_labels(tmp_path: Path) -> None:
-    params = SimParams()
-    sim = simulate_file(params, pick_surfaces("Ra2.29")[0], 2, 5)
-    lost = np.array([[1000, 37], [30_000, 2000]])
-    samples = sim.samples.copy()
-    for p, c in lost:
-        samples[p:p + c] = 0
     first = 7_000_000
-    rec = Recording(samples, params.fs, params.volts_per_count, slide_start=np.array([t.start for t in sim.truth]),
-                    slide_stop=np.array([t.stop for t in sim.truth]), surface=np.array([t.surface.name for t in sim.truth]),
-                    first_index=first, lost=lost)
+    rec = lossy_recording(first, slides=2, seed=5, lost=((1000, 37), (30_000, 2000)))
+    samples = rec.samples
     save_recording(tmp_path / "r.npz", rec)
     endpoint = f"ipc://{tmp_path}/pub"
-    sink, stop = Recorder(), threading.Event()
+    sink, stop = BridgeSink(), threading.Event()
     bridge = threading.Thread(target=run_bridge, args=(endpoint, sink, stop, "fingertip0"), kwargs={"say": lambda line: None}, daemon=True)
     bridge.start()
     res = subprocess.run(tactiled_cmd("replay", str(tmp_path / "r.npz"), "--publish", endpoint, "--samples", "--speed", "20",

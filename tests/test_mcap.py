@@ -13,21 +13,14 @@ from mcap.reader import make_reader
 
 from tactiled.files.recording import Recording, load_recording, save_recording
 from tactiled.service.mcap_export import read_mcap_samples
-from tactiled.sim.sensor_model import SensorModel, SimParams, default_surfaces, pick_surfaces, simulate_file
+from tactiled.sim.sensor_model import SensorModel, SimParams, default_surfaces
 from tactiled.sim.virtualboard import VirtualBoard
-from tests.conftest import run_cli, tactiled_cmd
+from tests.conftest import lossy_recording, run_cli, tactiled_cmd
 
 
 def test_export_round_trips_every_sample_slide_and_label(tmp_path: Path) -> None:
+    rec = lossy_recording(123_456)
     params = SimParams()
-    sim = simulate_file(params, pick_surfaces("Ra2.29")[0], 3, 7)
-    lost = np.array([[1000, 37], [50_000, 20]])
-    samples = sim.samples.copy()
-    for p, c in lost:
-        samples[p:p + c] = 0
-    rec = Recording(samples, params.fs, params.volts_per_count, slide_start=np.array([t.start for t in sim.truth]),
-                    slide_stop=np.array([t.stop for t in sim.truth]), surface=np.array([t.surface.name for t in sim.truth]),
-                    first_index=123_456, lost=lost)
     save_recording(tmp_path / "r.npz", rec)
     res = run_cli("export", str(tmp_path / "r.npz"), "-o", str(tmp_path / "r.mcap"), "--batch", "64")
     assert res.returncode == 0, res.stderr
