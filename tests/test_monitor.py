@@ -10,7 +10,7 @@ from pathlib import Path
 from rich.console import Console
 from tactiled_client import BlockingSubscriber, Roughness
 
-from tactiled.apps.monitor import SPARK, MonitorModel, render
+from tactiled.apps.monitor import SPARK, MonitorState, render
 from tactiled.sim.sensor_model import SensorModel, SimParams, pick_surfaces
 from tactiled.sim.virtualboard import VirtualBoard
 from tests.conftest import tactiled_cmd, wait_for
@@ -19,7 +19,7 @@ from tests.conftest import tactiled_cmd, wait_for
 def test_monitor_shows_state_traces_spectrum_and_labels_with_truth(tmp_path: Path) -> None:
     link, log_path, endpoint = str(tmp_path / "tty"), tmp_path / "board.jsonl", f"ipc://{tmp_path}/pub"
     stop = threading.Event()
-    model = MonitorModel(str(log_path))
+    model = MonitorState(str(log_path))
     with open(log_path, "w") as log:
         board = VirtualBoard(SensorModel(SimParams(), seed=4), pick_surfaces(4), link=link, speed=3.0, seed=4, drop=0.01, log=log)
         board.open()
@@ -68,7 +68,7 @@ def test_monitor_highlights_abstentions_and_provisional_labels() -> None:
 
     from tactiled.core.pipeline import SlideResult
 
-    model = MonitorModel()
+    model = MonitorState()
     model.update(schema.status("s", state=schema.STATE_DISCONNECTED, fs_nominal=20_000.0))
     for final, label, reason in ((False, "Ra1.00", None), (True, None, "samples_lost")):
         r = SlideResult(1, 0, 20_000, (6000, 16_000), label, reason, 0.4, [], {}, final=final, used_s=0.5)

@@ -56,7 +56,7 @@ def read_truth(path: str | Path) -> list[tuple[int, int, str]]:
     return out
 
 
-class MonitorModel:
+class MonitorState:
     """What the screen shows, updated from messages (kept apart from drawing, for tests)."""
 
     def __init__(self, truth_log: str | None = None) -> None:
@@ -120,7 +120,7 @@ class MonitorModel:
         return overlapping(self._truth, start, stop)
 
 
-def render(model: MonitorModel, endpoint: str, width: int = 140, height: int = 50) -> Any:
+def render(model: MonitorState, endpoint: str, width: int = 140, height: int = 50) -> Any:
     """The whole screen, for a terminal of ``width`` columns and ``height`` lines, as one rich renderable.
 
     From :data:`FULL_SIZE` up: state, counters, film traces, the spectrum and the labels with every column.
@@ -188,7 +188,7 @@ def render(model: MonitorModel, endpoint: str, width: int = 140, height: int = 5
     return Group(Panel(head), levels, Panel(spec, title="spectrum of the raw samples (films summed)", title_align="left"), labels)
 
 
-def render_compact(model: MonitorModel, endpoint: str, width: int, height: int) -> Any:
+def render_compact(model: MonitorState, endpoint: str, width: int, height: int) -> Any:
     """The screen for a small terminal (80×24 and up): nothing wraps, the labels take the lines left."""
     from rich import box
     from rich.console import Group
@@ -234,7 +234,7 @@ def render_compact(model: MonitorModel, endpoint: str, width: int, height: int) 
 def run_monitor(endpoint: str, truth_log: str | None = None) -> int:
     from rich.live import Live
 
-    model = MonitorModel(truth_log)
+    model = MonitorState(truth_log)
     tty = sys.stdin.isatty()
     old = None
     if tty:
