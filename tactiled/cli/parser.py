@@ -221,6 +221,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
             else:
                 model = _model_for(args.model, rec.fs, rec.channels, path, explicit=args.no_model)
                 if model is not None and not said:
+                    from tactiled.learn.cost import check_speed
+
+                    check_speed(model, args.model or "the shipped model", args.force)
                     _say_model_settings(config, model)
                     said = True
                 feed = None
@@ -370,7 +373,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         check_port(config.sensor.port)
 
     async def main() -> None:
-        daemon = Daemon(config, model, args.record, raw_to=args.raw, model_path=model_path)  # type: ignore[arg-type]
+        daemon = Daemon(config, model, args.record, raw_to=args.raw, model_path=model_path, force=args.force)  # type: ignore[arg-type]
         print(f"tactiled: sensor {config.sensor.id} on {config.sensor.port}, publishing on {daemon.endpoint}", file=sys.stderr, flush=True)
         await daemon.run()
 
@@ -713,7 +716,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", action="store_true", help="also publish the raw samples on samples/<id> (sets publish.samples)")
     p.add_argument("--raw", metavar="OUT.bin", help="also write every byte read from the port, as read (replay it with tactiled replay OUT.bin)")
     p.add_argument("--no-wait", action="store_true", help="exit 2 at once if the serial device is missing (default: wait for it)")
-    p.add_argument("--force", action="store_true", help="let --record and --raw replace existing files")
+    p.add_argument("--force", action="store_true", help="let --record and --raw replace existing files, and run a model whose analysis "
+                                                        "cannot keep up with the sensor (below 5x real time on this machine)")
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser("curve-keys", help="create a ZeroMQ CURVE certificate pair (NAME.key, NAME.key_secret) in DIR")
@@ -766,6 +770,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", action="store_true", help="with --publish: also publish the raw samples on samples/<id>, as run --samples "
                                                          "(.npz recordings)")
     p.add_argument("--block", type=_count, default=None, help="samples per block fed to the pipeline (default 65536)")
+    p.add_argument("--force", action="store_true", help="run a model whose analysis cannot keep up with real time (below 5x on this machine)")
     p.set_defaults(handler=cmd_replay)
 
     p = sub.add_parser("features", help="feature vectors of every slide")

@@ -34,6 +34,7 @@ from tactiled.board.serialsource import CONNECTED, ByteSource, SerialSource
 from tactiled.config import Config
 from tactiled.core.pipeline import Pipeline, PipelineEvent, SlideResult
 from tactiled.errors import TactiledError
+from tactiled.learn.cost import check_speed
 from tactiled.learn.model import Model, load_model
 from tactiled.run.ingest import Batch, Ingest, feed_pipeline, max_gap_for
 from tactiled.service.publish import Publisher
@@ -76,10 +77,13 @@ class Daemon:
 
     def __init__(self, config: Config, model: Model | None, record_to: str | None = None, *, raw_to: str | None = None,
                  source_factory: Callable[[Callable[[bytes], Awaitable[None]], Callable[[str, str], None]], ByteSource] | None = None,
-                 model_path: str | None = None) -> None:
+                 model_path: str | None = None, force: bool = False) -> None:
         self.config = config
         self.model = model
         self.model_path = model_path  # what SIGHUP loads again
+        self.force = force  # run a model even if its analysis cannot keep up with the sensor (tactiled/learn/cost.py)
+        if model is not None and not force:
+            check_speed(model, model_path or "model")
         s = config.sensor
         self.fingerprint = model.fingerprint if model else ""
         self.ingest = Ingest(s.channels, max_gap=max_gap_for(config.ring.seconds, s.fs), min_batch=round(config.serial.batch_s * s.fs))
@@ -149,6 +153,7 @@ class Daemon:
         try:
             model = await asyncio.to_thread(load_model, self.model_path)
             model.check_stream(s.fs, s.channels, f"sensor {s.id}")
+            await asyncio.to_thread(check_speed, model, self.model_path, self.force)
             self.pipeline.swap_model(model)
         except TactiledError as exc:
             log.error("reload refused, model %s stays: %s", self.fingerprint or "none", exc)
