@@ -21,7 +21,11 @@ from tactiled.errors import ConfigError
 from tactiled.files.recording import Recording
 
 M = TypeVar("M", bound=schema.Message)
-MAX_INBOUND_BYTES = 4096
+# a subscription is one inbound message: a flag byte and a topic prefix; the longest topic is "roughness/" and a
+# 64-character sensor id. Each distinct subscription costs the publisher memory, growing with its length (about
+# 0.2 MB for a 4 kB one), so a peer sending a longer one than any topic is disconnected: 10 000 distinct
+# subscriptions of the longest real length add about 2 MB (tests/test_peer_memory.py).
+MAX_INBOUND_BYTES = 128
 
 
 class Publisher:
@@ -126,3 +130,4 @@ class Publisher:
             self.publish_event(sensor, ev, rec.fs, model, time.perf_counter(), to_host)
 
         return handle
+

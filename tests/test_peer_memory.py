@@ -1,0 +1,60 @@
+"""Bounded memory from any peer: thousands of distinct subscriptions cost little, and a peer sending longer ones than any topic is dropped."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import zmq
+from tactiled_client import BlockingSubscriber, Status
+
+from tests.conftest import tactiled_cmd, wait_for
+
+
+def rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as fh:
+        return int(next(line for line in fh if line.startswith("VmRSS:")).split()[1]) / 1024
+
+
+def test_ten_thousand_subscriptions_stay_small_and_longer_ones_are_dropped(tmp_path: Path) -> None:
+    endpoint = f"ipc://{tmp_path}/pub"
+    proc = subprocess.Popen(tactiled_cmd("run", "--port", str(tmp_path / "no-board-yet"), "--publish", endpoint),
+                            stderr=subprocess.DEVNULL)
+    ctx = zmq.Context.instance()
+    try:
+        with BlockingSubscriber(endpoint, topics=["status"], timeout=20) as watch:
+            wait_for(lambda: isinstance(watch.receive(), Status), timeout=30, what="the daemon's first status")
+            base = rss_mb(proc.pid)
+            greedy = ctx.socket(zmq.SUB)
+            greedy.setsockopt(zmq.LINGER, 0)
+            greedy.setsockopt(zmq.RCVTIMEO, 1000)
+            greedy.setsockopt(zmq.SNDHWM, 0)  # every subscription reaches the daemon (the default high-water mark drops past 1 000)
+            greedy.connect(endpoint)
+            for i in range(10_000):  # distinct, each as long as the longest real topic
+                greedy.setsockopt(zmq.SUBSCRIBE, f"roughness/{i:064d}".encode())
+            greedy.setsockopt(zmq.SUBSCRIBE, b"status/")  # subscriptions are taken in order: a status here means all were
+
+            def answered() -> bool:
+                try:
+                    greedy.recv_multipart()
+                except zmq.Again:
+                    return False
+                return True
+
+            wait_for(answered, timeout=30, what="a status on the greedy peer")
+            held = rss_mb(proc.pid)
+            greedy.close()
+            bulky = ctx.socket(zmq.SUB)  # subscriptions longer than any topic (4 000 bytes each): the peer is dropped at the first
+            bulky.setsockopt(zmq.LINGER, 0)
+            bulky.setsockopt(zmq.SNDHWM, 0)
+            bulky.connect(endpoint)
+            for i in range(1000):
+                bulky.setsockopt(zmq.SUBSCRIBE, f"{i:04d}".encode() * 1000)
+            wait_for(lambda: isinstance(watch.receive(), Status) and isinstance(watch.receive(), Status), timeout=30, what="two status periods")
+            bulky.close()
+            after = rss_mb(proc.pid)
+            assert held <= base + 10 and after <= base + 10, f"resident {base:.0f} MB, {held:.0f} with 10 000 subscriptions, {after:.0f} after 4 kB ones"
+            assert proc.poll() is None
+    finally:
+        proc.terminate()
+        proc.wait(15)
