@@ -21,11 +21,11 @@ from tactiled.errors import ConfigError
 from tactiled.files.recording import Recording
 
 M = TypeVar("M", bound=schema.Message)
-# a subscription is one inbound message: a flag byte and a topic prefix; the longest topic is "roughness/" and a
-# 64-character sensor id. Each distinct subscription costs the publisher memory, growing with its length (about
-# 0.2 MB for a 4 kB one), so a peer sending a longer one than any topic is disconnected: 10 000 distinct
-# subscriptions of the longest real length add about 2 MB (tests/test_peer_memory.py).
-MAX_INBOUND_BYTES = 128
+# a subscription is one inbound message: a flag byte and a topic prefix (the longest topic: "roughness/" and a
+# 64-character sensor id, 75 bytes). Each distinct subscription costs the publisher memory, growing with its length
+# (about 12 kB for a 4 000-byte one), so a peer sending a message longer than this is disconnected. The cap leaves
+# room for the CURVE handshake's commands (HELLO 200 bytes, INITIATE about 300 with its metadata).
+MAX_INBOUND_BYTES = 1024
 
 
 class Publisher:
