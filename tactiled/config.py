@@ -208,9 +208,11 @@ class ClassifierConfig:
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """The model file; empty means the model shipped in the package."""
+    """The model file; empty means the model shipped in the package. ``shadow``: a candidate model run in the shadow
+    of the live one (its labels on ``shadow/<id>``, its agreement with the live ones in status); empty: none."""
 
     path: str = ""
+    shadow: str = ""
 
     def validate(self, p: str) -> None:
         return None

@@ -216,7 +216,7 @@ def test_example_controller_runs_against_a_recorded_session(tmp_path: Path) -> N
     res = subprocess.run([sys.executable, str(REPO / "clients" / "example_controller.py"), "--replay", str(tmp_path / "s.tlog")],
                          capture_output=True, text=True, timeout=60, cwd=REPO)
     assert res.returncode == 0, res.stderr
-    assert "slide 0: Ra1.18 p=0.70" in res.stdout and res.stdout.strip().endswith("end of the recorded session")
+    assert "slide 0: final Ra1.18 p=0.70" in res.stdout and res.stdout.strip().endswith("end of the recorded session")
 
 
 def test_a_fifo_given_as_a_session_is_refused_without_opening_it(tmp_path: Path) -> None:

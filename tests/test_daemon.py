@@ -254,3 +254,44 @@ def test_sighup_swaps_the_model_between_slides_and_refuses_a_bad_file(tmp_path: 
     first = next(i for i, m in enumerate(got) if isinstance(m, Roughness) and m.final)
     statuses = [m for m in got[first:] if isinstance(m, Status)]  # (the samples a late start finds stale are lost before it)
     assert statuses and len({m.samples_lost for m in statuses}) == 1 and statuses[-1].model == b  # no sample lost across the swaps
+
+
+def test_a_shadow_model_runs_on_the_same_slides_without_publishing_its_labels_as_the_live_ones(tmp_path: Path) -> None:
+    """run --shadow: the candidate's labels on shadow/<id> (not Roughness), its agreement with the live labels in status."""
+    from tactiled_client import Shadow
+
+    shipped = load_model()
+    live_fingerprint = shipped.fingerprint
+    candidate = tmp_path / "candidate.npz"
+    shipped.summary = {**shipped.summary, "note": "the same classifier under another fingerprint"}
+    fingerprint = shipped.save(candidate)
+    link, endpoint = str(tmp_path / "tty"), f"ipc://{tmp_path}/pub"
+    stop = threading.Event()
+    board = VirtualBoard(SensorModel(SimParams(mode="robot"), seed=7), pick_surfaces(3), link=link, speed=3.0, seed=7)
+    board.open()
+    thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
+    thread.start()
+    proc = subprocess.Popen(tactiled_cmd("run", "--port", link, "--publish", endpoint, "--shadow", str(candidate)),
+                            stderr=subprocess.PIPE, text=True)
+    got: list[object] = []
+    try:
+        with BlockingSubscriber(endpoint, topics=["roughness", "shadow", "status"], timeout=30) as sub:
+            def compared() -> bool:
+                got.append(sub.receive())
+                return isinstance(got[-1], Status) and got[-1].shadow is not None and got[-1].shadow["slides"] >= 3
+
+            wait_for(compared, timeout=90, what="three slides compared in status.shadow")
+    finally:
+        proc.terminate()
+        proc.wait(30)
+        stop.set()
+        thread.join(10)
+    shadows = [m for m in got if isinstance(m, Shadow) and m.final]
+    lives = {m.start: m for m in got if isinstance(m, Roughness) and m.final}
+    assert shadows and all(not isinstance(m, Roughness) and m.model == fingerprint for m in shadows)
+    assert lives and all(m.model == live_fingerprint != fingerprint for m in lives.values())  # the live labels stay the live model's
+    paired = [(m, lives[m.start]) for m in shadows if m.start in lives]
+    assert paired and all(s.label == live.label for s, live in paired)  # the same classifier on the same slides: the same labels
+    status = got[-1]
+    assert isinstance(status, Status) and status.shadow is not None
+    assert status.shadow["model"] == fingerprint and status.shadow["agreement"] == 1.0 and 0.0 < status.shadow["confidence"] <= 1.0

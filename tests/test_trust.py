@@ -188,3 +188,25 @@ def test_a_surface_unlike_every_training_slide_gets_no_label_and_is_counted() ->
     assert all(r.top and r.confidence is not None for r in finals)  # what it resembles most is still said
     assert pipe.unknown == 2 and pipe.labels == 0
     assert not [e for e in events if isinstance(e, SlideResult) and not e.final]  # no provisional label for a novel slide
+
+
+def test_shadow_stats_pair_slides_by_start_and_count_agreement_confidence_and_unknowns() -> None:
+    from tactiled.core.pipeline import SlideResult
+    from tactiled.core.shadow import PENDING_MAX, ShadowStats
+
+    def result(start: int, label: str | None, confidence: float | None = None, reason: str | None = None, final: bool = True) -> SlideResult:
+        return SlideResult(0, start, start + 100, (start, start + 100), label, reason, confidence, [], {}, final=final)
+
+    stats = ShadowStats(model="cafe")
+    assert stats.summary() == {"model": "cafe", "slides": 0, "agreement": None, "confidence": None, "unknown_rate": None}
+    stats.add_live(result(0, "Ra1"))
+    stats.add_shadow(result(0, "Ra1", 0.8))  # agrees
+    stats.add_shadow(result(500, None, reason="unknown_surface"))  # the candidate first, then the live one: disagrees
+    stats.add_live(result(500, "Ra2"))
+    stats.add_shadow(result(900, "Ra2", 0.4, final=False))  # provisional: not compared
+    stats.add_live(result(1000, None, reason="samples_lost"))
+    stats.add_shadow(result(1000, None, reason="samples_lost"))  # both null: agree
+    assert stats.summary() == {"model": "cafe", "slides": 3, "agreement": 2 / 3, "confidence": 0.8, "unknown_rate": 1 / 3}
+    for k in range(3 * PENDING_MAX):  # results the other model never matches stay bounded
+        stats.add_live(result(10_000 + k, "Ra1"))
+    assert len(stats._live) <= PENDING_MAX

@@ -1,4 +1,4 @@
-"""Client library for tactiled: subscribe to roughness, slide, status and raw samples messages, record them, replay them.
+"""Client library for tactiled: subscribe to roughness, slide, status, raw samples and shadow messages, record them, replay them.
 
 Depends on pyzmq and msgpack only. See docs/messages.md for every field and the session log format. The
 subscribers and replays (pyzmq, asyncio) are imported when first used, so that importing the schema alone
@@ -8,7 +8,7 @@ stays light. Every error the library raises on purpose is a :class:`ClientError`
 from typing import TYPE_CHECKING, Any
 
 from tactiled_client.errors import ClientError, EndOfLog, LogError, NoData, UsageError
-from tactiled_client.schema import SCHEMA_VERSION, Message, Roughness, Samples, Slide, Status
+from tactiled_client.schema import SCHEMA_VERSION, Message, Roughness, Samples, Shadow, Slide, Status
 
 if TYPE_CHECKING:
     from tactiled_client.record import record
@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from tactiled_client.subscriber import BlockingSubscriber, Subscriber
 
 __all__ = ["SCHEMA_VERSION", "BlockingReplay", "BlockingSubscriber", "ClientError", "EndOfLog", "LogError", "Message", "NoData", "Replay",
-           "Roughness", "Samples", "Slide", "Status", "Subscriber", "UsageError", "record"]
+           "Roughness", "Samples", "Shadow", "Slide", "Status", "Subscriber", "UsageError", "record"]
 
 _LAZY = {"BlockingSubscriber": "subscriber", "Subscriber": "subscriber", "BlockingReplay": "replay", "Replay": "replay", "record": "record"}
 

@@ -23,9 +23,9 @@ from typing import Any, ClassVar, Protocol, TypeVar
 
 import msgpack
 
-SCHEMA_VERSION = 3  # 3: roughness messages carry novelty; reason unknown_surface
-ROUGHNESS, SLIDE, STATUS, SAMPLES = "roughness", "slide", "status", "samples"
-TOPICS = (ROUGHNESS, SLIDE, STATUS, SAMPLES)
+SCHEMA_VERSION = 4  # 3: roughness messages carry novelty; reason unknown_surface. 4: shadow messages, status.shadow
+ROUGHNESS, SLIDE, STATUS, SAMPLES, SHADOW = "roughness", "slide", "status", "samples", "shadow"
+TOPICS = (ROUGHNESS, SLIDE, STATUS, SAMPLES, SHADOW)
 
 # abstain reasons of a roughness message whose label is None
 REASON_WINDOW_TOO_SHORT = "window_too_short"
@@ -114,8 +114,8 @@ class Message:
 
 
 @dataclass
-class Roughness(Message):
-    """One per slide (and, when the pipeline makes them, provisional ones while it goes on): the label and its provenance."""
+class LabelFields(Message):
+    """The fields of a slide's label and its provenance (:class:`Roughness`, :class:`Shadow`)."""
 
     label: str | None = None
     reason: str | None = None
@@ -138,6 +138,11 @@ class Roughness(Message):
     stop_mono: float | None = None  # host time of sample `stop`
     stop_unix: float | None = None
     novelty: float | None = None  # > 1: unlike every surface the model was trained on (label nil, reason unknown_surface); nil: not known
+
+
+@dataclass
+class Roughness(LabelFields):
+    """One per slide (and, when the pipeline makes them, provisional ones while it goes on): the live label and its provenance."""
 
 
 @dataclass
@@ -188,6 +193,8 @@ class Status(Message):
     fs_clock: float = 0.0  # sample indices per second of host monotonic time (the measured rate), Hz
     duplicate_frames: int = 0  # frames dropped as duplicates of ones already placed (an index that went back a little)
     unknown: int = 0  # final labels withheld as unknown_surface since start (most slides unknown: another unit, or untaught surfaces)
+    shadow: dict[str, Any] | None = None  # a candidate model run in the shadow of the live one (run --shadow): model, slides,
+    # agreement with the live labels, its mean confidence and unknown rate (nil without one)
 
     def host_mono(self, index: int) -> float | None:
         """Host monotonic time of sensor sample ``index`` by this status's clock mapping (None before samples)."""
@@ -250,6 +257,12 @@ class ProvisionalLabel:
 
 
 @dataclass
+class Shadow(LabelFields):
+    """A candidate model's result for a slide (``run --shadow``), on ``shadow/<sensor>``: the fields of :class:`Roughness`,
+    never the live label (not a :class:`Roughness`, so a controller's ``isinstance`` check never takes it for one)."""
+
+
+@dataclass
 class ReplaySlide(Roughness):
     """One line of ``tactiled replay --json``: the final roughness message of a slide (positions in the file) and more."""
 
@@ -260,7 +273,7 @@ class ReplaySlide(Roughness):
     provisional: list[dict[str, Any]] = field(default_factory=list)  # ProvisionalLabel maps, in order
 
 
-MESSAGE_TYPES: dict[str, builtins.type[Message]] = {ROUGHNESS: Roughness, SLIDE: Slide, STATUS: Status, SAMPLES: Samples}
+MESSAGE_TYPES: dict[str, builtins.type[Message]] = {ROUGHNESS: Roughness, SLIDE: Slide, STATUS: Status, SAMPLES: Samples, SHADOW: Shadow}
 
 
 def parse(topic_: str, body: dict[str, Any]) -> Message:
@@ -312,6 +325,13 @@ def roughness(sensor: str, r: SlideOutcome, *, fs: float, model: str, version: s
                      quality={**r.quality, "compute_ms": round(r.compute_ms, 3)}, version=version, final=r.final,
                      used_s=round(r.used_s, 6), start_mono=start_mono, start_unix=start_unix, stop_mono=stop_mono, stop_unix=stop_unix,
                      novelty=r.novelty)
+
+
+def shadow(sensor: str, r: SlideOutcome, *, fs: float, model: str, version: str, latency_ms: float = 0.0,
+           to_host: HostTime | None = None) -> Shadow:
+    """A candidate model's result for slide ``r``: the fields of :func:`roughness`, on the shadow topic."""
+    return Shadow.from_map({**roughness(sensor, r, fs=fs, model=model, version=version, latency_ms=latency_ms, to_host=to_host).to_map(),
+                            "type": SHADOW})
 
 
 def provisional_label(r: SlideOutcome) -> ProvisionalLabel:

@@ -350,7 +350,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from tactiled.service.daemon import Daemon
 
     config = _config(args, {"sensor.port": args.port, "sensor.id": args.sensor_id, "publish.endpoint": args.publish,
-                            "model.path": args.model, "publish.samples": True if args.samples else None})
+                            "model.path": args.model, "publish.samples": True if args.samples else None, "model.shadow": args.shadow})
     model = None
     if not args.no_model:
         model = _model_for(config.model.path or None, config.sensor.fs, config.sensor.channels, f"sensor {config.sensor.id}",
@@ -361,6 +361,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from tactiled.learn.model import default_model_path
 
     model_path = None if model is None else (config.model.path or str(default_model_path()))  # what SIGHUP (systemctl reload) loads again
+    shadow = _model_for(config.model.shadow, config.sensor.fs, config.sensor.channels, f"sensor {config.sensor.id}",
+                        explicit=True) if config.model.shadow else None
 
     from tactiled.service.record import check_output
 
@@ -373,7 +375,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         check_port(config.sensor.port)
 
     async def main() -> None:
-        daemon = Daemon(config, model, args.record, raw_to=args.raw, model_path=model_path, force=args.force)  # type: ignore[arg-type]
+        daemon = Daemon(config, model, args.record, raw_to=args.raw, model_path=model_path, force=args.force,  # type: ignore[arg-type]
+                        shadow=shadow)
         print(f"tactiled: sensor {config.sensor.id} on {config.sensor.port}, publishing on {daemon.endpoint}", file=sys.stderr, flush=True)
         await daemon.run()
 
@@ -709,6 +712,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", help="serial device (overrides sensor.port)")
     p.add_argument("--model", help="model file (overrides model.path; default: the shipped model)")
     p.add_argument("--no-model", action="store_true", help="publish slides and status only")
+    p.add_argument("--shadow", metavar="MODEL", help="a candidate model to run in the shadow of the live one (overrides model.shadow): its "
+                                                     "labels on shadow/<id>, never as the live ones; status.shadow says how often they agree")
     p.add_argument("--publish", help="ZeroMQ endpoint to bind (overrides publish.endpoint)")
     p.add_argument("--sensor-id", help="sensor id in topics (overrides sensor.id)")
     p.add_argument("--record", help="also write every sample received to this .npz, streamed to disk as OUT.npz.journal (tactiled recover) "

@@ -33,6 +33,7 @@ from tactiled.board.clockmap import ClockMap
 from tactiled.board.serialsource import CONNECTED, ByteSource, SerialSource
 from tactiled.config import Config
 from tactiled.core.pipeline import Pipeline, PipelineEvent, SlideResult
+from tactiled.core.shadow import ShadowStats
 from tactiled.errors import TactiledError
 from tactiled.learn.cost import check_speed
 from tactiled.learn.model import Model, load_model
@@ -77,18 +78,23 @@ class Daemon:
 
     def __init__(self, config: Config, model: Model | None, record_to: str | None = None, *, raw_to: str | None = None,
                  source_factory: Callable[[Callable[[bytes], Awaitable[None]], Callable[[str, str], None]], ByteSource] | None = None,
-                 model_path: str | None = None, force: bool = False) -> None:
+                 model_path: str | None = None, force: bool = False, shadow: Model | None = None) -> None:
         self.config = config
         self.model = model
         self.model_path = model_path  # what SIGHUP loads again
         self.force = force  # run a model even if its analysis cannot keep up with the sensor (tactiled/learn/cost.py)
         if model is not None and not force:
             check_speed(model, model_path or "model")
+        if shadow is not None and not force:
+            check_speed(shadow, f"shadow model {shadow.fingerprint}")
         s = config.sensor
         self.fingerprint = model.fingerprint if model else ""
         self.ingest = Ingest(s.channels, max_gap=max_gap_for(config.ring.seconds, s.fs), min_batch=round(config.serial.batch_s * s.fs))
         self.decoder = self.ingest.decoder
         self.pipeline = Pipeline(config, s.fs, s.channels, s.volts_per_count, True, model)
+        # a candidate model on the same samples (same detector: the same slides), compared with the live one, never published as it
+        self.shadow = Pipeline(config, s.fs, s.channels, s.volts_per_count, True, shadow) if shadow is not None else None
+        self.shadow_stats = ShadowStats(model=shadow.fingerprint) if shadow is not None else None
         self.publisher = Publisher(config.publish)
         self.state = DaemonState()
         self.stop_event = asyncio.Event()
@@ -168,6 +174,8 @@ class Daemon:
         await self.source.run()
         await self._process(self.ingest.flush())
         self._publish(self.pipeline.finish(), time.perf_counter())
+        if self.shadow is not None:
+            self._publish_shadow(self.shadow.finish(), time.perf_counter())
 
     def _on_state(self, state: str, detail: str) -> None:
         log.log(logging.INFO if state == CONNECTED else logging.WARNING, "%s: %s (%s)", self.config.sensor.port, state, detail)
@@ -195,11 +203,17 @@ class Daemon:
         detected_at = time.perf_counter()
         if self.config.publish.samples:
             self._publish_samples(batches)
-        if self.pipeline.will_analyse(batches[-1].end) or any(b.restart for b in batches):  # feature extraction: off the event loop
-            events = await asyncio.to_thread(feed_pipeline, self.pipeline, batches)
+        end = batches[-1].end
+        if self.pipeline.will_analyse(end) or (self.shadow is not None and self.shadow.will_analyse(end)) or any(b.restart for b in batches):
+            events, shadowed = await asyncio.to_thread(self._feed, batches)  # feature extraction: off the event loop
         else:  # detection only: cheaper than a thread hop
-            events = feed_pipeline(self.pipeline, batches)
+            events, shadowed = self._feed(batches)
         self._publish(events, detected_at)
+        self._publish_shadow(shadowed, detected_at)
+
+    def _feed(self, batches: list[Batch]) -> tuple[list[PipelineEvent], list[PipelineEvent]]:
+        """The batches through the live pipeline and, if there is one, the shadow's: (live events, shadow events)."""
+        return feed_pipeline(self.pipeline, batches), feed_pipeline(self.shadow, batches) if self.shadow is not None else []
 
     def _publish(self, events: list[PipelineEvent], detected_at: float) -> None:
         sensor = self.config.sensor
@@ -207,6 +221,20 @@ class Daemon:
         for ev in events:  # a result names the model that made it (a reloaded one takes over between slides)
             model = ev.model if isinstance(ev, SlideResult) and ev.model else self.fingerprint
             self.publisher.publish_event(sensor.id, ev, sensor.fs, model, detected_at, to_host)
+            if self.shadow_stats is not None and isinstance(ev, SlideResult):
+                self.shadow_stats.add_live(ev)
+
+    def _publish_shadow(self, events: list[PipelineEvent], detected_at: float) -> None:
+        """The shadow model's results on ``shadow/<id>`` (its slide events are the live ones': not sent again)."""
+        if self.shadow_stats is None:
+            return
+        sensor = self.config.sensor
+        to_host = self.clock.host if self.clock.ready else None
+        for ev in events:
+            if isinstance(ev, SlideResult):
+                self.shadow_stats.add_shadow(ev)
+                self.publisher.publish(schema.shadow(sensor.id, ev, fs=sensor.fs, model=ev.model or self.shadow_stats.model, version=__version__,
+                                                     latency_ms=(time.perf_counter() - detected_at) * 1e3, to_host=to_host))
 
     def _publish_samples(self, batches: list[Batch]) -> None:
         """The batch's raw samples on ``samples/<id>``: every index from the last batch's end on, lost ones as zero rows."""
@@ -254,7 +282,8 @@ class Daemon:
                              uptime_s=round(time.monotonic() - st.started, 3), index=st.last_index, level=level, version=__version__,
                              dropped_messages=self.publisher.dropped, channel_errors=stats.channel_errors, duplicate_frames=stats.duplicates,
                              clock_index=clock_index,
-                             clock_mono=clock_mono, clock_unix=clock_unix, fs_clock=round(self.clock.fs, 3))
+                             clock_mono=clock_mono, clock_unix=clock_unix, fs_clock=round(self.clock.fs, 3),
+                             shadow=self.shadow_stats.summary() if self.shadow_stats is not None else None)
 
     def reader_alive(self, now: float) -> bool:
         """The reader task runs and its loop ticked recently (reading, or waiting for the device)."""
