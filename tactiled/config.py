@@ -238,6 +238,21 @@ class PublishConfig:
                "binds a non-loopback address; set publish.allow_remote = true to allow it")
 
 
+@dataclass(frozen=True)
+class ControlConfig:
+    """The daemon's control socket (``python -m tactiled_client control``): load a model, start or stop a shadow.
+
+    Empty: none. Loopback or ipc only; with ``publish.curve_secret_key_file`` it admits the same certificates as the
+    subscriptions.
+    """
+
+    endpoint: str = ""
+
+    def validate(self, p: str) -> None:
+        _check(not self.endpoint or (self.endpoint.startswith(("ipc://", "tcp://")) and is_local_endpoint(self.endpoint)), f"{p}.endpoint",
+               "must be empty, an ipc:// path or a tcp:// loopback address (the control socket is never remote)")
+
+
 def is_local_endpoint(endpoint: str) -> bool:
     """True for ipc://, inproc:// and tcp:// endpoints on a loopback address."""
     if not endpoint.startswith("tcp://"):
@@ -265,6 +280,7 @@ class Config:
     classifier: ClassifierConfig = field(default_factory=ClassifierConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     publish: PublishConfig = field(default_factory=PublishConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
 
     def validate(self) -> None:
         for f in dataclasses.fields(self):

@@ -295,3 +295,59 @@ def test_a_shadow_model_runs_on_the_same_slides_without_publishing_its_labels_as
     status = got[-1]
     assert isinstance(status, Status) and status.shadow is not None
     assert status.shadow["model"] == fingerprint and status.shadow["agreement"] == 1.0 and 0.0 < status.shadow["confidence"] <= 1.0
+
+
+def test_a_control_request_swaps_the_model_refuses_a_bad_one_and_starts_and_stops_a_shadow(tmp_path: Path) -> None:
+    """python -m tactiled_client control: load (atomic between slides, no sample lost), a bad file refused in one line, shadow on and off."""
+    import sys
+
+    def control(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "tactiled_client", "control", ctl, *args], capture_output=True, text=True, timeout=60)
+
+    shipped = load_model()
+    a = shipped.fingerprint
+    shipped.summary = {**shipped.summary, "note": "the same classifier under another fingerprint"}
+    b = shipped.save(tmp_path / "b.npz")
+    (tmp_path / "bad.npz").write_bytes(b"PK\x03\x04 not a model")
+    link, endpoint, ctl = str(tmp_path / "tty"), f"ipc://{tmp_path}/pub", f"ipc://{tmp_path}/control"
+    config = tmp_path / "c.toml"
+    config.write_text(f'[control]\nendpoint = "{ctl}"\n')
+    stop = threading.Event()
+    board = VirtualBoard(SensorModel(SimParams(mode="robot"), seed=8), pick_surfaces(3), link=link, speed=3.0, seed=8)
+    board.open()
+    thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
+    thread.start()
+    proc = subprocess.Popen(tactiled_cmd("run", "--config", str(config), "--port", link, "--publish", endpoint), stderr=subprocess.PIPE, text=True)
+    got: list[object] = []
+    try:
+        with BlockingSubscriber(endpoint, topics=["roughness", "slide", "status"], timeout=30) as sub:
+            def final_by(fingerprint: str) -> bool:
+                got.append(sub.receive())
+                return isinstance(got[-1], Roughness) and got[-1].final and got[-1].model == fingerprint
+
+            wait_for(lambda: final_by(a), timeout=60, what="a label by the first model")
+            res = control("load", str(tmp_path / "b.npz"))
+            assert res.returncode == 0 and f'"model": "{b}"' in res.stdout, res.stderr
+            wait_for(lambda: final_by(b), timeout=60, what="a label by the loaded model")
+            res = control("load", str(tmp_path / "bad.npz"))
+            assert res.returncode == 1 and res.stderr.count("\n") == 1 and "bad.npz" in res.stderr, res.stderr
+            res = control("shadow", str(tmp_path / "b.npz"))
+            assert res.returncode == 0 and b in res.stdout, res.stderr
+            wait_for(lambda: (m := sub.receive()) and isinstance(m, Status) and m.shadow is not None and m.shadow["slides"] >= 1,
+                     timeout=60, what="a slide compared by the shadow")
+            assert control("shadow").returncode == 0
+            wait_for(lambda: (m := sub.receive()) and isinstance(m, Status) and m.shadow is None, timeout=20, what="the shadow stopped")
+            status = control("status")
+            assert status.returncode == 0 and f'"model": "{b}"' in status.stdout
+            wait_for(lambda: final_by(b), timeout=60, what="another label by the model that stayed")
+    finally:
+        proc.terminate()
+        proc.wait(30)
+        stop.set()
+        thread.join(10)
+    assert proc.returncode == 0
+    finals = [m for m in got if isinstance(m, Roughness) and m.final]
+    assert [m.model for m in finals] == sorted((m.model for m in finals), key=lambda fp: fp == b)  # a, then b: never back
+    first = next(i for i, m in enumerate(got) if isinstance(m, Roughness) and m.final)
+    statuses = [m for m in got[first:] if isinstance(m, Status)]
+    assert statuses and len({m.samples_lost for m in statuses}) == 1  # no sample lost across the swap

@@ -190,7 +190,7 @@ def test_a_surface_unlike_every_training_slide_gets_no_label_and_is_counted() ->
     assert not [e for e in events if isinstance(e, SlideResult) and not e.final]  # no provisional label for a novel slide
 
 
-def test_shadow_stats_pair_slides_by_start_and_count_agreement_confidence_and_unknowns() -> None:
+def test_shadow_stats_pair_overlapping_slides_and_count_agreement_confidence_and_unknowns() -> None:
     from tactiled.core.pipeline import SlideResult
     from tactiled.core.shadow import PENDING_MAX, ShadowStats
 
@@ -205,7 +205,7 @@ def test_shadow_stats_pair_slides_by_start_and_count_agreement_confidence_and_un
     stats.add_live(result(500, "Ra2"))
     stats.add_shadow(result(900, "Ra2", 0.4, final=False))  # provisional: not compared
     stats.add_live(result(1000, None, reason="samples_lost"))
-    stats.add_shadow(result(1000, None, reason="samples_lost"))  # both null: agree
+    stats.add_shadow(result(1010, None, reason="samples_lost"))  # both null: agree (a shadow's slide may start a hop apart)
     assert stats.summary() == {"model": "cafe", "slides": 3, "agreement": 2 / 3, "confidence": 0.8, "unknown_rate": 1 / 3}
     for k in range(3 * PENDING_MAX):  # results the other model never matches stay bounded
         stats.add_live(result(10_000 + k, "Ra1"))

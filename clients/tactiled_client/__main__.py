@@ -1,10 +1,13 @@
-"""``python -m tactiled_client record|replay``: capture a session's messages, and play them back (pyzmq + msgpack only).
+"""``python -m tactiled_client record|replay|control``: capture a session's messages, play them back, and ask a
+running daemon to load a model or run one in its shadow (pyzmq + msgpack only).
 
     python -m tactiled_client record tcp://robot:7350 session.tlog --seconds 600 --topics roughness slide status
     python -m tactiled_client replay session.tlog --json
     python -m tactiled_client replay session.tlog --publish tcp://127.0.0.1:7350 --speed 2
+    python -m tactiled_client control ipc:///run/tactiled/fingertip0.control load new_model.npz
 
-Exit status: 0 done, 2 bad arguments or a file that cannot be read (one line on stderr), 130 interrupted.
+Exit status: 0 done, 1 the daemon refused the request (its reason on stderr), 2 bad arguments or a file that cannot
+be read or no reply (one line on stderr), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -42,6 +45,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--topics", nargs="+", choices=schema.TOPICS, default=None, help="only these topics")
     p.add_argument("--sensor", default=None, help="only this sensor id")
     p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="S", help="--publish: wait up to S s for a first subscriber")
+    p = sub.add_parser("control", help="ask a running daemon (its control.endpoint) to load a model, run one in its shadow, or for status")
+    p.add_argument("endpoint", help="the daemon's control endpoint (control.endpoint in its config)")
+    p.add_argument("cmd", choices=("load", "shadow", "status"), help="load: swap in a model file at the next slide; shadow: run a "
+                                                                      "candidate model in the shadow of the live one (no path: stop it)")
+    p.add_argument("path", nargs="?", default=None, help="the model file (load, shadow)")
+    p.add_argument("--curve", nargs=2, metavar=("DAEMON_PUBLIC", "MY_SECRET"), default=None, help="CURVE certificate files")
+    p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for the reply (default: 30)")
     return ap
 
 
@@ -76,6 +86,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             n = record(endpoints, out, seconds=args.seconds, topics=args.topics, sensor=args.sensor,
                        curve=tuple(args.curve) if args.curve else None, stop=lambda: stopping, overwrite=args.force)
             print(f"{out}: {n} messages", file=sys.stderr)
+            return 0
+        if args.command == "control":
+            import os
+
+            from tactiled_client.control import control
+
+            path = os.path.abspath(args.path) if args.path else None  # the daemon may run in another folder
+            answer = control(args.endpoint, args.cmd, path, curve=tuple(args.curve) if args.curve else None, timeout=args.timeout)
+            if not answer.get("ok"):
+                print(f"tactiled_client: {args.endpoint}: refused: {answer.get('error')}", file=sys.stderr)
+                return 1
+            print(json.dumps(_jsonable(answer)))
             return 0
         from tactiled_client.replay import BlockingReplay, publish
 

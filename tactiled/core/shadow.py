@@ -1,8 +1,7 @@
 """A candidate model in the shadow of the live one: how often they agree, and how sure and how often unsure the candidate is.
 
 The daemon runs the candidate through a second pipeline on the same samples (the same detector settings, so the
-same slides); its final results are compared here with the live model's, slide by slide, paired by their start
-index. Nothing here publishes: the candidate's labels go to their own topic, never as the live ones.
+same slides); its final results are compared here with the live model's, slide by slide, paired by overlap. Nothing here publishes: the candidate's labels go to their own topic, never as the live ones.
 """
 
 from __future__ import annotations
@@ -47,7 +46,10 @@ class ShadowStats:
         self._pair(result, self._shadow, self._live)
 
     def _pair(self, result: SlideResult, mine: dict[int, SlideResult], other: dict[int, SlideResult]) -> None:
-        match = other.pop(result.start, None)
+        """Pair ``result`` with the other model's result of an overlapping slide (a shadow started mid-stream has its
+        own detector history, so its slides can start a hop apart from the live ones), else keep it waiting."""
+        key = next((k for k, r in other.items() if min(r.stop, result.stop) > max(r.start, result.start)), None)
+        match = other.pop(key) if key is not None else None
         if match is None:
             mine[result.start] = result
             while len(mine) > PENDING_MAX:  # a slide the other model never finished (a restart): forget the oldest

@@ -38,6 +38,7 @@ from tactiled.errors import TactiledError
 from tactiled.learn.cost import check_speed
 from tactiled.learn.model import Model, load_model
 from tactiled.run.ingest import Batch, Ingest, feed_pipeline, max_gap_for
+from tactiled.service.control import control_socket, parse_request, reply
 from tactiled.service.publish import Publisher
 from tactiled.service.rawbatch import raw_batches
 from tactiled.service.record import STOP_SIGNALS, RecordingSink, link_counters
@@ -93,8 +94,9 @@ class Daemon:
         self.decoder = self.ingest.decoder
         self.pipeline = Pipeline(config, s.fs, s.channels, s.volts_per_count, True, model)
         # a candidate model on the same samples (same detector: the same slides), compared with the live one, never published as it
-        self.shadow = Pipeline(config, s.fs, s.channels, s.volts_per_count, True, shadow) if shadow is not None else None
-        self.shadow_stats = ShadowStats(model=shadow.fingerprint) if shadow is not None else None
+        self.shadow: Pipeline | None = None
+        self.shadow_stats: ShadowStats | None = None
+        self.set_shadow(shadow)
         self.publisher = Publisher(config.publish)
         self.state = DaemonState()
         self.stop_event = asyncio.Event()
@@ -108,6 +110,7 @@ class Daemon:
         self.clock = ClockMap(s.fs)  # sample index -> host time
         self._raw_next: int | None = None  # next index of the samples topic
         self._reader: asyncio.Task[None] | None = None
+        self.control = control_socket(config, self.publisher.context) if config.control.endpoint else None
 
     @property
     def endpoint(self) -> str:
@@ -136,12 +139,17 @@ class Daemon:
                 self._reader = tg.create_task(self._read(), name="reader")
                 status = tg.create_task(self._status(), name="status")
                 stopped = tg.create_task(self.stop_event.wait(), name="stop")
+                tasks = [self._reader, status, stopped]
+                if self.control is not None:
+                    tasks.append(tg.create_task(self._serve_control(), name="control"))
                 await asyncio.wait([self._reader, stopped], return_when=asyncio.FIRST_COMPLETED)
-                for t in (self._reader, status, stopped):
+                for t in tasks:
                     t.cancel()
         finally:
             sd_notify("STOPPING=1")
             self.publisher.publish(self._status_message(stopping=True))
+            if self.control is not None:
+                self.control.close()
             self.publisher.close()
             if tee is not None:
                 tee.close()
@@ -155,18 +163,62 @@ class Daemon:
         if not self.model_path:
             log.error("reload: no model file to load (the daemon runs without a model)")
             return False
-        s = self.config.sensor
+        return await self.load(self.model_path) is None
+
+    async def load(self, path: str) -> str | None:
+        """Load ``path``, check it as at start-up (stream, probe, speed) and swap it in at the next slide (a slide in
+        progress finishes with the model it started with); SIGHUP then reloads ``path``. None, or why it was refused
+        (logged; the old model stays)."""
         try:
-            model = await asyncio.to_thread(load_model, self.model_path)
-            model.check_stream(s.fs, s.channels, f"sensor {s.id}")
-            await asyncio.to_thread(check_speed, model, self.model_path, self.force)
-            self.pipeline.swap_model(model)
+            model = await self._checked(path)
         except TactiledError as exc:
             log.error("reload refused, model %s stays: %s", self.fingerprint or "none", exc)
-            return False
-        log.info("reload: model %s from %s takes over at the next slide (was %s)", model.fingerprint, self.model_path, self.fingerprint or "none")
-        self.model, self.fingerprint = model, model.fingerprint
-        return True
+            return str(exc)
+        self.pipeline.swap_model(model)
+        log.info("reload: model %s from %s takes over at the next slide (was %s)", model.fingerprint, path, self.fingerprint or "none")
+        self.model, self.fingerprint, self.model_path = model, model.fingerprint, path
+        return None
+
+    async def _checked(self, path: str) -> Model:
+        """A model file loaded and checked for this stream, as at start-up (off the event loop)."""
+        s = self.config.sensor
+        model = await asyncio.to_thread(load_model, path)
+        model.check_stream(s.fs, s.channels, f"sensor {s.id}")
+        await asyncio.to_thread(check_speed, model, path, self.force)
+        return model
+
+    def set_shadow(self, model: Model | None) -> None:
+        """Run ``model`` in the shadow of the live one from the next samples on (None: stop the shadow)."""
+        s = self.config.sensor
+        self.shadow = Pipeline(self.config, s.fs, s.channels, s.volts_per_count, True, model) if model is not None else None
+        self.shadow_stats = ShadowStats(model=model.fingerprint) if model is not None else None
+
+    async def _serve_control(self) -> None:
+        """Answer control requests (tactiled/service/control.py) until cancelled: one reply per request."""
+        assert self.control is not None
+        while True:
+            frames = await self.control.recv_multipart()
+            try:
+                cmd, path = parse_request(frames)
+            except ValueError as exc:
+                await self.control.send(reply(False, error=str(exc)))
+                continue
+            if cmd == "status":
+                answer = reply(True, status=self._status_message().to_map())
+            elif cmd == "load":
+                assert path is not None
+                error = await self.load(path)
+                answer = reply(error is None, **({"error": error} if error else {"model": self.fingerprint}))
+            else:
+                try:
+                    candidate = await self._checked(path) if path else None
+                except TactiledError as exc:
+                    answer = reply(False, error=str(exc))
+                else:
+                    self.set_shadow(candidate)
+                    log.info("shadow: %s", f"model {candidate.fingerprint} from {path}" if candidate else "stopped")
+                    answer = reply(True, shadow=candidate.fingerprint if candidate else None)
+            await self.control.send(answer)
 
     async def _read(self) -> None:
         """The source until it ends (a finite source: then the explicit end of stream), or until cancelled."""
