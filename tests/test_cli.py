@@ -76,7 +76,13 @@ def test_argument_types_reject_bad_values_by_name_not_function(capsys: pytest.Ca
     for argv, what in ((["record", "--seconds", "abc", "-o", "x.npz"], "argument --seconds: not a number: 'abc'"),
                        (["record", "--seconds", "-1", "-o", "x.npz"], "argument --seconds: must be > 0, got -1"),
                        (["simulate", "serial", "--drop", "2"], "argument --drop: must be in [0, 1], got 2"),
-                       (["evaluate", "a.npz", "--report", "r", "--experiments", "az"], "argument --experiments: letters from abcdefg")):
+                       (["evaluate", "a.npz", "--report", "r", "--experiments", "az"], "argument --experiments: letters from abcdefg"),
+                       (["demo", "--scene", "nonsense"], "argument --scene: unknown scene 'nonsense'; known: hand, robot"),
+                       (["simulate", "dataset", "--out", "d", "--scene", "robot,nonsense"], "argument --scene: unknown scene 'nonsense'"),
+                       (["run", "--prot", "/dev/ttyACM0"], "tactiled run: error: unrecognized arguments: --prot /dev/ttyACM0; did you mean --port? "
+                                                           "(see tactiled run --help)"),
+                       (["simulate", "figure", "-o", "f.png", "--sed", "3"], "did you mean --seed? (see tactiled simulate figure --help)"),
+                       (["rn"], "invalid choice: 'rn'")):
         with pytest.raises(SystemExit) as exit_:
             main(argv)
         err = capsys.readouterr().err

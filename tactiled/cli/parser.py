@@ -125,7 +125,7 @@ def cmd_simulate_dataset(args: argparse.Namespace) -> int:
 def cmd_simulate_figure(args: argparse.Namespace) -> int:
     from tactiled.sim.simulate import write_figure
 
-    write_figure(Path(args.output), args.mode, args.seed)
+    write_figure(Path(args.output), args.scene, args.seed, args.mode)
     print(args.output)
     return EXIT_OK
 
@@ -519,7 +519,35 @@ class Parser(argparse.ArgumentParser):
         super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
-        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message}{_did_you_mean(message, self)} (see {self.prog} --help)\n")
+
+    def parse_args(self, args: Sequence[str] | None = None, namespace: Any = None) -> Any:  # type: ignore[override]
+        """As argparse, but an unknown option is reported by the subcommand it was given to, with the closest one it has."""
+        ns, extras = self.parse_known_args(args, namespace)
+        if extras:
+            words = [a for a in (sys.argv[1:] if args is None else list(args)) if not a.startswith("-")]
+            known = subcommands(self)
+            chosen = max((k for k in known if k and words[:len(k.split())] == k.split()), key=len, default="")
+            known[chosen].error(f"unrecognized argument{'s' if len(extras) > 1 else ''}: {' '.join(extras)}")
+        return ns
+
+
+def _did_you_mean(message: str, parser: argparse.ArgumentParser) -> str:
+    """"; did you mean X?" for an unknown option or subcommand close to one that exists, else ""."""
+    import difflib
+    import re
+
+    unknown = re.match(r"unrecognized arguments?: (\S+)", message)
+    choice = re.match(r"argument \S+: invalid choice: '([^']*)' \(choose from (.*)\)", message)
+    if unknown:
+        word = unknown.group(1).split("=")[0]
+        options = [o for a in parser._actions for o in a.option_strings]
+    elif choice:
+        word, options = choice.group(1), re.findall(r"'([^']*)'", choice.group(2))
+    else:
+        return ""
+    close = difflib.get_close_matches(word, options, n=1, cutoff=0.6)
+    return f"; did you mean {close[0]}?" if close else ""
 
 
 EXPERIMENTS = "abcdefg"
@@ -571,6 +599,17 @@ def _int_in(low: int, high: int = 2**31) -> Callable[[str], int]:
     return parse
 
 
+def _scene(text: str) -> str:
+    """A scene, or scenes joined by commas, that the simulator knows (checked when given: the simulator loads lazily)."""
+    from tactiled.sim.sensor_model import parse_scene
+
+    try:
+        parse_scene(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--scene: ")) from None
+    return text
+
+
 def _experiments(text: str) -> str:
     unknown = sorted(set(text) - set(EXPERIMENTS))
     if unknown or not text:
@@ -581,6 +620,7 @@ def _experiments(text: str) -> str:
 _float.__name__ = "number"
 _positive_float.__name__ = "number > 0"
 _experiments.__name__ = "experiment letters"
+_scene.__name__ = "scene"
 _count, _seed, _channels = _int_in(1), _int_in(0, 2**32 - 1), _int_in(1, 8)
 _probability, _wait_s = _float_in(0.0, 1.0, "probability"), _float_in(0.0, 3600.0, "seconds")
 
@@ -668,7 +708,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                                                    help="what to simulate (each has --help)")
     p = sim.add_parser("dataset", help="write labelled recordings")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--scene", default=None, help=SCENE_HELP)
+    p.add_argument("--scene", type=_scene, default=None, help=SCENE_HELP)
     p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
     p.add_argument("--surfaces", default=None, help=SURFACES_HELP)
     p.add_argument("--files-per-surface", type=_count, default=4, help="recordings per surface")
@@ -686,13 +726,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sim.add_parser("figure", help="PNG of one slide per surface class: signal and spectrum")
     p.add_argument("-o", "--output", required=True, help="PNG file to write")
-    p.add_argument("--mode", choices=("manual", "robot"), default="manual", help="hand (manual) or robot sliding")
+    p.add_argument("--scene", type=_scene, default=None, help=SCENE_HELP)
+    p.add_argument("--mode", choices=("manual", "robot"), default=None, help="older spelling of --scene hand / --scene robot")
     p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
     p.set_defaults(handler=cmd_simulate_figure)
 
     p = sim.add_parser("serial", help="a virtual board streaming frames on a pty")
     p.add_argument("--link", help="keep this symlink pointing at the pty (removed on exit)")
-    p.add_argument("--scene", default=None, help=SCENE_HELP)
+    p.add_argument("--scene", type=_scene, default=None, help=SCENE_HELP)
     p.add_argument("--surfaces", default=None, help=SURFACES_HELP)
     p.add_argument("--mode", choices=("manual", "robot"), default=None, help="older spelling of --scene hand / --scene robot")
     p.add_argument("--speed", type=_positive_float, default=1.0, help="times real time")
@@ -752,7 +793,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(handler=handler)
 
     p = sub.add_parser("demo", help="simulated sensor + daemon + monitor")
-    p.add_argument("--scene", default="hand", help="the simulated sensor's scene (docs/simulator.md; the shipped model knows hand and robot sliding)")
+    p.add_argument("--scene", type=_scene, default="hand",
+                   help="the simulated sensor's scene (docs/simulator.md; the shipped model knows hand and robot sliding)")
     p.add_argument("--seed", type=_seed, default=0, help="the simulated sensor's random seed")
     p.add_argument("--publish", help="endpoint for the demo daemon (default: an ipc socket in a temporary folder)")
     p.add_argument("--headless", action="store_true", help="print one line per label (with the true surface) instead of the monitor")

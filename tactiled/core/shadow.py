@@ -1,7 +1,8 @@
 """A candidate model in the shadow of the live one: how often they agree, and how sure and how often unsure the candidate is.
 
 The daemon runs the candidate through a second pipeline on the same samples (the same detector settings, so the
-same slides); its final results are compared here with the live model's, slide by slide, paired by overlap. Nothing here publishes: the candidate's labels go to their own topic, never as the live ones.
+same slides); its final results are compared here with the live model's, slide by slide, paired by overlap.
+Nothing here publishes: the candidate's labels go to their own topic, never as the live ones.
 """
 
 from __future__ import annotations

@@ -124,8 +124,8 @@ def run_virtual_board(args: argparse.Namespace) -> int:
     return 0
 
 
-def write_figure(out: Path, mode: str = "manual", seed: int = 0) -> None:
-    """One slide per surface class: film 1's raw signal and its spectrum (PNG; needs matplotlib)."""
+def write_figure(out: Path, scene: str | None = None, seed: int = 0, mode: str | None = None) -> None:
+    """One slide per surface class of ``scene`` (or the older ``mode``): film 1's raw signal and its spectrum (PNG; needs matplotlib)."""
     try:
         import matplotlib
 
@@ -133,7 +133,7 @@ def write_figure(out: Path, mode: str = "manual", seed: int = 0) -> None:
         import matplotlib.pyplot as plt
     except ImportError:
         raise TactiledError("the figure needs matplotlib: pip install 'tactiled[report]'") from None
-    _, params = scene_for(None, mode, 20_000.0, 2)
+    _, params = scene_for(scene, mode)
     surfaces = pick_surfaces(None)
     fig, axes = plt.subplots(len(surfaces), 2, figsize=(11, 1.1 * len(surfaces)), sharex="col")
     for row, surface in enumerate(surfaces):
