@@ -23,6 +23,8 @@ from tactiled.errors import ConfigError
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:7350"
 MAX_CONFIG_BYTES = 1 << 20
+MAX_KEY_FILE_BYTES = 64 << 10  # a CURVE certificate is a few hundred bytes
+MAX_MODEL_FILE_BYTES = 1 << 30  # a model file on disk (its arrays inflated are bounded again at load)
 MAX_RING_BYTES = 1 << 30  # the ring buffer of raw samples (float64 in the worst case)
 STAT_NAMES = ("mean", "sd", "energy", "rms", "skew", "kurt")
 
@@ -215,7 +217,8 @@ class ModelConfig:
     shadow: str = ""
 
     def validate(self, p: str) -> None:
-        return None
+        for key in ("path", "shadow"):
+            _readable_file(getattr(self, key), f"{p}.{key}", MAX_MODEL_FILE_BYTES)
 
 
 @dataclass(frozen=True)
@@ -236,6 +239,9 @@ class PublishConfig:
         _check(0.01 <= self.status_interval_s <= 1.0, f"{p}.status_interval_s", "must be in [0.01, 1] s")
         _check(self.allow_remote or is_local_endpoint(self.endpoint), f"{p}.endpoint",
                "binds a non-loopback address; set publish.allow_remote = true to allow it")
+        _readable_file(self.curve_secret_key_file, f"{p}.curve_secret_key_file", MAX_KEY_FILE_BYTES)
+        _check(not self.curve_authorized_dir or Path(self.curve_authorized_dir).is_dir(), f"{p}.curve_authorized_dir",
+               f"{self.curve_authorized_dir} is not a folder")
 
 
 @dataclass(frozen=True)
@@ -251,6 +257,20 @@ class ControlConfig:
     def validate(self, p: str) -> None:
         _check(not self.endpoint or (self.endpoint.startswith(("ipc://", "tcp://")) and is_local_endpoint(self.endpoint)), f"{p}.endpoint",
                "must be empty, an ipc:// path or a tcp:// loopback address (the control socket is never remote)")
+
+
+def _readable_file(path: str, where: str, max_bytes: int) -> None:
+    """A file the daemon will read must be a regular file of at most ``max_bytes`` ("" passes: not set).
+
+    A device (``/dev/zero``) or a FIFO would be read without end, or block, when the daemon starts.
+    """
+    if not path:
+        return
+    f = Path(path)
+    _check(f.exists(), where, f"{path} does not exist")
+    _check(f.is_file(), where, f"{path} is not a regular file (a device, FIFO or folder is never read)")
+    size = f.stat().st_size
+    _check(size <= max_bytes, where, f"{path} is {size} bytes, more than the {max_bytes} a file there may have")
 
 
 def is_local_endpoint(endpoint: str) -> bool:

@@ -456,3 +456,19 @@ def test_a_rate_too_low_for_the_features_is_one_line_naming_the_file(tmp_path: P
     errors = [line for line in res.stderr.splitlines() if "error" in line]
     assert len(errors) == 1 and "slow.npz" in errors[0] and "cannot be computed" in errors[0] and "40 Hz" in errors[0]
     assert "rec-good.npz:" in res.stdout  # the other file is still replayed
+
+
+@pytest.mark.parametrize("section, key, target", [("publish", "curve_secret_key_file", "/dev/zero"), ("publish", "curve_secret_key_file", "fifo"),
+                                                  ("model", "path", "/dev/zero"), ("model", "shadow", "fifo"), ("model", "path", "missing.npz")])
+def test_config_files_that_are_not_regular_files_are_refused_by_check_config_and_run(section: str, key: str, target: str, tmp_path: Path) -> None:
+    """A device or FIFO named as a key or model would be read without end, or block, when the daemon starts: one line, exit 2."""
+    if target == "fifo":
+        os.mkfifo(tmp_path / "fifo")
+    path = target if target.startswith("/") else str(tmp_path / target)
+    extra = f'curve_authorized_dir = "{tmp_path}"\n' if section == "publish" else ""
+    config = tmp_path / "c.toml"
+    config.write_text(f'[{section}]\n{key} = "{path}"\n{extra}')
+    for argv in (["check-config", str(config)], ["run", "--config", str(config), "--port", str(tmp_path / "none")]):
+        res = run_cli(*argv, timeout=60)
+        assert res.returncode == 2 and res.stderr.strip().count("\n") == 0, res.stderr
+        assert f"{section}.{key}: {path}" in res.stderr and ("not a regular file" in res.stderr or "does not exist" in res.stderr)
