@@ -169,3 +169,40 @@ def test_a_model_says_once_that_the_configs_analysis_sections_are_not_used(tmp_p
 def test_first_day_mistakes_get_one_line_before_any_work(argv: tuple[str, ...], message: str) -> None:
     res = run_cli(*argv, timeout=60)
     assert res.returncode == 2 and message in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["train", "x.npz", "-o", "{missing}/m.npz"], "folder {missing} does not exist"),
+    (["train", "x.npz", "-o", "{tmp}/m.txt"], "m.txt: must end in .npz"),
+    (["train", "x.npz", "-o", "{existing}"], "exists (--force overwrites it)"),
+    (["features", "x.npz", "-o", "{existing}"], "exists (--force overwrites it)"),
+    (["features", "x.npz", "-o", "{tmp}/f.csv"], "f.csv: must end in .npz"),
+    (["evaluate", "a.npz", "b.npz", "--report", "{full}"], "folder exists and is not empty"),
+    (["export", "x.npz", "-o", "{tmp}/x.json"], "x.json: must end in .mcap"),
+    (["record", "--seconds", "1", "-o", "{tmp}/x.txt"], "x.txt: must end in .npz"),
+    (["recover", "j.journal", "-o", "{existing}"], "exists (--force overwrites it)"),
+    (["run", "--record", "{tmp}/r.mcap"], "r.mcap: must end in .npz"),
+    (["run", "--raw", "{tmp}/r.npz"], "r.npz: must end in .bin"),
+    (["simulate", "figure", "-o", "{tmp}/f.jpg"], "f.jpg: must end in .png"),
+    (["simulate", "dataset", "--out", "{existing}"], "exists and is not a folder"),
+    (["curve-keys", "{existing}", "daemon"], "exists and is not a folder"),
+    (["curve-keys", "{full}", "robot"], "robot.key: exists (--force overwrites it)"),
+])
+def test_every_output_is_checked_before_any_work(argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """One policy (docs/cli.md): folder there and writable, the right extension, nothing replaced without --force; one line, exit 2."""
+    existing, full = tmp_path / "old.npz", tmp_path / "full"
+    existing.write_bytes(b"")
+    full.mkdir()
+    (full / "robot.key").write_text("")
+    names = {"tmp": str(tmp_path), "missing": str(tmp_path / "missing"), "existing": str(existing), "full": str(full)}
+    assert main([a.format(**names) for a in argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message.format(**names) in err and len(err.splitlines()) == 1, err
+
+
+def test_a_dataset_folder_takes_more_scenes_but_replaces_nothing_unasked(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    base = ["simulate", "dataset", "--out", str(tmp_path / "d"), "--surfaces", "2", "--files-per-surface", "1", "--slides-per-file", "1"]
+    assert main(base) == 0 and main([*base, "--scene", "robot"]) == 0  # another scene beside the first
+    capsys.readouterr()
+    assert main(base) == 2 and "hand_Ra0.44_00.npz: exists (2 of the files to write do; --force replaces them)" in capsys.readouterr().err
+    assert main([*base, "--force"]) == 0

@@ -50,12 +50,10 @@ def cmd_record(args: argparse.Namespace) -> int:
         raise TactiledError("--seconds: must be > 0")
     # --format mcap: record the .npz as usual beside the output (kept: the recording itself), then convert it as tactiled export does
     npz = args.output if args.format == "npz" else str(Path(args.output).with_suffix(".npz"))
-    if args.format == "mcap":
-        from tactiled.service.record import check_output
+    from tactiled.service.record import check_output
 
-        if Path(npz).resolve() == Path(args.output).resolve():
-            raise TactiledError(f"{args.output}: --format mcap writes the recording beside it as .npz; name the output .mcap")
-        check_output(args.output, args.force)
+    check_output(args.output, args.force, (f".{args.format}",))
+    if args.format == "mcap":
         check_output(npz, args.force)
     summary = record(config.sensor.port, args.seconds, npz, fs=config.sensor.fs, channels=config.sensor.channels,
                      volts_per_count=config.sensor.volts_per_count, label=args.label, baudrate=config.sensor.baudrate,
@@ -76,7 +74,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
     from tactiled.files.journal import recover
     from tactiled.service.record import check_output
 
-    check_output(args.output, args.force)
+    check_output(args.output, args.force, (".npz",))
     result = recover(args.journal, args.output, {"recovered_from": str(args.journal)})
     print(f"{args.output}: {result.line()}")
     return EXIT_OK
@@ -106,25 +104,29 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     if Path(args.output).resolve() == Path(args.file).resolve():
         raise TactiledError(f"{args.output}: is the recording being exported; write the MCAP file elsewhere")
-    check_output(args.output, args.force)
+    check_output(args.output, args.force, (".mcap",))
     counts = _export(args.file, args.output, _config(args), args.model, explicit_model=args.no_model, batch=args.batch, profile=args.profile)
     print(f"{args.output}: {counts['samples']} samples messages, {counts['slides']} slides, {counts['roughness']} roughness messages")
     return EXIT_OK
 
 
 def cmd_simulate_dataset(args: argparse.Namespace) -> int:
+    from tactiled.service.record import check_folder
     from tactiled.sim.simulate import write_dataset
 
+    check_folder(args.out, force=True)  # a dataset folder takes more scenes; files of the same names need --force
     paths = write_dataset(Path(args.out), scene=args.scene, seed=args.seed, surfaces=args.surfaces, files_per_surface=args.files_per_surface,
                           slides_per_file=args.slides_per_file, mode=args.mode, fs=args.fs, channels=args.channels,
-                          progress=lambda msg: print(msg, file=sys.stderr), unit=args.unit, specimen=args.specimen)
+                          progress=lambda msg: print(msg, file=sys.stderr), unit=args.unit, specimen=args.specimen, force=args.force)
     print(f"{args.out}: wrote {len(paths)} recordings")
     return EXIT_OK
 
 
 def cmd_simulate_figure(args: argparse.Namespace) -> int:
+    from tactiled.service.record import check_output
     from tactiled.sim.simulate import write_figure
 
+    check_output(args.output, args.force, (".png",))
     write_figure(Path(args.output), args.scene, args.seed, args.mode)
     print(args.output)
     return EXIT_OK
@@ -262,7 +264,7 @@ def cmd_features(args: argparse.Namespace) -> int:
     from tactiled.service.record import check_output
 
     config = _config(args)
-    check_output(args.output, force=True)  # before every window is analysed, not after
+    check_output(args.output, args.force, (".npz",))  # before every window is analysed, not after
     recs = load_recordings(args.files, _stderr)
     if not recs:
         raise TactiledError("no readable recordings")
@@ -291,7 +293,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from tactiled.service.record import check_output
 
     config = _config(args)
-    check_output(args.output, force=True)  # before minutes of search, not after
+    check_output(args.output, args.force, (".npz",))  # before minutes of search, not after
     result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
                    scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by)
     print("leaderboard (slide accuracy, grouped by file: mean ± sd over folds; * the choice, the simplest within one standard error of the best):")
@@ -366,9 +368,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     from tactiled.service.record import check_output
 
-    for out in (args.record, args.raw):
+    for out, suffix in ((args.record, ".npz"), (args.raw, ".bin")):
         if out:
-            check_output(out, args.force)  # before the port opens: never replace a file (or write a device) unasked
+            check_output(out, args.force, (suffix,))  # before the port opens: never replace a file (or write a device) unasked
     if args.no_wait:
         from tactiled.board.serialsource import check_port
 
@@ -469,8 +471,10 @@ def _headless(endpoint: str, seconds: float, board_log: str, daemon_log: str) ->
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from tactiled.learn.dataset import load_recordings
     from tactiled.learn.evaluate import run_evaluation
+    from tactiled.service.record import check_folder
 
     config = _config(args)
+    check_folder(args.report, args.force)  # before minutes of experiments, not after
     readable = load_recordings(args.files, _stderr)
     recs = [(n, r) for n, r in readable if r.slides()]
     if len(recs) < 2:
@@ -486,9 +490,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_curve_keys(args: argparse.Namespace) -> int:
     import zmq.auth
 
+    from tactiled.service.record import check_folder, check_output
+
     out = Path(args.dir)
-    if out.exists() and not out.is_dir():
-        raise TactiledError(f"{out}: exists and is not a folder")
+    check_folder(out, force=True)  # a folder of keys: another name goes beside the others
+    if out.is_dir():
+        for name in (f"{args.name}.key", f"{args.name}.key_secret"):
+            check_output(out / name, args.force)
     try:
         out.mkdir(parents=True, exist_ok=True)
         public, secret = zmq.auth.create_certificates(str(out), args.name)
@@ -634,6 +642,12 @@ CONNECT_HELP = "daemon endpoint to subscribe to (default: publish.endpoint of --
 SEED_HELP = "random seed"
 MODEL_HELP = "model file (default: the shipped model, when it fits the recording's rate and channels)"
 
+OUTPUT_POLICY = """\
+Outputs: every command that writes checks, before any work, that the folder exists and is
+writable, that a file's name ends as it should (.npz, .mcap, .bin, .png), and that it replaces
+nothing: an existing file (a dataset's recordings of the same names, a certificate pair of the same
+name), or a report folder that is not empty, needs --force. Each failure is one line and exit 2."""
+
 # every command's example, shown at the end of its --help (keys: the command's words after "tactiled")
 EXAMPLES: dict[str, str] = {
     "": "tactiled demo --headless --seconds 20",
@@ -660,7 +674,7 @@ EXAMPLES: dict[str, str] = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(prog="tactiled", description="Tactile roughness sensing daemon and toolkit.")
+    parser = Parser(prog="tactiled", description="Tactile roughness sensing daemon and toolkit.\n\n" + OUTPUT_POLICY)
     parser.add_argument("--version", action="version", version=f"tactiled {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", help="what to do (each command has --help)")
@@ -708,6 +722,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                                                    help="what to simulate (each has --help)")
     p = sim.add_parser("dataset", help="write labelled recordings")
     p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--force", action="store_true", help="replace recordings of the same names in the output folder")
     p.add_argument("--scene", type=_scene, default=None, help=SCENE_HELP)
     p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
     p.add_argument("--surfaces", default=None, help=SURFACES_HELP)
@@ -726,6 +741,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sim.add_parser("figure", help="PNG of one slide per surface class: signal and spectrum")
     p.add_argument("-o", "--output", required=True, help="PNG file to write")
+    p.add_argument("--force", action="store_true", help="replace an existing output file")
     p.add_argument("--scene", type=_scene, default=None, help=SCENE_HELP)
     p.add_argument("--mode", choices=("manual", "robot"), default=None, help="older spelling of --scene hand / --scene robot")
     p.add_argument("--seed", type=_seed, default=0, help=SEED_HELP)
@@ -769,6 +785,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("curve-keys", help="create a ZeroMQ CURVE certificate pair (NAME.key, NAME.key_secret) in DIR")
     p.add_argument("dir", help="folder for the certificates (created if missing)")
     p.add_argument("name", help="certificate name: NAME.key (public) and NAME.key_secret")
+    p.add_argument("--force", action="store_true", help="replace an existing pair of that name")
     p.set_defaults(handler=cmd_curve_keys)
 
     p = sub.add_parser("monitor", help="terminal view of a running daemon")
@@ -823,6 +840,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("features", help="feature vectors of every slide")
     p.add_argument("files", nargs="+", help="recordings (.npz) whose slides to analyse")
     p.add_argument("-o", "--output", required=True, help="features file to write (.npz: one row per window, docs/features.md)")
+    p.add_argument("--force", action="store_true", help="replace an existing output file")
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--jobs", type=_int_in(0, 4096), default=0, metavar="N", help=JOBS_HELP)
     p.set_defaults(handler=cmd_features)
@@ -830,6 +848,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train a model from labelled recordings (finds what works on them)")
     p.add_argument("files", nargs="+", help="labelled recordings (.npz): per-slide ground truth or a file-level label")
     p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
+    p.add_argument("--force", action="store_true", help="replace an existing output file")
     p.add_argument("--config", help="config file (detector, spikes, feature settings; default: the built-in defaults)")
     p.add_argument("--method", choices=("auto", "quick", "paper"), default="auto",
                    help="auto: score features, classifiers and windows by grouped CV and keep the simplest within one standard error of "
@@ -848,6 +867,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="the papers' experiments by grouped cross-validation")
     p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth, all of one rate and channel count")
     p.add_argument("--report", required=True, help="output folder: report.md, report.json, PNG figures")
+    p.add_argument("--force", action="store_true", help="write into a report folder that is not empty")
     p.add_argument("--config", help=CONFIG_HELP)
     p.add_argument("--experiments", type=_experiments, default=EXPERIMENTS,
                    help="a: classifiers, b: window grid, c: sampling rate, d: feature count, e: clustering, f: error against run time, "

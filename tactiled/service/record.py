@@ -36,8 +36,12 @@ MAX_CHUNK_BYTES = 4 << 20  # a chunk is committed at this size at the latest
 QUEUE_BYTES = 64 << 20  # samples waiting for the writer (a disk stalled 13 min at 20 kHz x 2 channels); beyond, frames are lost, counted
 
 
-def check_output(out: str | Path, force: bool) -> None:
-    """Raise :class:`OutputError` naming ``out`` unless a file can be written there (and, without ``force``, none exists)."""
+def check_output(out: str | Path, force: bool, suffixes: tuple[str, ...] = ()) -> None:
+    """Raise :class:`OutputError` naming ``out`` unless a file can be written there: its folder exists and is writable,
+    its name ends in one of ``suffixes`` (if given), and, without ``force``, no file is there already.
+
+    Every command that writes a file calls this before any work (docs/cli.md: the output policy).
+    """
     out = Path(out)
     folder = out.parent
     if not folder.exists():
@@ -50,8 +54,25 @@ def check_output(out: str | Path, force: bool) -> None:
         raise OutputError(f"{out}: is a folder")
     if out.exists() and not out.is_file():
         raise OutputError(f"{out}: not a regular file (a device or FIFO is never written)")
+    if suffixes and out.suffix.lower() not in suffixes:
+        raise OutputError(f"{out}: must end in {' or '.join(suffixes)}")
     if out.exists() and not force:
         raise OutputError(f"{out}: exists (--force overwrites it)")
+
+
+def check_folder(out: str | Path, force: bool) -> None:
+    """Raise :class:`OutputError` naming ``out`` unless a folder of outputs can be made there: its parent exists and is
+    writable, nothing but a folder is there, and, without ``force``, no non-empty folder is there already."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out}: exists and is not a folder")
+    if out.is_dir():
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise OutputError(f"{out}: folder is not writable")
+        if not force and any(out.iterdir()):
+            raise OutputError(f"{out}: folder exists and is not empty (--force writes into it, replacing files of the same names)")
+        return
+    check_output(out, force=True)  # the folder's parent: exists, is a folder, is writable
 
 
 def claim_journal(out: str | Path) -> Path:

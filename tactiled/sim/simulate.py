@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tactiled.errors import TactiledError
+from tactiled.errors import OutputError, TactiledError
 from tactiled.files.recording import Recording, save_recording
 from tactiled.sim.sensor_model import (
     SensorModel,
@@ -51,13 +51,14 @@ def scene_for(scene: str | None, mode: str | None = None, fs: float | None = Non
 
 def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surfaces: str | None = None, files_per_surface: int = 4,
                   slides_per_file: int = 5, mode: str | None = None, fs: float | None = None, channels: int | None = None,
-                  progress: Callable[[str], None] | None = None, unit: int = 0, specimen: int = 0) -> list[Path]:
+                  progress: Callable[[str], None] | None = None, unit: int = 0, specimen: int = 0, force: bool = True) -> list[Path]:
     """Write ``files_per_surface`` recordings per surface of ``scene`` (docs/simulator.md) with ground truth; returns their paths.
 
     File names start with the scene (commas as ``+``): ``continuous+one-channel_Ra0.44_00.npz``. ``unit``: another unit of
     the same fingertip (:func:`other_unit`; 0 is the nominal one); ``specimen``: other specimens of the same grades
     (:func:`new_specimens`; 0 are the nominal ones). Both are recorded in each file's ``meta``; the ``ra_um`` labels are
-    the grades' nominal Ra (µm), the specimen's own values are in ``meta["surface"]``.
+    the grades' nominal Ra (µm), the specimen's own values are in ``meta["surface"]``. Without ``force``, a file of
+    the same name already in ``out`` is an :class:`~tactiled.errors.OutputError` before anything is simulated.
     """
     if files_per_surface < 1 or slides_per_file < 1:
         raise TactiledError("--files-per-surface and --slides-per-file must be >= 1")
@@ -67,9 +68,13 @@ def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surface
     params = other_unit(params, unit)
     chosen = _surfaces(surfaces, params.family, specimen)
     hot = "hot-gain" in spec.split(",")
+    prefix = spec.replace(",", "+")
+    existing = [out / f"{prefix}_{s.name}_{f:02d}.npz" for s in chosen for f in range(files_per_surface)]
+    existing = [p for p in existing if p.exists()]
+    if existing and not force:
+        raise OutputError(f"{existing[0]}: exists ({len(existing)} of the files to write do; --force replaces them)")
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    prefix = spec.replace(",", "+")
     for i, surface in enumerate(chosen):
         file_params = replace(params, extra_gain=hot_gain(chosen, surface, params, seed + i)) if hot else params
         for f in range(files_per_surface):
