@@ -26,23 +26,21 @@ from bench_daemon import FS, make_stream
 
 def ingest_costs(data: bytes, seconds: float) -> None:
     from tactiled.config import Config
-    from tactiled.core.pipeline import Pipeline
     from tactiled.learn.model import load_model
-    from tactiled.run.ingest import Ingest, feed_pipeline, max_gap_for
+    from tactiled.run.stream import Stream
 
     config, model = Config(), load_model()
     line_rate = len(data) / seconds
     for batch, read in ((0.0, 0.005), (0.04, 0.01), (0.1, 0.02), (0.25, 0.03)):
         shares = []
         for with_pipeline in (False, True):
-            ingest = Ingest(2, max_gap=max_gap_for(config.ring.seconds, FS), min_batch=round(batch * FS))
-            pipeline = Pipeline(config, FS, 2, config.sensor.volts_per_count, True, model)
+            stream = Stream(config, model, min_batch=round(batch * FS))
             chunk = max(1, round(line_rate * read))
             t0 = time.process_time()
             for i in range(0, len(data), chunk):
-                batches = ingest.feed(data[i:i + chunk])
+                batches = stream.decode(data[i:i + chunk])
                 if batches and with_pipeline:
-                    feed_pipeline(pipeline, batches)
+                    stream.process(batches)
             shares.append(100 * (time.process_time() - t0) / seconds)
         print(f"reads every {read * 1e3:.0f} ms, batches of {batch * 1e3:.0f} ms: ingest {shares[0]:.2f} %, "
               f"ingest + pipeline (shipped model) {shares[1]:.2f} % of one core", flush=True)

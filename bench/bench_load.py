@@ -4,7 +4,7 @@ Usage: python bench/bench_load.py [--counts 1,8,16,24,32,40] [--seconds 30] [--j
 
 The boards are not simulated live (the simulator costs about four daemons): the simulator's
 samples for the whole run are made once, encoded as frames once, and one player process
-(tactiled.files.player.PtyPlayer) writes them into K ptys at the line rate (92 kB/s each), one
+(tactiled.sim.ptyplayer.PtyPlayer) writes them into K ptys at the line rate (92 kB/s each), one
 write per pty every 5 ms. Each daemon gets the same stream, started at a different offset.
 
 For each K: every daemon's CPU share, the player's, the sensor-side latency (slide's last
@@ -39,7 +39,7 @@ def play(args: argparse.Namespace) -> None:
 
     Each line on stdin is answered with the bytes the ptys would not take so far (a reader too slow, or not started yet).
     """
-    from tactiled.files.player import PtyPlayer
+    from tactiled.sim.ptyplayer import PtyPlayer
 
     with open(args.stream, "rb") as fh:
         data = fh.read()

@@ -53,7 +53,7 @@ def wall_s(cmd: list[str]) -> float:
 # include this benchmark's own memory at fork)
 PEAK = """
 import sys
-from tactiled.cli.parser import main
+from tactiled.cli.main import main
 try:
     sys.exit(main(sys.argv[1:]))
 finally:  # also after --help, which exits from argparse

@@ -24,7 +24,7 @@ from tactiled_client import schema
 from tactiled.apps.bridges import StreamMeta, run_bridge
 from tactiled.board.clockmap import ClockMap
 from tactiled.config import PublishConfig
-from tactiled.core.pipeline import SlideResult
+from tactiled.core.events import SlideResult
 from tactiled.service.publish import Publisher
 
 FS, N, BATCHES, SENSOR = 20_000.0, 400, 8, "tip7"

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from tactiled.cli.clidoc import REGENERATE, cli_markdown
-from tactiled.cli.parser import EXAMPLES, build_parser, main, subcommands
+from tactiled.cli.main import build_parser, main, subcommands
 from tactiled.errors import TactiledError
 from tactiled.learn.model import load_model
 from tactiled.sim.sensor_model import pick_surfaces
@@ -35,7 +35,9 @@ def test_help_runs_and_ends_with_an_example_that_parses(words: str, capsys: pyte
         main([*words.split(), "--help"])
     assert exit_.value.code == 0
     out = capsys.readouterr().out
-    example = EXAMPLES[words]
+    epilog = COMMANDS[words].epilog or ""
+    assert "example:\n  " in epilog, f"tactiled {words} has no example"
+    example = epilog.rsplit("example:\n  ", 1)[1]
     assert out.rstrip().endswith(f"example:\n  {example}")
     assert COMMANDS[words].description, f"tactiled {words} has no description"
     argv = shlex.split(example)

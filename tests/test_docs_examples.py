@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from tactiled.cli.parser import build_parser
+from tactiled.cli.main import build_parser
 from tests.conftest import REPO
 
 EXAMPLES = REPO / "docs" / "examples"

@@ -21,7 +21,7 @@ import pytest
 import zmq
 from tactiled_client import schema
 
-from tactiled.cli.parser import build_parser
+from tactiled.cli.main import build_parser
 from tactiled.config import PublishConfig
 from tactiled.errors import ModelError, RecordingError
 from tactiled.files.npzio import NpzError, read_npz

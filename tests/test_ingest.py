@@ -22,11 +22,12 @@ from tactiled_client import BlockingSubscriber, Roughness, Slide, Status
 from tactiled.board.frames import encode_frame, encode_frames
 from tactiled.board.serialsource import CONNECTED, DISCONNECTED, MemorySource, SerialSource
 from tactiled.config import Config
-from tactiled.core.pipeline import Pipeline, PipelineEvent, SlideResult
-from tactiled.files.player import capture_recording_stub, read_chunks, recording_bytes
+from tactiled.core.events import PipelineEvent, SlideResult
+from tactiled.files.capture import read_chunks, recording_bytes
 from tactiled.files.recording import Recording
 from tactiled.learn.model import load_model
-from tactiled.run.ingest import Batch, Ingest, finish_pipeline, max_gap_for, run_bytes
+from tactiled.run.ingest import Batch, Ingest, max_gap_for
+from tactiled.run.stream import Stream
 from tactiled.service.daemon import Daemon
 from tactiled.sim.sensor_model import SensorModel, SimParams, pick_surfaces, simulate_file
 from tactiled.sim.virtualboard import VirtualBoard
@@ -48,11 +49,9 @@ def _stream(seed: int = 4, first: int = 1000) -> tuple[bytes, np.ndarray]:
 
 
 def _events(data: bytes, chunk: int, min_batch: int = 1) -> list[tuple[object, ...]]:
-    config = Config()
-    ingest = Ingest(2, max_gap=max_gap_for(config.ring.seconds, FS), min_batch=min_batch)
-    pipeline = Pipeline(config, FS, 2, config.sensor.volts_per_count, True, load_model())
-    chunks = (data[i:i + chunk] for i in range(0, len(data), chunk))
-    return [_key(ev) for ev in run_bytes(chunks, ingest, pipeline)]
+    stream = Stream(Config(), load_model(), min_batch=min_batch)
+    events = [ev for i in range(0, len(data), chunk) for ev in stream.feed_bytes(data[i:i + chunk]).events]
+    return [_key(ev) for ev in events + stream.finish().events]
 
 
 def _key(ev: PipelineEvent) -> tuple[object, ...]:
@@ -78,26 +77,18 @@ def _frames(first: int, n: int, channels: int = 2, seed: int = 0) -> bytes:
 
 @pytest.mark.parametrize("jump", [2**31 + 12345, 2**24])
 def test_a_huge_forward_jump_is_a_restart_in_constant_memory(jump: int) -> None:
-    config = Config()
-    ingest = Ingest(2, max_gap=max_gap_for(config.ring.seconds, FS))
-    pipeline = Pipeline(config, FS, 2, config.sensor.volts_per_count, True, None)
-    before = ingest.feed(_frames(5000, 50))
-    for b in before:
-        pipeline.feed(b.index, b.samples)
+    stream = Stream(Config(), None)
+    stream.feed_bytes(_frames(5000, 50))
     tracemalloc.start()
     try:
-        after = ingest.feed(_frames((5000 + 1000 + jump) % 2**32, 50, seed=1))
-        for b in after:
-            if b.restart:
-                pipeline.finish()
-            pipeline.feed(b.index, b.samples)
+        after = stream.feed_bytes(_frames((5000 + 1000 + jump) % 2**32, 50, seed=1)).batches
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
     assert peak < 4 << 20, peak  # nothing proportional to the gap (2**24 int16 pairs alone would be 64 MiB)
-    assert ingest.stats.restarts == 1 and ingest.stats.samples_lost == 0
+    assert stream.stats.restarts == 1 and stream.stats.samples_lost == 0
     assert [(b.index, b.restart) for b in after] == [(6000, True)]  # the timeline continues where it was
-    assert pipeline.ring.end == 7000
+    assert stream.live.ring.end == 7000
 
 
 def test_a_gap_within_the_ring_is_lost_samples_not_a_restart() -> None:
@@ -234,7 +225,7 @@ def test_daemon_on_a_memory_source_ends_the_stream_and_publishes_every_event(tmp
         daemon = Daemon(config, load_model(), source_factory=lambda on_bytes, on_state: MemorySource(chunks(), on_bytes, on_state))
         sub.connect(daemon.endpoint)
         await daemon.run()  # returns at the end of the stream
-        assert daemon.ingest.stats.crc_errors + daemon.ingest.stats.bad_headers >= 12
+        assert daemon.stream.stats.crc_errors + daemon.stream.stats.bad_headers >= 12
 
     asyncio.run(main())
     import msgpack
@@ -294,7 +285,7 @@ def test_replay_of_the_raw_capture_gives_the_live_daemons_events(tmp_path: Path)
     live = [(m.slide_id, m.start, m.stop, m.label, m.reason) for m in messages if isinstance(m, Roughness) and m.final]
     res = subprocess.run(tactiled_cmd("replay", "--json", str(raw)), capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
-    base = capture_recording_stub(raw, FS, 2, 1.0).first_index
+    base = Ingest(2, max_gap=10_000).feed(next(read_chunks(raw)))[0].index  # the capture's first index: positions in it are from there
     replayed = [json.loads(line) for line in res.stdout.splitlines()]
     again = [(r["slide_id"], r["start"] + base, r["stop"] + base, r["label"], r["reason"]) for r in replayed]
     assert again[: len(live)] == live
@@ -303,12 +294,10 @@ def test_replay_of_the_raw_capture_gives_the_live_daemons_events(tmp_path: Path)
 
 
 def test_end_of_stream_releases_what_the_batcher_held() -> None:
-    config = Config()
-    ingest = Ingest(2, max_gap=1000, min_batch=10_000)
-    pipeline = Pipeline(config, FS, 2, config.sensor.volts_per_count, True, None)
-    assert ingest.feed(_frames(0, 5)) == [] and ingest.held == 100
-    finish_pipeline(ingest, pipeline)
-    assert pipeline.ring.end == 100 and ingest.held == 0
+    stream = Stream(Config(), None, max_gap=1000, min_batch=10_000)
+    assert stream.feed_bytes(_frames(0, 5)).batches == [] and stream.ingest.held == 100
+    assert [b.index for b in stream.finish().batches] == [0]
+    assert stream.live.ring.end == 100 and stream.ingest.held == 0
     assert isinstance(Batch(0, np.zeros((3, 2), np.int16)).end, int)
 
 

@@ -150,7 +150,7 @@ def test_choice_is_the_simplest_within_one_standard_error() -> None:
 
 def test_score_counts_every_true_slide_and_reads_file_labels(tmp_path: Path) -> None:
     """A slide the model cannot label counts as wrong; a record --label file (no per-slide truth) is scored from detected slides."""
-    from tactiled.core.pipeline import SlideResult
+    from tactiled.core.events import SlideResult
     from tactiled.files.recording import Recording, load_recording, save_recording
     from tactiled.learn.score import score
 

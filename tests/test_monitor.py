@@ -66,7 +66,7 @@ def test_monitor_shows_state_traces_spectrum_and_labels_with_truth(tmp_path: Pat
 def test_monitor_highlights_abstentions_and_provisional_labels() -> None:
     from tactiled_client import schema
 
-    from tactiled.core.pipeline import SlideResult
+    from tactiled.core.events import SlideResult
 
     model = MonitorState()
     model.update(schema.status("s", state=schema.STATE_DISCONNECTED, fs_nominal=20_000.0))

@@ -18,7 +18,7 @@ import pytest
 from tactiled.board.frames import Frame
 from tactiled.files.journal import JournalWriter, encode_chunk, encode_header, journal_path, read_journal, recover
 from tactiled.files.recording import load_recording
-from tactiled.service.record import RecordingSink
+from tactiled.service.recorder import RecordingSink
 from tactiled.sim.sensor_model import SensorModel, SimParams, Surface, default_surfaces
 from tactiled.sim.virtualboard import VirtualBoard, read_log
 from tests.conftest import REPO, run_cli, tactiled_cmd, wait_for

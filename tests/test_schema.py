@@ -10,7 +10,7 @@ from pathlib import Path
 from tactiled_client import schema
 
 from tactiled.config import Config
-from tactiled.core.pipeline import SlideResult
+from tactiled.core.events import SlideResult
 from tactiled.files.recording import Recording, save_recording
 from tactiled.learn.model import load_model
 from tactiled.run.replay import by_slide, replay_recording, result_record

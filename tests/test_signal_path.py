@@ -12,7 +12,8 @@ import pywt
 
 from tactiled.config import Config
 from tactiled.core.analysis import Analyser, AnalysisSettings
-from tactiled.core.detect import SlideDetector, SlideEnd
+from tactiled.core.detect import SlideDetector
+from tactiled.core.events import Offset
 from tactiled.core.features import FeaturePlan, classifier_inputs, feature_names
 from tactiled.core.spikes import remove_spikes
 from tactiled.errors import WindowError
@@ -122,7 +123,7 @@ def test_detection_rate_and_boundaries(hand_files: list[tuple[Recording, list[tu
     errors = []
     for rec, truth in hand_files:
         det = SlideDetector(Config().detector, rec.fs, 2)
-        ends = [e for e in det.feed(0, rec.volts()) if isinstance(e, SlideEnd) and e.reason != "too_short"]
+        ends = [e for e in det.feed(0, rec.volts()) if isinstance(e, Offset) and e.reason != "too_short"]
         total += len(truth)
         matched = set()
         for start, stop in truth:
@@ -190,6 +191,6 @@ def test_detector_unaligned_start_and_zero_filled_gap(hand_files: list[tuple[Rec
     n = truth[1][0] - 4000 - cut
     events += det.feed(13_163 + n, np.zeros((60_000, 2)), np.zeros(60_000, dtype=bool))  # three seconds of lost samples
     events += det.feed(13_163 + n + 60_000, volts[truth[1][0] - 4000:])
-    ends = [e for e in events if isinstance(e, SlideEnd)]
+    ends = [e for e in events if isinstance(e, Offset)]
     assert len(ends) == 2, ends
     assert all(e.reason == "quiet" and (e.stop - e.start) / rec.fs < 2.0 for e in ends)

@@ -170,7 +170,7 @@ def test_unit_zero_and_specimen_zero_write_todays_files(tmp_path: Path) -> None:
 
 
 def test_simulate_dataset_of_another_unit_and_specimen(tmp_path: Path) -> None:
-    from tactiled.cli.parser import main
+    from tactiled.cli.main import main
     from tactiled.files.recording import load_recording
     from tactiled.sim.sensor_model import SimParams, other_unit
 

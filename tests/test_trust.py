@@ -174,7 +174,8 @@ def test_train_on_unlabelled_recordings_says_so_at_once(tmp_path: Path) -> None:
 def test_a_surface_unlike_every_training_slide_gets_no_label_and_is_counted() -> None:
     """Every final result of a model that finds everything novel abstains with unknown_surface; the pipeline counts them for status."""
     from tactiled.config import Config
-    from tactiled.core.pipeline import Pipeline, SlideResult
+    from tactiled.core.events import SlideResult
+    from tactiled.core.pipeline import Pipeline
     from tactiled.sim.sensor_model import SimParams, pick_surfaces, simulate_file
 
     model = load_model()
@@ -191,7 +192,7 @@ def test_a_surface_unlike_every_training_slide_gets_no_label_and_is_counted() ->
 
 
 def test_shadow_stats_pair_overlapping_slides_and_count_agreement_confidence_and_unknowns() -> None:
-    from tactiled.core.pipeline import SlideResult
+    from tactiled.core.events import SlideResult
     from tactiled.core.shadow import PENDING_MAX, ShadowStats
 
     def result(start: int, label: str | None, confidence: float | None = None, reason: str | None = None, final: bool = True) -> SlideResult:

@@ -1,5 +1,6 @@
-"""The command line: parser and dispatch."""
+"""The command line: ``main.py`` parses and dispatches; a module per group of commands (``cmd_*.py``) holds each
+command's options and the one library call it makes; ``clidoc.py`` writes docs/cli.md from the parser."""
 
-from tactiled.cli.parser import main
+from tactiled.cli.main import main
 
 __all__ = ["main"]

@@ -10,7 +10,8 @@ import argparse
 import functools
 import sys
 
-from tactiled.cli.parser import HelpFormatter, build_parser, subcommands
+from tactiled.cli.common import HelpFormatter, subcommands
+from tactiled.cli.main import build_parser
 
 WIDTH = 100
 REGENERATE = "python -m tactiled.cli.clidoc > docs/cli.md"

@@ -28,7 +28,7 @@ or in the middle of a slide. Its reference is the median envelope over the first
 ``on_factor`` × the reference (a sustained rise: the level of a slide fluctuates from hop to
 hop by more than that), the stream began at rest: the reference becomes the noise floor and a slide starts. If it stays below
 reference / ``on_factor`` for ``off_hold_s``, the stream began in a slide: a slide from the
-first sample to the drop is reported (a retroactive :class:`SlideStart`), and the low level
+first sample to the drop is reported (a retroactive :class:`Onset`), and the low level
 becomes the floor. If neither happens before :meth:`SlideDetector.finish`, the whole stream
 was one slide (reason ``end_of_stream``).
 
@@ -58,28 +58,9 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.config import DetectorConfig
+from tactiled.core.events import DetectorEvent, Offset, Onset
 from tactiled.core.spikes import median_last
 
-
-@dataclass(frozen=True)
-class SlideStart:
-    """The detector saw a slide begin: its onset, as an absolute sample index (the pipeline turns it into :class:`SlideStarted`)."""
-
-    start: int  # absolute sample index of the onset (may lie before the samples just fed: see the module docstring)
-    at: int = -1  # the index up to which the detector had seen samples when it decided (for ordering; -1: unknown)
-
-
-@dataclass(frozen=True)
-class SlideEnd:
-    """The detector saw a slide end: [start, stop) in absolute sample indices, and why (the pipeline's :class:`SlideEnded`)."""
-
-    start: int
-    stop: int  # absolute index one past the last sample of the slide
-    reason: str = "quiet"  # quiet | max_duration | end_of_stream | too_short
-    at: int = -1  # the index up to which the detector had seen samples when it decided
-
-
-Event = SlideStart | SlideEnd
 CHUNK = 4096  # samples per step of the envelope's front end
 
 
@@ -129,7 +110,7 @@ def _median3(v: deque[float]) -> float:
 
 
 class SlideDetector:
-    """Feed (index, samples) blocks in order, then :meth:`finish`; both return :class:`SlideStart` / :class:`SlideEnd` events."""
+    """Feed (index, samples) blocks in order, then :meth:`finish`; both return :class:`Onset` / :class:`Offset` events."""
 
     def __init__(self, config: DetectorConfig, fs: float, channels: int) -> None:
         self.c = config
@@ -163,7 +144,7 @@ class SlideDetector:
         """True until the detector knows whether the stream began at rest or in a slide."""
         return self._floor is None
 
-    def feed(self, index: int, samples: npt.NDArray[np.float64], valid: npt.NDArray[np.bool_] | None = None) -> list[Event]:
+    def feed(self, index: int, samples: npt.NDArray[np.float64], valid: npt.NDArray[np.bool_] | None = None) -> list[DetectorEvent]:
         """Process ``samples`` (n, C) volts whose first sample has absolute ``index``.
 
         ``valid`` (n,) marks samples that carry data; an index gap counts as invalid samples.
@@ -182,7 +163,7 @@ class SlideDetector:
         buf = np.concatenate([self._pending, samples]) if self._pending.shape[0] else samples
         vbuf = np.concatenate([self._pending_valid, valid]) if self._pending_valid.shape[0] else valid
         hops = buf.shape[0] // self.hop
-        events: list[Event] = []
+        events: list[DetectorEvent] = []
         if hops:
             used = hops * self.hop
             energy = self._envelope(buf, hops)
@@ -213,7 +194,7 @@ class SlideDetector:
         self._history = buf[used - history: used].copy() if used >= history else np.concatenate([self._history[used:], buf[:used]])
         return out
 
-    def finish(self) -> list[Event]:
+    def finish(self) -> list[DetectorEvent]:
         """End of stream: a slide in progress (or a stream that never left its initial level) ends after the last sample fed."""
         if self._pending_index is None or self._first is None:
             return []
@@ -222,14 +203,14 @@ class SlideDetector:
             if end - self._first < self.c.min_slide_s * self.fs or not self._initial:
                 return []
             self._floor = min(self._initial)
-            events = [SlideStart(self._first), *self._finish_at(self._first, end, "end_of_stream")]
+            events = [Onset(self._first), *self._finish_at(self._first, end, "end_of_stream")]
         elif not self.sliding:
             return []
         else:
             events = self._finish_at(self._start, self._quiet_since if self._quiet_since is not None else end, "end_of_stream")
         return [replace(e, at=end) for e in events]
 
-    def _step(self, at: int, env: float, valid: bool = True) -> list[Event]:
+    def _step(self, at: int, env: float, valid: bool = True) -> list[DetectorEvent]:
         self.envelope = env
         if not valid or env <= 0.0:
             # lost samples, or exact digital silence: nothing about the noise floor, no onset;
@@ -256,7 +237,7 @@ class SlideDetector:
             return self._idle(at, smooth)
         return self._in_slide(at, smooth)
 
-    def _undecided(self, at: int, env: float) -> list[Event]:
+    def _undecided(self, at: int, env: float) -> list[DetectorEvent]:
         """Before the stream's initial level is known to be rest or slide (see the module docstring)."""
         c = self.c
         if len(self._initial) < self._initial_hops:
@@ -280,7 +261,7 @@ class SlideDetector:
             self.sliding = True
             self._start = start
             self._quiet_since = None
-            return [SlideStart(start)]
+            return [Onset(start)]
         if env < ref / c.on_factor:
             if self._quiet_since is None:
                 self._quiet_since = at
@@ -290,17 +271,17 @@ class SlideDetector:
                 self.floor = self._floor
                 stop = self._quiet_since
                 self._quiet_since = None
-                return [SlideStart(self._first), *self._finish_at(self._first, stop, "quiet")]
+                return [Onset(self._first), *self._finish_at(self._first, stop, "quiet")]
         else:
             self._quiet_since = None
         return []
 
-    def _idle(self, at: int, env: float) -> list[Event]:
+    def _idle(self, at: int, env: float) -> list[DetectorEvent]:
         c, hop = self.c, self.hop
         assert self._floor is not None
         floor = self._floor
         self.floor = floor
-        events: list[Event] = []
+        events: list[DetectorEvent] = []
         if env > c.on_factor * floor and at >= self._holdoff_until:
             start = at
             for idx, e in reversed(self._recent):
@@ -311,13 +292,13 @@ class SlideDetector:
             self.sliding = True
             self._start = start
             self._quiet_since = None
-            events.append(SlideStart(start))
+            events.append(Onset(start))
         elif env > 0:
             self._floor = math.exp(math.log(floor) + self._alpha * (math.log(env) - math.log(floor)))
         self._recent.append((at, env))
         return events
 
-    def _in_slide(self, at: int, env: float) -> list[Event]:
+    def _in_slide(self, at: int, env: float) -> list[DetectorEvent]:
         c = self.c
         assert self._floor is not None
         end = at + self.hop
@@ -333,11 +314,11 @@ class SlideDetector:
         self._recent.append((at, env))
         return []
 
-    def _finish_at(self, start: int, stop: int, reason: str) -> list[Event]:
+    def _finish_at(self, start: int, stop: int, reason: str) -> list[DetectorEvent]:
         self.sliding = False
         self._quiet_since = None
         self._holdoff_until = stop + round(self.c.holdoff_s * self.fs)
         self._recent.clear()
         if stop - start < self.c.min_slide_s * self.fs:
-            return [SlideEnd(start, stop, "too_short")]
-        return [SlideEnd(start, stop, reason)]
+            return [Offset(start, stop, "too_short")]
+        return [Offset(start, stop, reason)]

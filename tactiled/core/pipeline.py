@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -29,7 +29,8 @@ import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.core.analysis import Analyser, AnalysisSettings, WindowResult
-from tactiled.core.detect import Event, SlideDetector, SlideEnd, SlideStart
+from tactiled.core.detect import SlideDetector
+from tactiled.core.events import DetectorEvent, Offset, Onset, PipelineEvent, SlideEnded, SlideResult, SlideStarted
 from tactiled.core.ringbuffer import RingBuffer
 from tactiled.errors import OverwrittenError, WindowError
 
@@ -44,51 +45,6 @@ class Classifier(Protocol):
     def assess(self, features: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], float, float | None]: ...
 
 
-@dataclass
-class SlideStarted:
-    """A slide began at sample ``start`` (absolute index); ``slide_id`` counts slides since the pipeline started."""
-
-    slide_id: int
-    start: int
-
-
-@dataclass
-class SlideEnded:
-    """Slide ``slide_id`` covered samples [start, stop) (absolute indices); a :class:`SlideResult` follows unless it was too short."""
-
-    slide_id: int
-    start: int
-    stop: int
-    reason: str  # quiet | max_duration | end_of_stream | too_short (too short is not a slide: no result follows)
-
-
-@dataclass
-class SlideResult:
-    """The outcome of one slide (or, with ``final`` False, a provisional label while it goes on).
-
-    ``label`` is None when abstaining, with ``reason``; ``window`` spans the windows used;
-    ``quality`` sums their samples, lost samples and spikes, and gives the largest
-    clipped (saturated) fraction and the number of windows used.
-    """
-
-    slide_id: int
-    start: int
-    stop: int
-    window: tuple[int, int]
-    label: str | None
-    reason: str | None
-    confidence: float | None
-    top: list[tuple[str, float]]
-    quality: dict[str, Any]
-    features: npt.NDArray[np.float64] | None = field(default=None, repr=False)
-    compute_ms: float = 0.0
-    final: bool = True  # False: a provisional label published while the slide goes on
-    used_s: float = 0.0  # seconds of the slide (from its start) the label is based on
-    novelty: float | None = None  # > 1: unlike every surface the model was trained on (None: the model has no novelty data)
-    model: str = ""  # fingerprint of the model that made this result (models can be swapped between slides)
-
-
-PipelineEvent = SlideStarted | SlideEnded | SlideResult
 
 
 @dataclass
@@ -173,12 +129,12 @@ class Pipeline:
         """End of stream: a slide in progress ends at the last sample fed and gets its final result."""
         return self._handle(self.detector.finish())
 
-    def _handle(self, detector_events: list[Event]) -> list[PipelineEvent]:
+    def _handle(self, detector_events: list[DetectorEvent]) -> list[PipelineEvent]:
         events: list[PipelineEvent] = []
         for ev in detector_events:
             # windows the ring held when the detector decided come first: the same order whatever the block size
             events += self._analyse_ready(until=ev.at if ev.at >= 0 else None)
-            if isinstance(ev, SlideStart):
+            if isinstance(ev, Onset):
                 self._slide_id += 1
                 self._onset = ev.start
                 self._windows = []
@@ -186,7 +142,7 @@ class Pipeline:
                 self._next = self.settings.first_span(ev.start, self.fs)
                 events.append(SlideStarted(self._slide_id, ev.start))
                 events += self._analyse_ready(until=ev.at if ev.at >= 0 else None)
-            elif isinstance(ev, SlideEnd):
+            elif isinstance(ev, Offset):
                 events.append(SlideEnded(self._slide_id, ev.start, ev.stop, ev.reason))
                 if ev.reason != "too_short":
                     events.append(self._final(ev.start, ev.stop))

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from tactiled.core.pipeline import SlideResult
+from tactiled.core.events import SlideResult
 
 PENDING_MAX = 64  # results kept while waiting for the other model's result of the same slide
 

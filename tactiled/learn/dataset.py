@@ -27,7 +27,8 @@ import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.core.analysis import Analyser, AnalysisSettings
-from tactiled.core.detect import SlideDetector, SlideEnd
+from tactiled.core.detect import SlideDetector
+from tactiled.core.events import Offset
 from tactiled.core.matching import match_slides
 from tactiled.errors import RecordingError
 from tactiled.files.recording import Recording, load_recording
@@ -55,7 +56,7 @@ def detect_slides(rec: Recording, config: Config) -> list[tuple[int, int]]:
     valid = rec.valid_mask()
     volts[~valid] = 0.0
     events = det.feed(0, volts, valid) + det.finish()
-    return [(e.start, e.stop) for e in events if isinstance(e, SlideEnd) and e.reason != "too_short"]
+    return [(e.start, e.stop) for e in events if isinstance(e, Offset) and e.reason != "too_short"]
 
 
 @dataclass(frozen=True)

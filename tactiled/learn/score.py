@@ -17,7 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.config import Config
-from tactiled.core.pipeline import SlideResult
+from tactiled.core.events import SlideResult
 from tactiled.files.recording import Recording
 from tactiled.run.replay import pair_results, replay_all
 

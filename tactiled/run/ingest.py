@@ -15,12 +15,13 @@ takes the batches. Nothing here does I/O or reads a clock.
   the stream (a slide in progress ends there) before going on.
 - **Batches**: decoded frames are held until at least ``min_batch`` samples are there, then
   handed out as contiguous :class:`Batch` es (the pipeline's cost is mostly per call).
-- **End of stream**: :meth:`Ingest.flush` then :func:`finish_pipeline`.
+- **End of stream**: :meth:`Ingest.flush`.
+
+The pipeline is joined to it by :class:`tactiled.run.stream.Stream`, the one object every driver uses.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,7 +29,6 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.board.frames import DecoderStats, Frame, FrameDecoder
-from tactiled.core.pipeline import Pipeline, PipelineEvent
 
 
 @dataclass(slots=True)
@@ -103,36 +103,6 @@ def join_runs(runs: list[Frame]) -> list[Batch]:
             groups.append((r, [r.samples]))
         end = r.index + r.samples.shape[0]
     return [Batch(first.index, np.concatenate(parts) if len(parts) > 1 else parts[0], first.lost, first.restart) for first, parts in groups]
-
-
-def feed_pipeline(pipeline: Pipeline, batches: Iterable[Batch]) -> list[PipelineEvent]:
-    """Batches through ``pipeline``; a restart ends the stream (a slide in progress ends) before the batch after it."""
-    events: list[PipelineEvent] = []
-    for b in batches:
-        if b.restart:
-            events += pipeline.finish()
-        events += pipeline.feed(b.index, b.samples)
-    return events
-
-
-def finish_pipeline(ingest: Ingest, pipeline: Pipeline) -> list[PipelineEvent]:
-    """The explicit end of stream: what the decoder still held, then a slide in progress ends at the last sample."""
-    return feed_pipeline(pipeline, ingest.flush()) + pipeline.finish()
-
-
-def run_bytes(chunks: Iterable[bytes], ingest: Ingest, pipeline: Pipeline,
-              on_batch: Callable[[Batch], None] | None = None) -> Iterator[PipelineEvent]:
-    """Every event of a finite byte stream (``chunks`` cut anywhere: the events do not depend on it), ending it at the end."""
-    def batches(bs: list[Batch]) -> list[Batch]:
-        if on_batch is not None:
-            for b in bs:
-                on_batch(b)
-        return bs
-
-    for data in chunks:
-        yield from feed_pipeline(pipeline, batches(ingest.feed(data)))
-    yield from feed_pipeline(pipeline, batches(ingest.flush()))
-    yield from pipeline.finish()
 
 
 @dataclass

@@ -1,15 +1,14 @@
-"""``tactiled replay``: a recording through the daemon's own pipeline.
+"""Replay: a recording or a raw capture through the daemon's own :class:`~tactiled.run.stream.Stream`.
 
-The recording becomes the same stream the daemon sees (blocks of samples at their sensor
-indices, lost rows marked) and runs through :class:`~tactiled.core.pipeline.Pipeline`. A raw
-capture (``.bin``: the bytes read from the port) runs through the daemon's whole ingest core,
-decoder included (:func:`replay_bytes`).
+A recording becomes the same stream the daemon sees (blocks of samples at their sensor indices, lost rows
+marked: :func:`replay_recording`); a raw capture (``.bin``: the bytes read from the port) runs through the whole
+ingest core, decoder included (:func:`replay_capture`). Results come back in positions of the file, and are
+paired here with the file's ground truth (:func:`pair_results`, :func:`summary_line`).
 """
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -19,11 +18,15 @@ from tactiled_client.truth import overlapping
 
 from tactiled import __version__
 from tactiled.config import Config
+from tactiled.core.events import PipelineEvent, SlideResult
 from tactiled.core.matching import match_slides
-from tactiled.core.pipeline import Pipeline, PipelineEvent, SlideEnded, SlideResult, SlideStarted
+from tactiled.errors import RecordingError
+from tactiled.files.capture import Capture
 from tactiled.files.recording import Recording
-from tactiled.run.ingest import Batch, BatchCollector, Ingest, max_gap_for, run_bytes
+from tactiled.run.ingest import Batch, BatchCollector
+from tactiled.run.pacer import Pacer
 from tactiled.run.pool import map_files
+from tactiled.run.stream import Stream
 
 BLOCK = 65536  # samples per block fed to the pipeline by default
 
@@ -82,45 +85,42 @@ def summary_line(results: list[SlideResult], rec: Recording) -> str:
     return line
 
 
-def replay_recording(rec: Recording, config: Config, model: Any | None, *, block: int = BLOCK, speed: float | None = None,
+def _to_file(ev: SlideResult, base: int) -> SlideResult:
+    """A result in positions of the file (its sensor indices less ``base``, the file's first index)."""
+    return replace(ev, start=ev.start - base, stop=ev.stop - base, window=(ev.window[0] - base, ev.window[1] - base))
+
+
+def replay_recording(rec: Recording, config: Config, model: Any | None, *, block: int = BLOCK, pacer: Pacer | None = None,
                      on_event: Callable[[PipelineEvent], None] | None = None,
                      on_block: Callable[[int, np.ndarray, np.ndarray], None] | None = None) -> list[SlideResult]:
-    """Run ``rec`` through a fresh pipeline in blocks of ``block`` samples, then end the stream; returns every slide result.
+    """Run ``rec`` through a fresh :class:`~tactiled.run.stream.Stream` in blocks of ``block`` samples, then end it;
+    returns every slide result, in positions of the file (provisional ones before their slide's final one).
 
-    Provisional results (``final`` False) come before their slide's final one.
-
-    Samples are fed at their sensor indices (``first_index + position``), exactly as the
-    daemon saw them; results are converted back to positions in the file.
-
-    ``speed``: pace the stream at that many times real time (None: as fast as possible).
-    ``on_event`` sees every pipeline event as it happens; ``on_block`` every block before the
-    pipeline does: (sensor index of its first row, samples (n, C), valid (n,) bool).
+    Samples are fed at their sensor indices (``first_index + position``), exactly as the daemon saw them.
+    ``pacer`` paces the blocks (``--speed``); ``on_event`` sees every pipeline event as it happens (sensor indices);
+    ``on_block`` every block before the pipeline does: (sensor index of its first row, samples (n, C), valid (n,) bool).
     """
-    pipeline = Pipeline(config, rec.fs, rec.channels, rec.volts_per_count, rec.is_integer, model)
+    stream = Stream.for_recording(rec, config, model)
     valid = rec.valid_mask()
     all_valid = bool(valid.all())
     results: list[SlideResult] = []
-    n = rec.samples.shape[0]
     base = rec.first_index
-    t0 = time.monotonic()
 
     def handle(events: list[PipelineEvent]) -> None:
         for ev in events:
             if on_event:
                 on_event(ev)
             if isinstance(ev, SlideResult):
-                results.append(replace(ev, start=ev.start - base, stop=ev.stop - base, window=(ev.window[0] - base, ev.window[1] - base)))
+                results.append(_to_file(ev, base))
 
-    for lo in range(0, n, block):
-        hi = min(lo + block, n)
-        if speed:
-            ahead = lo / rec.fs / speed - (time.monotonic() - t0)
-            if ahead > 0:
-                time.sleep(ahead)  # pacing the replay at --speed, not synchronisation
+    for lo in range(0, rec.samples.shape[0], block):
+        hi = min(lo + block, rec.samples.shape[0])
+        if pacer is not None:
+            pacer.wait(base + lo)
         if on_block:
             on_block(base + lo, rec.samples[lo:hi], valid[lo:hi])
-        handle(pipeline.feed(base + lo, rec.samples[lo:hi], None if all_valid else valid[lo:hi]))
-    handle(pipeline.finish())  # a slide still in progress at the end of the file ends there
+        handle(stream.feed_samples(base + lo, rec.samples[lo:hi], None if all_valid else valid[lo:hi]).events)
+    handle(stream.finish().events)  # a slide still in progress at the end of the file ends there
     return results
 
 
@@ -134,124 +134,46 @@ def _replay_task(task: tuple[Recording, Config, Any]) -> list[SlideResult]:
     return replay_recording(*task)
 
 
-def replay_bytes(chunks: Iterable[bytes], config: Config, model: Any | None, *, speed: float | None = None,
-                 on_event: Callable[[PipelineEvent], None] | None = None, meta: dict[str, Any] | None = None) -> tuple[list[SlideResult], Recording]:
-    """Raw serial bytes (a ``.bin`` capture, exactly as read from the port) through the daemon's ingest core and pipeline.
+def replay_capture(capture: Capture, config: Config, model: Any | None, *, pacer: Pacer | None = None,
+                   on_event: Callable[[PipelineEvent], None] | None = None,
+                   on_batch: Callable[[Batch], None] | None = None) -> tuple[list[SlideResult], Recording]:
+    """A raw capture (``.bin``: the bytes exactly as read from the port) through the daemon's own
+    :class:`~tactiled.run.stream.Stream`: the same decoder, channel and gap policies and pipeline as ``tactiled run``
+    (``config.sensor`` gives fs, channels and scale); the events do not depend on how the bytes are cut.
 
-    The same decoder, channel and gap policies and pipeline as ``tactiled run`` (config.sensor
-    gives fs, channels and scale); the events do not depend on how the bytes are cut.
-    Returns every slide result (positions from the first sample decoded, as for a recording)
-    and the samples decoded, as a recording (lost samples listed).
+    Returns every slide result (positions from the first sample decoded, as for a recording) and the samples
+    decoded, as a recording (lost samples listed). ``pacer``, ``on_event`` as for :func:`replay_recording`;
+    ``on_batch`` sees every decoded batch before the pipeline does.
     """
     s = config.sensor
-    ingest = Ingest(s.channels, max_gap=max_gap_for(config.ring.seconds, s.fs))
-    pipeline = Pipeline(config, s.fs, s.channels, s.volts_per_count, True, model)
+    stream = Stream(config, model)
     collector = BatchCollector(s.channels)
     events: list[PipelineEvent] = []
-    t0 = time.monotonic()
 
-    def on_batch(b: Batch) -> None:
-        collector.add(b)
-        if speed and collector.first_index is not None:
-            ahead = (b.index - collector.first_index) / s.fs / speed - (time.monotonic() - t0)
-            if ahead > 0:
-                time.sleep(ahead)  # pacing the replay at --speed, not synchronisation
+    def run(step_batches: list[Batch], finish: bool = False) -> None:
+        for b in step_batches:
+            collector.add(b)
+            if pacer is not None:
+                pacer.wait(b.index)
+            if on_batch is not None:
+                on_batch(b)
+        step = stream.process(step_batches)
+        if finish:
+            step += stream.finish()
+        for ev in step.events:
+            if on_event:
+                on_event(ev)
+            events.append(ev)
 
-    for ev in run_bytes(chunks, ingest, pipeline, on_batch):
-        if on_event:
-            on_event(ev)
-        events.append(ev)
+    try:
+        for data in capture.chunks():
+            run(stream.decode(data))
+    except OSError as exc:
+        raise RecordingError(f"{capture.path}: cannot read: {exc.strerror or exc}") from None
+    run([], finish=True)
     base = collector.first_index or 0
-    results = [replace(ev, start=ev.start - base, stop=ev.stop - base, window=(ev.window[0] - base, ev.window[1] - base))
-               for ev in events if isinstance(ev, SlideResult)]
-    st = ingest.stats
-    info = {**(meta or {}), "crc_errors": st.crc_errors, "bytes_discarded": st.bytes_discarded, "restarts": st.restarts,
-            "channel_errors": st.channel_errors}
+    results = [_to_file(ev, base) for ev in events if isinstance(ev, SlideResult)]
+    st = stream.stats
+    info = {"capture": str(capture.path), "crc_errors": st.crc_errors, "bytes_discarded": st.bytes_discarded, "restarts": st.restarts,
+            "channel_errors": st.channel_errors, "duplicate_frames": st.duplicates}
     return results, collector.recording(s.fs, s.volts_per_count, info)
-
-
-class ReplayFeed:
-    """What ``replay --publish`` sends for one recording: the daemon's messages, so a bridge on a replay works as on a live sensor.
-
-    Slide and roughness messages (:meth:`event`); with ``samples`` the raw samples on
-    ``samples/<id>`` in messages of ``fs / 25`` rows, lost rows zero and listed (:meth:`block`);
-    and a status message every ``config.publish.status_interval_s`` of sensor time, counters and
-    film levels as the daemon's (state idle or sliding; :meth:`finish` sends the last, ``stopping``).
-    Host times: paced (``speed``), when the replay reached each sample; as fast as possible, nil.
-    """
-
-    def __init__(self, publisher: Any, config: Config, rec: Recording, model: str, speed: float | None = None, samples: bool = False) -> None:
-        self.publisher, self.config, self.rec, self.model, self.speed, self.samples = publisher, config, rec, model, speed, samples
-        self.sensor = config.sensor.id
-        self._on_event = publisher.replay_handler(self.sensor, rec, model, speed)
-        self.t0 = time.monotonic()
-        self.chunk = max(1, round(rec.fs / 25))
-        self.sliding = False
-        self.slides = self.labels = self.unknown = 0
-        self.count = self.lost = 0
-        self.index = rec.first_index
-        self._sumsq = np.zeros(rec.channels)
-        self._window = 0
-        self._next_status = rec.first_index
-
-    def _to_host(self, index: int) -> tuple[float, float]:
-        assert self.speed
-        mono = self.t0 + (index - self.rec.first_index) / self.rec.fs / self.speed
-        return mono, mono + (time.time() - time.monotonic())
-
-    def event(self, ev: PipelineEvent) -> None:
-        """One pipeline event: published as the daemon does, and counted for the status."""
-        if isinstance(ev, SlideStarted):
-            self.sliding = True
-        elif isinstance(ev, SlideEnded):
-            self.sliding = False
-        elif isinstance(ev, SlideResult) and ev.final:
-            self.slides += 1
-            self.labels += ev.label is not None
-            self.unknown += ev.reason == schema.REASON_UNKNOWN_SURFACE
-        self._on_event(ev)
-
-    def block(self, index: int, samples: np.ndarray, valid: np.ndarray) -> None:
-        """One block of the replay (sensor index of row 0, (n, C) samples, (n,) valid), before the pipeline sees it."""
-        rec = self.rec
-        for lo in range(0, samples.shape[0], self.chunk):
-            rows, ok = samples[lo:lo + self.chunk], valid[lo:lo + self.chunk]
-            first = index + lo
-            n = rows.shape[0]
-            edges = np.flatnonzero(np.diff(np.concatenate([[0], (~ok).astype(np.int8), [0]])))
-            lost = [[int(a), int(b - a)] for a, b in zip(edges[::2], edges[1::2], strict=True)]
-            if self.samples:
-                counts = rows if rec.is_integer else np.clip(np.rint(rows / rec.volts_per_count), -32768, 32767)
-                data = np.where(ok[:, None], counts, 0).astype("<i2").tobytes()
-                self.publisher.publish(schema.samples(self.sensor, first, data, n, rec.channels, fs=rec.fs, volts_per_count=rec.volts_per_count,
-                                                      lost=lost, to_host=self._to_host if self.speed else None,
-                                                      fs_clock=rec.fs * self.speed if self.speed else rec.fs))
-            good = rows[ok].astype(np.float64)
-            self._sumsq += np.einsum("ij,ij->j", good, good)
-            self._window += len(good)
-            self.count += int(ok.sum())
-            self.lost += n - int(ok.sum())
-            self.index = first + n
-            if self.index >= self._next_status:
-                self._status()
-                self._next_status = self.index + max(1, round(self.config.publish.status_interval_s * rec.fs))
-
-    def _status(self, state: str | None = None) -> None:
-        rec = self.rec
-        scale = rec.volts_per_count if rec.is_integer else 1.0
-        level = [round(float(np.sqrt(v / self._window)) * scale, 6) for v in self._sumsq] if self._window else []
-        clock: dict[str, Any] = {}
-        if self.speed:
-            mono, unix = self._to_host(self.index)
-            clock = {"clock_index": self.index, "clock_mono": round(mono, 6), "clock_unix": round(unix, 6), "fs_clock": rec.fs * self.speed}
-        self.publisher.publish(schema.status(
-            self.sensor, state=state or (schema.STATE_SLIDING if self.sliding else schema.STATE_IDLE), samples=self.count,
-            samples_lost=self.lost, slides=self.slides, labels=self.labels, unknown=self.unknown, fs_nominal=rec.fs, model=self.model,
-            uptime_s=round(time.monotonic() - self.t0, 3), index=self.index, level=level, version=__version__,
-            dropped_messages=self.publisher.dropped, **clock))
-        self._sumsq[:] = 0.0
-        self._window = 0
-
-    def finish(self, last: bool = False) -> None:
-        """After the recording: a status with the final counters (``last``: state ``stopping``, as the daemon's last)."""
-        self._status(schema.STATE_STOPPING if last else None)

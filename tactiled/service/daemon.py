@@ -19,7 +19,6 @@ import asyncio
 import logging
 import os
 import signal
-import socket
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
@@ -32,33 +31,20 @@ from tactiled import __version__
 from tactiled.board.clockmap import ClockMap
 from tactiled.board.serialsource import CONNECTED, ByteSource, SerialSource
 from tactiled.config import Config
-from tactiled.core.pipeline import Pipeline, PipelineEvent, SlideResult
+from tactiled.core.events import PipelineEvent, SlideResult
 from tactiled.core.shadow import ShadowStats
 from tactiled.errors import TactiledError
 from tactiled.learn.cost import check_speed
 from tactiled.learn.model import Model, load_model
-from tactiled.run.ingest import Batch, Ingest, feed_pipeline, max_gap_for
+from tactiled.run.ingest import Batch
+from tactiled.run.stream import Stream
 from tactiled.service.control import control_socket, parse_request, reply
 from tactiled.service.publish import Publisher
 from tactiled.service.rawbatch import raw_batches
-from tactiled.service.record import STOP_SIGNALS, RecordingSink, link_counters
+from tactiled.service.recorder import RecordingSink, link_counters
+from tactiled.service.signals import STOP_SIGNALS, sd_notify
 
 log = logging.getLogger(__name__)
-
-
-def sd_notify(message: str) -> None:
-    """Send ``message`` to systemd's notify socket if there is one (Type=notify, watchdog)."""
-    path = os.environ.get("NOTIFY_SOCKET")
-    if not path:
-        return
-    if path.startswith("@"):
-        path = "\0" + path[1:]
-    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
-        try:
-            sock.connect(path)
-            sock.sendall(message.encode())
-        except OSError as exc:
-            log.warning("sd_notify failed: %s", exc)
 
 
 @dataclass
@@ -74,7 +60,7 @@ class Daemon:
 
     ``source_factory(on_bytes, on_state)``: the byte source (default: the serial port of the config);
     ``record_to``: also stream every sample to ``record_to``'s journal and write the recording on exit
-    (tactiled/service/record.py); ``raw_to``: write every byte read.
+    (tactiled/service/recorder.py); ``raw_to``: write every byte read.
     """
 
     def __init__(self, config: Config, model: Model | None, record_to: str | None = None, *, raw_to: str | None = None,
@@ -90,11 +76,11 @@ class Daemon:
             check_speed(shadow, f"shadow model {shadow.fingerprint}")
         s = config.sensor
         self.fingerprint = model.fingerprint if model else ""
-        self.ingest = Ingest(s.channels, max_gap=max_gap_for(config.ring.seconds, s.fs), min_batch=round(config.serial.batch_s * s.fs))
-        self.decoder = self.ingest.decoder
-        self.pipeline = Pipeline(config, s.fs, s.channels, s.volts_per_count, True, model)
-        # a candidate model on the same samples (same detector: the same slides), compared with the live one, never published as it
-        self.shadow: Pipeline | None = None
+        # the ingest core and the pipeline; a candidate model in the shadow of the live one (the same samples through its own
+        # pipeline), compared with it and never published as it
+        self.stream = Stream(config, model, min_batch=round(config.serial.batch_s * s.fs))
+        self.decoder = self.stream.ingest.decoder
+        self.pipeline = self.stream.live
         self.shadow_stats: ShadowStats | None = None
         self.set_shadow(shadow)
         self.publisher = Publisher(config.publish)
@@ -105,7 +91,7 @@ class Daemon:
         self._source_factory = source_factory
         self.recorder = RecordingSink(record_to, fs=s.fs, channels=s.channels, volts_per_count=s.volts_per_count, force=True,
                                       meta={"sensor": s.id, "port": s.port, "source": "tactiled run --record"},
-                                      counters=lambda: link_counters(self.ingest.stats, self.source),
+                                      counters=lambda: link_counters(self.stream.stats, self.source),
                                       on_error=log.error) if record_to else None  # streams to record_to's journal (tactiled/files/journal.py)
         self.clock = ClockMap(s.fs)  # sample index -> host time
         self._raw_next: int | None = None  # next index of the samples topic
@@ -174,7 +160,7 @@ class Daemon:
         except TactiledError as exc:
             log.error("reload refused, model %s stays: %s", self.fingerprint or "none", exc)
             return str(exc)
-        self.pipeline.swap_model(model)
+        self.stream.swap_model(model)
         log.info("reload: model %s from %s takes over at the next slide (was %s)", model.fingerprint, path, self.fingerprint or "none")
         self.model, self.fingerprint, self.model_path = model, model.fingerprint, path
         return None
@@ -189,8 +175,7 @@ class Daemon:
 
     def set_shadow(self, model: Model | None) -> None:
         """Run ``model`` in the shadow of the live one from the next samples on (None: stop the shadow)."""
-        s = self.config.sensor
-        self.shadow = Pipeline(self.config, s.fs, s.channels, s.volts_per_count, True, model) if model is not None else None
+        self.stream.set_shadow(model)
         self.shadow_stats = ShadowStats(model=model.fingerprint) if model is not None else None
 
     async def _serve_control(self) -> None:
@@ -224,17 +209,19 @@ class Daemon:
         """The source until it ends (a finite source: then the explicit end of stream), or until cancelled."""
         assert self.source is not None
         await self.source.run()
-        await self._process(self.ingest.flush())
-        self._publish(self.pipeline.finish(), time.perf_counter())
-        if self.shadow is not None:
-            self._publish_shadow(self.shadow.finish(), time.perf_counter())
+        step = self.stream.finish()
+        self._take(step.batches)
+        if self.config.publish.samples:
+            self._publish_samples(step.batches)
+        self._publish(step.events, time.perf_counter())
+        self._publish_shadow(step.shadow, time.perf_counter())
 
     def _on_state(self, state: str, detail: str) -> None:
         log.log(logging.INFO if state == CONNECTED else logging.WARNING, "%s: %s (%s)", self.config.sensor.port, state, detail)
 
     async def _on_bytes(self, data: bytes) -> None:
         """Bytes read from the port: decode, and run the pipeline when a batch is complete."""
-        batches = self.ingest.feed(data)
+        batches = self.stream.decode(data)
         end = self.decoder.next_index
         if end is not None and self.source is not None:
             self.clock.observe(end, self.source.arrival)  # every sample decoded so far had arrived by then
@@ -244,6 +231,19 @@ class Daemon:
     async def _process(self, batches: list[Batch]) -> None:
         if not batches:
             return
+        self._take(batches)
+        detected_at = time.perf_counter()
+        if self.config.publish.samples:
+            self._publish_samples(batches)
+        if self.stream.will_analyse(batches[-1].end) or any(b.restart for b in batches):
+            step = await asyncio.to_thread(self.stream.process, batches)  # feature extraction: off the event loop
+        else:  # detection only: cheaper than a thread hop
+            step = self.stream.process(batches)
+        self._publish(step.events, detected_at)
+        self._publish_shadow(step.shadow, detected_at)
+
+    def _take(self, batches: list[Batch]) -> None:
+        """Decoded batches into the recorder and the status's film levels."""
         st = self.state
         for b in batches:
             if self.recorder is not None:
@@ -252,20 +252,6 @@ class Daemon:
             st.sumsq = sq if st.sumsq is None else st.sumsq + sq
             st.samples_window += b.samples.shape[0]
             st.last_index = b.end
-        detected_at = time.perf_counter()
-        if self.config.publish.samples:
-            self._publish_samples(batches)
-        end = batches[-1].end
-        if self.pipeline.will_analyse(end) or (self.shadow is not None and self.shadow.will_analyse(end)) or any(b.restart for b in batches):
-            events, shadowed = await asyncio.to_thread(self._feed, batches)  # feature extraction: off the event loop
-        else:  # detection only: cheaper than a thread hop
-            events, shadowed = self._feed(batches)
-        self._publish(events, detected_at)
-        self._publish_shadow(shadowed, detected_at)
-
-    def _feed(self, batches: list[Batch]) -> tuple[list[PipelineEvent], list[PipelineEvent]]:
-        """The batches through the live pipeline and, if there is one, the shadow's: (live events, shadow events)."""
-        return feed_pipeline(self.pipeline, batches), feed_pipeline(self.shadow, batches) if self.shadow is not None else []
 
     def _publish(self, events: list[PipelineEvent], detected_at: float) -> None:
         sensor = self.config.sensor
@@ -308,7 +294,7 @@ class Daemon:
             log.error("%s", result.error)
 
     def _status_message(self, interval: float = 0.0, stopping: bool = False) -> schema.Status:
-        st, stats = self.state, self.ingest.stats
+        st, stats = self.state, self.stream.stats
         if stopping:
             state = schema.STATE_STOPPING
         elif not (self.source and self.source.connected):

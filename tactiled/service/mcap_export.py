@@ -34,11 +34,15 @@ import numpy as np
 from tactiled_client import schema
 
 from tactiled import __version__
-from tactiled.core.pipeline import SlideResult
-from tactiled.errors import TactiledError
+from tactiled.config import Config
+from tactiled.core.events import SlideResult
+from tactiled.errors import OutputError, TactiledError
 from tactiled.extras import need
-from tactiled.files.recording import Recording
+from tactiled.files.outputs import check_output
+from tactiled.files.recording import Recording, load_recording
+from tactiled.learn.choose import ModelChoice
 from tactiled.rostable import field_names, table_dtype
+from tactiled.run.replay import replay_recording
 
 BATCH = 20  # rows per samples message: one board frame (1 ms at 20 kHz)
 
@@ -288,3 +292,22 @@ def export_ros2_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingerti
             counts["roughness"] += 1
         writer.finish()
     return counts
+
+
+def export_recording(path: str | Path, output: str | Path, config: Config, choice: ModelChoice, *, batch: int | None = None,
+                     profile: str = "json", force: bool = False) -> dict[str, int]:
+    """Recording ``path`` → MCAP ``output`` (``profile`` json: :func:`export_mcap`; ros2: :func:`export_ros2_mcap`), with the
+    results of the daemon's pipeline under the model ``choice`` gives; returns the message counts. ``output`` is checked
+    first (:func:`~tactiled.files.outputs.check_output`; an existing file is replaced only with ``force``) and is never
+    ``path`` itself (:class:`~tactiled.errors.OutputError`)."""
+    if Path(output).resolve() == Path(path).resolve():
+        raise OutputError(f"{output}: is the recording being exported; write the MCAP file elsewhere")
+    check_output(output, force, (".mcap",))
+    if profile == "ros2":
+        need("rosbags.typesys", "ros2bag")  # before the replay, not after it
+    rec = load_recording(path)
+    model = choice.for_stream(rec.fs, rec.channels, str(path))
+    results = replay_recording(rec, config, model)
+    write, default = (export_ros2_mcap, ROS2_BATCH) if profile == "ros2" else (export_mcap, BATCH)
+    return write(rec, output, sensor=str(rec.meta.get("sensor", config.sensor.id)), results=results,
+                 model=getattr(model, "fingerprint", ""), batch=batch or default, source=path)

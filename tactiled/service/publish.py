@@ -8,7 +8,7 @@ every subscriber count what it missed.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from pathlib import Path
 from typing import Any, TypeVar
 
 import zmq
@@ -16,9 +16,9 @@ from tactiled_client import schema
 
 from tactiled import __version__
 from tactiled.config import PublishConfig
-from tactiled.core.pipeline import PipelineEvent, SlideEnded, SlideResult, SlideStarted
-from tactiled.errors import ConfigError
-from tactiled.files.recording import Recording
+from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideStarted
+from tactiled.errors import ConfigError, OutputError
+from tactiled.files.outputs import check_folder, check_output
 
 M = TypeVar("M", bound=schema.Message)
 # a subscription is one inbound message: a flag byte and a topic prefix (the longest topic: "roughness/" and a
@@ -114,20 +114,21 @@ class Publisher:
             latency = 0.0 if detected_at is None else (time.perf_counter() - detected_at) * 1e3
             self.publish(schema.roughness(sensor, ev, fs=fs, model=model, version=__version__, latency_ms=latency, to_host=to_host))
 
-    def replay_handler(self, sensor: str, rec: Recording, model: str, speed: float | None = None) -> Callable[[PipelineEvent], None]:
-        """An ``on_event`` callback for replay (events carry sensor indices, as live).
 
-        Paced (``speed``), host times are when the replay reached each sample; as fast as possible they are nil.
-        """
-        t0 = time.monotonic()
-        to_host = None
-        if speed:
-            def to_host(index: int) -> tuple[float, float]:
-                mono = t0 + (index - rec.first_index) / rec.fs / speed
-                return mono, mono + (time.time() - time.monotonic())
+def create_curve_pair(folder: str | Path, name: str, force: bool = False) -> tuple[Path, Path]:
+    """A ZeroMQ CURVE certificate pair ``NAME.key`` (public) and ``NAME.key_secret`` in ``folder`` (made if missing): the
+    daemon's, for ``publish.curve_secret_key_file``, or a subscriber's, whose public half goes in the daemon's authorised
+    folder. A folder of keys takes more names; a pair of the same name is replaced only with ``force``. Returns the paths."""
+    import zmq.auth
 
-        def handle(ev: PipelineEvent) -> None:
-            self.publish_event(sensor, ev, rec.fs, model, time.perf_counter(), to_host)
-
-        return handle
-
+    out = Path(folder)
+    check_folder(out, force=True)
+    if out.is_dir():
+        for file in (f"{name}.key", f"{name}.key_secret"):
+            check_output(out / file, force)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        public, secret = zmq.auth.create_certificates(str(out), name)
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot write the certificates: {exc.strerror or exc}") from None
+    return Path(public), Path(secret)

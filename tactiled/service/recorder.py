@@ -24,55 +24,20 @@ import numpy.typing as npt
 
 from tactiled.board.frames import DecoderStats, Frame
 from tactiled.board.serialsource import DISCONNECTED, ByteSource, SerialSource, check_port
+from tactiled.config import Config
 from tactiled.errors import OutputError
 from tactiled.files.journal import JournalWriter, encode_chunk, encode_header, is_locked, journal_path, recover
+from tactiled.files.outputs import check_output
 from tactiled.files.recording import fsync_dir
-from tactiled.run.ingest import Batch, Ingest, max_gap_for
+from tactiled.run.ingest import Batch, max_gap_for
+from tactiled.run.stream import Stream
+from tactiled.service.signals import STOP_SIGNALS
 
 log = logging.getLogger(__name__)
 
 COMMIT_S = 0.5  # the commit period, s of wall time: about what a kill or a power cut can lose
 MAX_CHUNK_BYTES = 4 << 20  # a chunk is committed at this size at the latest
 QUEUE_BYTES = 64 << 20  # samples waiting for the writer (a disk stalled 13 min at 20 kHz x 2 channels); beyond, frames are lost, counted
-
-
-def check_output(out: str | Path, force: bool, suffixes: tuple[str, ...] = ()) -> None:
-    """Raise :class:`OutputError` naming ``out`` unless a file can be written there: its folder exists and is writable,
-    its name ends in one of ``suffixes`` (if given), and, without ``force``, no file is there already.
-
-    Every command that writes a file calls this before any work (docs/cli.md: the output policy).
-    """
-    out = Path(out)
-    folder = out.parent
-    if not folder.exists():
-        raise OutputError(f"{out}: folder {folder} does not exist")
-    if not folder.is_dir():
-        raise OutputError(f"{out}: {folder} is not a folder")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise OutputError(f"{out}: folder {folder} is not writable")
-    if out.is_dir():
-        raise OutputError(f"{out}: is a folder")
-    if out.exists() and not out.is_file():
-        raise OutputError(f"{out}: not a regular file (a device or FIFO is never written)")
-    if suffixes and out.suffix.lower() not in suffixes:
-        raise OutputError(f"{out}: must end in {' or '.join(suffixes)}")
-    if out.exists() and not force:
-        raise OutputError(f"{out}: exists (--force overwrites it)")
-
-
-def check_folder(out: str | Path, force: bool) -> None:
-    """Raise :class:`OutputError` naming ``out`` unless a folder of outputs can be made there: its parent exists and is
-    writable, nothing but a folder is there, and, without ``force``, no non-empty folder is there already."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise OutputError(f"{out}: exists and is not a folder")
-    if out.is_dir():
-        if not os.access(out, os.W_OK | os.X_OK):
-            raise OutputError(f"{out}: folder is not writable")
-        if not force and any(out.iterdir()):
-            raise OutputError(f"{out}: folder exists and is not empty (--force writes into it, replacing files of the same names)")
-        return
-    check_output(out, force=True)  # the folder's parent: exists, is a folder, is writable
 
 
 def claim_journal(out: str | Path) -> Path:
@@ -262,61 +227,63 @@ def link_counters(stats: DecoderStats, source: ByteSource | None) -> dict[str, i
             "channel_errors": stats.channel_errors, "duplicate_frames": stats.duplicates}
 
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
+def record(config: Config, seconds: float, out: str | Path, *, label: str | None = None, force: bool = False) -> RecordSummary:
+    """Record ``seconds`` of sensor time from ``config.sensor``'s port into ``out``; SIGINT, SIGTERM or SIGHUP stops early and saves.
 
-def record(port: str, seconds: float, out: str | Path, *, fs: float, channels: int, volts_per_count: float,
-           label: str | None = None, baudrate: int = 1_000_000, retry_max_s: float = 2.0,
-           meta: dict[str, Any] | None = None, force: bool = False, max_gap: int | None = None) -> RecordSummary:
-    """Record ``seconds`` of sensor time from ``port`` into ``out``; SIGINT, SIGTERM or SIGHUP stops early and saves.
-
-    The bytes go through the daemon's ingest core (tactiled/run/ingest.py): frames of another channel count
-    are counted and skipped, and a forward jump of the index beyond ``max_gap`` samples (default: 10 s)
-    is a board restart, recorded as continuing, never as a long run of lost samples.
+    The bytes go through the daemon's ingest core (a :class:`~tactiled.run.stream.Stream` that decodes only): frames of
+    another channel count are counted and skipped, and a forward jump of the index beyond the ring's length is a board
+    restart, recorded as continuing, never as a long run of lost samples.
 
     The port and the output path are checked first (:class:`~tactiled.errors.DeviceError`,
     :class:`~tactiled.errors.OutputError`); a write error during the capture stops it and is returned in
-    :attr:`RecordSummary.error`, the journal keeping what was written.
+    :attr:`RecordSummary.error`, the journal keeping what was written. Stop signals stay caught until the recording
+    is saved, so a second Ctrl-C never leaves a half-written file.
     """
-    check_port(port)
+    s = config.sensor
+    check_port(s.port)
     chunks: queue.Queue[bytes | None] = queue.Queue()
-    ingest = Ingest(channels, max_gap=max_gap or max_gap_for(10.0, fs))
-    stats = ingest.stats
+    stream = Stream(config, analyse=False, max_gap=max_gap_for(config.ring.seconds, s.fs))
     source: SerialSource | None = None
 
     def counters() -> dict[str, int]:
-        return link_counters(stats, source)
+        return link_counters(stream.stats, source)
 
-    sink = RecordingSink(out, fs=fs, channels=channels, volts_per_count=volts_per_count, label=label,
-                         meta={**(meta or {}), "port": port}, limit=max(1, round(seconds * fs)), force=force, counters=counters)
+    sink = RecordingSink(out, fs=s.fs, channels=s.channels, volts_per_count=s.volts_per_count, label=label,
+                         meta={"sensor": s.id, "port": s.port}, limit=max(1, round(seconds * s.fs)), force=force, counters=counters)
 
     def on_state(state: str, detail: str) -> None:
         if state == DISCONNECTED:
-            log.warning("%s: %s", port, detail)
+            log.warning("%s: %s", s.port, detail)
+
+    def take(data: bytes | None) -> None:
+        for batch in stream.feed_bytes(data or b"").batches:
+            sink.add(batch)
 
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}  # a flag: never interrupts a write
-    source = SerialSource(port, chunks.put, on_state, baudrate=baudrate, retry_max_s=retry_max_s)
-    source.start()
-    log.info("recording %s -> %s (Ctrl-C stops and saves)", port, out)
     try:
-        while not sink.done and sink.error is None and not stop.is_set():
-            try:
-                data = chunks.get(timeout=0.1)  # the stop flag's polling period
-            except queue.Empty:
-                continue
-            for batch in ingest.feed(data or b""):
-                sink.add(batch)
-        if stop.is_set():
-            log.info("stopped by a signal: saving what was captured")
+        source = SerialSource(s.port, chunks.put, on_state, baudrate=s.baudrate, retry_max_s=config.serial.retry_max_s)
+        source.start()
+        log.info("recording %s -> %s (Ctrl-C stops and saves)", s.port, out)
+        try:
+            while not sink.done and sink.error is None and not stop.is_set():
+                try:
+                    data = chunks.get(timeout=0.1)  # the stop flag's polling period
+                except queue.Empty:
+                    continue
+                take(data)
+            if stop.is_set():
+                log.info("stopped by a signal: saving what was captured")
+        finally:
+            source.stop()
+        while not chunks.empty():
+            take(chunks.get_nowait())
+        for batch in stream.finish().batches:
+            sink.add(batch)
+        result = sink.finish()
     finally:
-        source.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    while not chunks.empty():
-        for batch in ingest.feed(chunks.get_nowait() or b""):
-            sink.add(batch)
-    for batch in ingest.flush():
-        sink.add(batch)
-    result = sink.finish()
-    return RecordSummary(result.samples / fs, result.samples, result.samples_lost, stats.crc_errors, source.reconnects, result.error)
+    stats = stream.stats
+    return RecordSummary(result.samples / s.fs, result.samples, result.samples_lost, stats.crc_errors, source.reconnects, result.error)

@@ -1,10 +1,6 @@
-"""Byte players: a raw capture (``.bin``) or a recording (``.npz``) back into the bytes a board sends.
+"""Byte streams played into ptys at a line rate, as boards would send them, from one thread.
 
-``tactiled replay x.bin`` reads a capture with :func:`read_chunks` and runs it through the
-same decoder as the daemon (as gpsfake feeds gpsd); :func:`recording_bytes` encodes a
-recording's samples as the board's frames (lost rows become index gaps), and
-:class:`PtyPlayer` plays byte streams into many ptys at line rate from one thread, cheaply
-enough that a load test measures the daemons, not the boards.
+Cheap enough that a load test measures the daemons, not the boards (bench/bench_load.py, bench/latency.py).
 """
 
 from __future__ import annotations
@@ -13,33 +9,7 @@ import os
 import threading
 import time
 import tty
-from collections.abc import Iterator, Sequence
-from pathlib import Path
-
-import numpy as np
-
-from tactiled.board.frames import encode_frames
-from tactiled.files.recording import Recording
-
-
-def read_chunks(path: str | Path, size: int = 1 << 16) -> Iterator[bytes]:
-    """The bytes of ``path`` in pieces of ``size``."""
-    with open(path, "rb") as fh:
-        while data := fh.read(size):
-            yield data
-
-
-def recording_bytes(rec: Recording, frame_count: int = 20) -> bytes:
-    """``rec`` as the board's frames (``frame_count`` samples each) at its sensor indices; lost rows are not sent."""
-    valid = rec.valid_mask()
-    out = []
-    n = rec.samples.shape[0]
-    edges = np.flatnonzero(np.diff(np.concatenate([[False], valid, [False]]).astype(np.int8)))
-    for lo, hi in zip(edges[::2], edges[1::2], strict=True):
-        if hi > lo:
-            out.append(encode_frames(rec.first_index + int(lo), rec.samples[lo:hi], count=frame_count))
-    assert n == valid.shape[0]
-    return b"".join(out)
+from collections.abc import Sequence
 
 
 class PtyPlayer:
@@ -93,11 +63,3 @@ class PtyPlayer:
         for fd in self.masters + self.slaves:
             os.close(fd)
         self.masters, self.slaves = [], []
-
-
-def capture_recording_stub(path: str | Path, fs: float, channels: int, volts_per_count: float) -> Recording:
-    """An empty recording carrying the first sample index of capture ``path`` (found in its first 64 KiB), for pacing host times."""
-    from tactiled.board.frames import FrameDecoder
-
-    runs = FrameDecoder(channels=channels).feed_runs(next(read_chunks(path), b""))
-    return Recording(np.zeros((0, channels), dtype=np.int16), fs, volts_per_count, first_index=runs[0].index if runs else 0)

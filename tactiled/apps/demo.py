@@ -1,0 +1,73 @@
+"""``tactiled demo``: a virtual board on a pty, the daemon on it with the shipped model, and the monitor (or, headless,
+one line per label with the surface the simulator really slid over).
+
+Both helpers run as processes of their own (``tactiled simulate serial`` and ``tactiled run``), as a user would start
+them; their files live in a temporary folder that goes when the demo ends. If no label comes within a headless run, the
+demo says so with the daemon's last log line (exit 1).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from tactiled_client import BlockingSubscriber, NoData, Roughness
+from tactiled_client.truth import overlapping
+
+from tactiled.apps.monitor import read_truth, run_monitor
+
+
+def run_demo(scene: str = "hand", seed: int = 0, publish: str | None = None, headless: bool = False, seconds: float = 20.0) -> int:
+    """Run the demo (see the module docstring) on ``scene`` with ``seed``, publishing on ``publish`` (default: an ipc socket in
+    the temporary folder); ``headless``: label lines for ``seconds`` of wall time instead of the monitor. Exit code: 0 if
+    final labels came (headless) or the monitor was quit, 1 if not."""
+    with tempfile.TemporaryDirectory(prefix="tactiled-demo-") as tmp:
+        link, board_log, daemon_log = f"{tmp}/tty", f"{tmp}/board.jsonl", Path(tmp) / "daemon.log"
+        endpoint = publish or f"ipc://{tmp}/pub"
+        exe = [sys.executable, "-m", "tactiled"]
+        board = subprocess.Popen([*exe, "simulate", "serial", "--link", link, "--scene", scene, "--seed", str(seed), "--log", board_log],
+                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        assert board.stdout is not None
+        board.stdout.readline()  # the device path: the pty exists from here on
+        with open(daemon_log, "w") as log:
+            daemon = subprocess.Popen([*exe, "run", "--port", link, "--publish", endpoint, "--samples"], stderr=log)
+        try:
+            if not headless:
+                return run_monitor(endpoint, board_log)  # the simulator's log: the true surface of every slide
+            labels = print_labels(endpoint, seconds, board_log)
+            if labels:
+                return 0
+            last = [line for line in daemon_log.read_text(errors="replace").splitlines() if line.strip()]
+            print(f"tactiled: no label in {seconds:g} s; the daemon's last words: {last[-1] if last else '(nothing)'}", file=sys.stderr)
+            return 1
+        finally:
+            for proc in (daemon, board):
+                proc.terminate()
+                proc.wait(5)
+
+
+def print_labels(endpoint: str, seconds: float, board_log: str) -> int:
+    """Print one line per roughness message from ``endpoint`` for ``seconds`` (wall time), with the true surface from the
+    virtual board's log ``board_log``; returns how many final labels came."""
+    def truth(start: int, stop: int) -> str:
+        return overlapping(read_truth(board_log), start, stop) or "?"
+
+    labels = 0
+    deadline = time.monotonic() + seconds
+    with BlockingSubscriber(endpoint, topics=["roughness"], timeout=1.0) as sub:
+        while time.monotonic() < deadline:
+            try:
+                msg = sub.receive(timeout=min(1.0, max(0.01, deadline - time.monotonic())))
+            except NoData:
+                continue
+            if not isinstance(msg, Roughness):
+                continue
+            kind = "final" if msg.final else f"provisional after {msg.used_s:.2f} s"
+            why = f" [{msg.reason}]" if msg.reason else ""
+            print(f"slide {msg.slide_id}: {msg.label or '-'} ({msg.confidence or 0:.2f}, {kind}){why}, true surface {truth(msg.start, msg.stop)}",
+                  flush=True)
+            labels += bool(msg.final and msg.label)
+    return labels

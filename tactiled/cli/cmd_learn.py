@@ -1,0 +1,169 @@
+"""``tactiled features``, ``train``, ``score`` and ``evaluate``: learning from labelled recordings."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from tactiled.cli import common as c
+from tactiled.cli.common import EXIT_OK, EXIT_USAGE, Sub, command, config_of, files_done, say
+from tactiled.errors import TactiledError
+
+EXPERIMENTS = "abcdefg"
+
+
+def experiments(text: str) -> str:
+    """Experiment letters, each from :data:`EXPERIMENTS`."""
+    unknown = sorted(set(text) - set(EXPERIMENTS))
+    if unknown or not text:
+        raise argparse.ArgumentTypeError(f"letters from {EXPERIMENTS} expected, got {text!r}")
+    return text
+
+
+experiments.__name__ = "experiment letters"
+
+
+def cmd_features(args: argparse.Namespace) -> int:
+    """Feature vectors of every window of every slide, into one .npz."""
+    from tactiled.files.outputs import check_output
+    from tactiled.learn.dataset import load_recordings
+    from tactiled.learn.features_file import write_features
+
+    config = config_of(args)
+    check_output(args.output, args.force, (".npz",))  # before every window is analysed, not after
+    recs = load_recordings(args.files, say)
+    if not recs:
+        raise TactiledError("no readable recordings")
+    ws = write_features(args.output, recs, config, args.jobs)
+    print(f"{args.output}: {ws.x.shape[0]} windows of {len(ws.slides)} slides x {ws.x.shape[1]} features"
+          + (f" (slides without a window: {ws.skipped})" if ws.skipped else ""))
+    return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    """Search, fit and save a model; print the leaderboard and what calibration and novelty found."""
+    from tactiled.files.outputs import check_output
+    from tactiled.learn.train import train
+
+    config = config_of(args)
+    check_output(args.output, args.force, (".npz",))  # before minutes of search, not after
+    result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
+                   scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by)
+    print("leaderboard (slide accuracy, grouped by file: mean ± sd over folds; * the choice, the simplest within one standard error of the best):")
+    width = max(len(row["candidate"]) for row in result.leaderboard)
+    for row in result.leaderboard:
+        mark = "*" if row.get("chosen") else " "
+        print(f"{mark} {row['candidate']:<{width}s} {100 * row['mean']:5.1f} ± {100 * row['sd']:4.1f} %")
+    cal, nov = result.model.summary.get("calibration", {}), result.model.summary.get("novelty", {})
+    if cal:
+        print(f"confidence: calibrated ({cal['method']}) on {cal['slides']} out-of-fold slides")
+    if nov.get("threshold") is not None:
+        print(f"unknown surfaces: by cross-validation, {100 * nov['known_rejected']:.1f} % of slides of known surfaces are called unknown, "
+              + (f"{100 * nov['unseen_flagged']:.1f} % of slides of a surface left out of training" if nov.get("unseen_flagged") is not None
+                 else "and no surface could be left out to test it"))
+    fingerprint = result.model.save(args.output)
+    print(f"{args.output}: {result.model.describe()}; fingerprint {fingerprint}")
+    return EXIT_OK
+
+
+def cmd_score(args: argparse.Namespace) -> int:
+    """Accuracy, coverage and calibration of a model over every true slide of held-out recordings."""
+    from tactiled.learn.dataset import load_recordings
+    from tactiled.learn.model import load_model
+    from tactiled.learn.score import score_recordings
+
+    config = config_of(args)
+    model = load_model(args.model)
+    recs = load_recordings(args.files, say)
+    for name, rec in recs:
+        model.check_stream(rec.fs, rec.channels, name)
+    scored = [(n, r) for n, r in recs if r.slides() or r.label is not None]
+    if not scored:
+        raise TactiledError("no recording with ground truth (per-slide surfaces or a file label) to score")
+    report = score_recordings(scored, config, model, args.jobs, files_done("score"))
+    if args.json:
+        print(json.dumps(report))
+        return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
+    print(f"accuracy {report['accuracy']:.4f} ({report['correct']} of {report['n']} true slides); coverage {report['coverage']:.4f} "
+          f"({report['labelled']} labelled); accuracy of the labelled {report['accuracy_of_labelled']:.4f}")
+    if report["abstained"]:
+        print("no label: " + ", ".join(f"{k} {v}" for k, v in sorted(report["abstained"].items())))
+    print(f"unknown surfaces: {report['unknown']} of {report['n']} true slides")
+    if report["ece"] is not None:
+        print(f"confidence: expected calibration error {report['ece']:.3f} (10 bins), Brier score {report['brier']:.3f}")
+    if report["unpaired_detections"]:
+        print(f"detections outside any true slide: {report['unpaired_detections']}")
+    for cls, r in report["recall"].items():
+        print(f"  {cls:>12s}: recall {r:.3f}")
+    return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """The papers' experiments into a report folder."""
+    from tactiled.files.outputs import check_folder
+    from tactiled.learn.dataset import load_recordings
+    from tactiled.learn.evaluate import run_evaluation
+
+    config = config_of(args)
+    check_folder(args.report, args.force)  # before minutes of experiments, not after
+    readable = load_recordings(args.files, say)
+    recs = [(n, r) for n, r in readable if r.slides()]
+    if len(recs) < 2:
+        raise TactiledError("evaluation needs at least two readable recordings with ground-truth slides")
+    if len({(r.fs, r.channels) for _, r in recs}) != 1:
+        raise TactiledError("recordings differ in fs or channels; evaluate one kind at a time")
+    results = run_evaluation(recs, config, Path(args.report), experiments=args.experiments, folds=args.folds, quick=args.quick, seed=args.seed,
+                             progress=lambda m: print(f"evaluate: {m}", file=sys.stderr, flush=True))
+    print(f"{Path(args.report) / 'report.md'}: {len(recs)} recordings, {results['seconds']:.0f} s")
+    return EXIT_OK if len(readable) == len(args.files) else EXIT_USAGE  # as features and score: the skipped files were named
+
+
+def add_commands(sub: Sub) -> None:
+    """features, train, evaluate, score."""
+    p = command(sub, "features", "feature vectors of every slide", cmd_features, "tactiled features data/sim/*.npz -o features.npz")
+    p.add_argument("files", nargs="+", help="recordings (.npz) whose slides to analyse")
+    p.add_argument("-o", "--output", required=True, help="features file to write (.npz: one row per window, docs/features.md)")
+    p.add_argument("--force", action="store_true", help=c.FORCE_HELP)
+    p.add_argument("--config", help=c.CONFIG_HELP)
+    p.add_argument("--jobs", type=c.jobs, default=0, metavar="N", help=c.JOBS_HELP)
+
+    p = command(sub, "train", "train a model from labelled recordings (finds what works on them)", cmd_train,
+                "tactiled train data/sim/*.npz -o my_model.npz")
+    p.add_argument("files", nargs="+", help="labelled recordings (.npz): per-slide ground truth or a file-level label")
+    p.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
+    p.add_argument("--force", action="store_true", help=c.FORCE_HELP)
+    p.add_argument("--config", help="config file (detector, spikes, feature settings; default: the built-in defaults)")
+    p.add_argument("--method", choices=("auto", "quick", "paper"), default="auto",
+                   help="auto: score features, classifiers and windows by grouped CV and keep the simplest within one standard error of "
+                        "the best; quick: a small search for a first model in "
+                        "seconds (band energies and texture, linear and kNN); paper: the papers' DWT + SFS + ELM")
+    p.add_argument("--folds", type=c.int_in(2, 1000), default=5, help="outer cross-validation folds, grouped by file")
+    p.add_argument("--min-slides", type=c.count, default=2, help="fewest slides a surface needs")
+    p.add_argument("--drop-rare", action="store_true", help="train without surfaces that have too few slides instead of stopping")
+    p.add_argument("--group-by", choices=("file", "slide"), default="file",
+                   help="what cross-validation folds keep together: file (every surface needs two recordings) or slide "
+                        "(allows one recording per surface; the estimates are then optimistic, and train says so)")
+    p.add_argument("--scheduler", help="dask.distributed scheduler address (tcp://host:port) to run the cross-validation on a cluster")
+    p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP + " (the same files, options and seed give the same model file)")
+
+    p = command(sub, "evaluate", "the papers' experiments by grouped cross-validation", cmd_evaluate,
+                "tactiled evaluate data/sim/*.npz --report report/")
+    p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth, all of one rate and channel count")
+    p.add_argument("--report", required=True, help="output folder: report.md, report.json, PNG figures")
+    p.add_argument("--force", action="store_true", help="write into a report folder that is not empty")
+    p.add_argument("--config", help=c.CONFIG_HELP)
+    p.add_argument("--experiments", type=experiments, default=EXPERIMENTS,
+                   help="a: classifiers, b: window grid, c: sampling rate, d: feature count, e: clustering, f: error against run time, "
+                        "g: the default method against decision time")
+    p.add_argument("--folds", type=c.int_in(2, 1000), default=5, help="cross-validation folds, grouped by file")
+    p.add_argument("--quick", action="store_true", help="small grids and fewer features (for tests)")
+    p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP)
+
+    p = command(sub, "score", "accuracy of a model on ground-truth slides", cmd_score, "tactiled score my_model.npz held_out/*.npz")
+    p.add_argument("model", help="model file (.npz) to score")
+    p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth or a file label, unseen in training")
+    p.add_argument("--config", help=c.CONFIG_HELP)
+    p.add_argument("--json", action="store_true", help="the report as one JSON object")
+    p.add_argument("--jobs", type=c.jobs, default=0, metavar="N", help=c.JOBS_HELP)

@@ -1,0 +1,127 @@
+"""``tactiled run``, ``monitor``, ``lsl``, ``ros2`` and ``demo``: the live daemon and what watches it."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from tactiled.cli import common as c
+from tactiled.cli.common import EXIT_OK, Sub, command, config_of, say
+from tactiled.errors import TactiledError
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """The daemon, until SIGTERM or SIGINT (SIGHUP reloads the model)."""
+    import asyncio
+
+    from tactiled.files.outputs import check_output
+    from tactiled.learn.choose import ModelChoice
+    from tactiled.service.daemon import Daemon
+
+    config = config_of(args, {"sensor.port": args.port, "sensor.id": args.sensor_id, "publish.endpoint": args.publish,
+                              "model.path": args.model, "publish.samples": True if args.samples else None, "model.shadow": args.shadow})
+    s = config.sensor
+    where = f"sensor {s.id}"
+    choice = ModelChoice(config, None if args.no_model else config.model.path or None, explicit=args.no_model, force=args.force, check_cost=False, warn=say)
+    model = choice.for_stream(s.fs, s.channels, where)
+    if model is None and not args.no_model:
+        raise TactiledError("no model fits this sensor (train one with tactiled train, or pass --no-model)")
+    shadow = ModelChoice(config, config.model.shadow, explicit=True, check_cost=False).for_stream(s.fs, s.channels, where) \
+        if config.model.shadow else None
+    for out, suffix in ((args.record, ".npz"), (args.raw, ".bin")):
+        if out:
+            check_output(out, args.force, (suffix,))  # before the port opens: never replace a file (or write a device) unasked
+    if args.no_wait:
+        from tactiled.board.serialsource import check_port
+
+        check_port(s.port)
+
+    async def main() -> None:
+        daemon = Daemon(config, model, args.record, raw_to=args.raw, force=args.force, shadow=shadow,
+                        model_path=str(choice.file) if model is not None and choice.file else None)  # what SIGHUP loads again
+        print(f"tactiled: sensor {s.id} on {s.port}, publishing on {daemon.endpoint}", file=sys.stderr, flush=True)
+        await daemon.run()
+
+    asyncio.run(main())
+    return EXIT_OK
+
+
+def cmd_monitor(args: argparse.Namespace) -> int:
+    """The terminal view of a running daemon."""
+    from tactiled.apps.monitor import run_monitor
+
+    return run_monitor(args.connect or config_of(args).publish.endpoint, args.truth)
+
+
+def cmd_lsl(args: argparse.Namespace) -> int:
+    """The LSL bridge, until stopped."""
+    from tactiled.apps.bridges.cli import serve
+
+    return serve("lsl", config_of(args), args.connect, args.sensor_id, nan_lost=args.nan_lost)
+
+
+def cmd_ros2(args: argparse.Namespace) -> int:
+    """The ROS 2 bridge, until stopped."""
+    from tactiled.apps.bridges.cli import serve
+
+    return serve("ros2", config_of(args), args.connect, args.sensor_id, ros_args=args.ros_args)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Virtual board + daemon with the shipped model + monitor (or, headless, label lines for ``--seconds``)."""
+    from tactiled.apps.demo import run_demo
+
+    if args.seconds is not None and not args.headless:
+        raise TactiledError("--seconds needs --headless")
+    return run_demo(args.scene, args.seed, args.publish, args.headless, args.seconds if args.seconds is not None else 20.0)
+
+
+def add_commands(sub: Sub) -> None:
+    """run, monitor, lsl, ros2, demo."""
+    p = command(sub, "run", "the daemon: serial port -> roughness labels over ZeroMQ", cmd_run, "tactiled run --config my.toml --model my_model.npz")
+    p.add_argument("--config", help=c.CONFIG_HELP)
+    p.add_argument("--port", help="serial device (overrides sensor.port)")
+    p.add_argument("--model", help="model file (overrides model.path; default: the shipped model)")
+    p.add_argument("--no-model", action="store_true", help="publish slides and status only")
+    p.add_argument("--shadow", metavar="MODEL", help="a candidate model to run in the shadow of the live one (overrides model.shadow): its "
+                                                     "labels on shadow/<id>, never as the live ones; status.shadow says how often they agree")
+    p.add_argument("--publish", help="ZeroMQ endpoint to bind (overrides publish.endpoint)")
+    p.add_argument("--sensor-id", help="sensor id in topics (overrides sensor.id)")
+    p.add_argument("--record", help="also write every sample received to this .npz, streamed to disk as OUT.npz.journal (tactiled recover) "
+                   "and converted on exit (an existing file needs --force)")
+    p.add_argument("--samples", action="store_true", help="also publish the raw samples on samples/<id> (sets publish.samples)")
+    p.add_argument("--raw", metavar="OUT.bin", help="also write every byte read from the port, as read (replay it with tactiled replay OUT.bin)")
+    p.add_argument("--no-wait", action="store_true", help="exit 2 at once if the serial device is missing (default: wait for it)")
+    p.add_argument("--force", action="store_true", help="let --record and --raw replace existing files, and run a model whose analysis "
+                                                        "cannot keep up with the sensor (below 5x real time on this machine)")
+
+    p = command(sub, "monitor", "terminal view of a running daemon", cmd_monitor, "tactiled monitor --connect tcp://127.0.0.1:7350")
+    p.add_argument("--connect", help=c.CONNECT_HELP)
+    p.add_argument("--config", help=c.CONFIG_HELP)
+    p.add_argument("--truth", help="a virtual board's log (simulate serial --log): show the true surface of each slide")
+
+    for name, help_, handler, example in (
+            ("lsl", "Lab Streaming Layer outlets of a daemon's raw samples and labels (tactiled[lsl])", cmd_lsl,
+             "tactiled lsl --connect tcp://127.0.0.1:7350"),
+            ("ros2", "ROS 2 topics of a daemon's labels, status and raw samples (tactiled[ros2])", cmd_ros2,
+             "tactiled ros2 --connect tcp://127.0.0.1:7350 --sensor-id fingertip0 --ros-args -r __ns:=/robot1")):
+        p = command(sub, name, help_, handler, example)
+        p.add_argument("--connect", help=c.CONNECT_HELP)
+        p.add_argument("--config", help=c.CONFIG_HELP)
+        p.add_argument("--sensor-id", help="sensor to bridge (default: sensor.id of --config)")
+        if name == "lsl":
+            p.add_argument("--nan-lost", action="store_true", help="push lost samples as NaN rows (a regular stream); each lost range "
+                                                                   "is a marker either way")
+        else:
+            p.add_argument("--ros-args", nargs=argparse.REMAINDER, default=None, metavar="ARG",
+                           help="the rest goes to ROS: -r __ns:=/robot1, -r __node:=NAME, -r FROM:=TO, -p endpoint:=…, -p sensor_id:=…, "
+                                "-p frame_id:=…, --params-file F (docs/integrations.md)")
+
+    p = command(sub, "demo", "simulated sensor + daemon + monitor", cmd_demo, "tactiled demo --scene robot")
+    p.add_argument("--scene", type=c.scene, default="hand",
+                   help="the simulated sensor's scene (docs/simulator.md; the shipped model knows hand and robot sliding)")
+    p.add_argument("--seed", type=c.seed, default=0, help="the simulated sensor's random seed")
+    p.add_argument("--publish", help="endpoint for the demo daemon (default: an ipc socket in a temporary folder)")
+    p.add_argument("--headless", action="store_true", help="print one line per label (with the true surface) instead of the monitor")
+    p.add_argument("--seconds", type=c.positive, default=None,
+                   help="with --headless: run this long, s (wall time; default 20); exit 0 if labels came")

@@ -1,0 +1,36 @@
+"""``tactiled check-config`` and ``tactiled curve-keys``: setting a sensor up."""
+
+from __future__ import annotations
+
+import argparse
+
+from tactiled.cli.common import EXIT_OK, Sub, command
+from tactiled.config import load_config
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    """Load and validate a config file: ok, or one line naming the key."""
+    load_config(args.file)
+    print(f"{args.file}: ok")
+    return EXIT_OK
+
+
+def cmd_curve_keys(args: argparse.Namespace) -> int:
+    """Create a CURVE certificate pair and print the two paths."""
+    from tactiled.service.publish import create_curve_pair
+
+    public, secret = create_curve_pair(args.dir, args.name, args.force)
+    print(f"{public}\n{secret}")
+    return EXIT_OK
+
+
+def add_commands(sub: Sub) -> None:
+    """check-config, curve-keys."""
+    p = command(sub, "check-config", "validate a config file", cmd_check_config, "tactiled check-config configs/tactiled.toml")
+    p.add_argument("file", help="TOML config file to check")
+
+    p = command(sub, "curve-keys", "create a ZeroMQ CURVE certificate pair (NAME.key, NAME.key_secret) in DIR", cmd_curve_keys,
+                "tactiled curve-keys keys/ daemon")
+    p.add_argument("dir", help="folder for the certificates (created if missing)")
+    p.add_argument("name", help="certificate name: NAME.key (public) and NAME.key_secret")
+    p.add_argument("--force", action="store_true", help="replace an existing pair of that name")

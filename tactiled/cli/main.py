@@ -1,0 +1,61 @@
+"""The ``tactiled`` command: ``main(argv) -> int``. It parses, calls one library function per command and prints;
+each group of commands is a module of its own (``cmd_*.py``). Logging is configured here only.
+
+Exit codes: 0 ok, 1 failure, 2 usage or bad input (config, recording, model, device path, output).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+
+from tactiled import __version__
+from tactiled.cli import cmd_files, cmd_learn, cmd_live, cmd_setup, cmd_simulate
+from tactiled.cli.common import EXIT_FAIL, EXIT_USAGE, Handler, Parser, subcommands
+from tactiled.errors import TactiledError
+
+OUTPUT_POLICY = """\
+Outputs: every command that writes checks, before any work, that the folder exists and is
+writable, that a file's name ends as it should (.npz, .mcap, .bin, .png), and that it replaces
+nothing: an existing file (a dataset's recordings of the same names, a certificate pair of the same
+name), or a report folder that is not empty, needs --force. Each failure is one line and exit 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The whole command line: every command of every group, each with its help, defaults and example."""
+    parser = Parser(prog="tactiled", description="Tactile roughness sensing daemon and toolkit.\n\n" + OUTPUT_POLICY,
+                    epilog="exit codes: 0 ok, 1 failure, 2 usage or bad input\n\nexample:\n  tactiled demo --headless --seconds 20")
+    parser.add_argument("--version", action="version", version=f"tactiled {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", help="what to do (each command has --help)")
+    for group in (cmd_setup, cmd_files, cmd_simulate, cmd_live, cmd_learn):
+        group.add_commands(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``tactiled`` with ``argv`` (default: the process's arguments); returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="tactiled: %(levelname)s: %(message)s", stream=sys.stderr)
+    handler: Handler = args.handler
+    # every matrix here is small: BLAS threads only add overhead (13x slower ELM fits measured)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
+    try:
+        return handler(args)
+    except TactiledError as exc:
+        print(f"tactiled: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except (KeyboardInterrupt, BrokenPipeError):
+        return EXIT_FAIL
+
+
+__all__ = ["build_parser", "main", "subcommands"]
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

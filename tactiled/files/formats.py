@@ -1,0 +1,29 @@
+"""The one place that picks a file's reader by its name: ``open_recording(path)``.
+
+- ``.bin``: a raw capture (the bytes as read from a port): :class:`~tactiled.files.capture.Capture`, decoded later
+  with a config's sensor settings;
+- ``.mcap``: a tactiled MCAP file (``tactiled export``, ``record --format mcap``) is not read here: its labels replay
+  with the client library (``python -m tactiled_client replay``);
+- anything else: an ``.npz`` recording (docs/recordings.md), checked as it loads.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from tactiled.errors import RecordingError
+from tactiled.files.capture import Capture
+from tactiled.files.recording import Recording, load_recording
+
+
+def open_recording(path: str | Path) -> Recording | Capture:
+    """The recording or capture at ``path``, by its suffix (see the module docstring); :class:`RecordingError` names
+    the file and what is wrong with it."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix == ".bin":
+        return Capture(p)
+    if suffix == ".mcap":
+        raise RecordingError(f"{p}: an MCAP file: replay reads .npz recordings and .bin captures "
+                             f"(the MCAP's labels replay with python -m tactiled_client replay {p})")
+    return load_recording(p)

@@ -1,0 +1,146 @@
+"""One sensor stream: bytes (a port, a raw capture) or sample blocks (a recording) in, events out, and an explicit end.
+
+Every driver uses this one object, built from a config and a model: the daemon, ``tactiled replay`` of a
+recording or a capture, the recorder, the benches and the tests. Nobody wires the ingest core and the
+pipeline by hand, and nobody has to remember what the end of a stream or a board restart asks of them:
+
+- **Bytes** (:meth:`Stream.feed_bytes`) go through the ingest core (tactiled/run/ingest.py: decoder, channel
+  and gap policies, batches), then the pipeline; a batch after a board restart ends the stream's slide
+  in progress before it goes on.
+- **Sample blocks** (:meth:`Stream.feed_samples`) go straight to the pipeline, at their sensor indices.
+- **The end** (:meth:`Stream.finish`) is explicit: what the decoder still held, then a slide in progress
+  ends at the last sample fed (it gets its final result).
+
+Each call returns a :class:`Step`: the batches decoded (for a recorder or the samples topic), the live
+pipeline's events and, with a shadow model, the shadow pipeline's events. Sans-IO: nothing here reads a
+port or a clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from tactiled.board.frames import DecoderStats
+from tactiled.config import Config
+from tactiled.core.events import PipelineEvent
+from tactiled.core.pipeline import Classifier, Pipeline
+from tactiled.files.recording import Recording
+from tactiled.run.ingest import Batch, Ingest, max_gap_for
+
+
+@dataclass
+class Step:
+    """What one call to a :class:`Stream` produced: ``batches`` decoded from bytes (none for sample blocks), the live
+    pipeline's ``events``, and the ``shadow`` pipeline's events (empty without a shadow model)."""
+
+    batches: list[Batch] = field(default_factory=list)
+    events: list[PipelineEvent] = field(default_factory=list)
+    shadow: list[PipelineEvent] = field(default_factory=list)
+
+    def __iadd__(self, other: Step) -> Step:
+        self.batches += other.batches
+        self.events += other.events
+        self.shadow += other.shadow
+        return self
+
+
+class Stream:
+    """One sensor's stream (see the module docstring).
+
+    ``fs`` (Hz), ``channels``, ``volts_per_count`` default to ``config.sensor``'s; ``integer``: samples are int16
+    counts (False: float volts, from a recording). ``min_batch``: samples the ingest core holds before it hands a
+    batch on (bytes only). ``max_gap``: the longest index jump counted as lost samples (default: the ring's length).
+    ``analyse`` False: decode only (a recorder), no detection and no labels. ``shadow``: a second model run on the
+    same samples (:meth:`set_shadow`).
+    """
+
+    def __init__(self, config: Config, model: Classifier | None = None, *, fs: float | None = None, channels: int | None = None,
+                 volts_per_count: float | None = None, integer: bool = True, min_batch: int = 1, max_gap: int | None = None,
+                 analyse: bool = True, shadow: Classifier | None = None) -> None:
+        s = config.sensor
+        self.config = config
+        self.fs = fs if fs is not None else s.fs
+        self.channels = channels if channels is not None else s.channels
+        self.volts_per_count = volts_per_count if volts_per_count is not None else s.volts_per_count
+        self.integer = integer
+        self.ingest = Ingest(self.channels, max_gap=max_gap if max_gap is not None else max_gap_for(config.ring.seconds, self.fs),
+                             min_batch=min_batch)
+        self.pipeline = self._pipeline(model) if analyse else None
+        self.shadow: Pipeline | None = None
+        self.set_shadow(shadow)
+
+    @classmethod
+    def for_recording(cls, rec: Recording, config: Config, model: Classifier | None = None) -> Stream:
+        """A stream with ``rec``'s rate, channels and scale (its samples go in with :meth:`feed_samples`)."""
+        return cls(config, model, fs=rec.fs, channels=rec.channels, volts_per_count=rec.volts_per_count, integer=rec.is_integer)
+
+    def _pipeline(self, model: Classifier | None) -> Pipeline:
+        return Pipeline(self.config, self.fs, self.channels, self.volts_per_count, self.integer, model)
+
+    @property
+    def stats(self) -> DecoderStats:
+        """The ingest core's counters (samples, lost, CRC failures, restarts, ...)."""
+        return self.ingest.stats
+
+    @property
+    def live(self) -> Pipeline:
+        """The live pipeline (a stream made with ``analyse`` False has none: :class:`RuntimeError`)."""
+        if self.pipeline is None:
+            raise RuntimeError("this stream decodes only (analyse=False)")
+        return self.pipeline
+
+    def set_shadow(self, model: Classifier | None) -> None:
+        """Run ``model`` in the shadow of the live one from the next samples on (None: no shadow). Its pipeline has its own
+        detector history, so a shadow started mid-stream may see a slide in progress start a hop later."""
+        self.shadow = self._pipeline(model) if model is not None and self.pipeline is not None else None
+
+    def swap_model(self, model: Classifier) -> None:
+        """The live model from the next slide on (at once between slides): a slide ends with the model it began with."""
+        self.live.swap_model(model)
+
+    def will_analyse(self, end: int) -> bool:
+        """True if samples up to absolute index ``end`` complete an analysis window (live or shadow): feature work ahead."""
+        return any(p is not None and p.will_analyse(end) for p in (self.pipeline, self.shadow))
+
+    def decode(self, data: bytes | bytearray | memoryview) -> list[Batch]:
+        """Bytes through the ingest core only: the batches they complete (hand them to :meth:`process`)."""
+        return self.ingest.feed(data)
+
+    def process(self, batches: list[Batch]) -> Step:
+        """Decoded batches through the pipelines; a batch after a board restart first ends the slide in progress."""
+        step = Step(batches=batches)
+        for b in batches:
+            if b.restart:
+                step += self._finish_pipelines()
+            step += self._feed(b.index, b.samples, None)
+        return step
+
+    def feed_bytes(self, data: bytes | bytearray | memoryview) -> Step:
+        """Bytes read from a port or a capture, cut anywhere: the events do not depend on how."""
+        return self.process(self.decode(data))
+
+    def feed_samples(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None = None) -> Step:
+        """A block of ``samples`` (n, C) whose first sample has absolute ``index``; ``valid`` (n,) marks the rows that carry
+        data (an index gap from the previous block counts as lost samples)."""
+        return self._feed(index, samples, valid)
+
+    def finish(self) -> Step:
+        """The explicit end of the stream: what the decoder still held, then a slide in progress ends at the last sample."""
+        step = self.process(self.ingest.flush())
+        step += self._finish_pipelines()
+        return step
+
+    def _feed(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None) -> Step:
+        if self.pipeline is None:
+            return Step()
+        return Step(events=self.pipeline.feed(index, samples, valid),
+                    shadow=self.shadow.feed(index, samples, valid) if self.shadow is not None else [])
+
+    def _finish_pipelines(self) -> Step:
+        if self.pipeline is None:
+            return Step()
+        return Step(events=self.pipeline.finish(), shadow=self.shadow.finish() if self.shadow is not None else [])

@@ -1,0 +1,27 @@
+"""Process signals and systemd: which signals stop a capture or the daemon, and the notify socket (readiness, watchdog)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+
+log = logging.getLogger(__name__)
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)  # a recorder stops on any; the daemon reloads its model on SIGHUP
+
+
+def sd_notify(message: str) -> None:
+    """Send ``message`` (``READY=1``, ``WATCHDOG=1``, ``STOPPING=1``) to systemd's notify socket, if there is one (Type=notify)."""
+    path = os.environ.get("NOTIFY_SOCKET")
+    if not path:
+        return
+    if path.startswith("@"):
+        path = "\0" + path[1:]
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        try:
+            sock.connect(path)
+            sock.sendall(message.encode())
+        except OSError as exc:
+            log.warning("sd_notify failed: %s", exc)
