@@ -55,9 +55,9 @@ FS = 20_000
 def make_stream(seconds: float, seed: int = 11, corrupt: float = 0.0, drop: float = 0.0, garbage: float = 0.0) -> bytes:
     """``seconds`` of the simulator's hand scene (slides over random surfaces) as the board's frames, faults injected per frame."""
     from tactiled.board.frames import encode_frame
-    from tactiled.sim.sensor_model import SensorModel, SimParams, default_surfaces
+    from tactiled.sim.physics import SensorSimulator, SimParams, default_surfaces
 
-    model = SensorModel(SimParams(), seed=seed)
+    model = SensorSimulator(SimParams(), seed=seed)
     rng = np.random.default_rng(seed)
     n = round(seconds * FS)
     parts = []

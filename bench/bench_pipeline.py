@@ -28,7 +28,7 @@ from tactiled.core.features import FeaturePlan
 from tactiled.files.recording import Recording, load_recording, save_recording
 from tactiled.learn.model import load_model
 from tactiled.run.replay import replay_recording
-from tactiled.sim.sensor_model import SensorModel, SimParams, default_surfaces
+from tactiled.sim.physics import SensorSimulator, SimParams, default_surfaces
 
 EXE = [sys.executable, "-m", "tactiled"]
 
@@ -36,7 +36,7 @@ EXE = [sys.executable, "-m", "tactiled"]
 def simulate(seconds: float, seed: int = 0) -> Recording:
     """``seconds`` of the hand scene at 20 kHz, 2 channels: rests and slides over random surfaces."""
     p = SimParams()
-    m = SensorModel(p, seed)
+    m = SensorSimulator(p, seed)
     n = int(seconds * p.fs)
     m.schedule_random(default_surfaces(), n)
     return Recording(m.read(n), p.fs, p.volts_per_count)

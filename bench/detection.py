@@ -17,7 +17,7 @@ from tactiled.config import Config
 from tactiled.core.matching import match_slides
 from tactiled.files.recording import load_recording
 from tactiled.learn.dataset import detect_slides
-from tactiled.sim.sensor_model import SCENES
+from tactiled.sim.physics import SCENES
 from tactiled.sim.simulate import write_dataset
 
 DEFAULT = ",".join(SCENES) + ";continuous,one-channel;fluctuating,one-channel;robot,hot-gain"

@@ -47,6 +47,10 @@ class SensorConfig:
     volts_per_count: float = 5.0 / 32768.0
 
     def validate(self, p: str) -> None:
+        """Check id (1..64 printable, no '/'), port (a device path unless ``allow_url``), baudrate, fs (Hz), channels and volts_per_count.
+
+        A bad value raises ConfigError naming the key (``p``: the section's name).
+        """
         _check(bool(self.id) and "/" not in self.id and len(self.id) <= 64 and self.id.isprintable(), f"{p}.id",
                "must be 1..64 printable characters, without '/'")
         _check(bool(self.port) and len(self.port) <= 4096 and "\0" not in self.port, f"{p}.port", "must be a non-empty path")
@@ -68,6 +72,10 @@ class SerialConfig:
     batch_s: float = 0.04  # the pipeline runs on batches of at least this much sensor time (CPU against latency)
 
     def validate(self, p: str) -> None:
+        """Check read_interval_s, batch_s, retry_initial_s and retry_max_s (s, retry_max_s >= retry_initial_s) are in range.
+
+        A bad value raises ConfigError naming the key (``p``: the section's name).
+        """
         _check(0.001 <= self.read_interval_s <= 0.5, f"{p}.read_interval_s", "must be in [0.001, 0.5] s")
         _check(0.0 <= self.batch_s <= 1.0, f"{p}.batch_s", "must be in [0, 1] s")
         _check(0.001 <= self.retry_initial_s <= 60, f"{p}.retry_initial_s", "must be in [0.001, 60] s")
@@ -81,6 +89,7 @@ class RingConfig:
     seconds: float = 20.0
 
     def validate(self, p: str) -> None:
+        """Check seconds is in [1, 3600] s; a bad value raises ConfigError naming the key (``p``: the section's name)."""
         _check(1.0 <= self.seconds <= 3600, f"{p}.seconds", "must be in [1, 3600] s")
 
 
@@ -110,6 +119,10 @@ class DetectorConfig:
     settle_s: float = 0.02
 
     def validate(self, p: str) -> None:
+        """Check every time (ms, s), band edge (Hz), energy ratio and sample count is in range, band_high_hz > band_low_hz, on_factor > off_factor.
+
+        A bad value raises ConfigError naming the key (``p``: the section's name).
+        """
         _check(0.5 <= self.hop_ms <= 100, f"{p}.hop_ms", "must be in [0.5, 100] ms")
         _check(1 <= self.hop_min_samples <= 4096, f"{p}.hop_min_samples", "must be in 1..4096")
         _check(0.1 <= self.band_low_hz <= 10_000, f"{p}.band_low_hz", "must be in [0.1, 10000] Hz")
@@ -142,6 +155,7 @@ class WindowConfig:
     max_windows: int = 0
 
     def validate(self, p: str) -> None:
+        """Check start_s, duration_s, hop_s (s) and max_windows are in range; a bad value raises ConfigError naming the key (``p``: the section)."""
         _check(0 <= self.start_s <= 60, f"{p}.start_s", "must be in [0, 60] s")
         _check(0 < self.duration_s <= 60, f"{p}.duration_s", "must be in (0, 60] s")
         _check(0 <= self.hop_s <= 60, f"{p}.hop_s", "must be in [0, 60] s (0: hop = duration_s)")
@@ -157,6 +171,7 @@ class SpikesConfig:
     nsigma: float = 4.0
 
     def validate(self, p: str) -> None:
+        """Check method (hampel, mad, none), half_width (samples) and nsigma; a bad value raises ConfigError naming the key (``p``: the section)."""
         _check(self.method in ("hampel", "mad", "none"), f"{p}.method", "must be one of hampel, mad, none")
         _check(1 <= self.half_width <= 1000, f"{p}.half_width", "must be in 1..1000")
         _check(0 < self.nsigma <= 1000, f"{p}.nsigma", "must be in (0, 1000]")
@@ -177,6 +192,10 @@ class FeaturesConfig:
     psd_bands_per_octave: float = 3.0
 
     def validate(self, p: str) -> None:
+        """Check wavelet and mode (PyWavelets'), level, domains, stats, families, psd_low_hz (Hz), psd_high_frac (of fs), psd_bands_per_octave.
+
+        A bad value raises ConfigError naming the key (``p``: the section's name).
+        """
         import pywt
 
         _check(self.wavelet in pywt.wavelist(kind="discrete"), f"{p}.wavelet", "must be a discrete PyWavelets wavelet")
@@ -202,6 +221,10 @@ class ClassifierConfig:
     max_lost: float = 0.02
 
     def validate(self, p: str) -> None:
+        """Check min_confidence, provisional_confidence, max_saturated and max_lost (fractions) are in range.
+
+        A bad value raises ConfigError naming the key (``p``: the section's name).
+        """
         _check(0.0 <= self.provisional_confidence <= 1.0, f"{p}.provisional_confidence", "must be in [0, 1] (1: no provisional labels)")
         _check(0.0 <= self.max_lost <= 0.5, f"{p}.max_lost", "must be in [0, 0.5]")
         _check(0.0 <= self.min_confidence <= 1.0, f"{p}.min_confidence", "must be in [0, 1]")
@@ -217,6 +240,7 @@ class ModelConfig:
     shadow: str = ""
 
     def validate(self, p: str) -> None:
+        """Check path and shadow are empty or regular files of at most 1 GiB; a bad value raises ConfigError naming the key (``p``: the section)."""
         for key in ("path", "shadow"):
             _readable_file(getattr(self, key), f"{p}.{key}", MAX_MODEL_FILE_BYTES)
 
@@ -233,6 +257,10 @@ class PublishConfig:
     samples: bool = False
 
     def validate(self, p: str) -> None:
+        """Check endpoint (tcp://, ipc:// or inproc://; loopback unless ``allow_remote``), status_interval_s (s), and the CURVE key file and folder.
+
+        The key file and folder are set together or not at all, and must exist. A bad value raises ConfigError naming the key.
+        """
         _check(bool(self.curve_secret_key_file) == bool(self.curve_authorized_dir), f"{p}.curve_authorized_dir",
                f"must be set together with {p}.curve_secret_key_file")
         _check(self.endpoint.startswith(("tcp://", "ipc://", "inproc://")), f"{p}.endpoint", "must start with tcp://, ipc:// or inproc://")
@@ -255,6 +283,7 @@ class ControlConfig:
     endpoint: str = ""
 
     def validate(self, p: str) -> None:
+        """Check endpoint is empty, ipc:// or a tcp:// loopback address; a bad value raises ConfigError naming the key (``p``: the section)."""
         _check(not self.endpoint or (self.endpoint.startswith(("ipc://", "tcp://")) and is_local_endpoint(self.endpoint)), f"{p}.endpoint",
                "must be empty, an ipc:// path or a tcp:// loopback address (the control socket is never remote)")
 
@@ -303,6 +332,10 @@ class Config:
     control: ControlConfig = field(default_factory=ControlConfig)
 
     def validate(self) -> None:
+        """Validate every section, and that the ring buffer (ring.seconds × fs × channels, float64) fits in 1 GiB.
+
+        A bad value raises ConfigError naming the key.
+        """
         for f in dataclasses.fields(self):
             getattr(self, f.name).validate(f.name)
         s = self.sensor

@@ -1,21 +1,26 @@
-"""Shared test helpers: waiting on events with a timeout, running the CLI as a process."""
+"""Shared test helpers: waiting on events with a timeout, the CLI as a process and its usage errors, a virtual board
+and a daemon on it, simulated recordings, what a bridge hands its outlets."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
 
 if TYPE_CHECKING:
     from tactiled.files.recording import Recording
+    from tactiled.sim.physics import SimParams
+    from tactiled.sim.virtualboard import VirtualBoard
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -55,7 +60,7 @@ def lossy_recording(first_index: int, meta: dict[str, object] | None = None, *, 
     """A simulated recording of Ra2.29 (``slides`` slides, ``seed``) with its ground truth, ``first_index`` and the
     ``lost`` ranges (position, count) zeroed and listed."""
     from tactiled.files.recording import Recording
-    from tactiled.sim.sensor_model import SimParams, pick_surfaces, simulate_file
+    from tactiled.sim.physics import SimParams, pick_surfaces, simulate_file
 
     params = SimParams()
     sim = simulate_file(params, pick_surfaces("Ra2.29")[0], slides, seed)
@@ -90,3 +95,88 @@ class BridgeSink:
 
     def close(self) -> None:
         self.closed.set()
+
+
+def usage_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    """The CLI's answer to a bad command line, run in this process: asserts exit 2 and exactly one line on stderr, returns it."""
+    from tactiled.cli.main import main
+
+    with pytest.raises(SystemExit) as done:
+        main(argv)
+    err = capsys.readouterr().err
+    assert done.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    return err.strip()
+
+
+@contextlib.contextmanager
+def running(board: VirtualBoard) -> Iterator[VirtualBoard]:
+    """``board`` (opened if it was not) streaming from a thread of its own; stopped and joined when the block ends."""
+    if not board.path:
+        board.open()
+    stop = threading.Event()
+    thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        yield board
+    finally:
+        stop.set()
+        thread.join(10)
+
+
+@contextlib.contextmanager
+def daemon_process(port: str, endpoint: str, *args: str) -> Iterator[subprocess.Popen[str]]:
+    """``tactiled run --port PORT --publish ENDPOINT ARGS`` as a process (stderr piped); terminated when the block ends
+    (killed if it does not stop within 30 s). Its ``returncode`` and ``stderr`` are there to check afterwards."""
+    proc = subprocess.Popen(tactiled_cmd("run", "--port", port, "--publish", endpoint, *args), stderr=subprocess.PIPE, text=True)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.wait(30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(10)
+
+
+@dataclass
+class Live:
+    """A virtual board on a pty and ``tactiled run`` reading it (:func:`board_and_daemon`)."""
+
+    link: str  # the pty's stable path
+    endpoint: str  # where the daemon publishes
+    board: VirtualBoard
+    proc: subprocess.Popen[str]
+    log_path: Path  # the board's event log (sim.virtualboard.read_log)
+
+    def stop(self, timeout: float = 30.0) -> str:
+        """Terminate the daemon (as systemd stops it) and wait; returns what it wrote on stderr."""
+        self.proc.terminate()
+        _, err = self.proc.communicate(timeout=timeout)
+        return err or ""
+
+    def overrun_samples(self, from_index: int) -> int:
+        """Samples at board index ``from_index`` or later that the board could not write because the pty was full (the
+        daemon, starved of CPU on a loaded machine, read too late): a loss the board logs, not one the daemon made.
+        Read it after the block has stopped the board (its log is flushed then)."""
+        from tactiled.sim.virtualboard import read_log
+
+        return sum(e["count"] for e in read_log(self.log_path) if e["event"] == "overrun" and e["index"] >= from_index)
+
+
+@contextlib.contextmanager
+def board_and_daemon(tmp_path: Path, *run_args: str, params: SimParams | None = None, surfaces: int = 3, seed: int = 0,
+                     speed: float = 3.0, **board_options: Any) -> Iterator[Live]:
+    """A virtual board (``params``, ``surfaces`` surfaces, ``seed``; faults as :class:`VirtualBoard` options) streaming on
+    ``tmp_path/tty`` at ``speed`` × real time, logging to ``tmp_path/board.jsonl``, and ``tactiled run`` on it publishing
+    on ``ipc://tmp_path/pub`` with ``run_args``; both stopped when the block ends."""
+    from tactiled.sim.physics import SensorSimulator, SimParams, pick_surfaces
+    from tactiled.sim.virtualboard import VirtualBoard
+
+    link, endpoint, log_path = str(tmp_path / "tty"), f"ipc://{tmp_path}/pub", tmp_path / "board.jsonl"
+    with open(log_path, "w") as log:
+        board = VirtualBoard(SensorSimulator(params or SimParams(), seed=seed), pick_surfaces(surfaces), link=link, speed=speed, seed=seed,
+                             log=log, **board_options)
+        with running(board), daemon_process(link, endpoint, *run_args) as proc:
+            yield Live(link, endpoint, board, proc, log_path)

@@ -16,8 +16,8 @@ from tactiled.cli.clidoc import REGENERATE, cli_markdown
 from tactiled.cli.main import build_parser, main, subcommands
 from tactiled.errors import TactiledError
 from tactiled.learn.model import load_model
-from tactiled.sim.sensor_model import pick_surfaces
-from tests.conftest import REPO, run_cli, tactiled_cmd
+from tactiled.sim.physics import pick_surfaces
+from tests.conftest import REPO, run_cli, tactiled_cmd, usage_error
 
 COMMANDS = subcommands(build_parser())
 
@@ -85,19 +85,13 @@ def test_argument_types_reject_bad_values_by_name_not_function(capsys: pytest.Ca
                                                            "(see tactiled run --help)"),
                        (["simulate", "figure", "-o", "f.png", "--sed", "3"], "did you mean --seed? (see tactiled simulate figure --help)"),
                        (["rn"], "invalid choice: 'rn'")):
-        with pytest.raises(SystemExit) as exit_:
-            main(argv)
-        err = capsys.readouterr().err
-        assert exit_.value.code == 2 and what in err and len(err.strip().splitlines()) == 1, err
+        assert what in usage_error(argv, capsys)
 
 
 @pytest.mark.parametrize("option, value, what", [("--folds", "1", "must be an integer >= 2, got 1"), ("--folds", "two", "not an integer"),
                                                  ("--min-slides", "0", "must be an integer >= 1"), ("--seed", "-1", "must be an integer >= 0")])
 def test_train_rejects_impossible_options_in_one_line(option: str, value: str, what: str, capsys: pytest.CaptureFixture[str]) -> None:
-    with pytest.raises(SystemExit) as exit_:
-        main(["train", "x.npz", "-o", "m.npz", option, value])
-    err = capsys.readouterr().err
-    assert exit_.value.code == 2 and f"argument {option}: {what}" in err and len(err.strip().splitlines()) == 1, err
+    assert f"argument {option}: {what}" in usage_error(["train", "x.npz", "-o", "m.npz", option, value], capsys)
 
 
 def test_train_library_rejects_impossible_options(tmp_path: Path) -> None:
@@ -145,7 +139,7 @@ def test_simulate_and_train_give_the_same_fingerprint_in_another_process(tmp_pat
 
 def test_a_model_says_once_that_the_configs_analysis_sections_are_not_used(tmp_path: Path) -> None:
     from tactiled.files.recording import Recording, save_recording
-    from tactiled.sim.sensor_model import SimParams, simulate_file
+    from tactiled.sim.physics import SimParams, simulate_file
 
     params = SimParams()
     sim = simulate_file(params, pick_surfaces("Ra1.00")[0], 1, 0)

@@ -141,7 +141,7 @@ def test_replay_onto_a_socket_renumbers_seq_per_topic(tmp_path: Path) -> None:
 
 def _simulated(tmp_path: Path) -> Path:
     from tactiled.files.recording import Recording, save_recording
-    from tactiled.sim.sensor_model import SimParams, pick_surfaces, simulate_file
+    from tactiled.sim.physics import SimParams, pick_surfaces, simulate_file
 
     params = SimParams()
     sim = simulate_file(params, pick_surfaces("Ra2.29")[0], 3, 4)

@@ -55,3 +55,16 @@ def test_controller_steers_on_the_demo_daemons_labels(tmp_path: Path) -> None:
         ctl.wait(10)
         demo.wait(30)
     assert all("Traceback" not in line for line in seen)
+    assert not processes_naming(str(tmp_path)), "SIGTERM to the demo left its board or daemon running"
+
+
+def processes_naming(text: str) -> list[int]:
+    """PIDs of the processes whose command line contains ``text``."""
+    pids = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if text.encode() in cmdline.read_bytes():
+                pids.append(int(cmdline.parent.name))
+        except OSError:
+            continue
+    return pids

@@ -29,9 +29,8 @@ from tactiled.learn.model import load_model
 from tactiled.run.ingest import Batch, Ingest, max_gap_for
 from tactiled.run.stream import Stream
 from tactiled.service.daemon import Daemon
-from tactiled.sim.sensor_model import SensorModel, SimParams, pick_surfaces, simulate_file
-from tactiled.sim.virtualboard import VirtualBoard
-from tests.conftest import tactiled_cmd, wait_for
+from tactiled.sim.physics import SimParams, pick_surfaces, simulate_file
+from tests.conftest import board_and_daemon, tactiled_cmd, wait_for
 
 FS = 20_000.0
 
@@ -263,25 +262,15 @@ def test_run_no_wait_exits_at_once_and_waiting_says_so_once(tmp_path: Path) -> N
 
 def test_replay_of_the_raw_capture_gives_the_live_daemons_events(tmp_path: Path) -> None:
     """The daemon writes what it reads (run --raw); replay x.bin through the decoder gives the same slides and labels."""
-    link, raw, endpoint = str(tmp_path / "tty"), tmp_path / "cap.bin", f"ipc://{tmp_path}/pub"
-    board = VirtualBoard(SensorModel(SimParams(), seed=8), pick_surfaces(4), link=link, speed=3.0, corrupt=0.01, drop=0.005,
-                         garbage=0.01, seed=8, first_index=2**32 - 100_000)  # the 32-bit index wraps 5 s in
-    board.open()
-    stop = threading.Event()
-    thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
+    raw = tmp_path / "cap.bin"
     messages: list[object] = []
-    with BlockingSubscriber(endpoint, topics=["roughness", "slide"], timeout=30) as sub:
-        proc = subprocess.Popen(tactiled_cmd("run", "--port", link, "--publish", endpoint, "--raw", str(raw)), stderr=subprocess.PIPE, text=True)
-        thread.start()
-        try:
-            wait_for(lambda: messages.append(sub.receive()) or sum(isinstance(m, Roughness) and m.final for m in messages) >= 4,  # type: ignore[func-returns-value]
-                     timeout=120, what="four labels")
-        finally:
-            proc.terminate()
-            proc.wait(10)
-            stop.set()
-            thread.join(10)
-    assert proc.returncode == 0, proc.stderr.read() if proc.stderr else ""
+    with board_and_daemon(tmp_path, "--raw", str(raw), surfaces=4, seed=8, corrupt=0.01, drop=0.005, garbage=0.01,
+                          first_index=2**32 - 100_000) as live, \
+            BlockingSubscriber(live.endpoint, topics=["roughness", "slide"], timeout=30) as sub:  # the 32-bit index wraps 5 s in
+        wait_for(lambda: messages.append(sub.receive()) or sum(isinstance(m, Roughness) and m.final for m in messages) >= 4,  # type: ignore[func-returns-value]
+                 timeout=120, what="four labels")
+        err = live.stop()
+    assert live.proc.returncode == 0, err
     live = [(m.slide_id, m.start, m.stop, m.label, m.reason) for m in messages if isinstance(m, Roughness) and m.final]
     res = subprocess.run(tactiled_cmd("replay", "--json", str(raw)), capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr

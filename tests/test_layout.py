@@ -88,3 +88,33 @@ def test_no_import_cycle() -> None:
 def test_the_graph_sees_function_level_imports() -> None:
     graph = import_graph()
     assert graph["tactiled.cli.cmd_live"] >= {"tactiled.service.daemon"} and graph["tactiled.cli.cmd_learn"] >= {"tactiled.learn.train"}
+
+
+def missing_docstrings(root: Path) -> list[str]:
+    """``path: module`` and ``path:line: Class.name`` of every public definition under ``root`` without a docstring.
+
+    Modules, module-level functions and classes, and the methods and nested classes of public classes; a name starting
+    with ``_`` (``__init__`` included) is skipped, with whatever it holds.
+    """
+    missing: list[str] = []
+
+    def walk(path: Path, body: list[ast.stmt], prefix: str) -> None:
+        for node in body:
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef) and not node.name.startswith("_"):
+                if not ast.get_docstring(node):
+                    missing.append(f"{path}:{node.lineno}: {prefix}{node.name}")
+                if isinstance(node, ast.ClassDef):
+                    walk(path, node.body, f"{prefix}{node.name}.")
+
+    for path in sorted(root.rglob("*.py")):
+        tree = ast.parse(path.read_text(), str(path))
+        shown = path.relative_to(PKG.parent)
+        if not ast.get_docstring(tree):
+            missing.append(f"{shown}: module")
+        walk(shown, tree.body, "")
+    return missing
+
+
+def test_every_public_definition_has_a_docstring() -> None:
+    missing = [m for root in (PKG, PKG.parent / "clients" / "tactiled_client") for m in missing_docstrings(root)]
+    assert not missing, f"{len(missing)} public definitions without a docstring:\n" + "\n".join(missing)

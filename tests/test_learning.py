@@ -254,7 +254,7 @@ def test_headless_demo_prints_labels_with_the_truth_and_stops() -> None:
 
 def test_monitor_shows_live_labels_in_a_terminal(tmp_path: Path) -> None:
     from tactiled.learn.model import load_model as _lm
-    from tactiled.sim.sensor_model import SimParams
+    from tactiled.sim.physics import SimParams
 
     assert _lm().fs == SimParams().fs
     master, slave = pty.openpty()

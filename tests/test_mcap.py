@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import threading
 import time
 from pathlib import Path
 
@@ -13,9 +12,9 @@ from mcap.reader import make_reader
 
 from tactiled.files.recording import Recording, load_recording, save_recording
 from tactiled.service.mcap_export import read_mcap_samples
-from tactiled.sim.sensor_model import SensorModel, SimParams, default_surfaces
+from tactiled.sim.physics import SensorSimulator, SimParams, default_surfaces
 from tactiled.sim.virtualboard import VirtualBoard
-from tests.conftest import lossy_recording, run_cli, tactiled_cmd
+from tests.conftest import lossy_recording, run_cli, running, tactiled_cmd
 
 
 def test_export_round_trips_every_sample_slide_and_label(tmp_path: Path) -> None:
@@ -58,18 +57,12 @@ def test_export_round_trips_every_sample_slide_and_label(tmp_path: Path) -> None
 
 def test_record_format_mcap(tmp_path: Path) -> None:
     link = str(tmp_path / "tty")
-    board = VirtualBoard(SensorModel(SimParams(), seed=2), default_surfaces()[:2], link=link, speed=2.0, seed=2)
+    board = VirtualBoard(SensorSimulator(SimParams(), seed=2), default_surfaces()[:2], link=link, speed=2.0, seed=2)
     board.open()
-    stop = threading.Event()
     proc = subprocess.Popen(tactiled_cmd("record", "--port", link, "--seconds", "8", "--format", "mcap", "--label", "Ra0.44",
                                          "-o", str(tmp_path / "r.mcap")), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
-    thread.start()
-    try:
+    with running(board):
         out, err = proc.communicate(timeout=60)
-    finally:
-        stop.set()
-        thread.join(10)
     assert proc.returncode == 0, err
     volts, valid, first, _ = read_mcap_samples(tmp_path / "r.mcap")
     assert volts.shape == (160_000, 2) and valid.all() and np.abs(volts).max() > 0

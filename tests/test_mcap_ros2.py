@@ -13,7 +13,7 @@ import numpy as np
 
 from tactiled.apps.bridges.ros2 import table_dtype
 from tactiled.files.recording import save_recording
-from tactiled.sim.sensor_model import SimParams
+from tactiled.sim.physics import SimParams
 from tests.conftest import lossy_recording, run_cli
 
 

@@ -3,41 +3,24 @@
 from __future__ import annotations
 
 import io
-import subprocess
-import threading
 from pathlib import Path
 
 from rich.console import Console
 from tactiled_client import BlockingSubscriber, Roughness
 
 from tactiled.apps.monitor import SPARK, MonitorState, render
-from tactiled.sim.sensor_model import SensorModel, SimParams, pick_surfaces
-from tactiled.sim.virtualboard import VirtualBoard
-from tests.conftest import tactiled_cmd, wait_for
+from tests.conftest import board_and_daemon, wait_for
 
 
 def test_monitor_shows_state_traces_spectrum_and_labels_with_truth(tmp_path: Path) -> None:
-    link, log_path, endpoint = str(tmp_path / "tty"), tmp_path / "board.jsonl", f"ipc://{tmp_path}/pub"
-    stop = threading.Event()
-    model = MonitorState(str(log_path))
-    with open(log_path, "w") as log:
-        board = VirtualBoard(SensorModel(SimParams(), seed=4), pick_surfaces(4), link=link, speed=3.0, seed=4, drop=0.01, log=log)
-        board.open()
-        thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
-        thread.start()
-        proc = subprocess.Popen(tactiled_cmd("run", "--port", link, "--publish", endpoint, "--samples"), stderr=subprocess.PIPE, text=True)
-        try:
-            with BlockingSubscriber(endpoint, timeout=30) as sub:
-                def enough() -> bool:
-                    model.update(sub.receive())
-                    finals = [r for r in model.labels if r.final and r.label]
-                    return len(finals) >= 2 and model.status is not None and model.raw_n >= 4096
-                wait_for(enough, timeout=120, what="two labels, a status and raw samples")
-        finally:
-            proc.terminate()
-            proc.wait(10)
-            stop.set()
-            thread.join(10)
+    model = MonitorState(str(tmp_path / "board.jsonl"))
+    with board_and_daemon(tmp_path, "--samples", surfaces=4, seed=4, drop=0.01) as live, BlockingSubscriber(live.endpoint, timeout=30) as sub:
+        def enough() -> bool:
+            model.update(sub.receive())
+            finals = [r for r in model.labels if r.final and r.label]
+            return len(finals) >= 2 and model.status is not None and model.raw_n >= 4096
+        wait_for(enough, timeout=120, what="two labels, a status and raw samples")
+    endpoint = live.endpoint
     console = Console(file=io.StringIO(), width=140, record=True, color_system=None)
     console.print(render(model, endpoint))
     screen = console.export_text()

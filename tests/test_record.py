@@ -8,7 +8,6 @@ import os
 import shutil
 import signal
 import subprocess
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -19,9 +18,9 @@ from tactiled.board.frames import Frame
 from tactiled.files.journal import JournalWriter, encode_chunk, encode_header, journal_path, read_journal, recover
 from tactiled.files.recording import load_recording
 from tactiled.service.recorder import RecordingSink
-from tactiled.sim.sensor_model import SensorModel, SimParams, Surface, default_surfaces
+from tactiled.sim.physics import SensorSimulator, SimParams, Surface, default_surfaces
 from tactiled.sim.virtualboard import VirtualBoard, read_log
-from tests.conftest import REPO, run_cli, tactiled_cmd, wait_for
+from tests.conftest import REPO, run_cli, running, tactiled_cmd, wait_for
 
 SURFACES = default_surfaces()[:2]
 
@@ -29,17 +28,9 @@ SURFACES = default_surfaces()[:2]
 @contextlib.contextmanager
 def running_board(tmp_path: Path, seed: int) -> Iterator[VirtualBoard]:
     """A virtual board streaming on ``tmp_path/dev`` until the block ends, its events in ``tmp_path/board.jsonl``."""
-    with open(tmp_path / "board.jsonl", "w") as log:
-        board = VirtualBoard(SensorModel(SimParams(), seed=seed), SURFACES, link=str(tmp_path / "dev"), seed=seed, log=log)
-        board.open()
-        stop = threading.Event()
-        thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
-        thread.start()
-        try:
-            yield board
-        finally:
-            stop.set()
-            thread.join(10)
+    with open(tmp_path / "board.jsonl", "w") as log, \
+            running(VirtualBoard(SensorSimulator(SimParams(), seed=seed), SURFACES, link=str(tmp_path / "dev"), seed=seed, log=log)) as board:
+        yield board
 
 
 @contextlib.contextmanager
@@ -56,7 +47,7 @@ def spawned(*args: str) -> Iterator[subprocess.Popen[str]]:
 
 def board_truth(seed: int, surfaces: list[Surface], start: int, n: int) -> np.ndarray:
     """The ``n`` samples a seeded virtual board sends from its ``start``-th sample on."""
-    model = SensorModel(SimParams(), seed=seed)
+    model = SensorSimulator(SimParams(), seed=seed)
     model.schedule_random(surfaces, start + n)
     if start:
         model.read(start)
@@ -77,22 +68,16 @@ def test_record_keeps_every_intact_sample_through_faults_and_unplug(tmp_path: Pa
     log_path = tmp_path / "board.jsonl"
     first = 2**32 - 30_000  # the 32-bit index wraps 1.5 s in
     with open(log_path, "w") as log:
-        board = VirtualBoard(SensorModel(params, seed=3), default_surfaces()[:3], link=link, speed=2.0, corrupt=0.01,
+        board = VirtualBoard(SensorSimulator(params, seed=3), default_surfaces()[:3], link=link, speed=2.0, corrupt=0.01,
                              drop=0.005, garbage=0.01, unplug_at=[1.0], unplug_s=0.2, seed=3, log=log, first_index=first)
         board.open()
-        stop = threading.Event()
         out = tmp_path / "rec.npz"
         proc = subprocess.Popen(tactiled_cmd("-v", "record", "--port", link, "--seconds", "2.5", "-o", str(out)),
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         assert proc.stderr is not None
         assert "recording" in proc.stderr.readline()  # the port checked and open: the unplug cannot come before
-        thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
-        thread.start()
-        try:
+        with running(board):
             stdout, stderr = proc.communicate(timeout=60)
-        finally:
-            stop.set()
-            thread.join(10)
     assert proc.returncode == 0, stderr
     rec = load_recording(out)
     events = read_log(log_path)
@@ -270,7 +255,7 @@ def test_sigterm_and_sighup_save_a_recording(tmp_path: Path, sig: signal.Signals
 
 
 def test_bad_output_path_is_one_line_before_any_capture(tmp_path: Path) -> None:
-    board = VirtualBoard(SensorModel(SimParams(), seed=1), SURFACES, link=str(tmp_path / "dev"))
+    board = VirtualBoard(SensorSimulator(SimParams(), seed=1), SURFACES, link=str(tmp_path / "dev"))
     board.open()  # a port that opens, and sends nothing: the output is checked before any capture
     (tmp_path / "exists.npz").write_bytes(b"old")
     (tmp_path / "file").write_bytes(b"")

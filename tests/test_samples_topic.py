@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import subprocess
-import threading
 import time
 from pathlib import Path
 
@@ -12,19 +10,18 @@ import numpy as np
 from tactiled_client import BlockingSubscriber, Samples, Status
 
 from tactiled.board.clockmap import ClockMap
-from tactiled.service.rawbatch import raw_batches
-from tactiled.sim.sensor_model import SensorModel, SimParams, pick_surfaces
+from tactiled.service.samples_topic import samples_chunks
+from tactiled.sim.physics import SensorSimulator, SimParams, pick_surfaces
 from tactiled.sim.virtualboard import VirtualBoard, read_log
-from tests.conftest import tactiled_cmd, wait_for
+from tests.conftest import daemon_process, running, wait_for
 
 
 def test_every_intact_sample_once_at_its_index_and_every_lost_one_listed(tmp_path: Path) -> None:
     link, log_path, endpoint = str(tmp_path / "tty"), tmp_path / "board.jsonl", f"ipc://{tmp_path}/pub"
-    stop = threading.Event()
     sent: list[np.ndarray] = []
     first_index = 2**32 - 40_000  # the board's 32-bit counter wraps during the test
     with open(log_path, "w") as log:
-        model = SensorModel(SimParams(), seed=3)
+        model = SensorSimulator(SimParams(), seed=3)
         read = model.read
 
         def recording_read(n: int) -> np.ndarray:
@@ -35,16 +32,12 @@ def test_every_intact_sample_once_at_its_index_and_every_lost_one_listed(tmp_pat
         model.read = recording_read  # type: ignore[method-assign]
         board = VirtualBoard(model, pick_surfaces(3), link=link, speed=2.0, corrupt=0.01, drop=0.01, garbage=0.01, seed=3, log=log,
                              first_index=first_index)
-        proc = subprocess.Popen(tactiled_cmd("run", "--port", link, "--publish", endpoint, "--no-model", "--samples"),
-                                stderr=subprocess.PIPE, text=True)
-        thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
         got: list[tuple[Samples, float]] = []
         statuses: list[Status] = []
-        try:
-            with BlockingSubscriber(endpoint, topics=["samples", "status"], timeout=30) as sub:
-                assert isinstance(sub.receive(), Status)  # the daemon is up (waiting for the port): the board starts now
-                board.open()
-                thread.start()
+        with daemon_process(link, endpoint, "--no-model", "--samples") as proc, \
+                BlockingSubscriber(endpoint, topics=["samples", "status"], timeout=30) as sub:
+            assert isinstance(sub.receive(), Status)  # the daemon is up (waiting for the port): the board starts now
+            with running(board):
                 def enough() -> bool:
                     msg = sub.receive()
                     if isinstance(msg, Samples):
@@ -53,11 +46,8 @@ def test_every_intact_sample_once_at_its_index_and_every_lost_one_listed(tmp_pat
                         statuses.append(msg)
                     return sum(m.n for m, _ in got) >= 6 * 20_000 and bool(statuses) and statuses[-1].clock_index is not None
                 wait_for(enough, timeout=120, what="six seconds of raw samples")
-        finally:
-            proc.terminate()
-            proc.wait(10)
-            stop.set()
-            thread.join(10)
+                proc.terminate()
+                proc.wait(30)
     assert proc.returncode == 0
     msgs = [m for m, _ in got]
     assert all(m.missed == 0 and m.extra == {} for m in msgs)
@@ -95,10 +85,10 @@ def test_raw_batches_fill_short_gaps_and_split_long_ones() -> None:
     def block(i: int, n: int) -> tuple[int, np.ndarray]:
         return i, np.full((n, 2), i % 1000, dtype=np.int16)
 
-    out = raw_batches([block(100, 10), block(115, 5), block(200, 4)], expected=95, max_fill=50)
+    out = samples_chunks([block(100, 10), block(115, 5), block(200, 4)], expected=95, max_fill=50)
     assert [(b.index, b.samples.shape[0], b.lost, b.lost_before) for b in out] == [(95, 25, [[0, 5], [15, 5]], 0), (200, 4, [], 80)]
     assert not out[0].samples[:5].any() and (out[0].samples[5:15] == 100).all()
-    assert raw_batches([block(7, 3)], expected=None, max_fill=1)[0].index == 7
+    assert samples_chunks([block(7, 3)], expected=None, max_fill=1)[0].index == 7
 
 
 def test_clock_map_follows_the_earliest_arrivals() -> None:

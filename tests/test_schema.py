@@ -14,7 +14,7 @@ from tactiled.core.events import SlideResult
 from tactiled.files.recording import Recording, save_recording
 from tactiled.learn.model import load_model
 from tactiled.run.replay import by_slide, replay_recording, result_record
-from tactiled.sim.sensor_model import SimParams, pick_surfaces, simulate_file
+from tactiled.sim.physics import SimParams, pick_surfaces, simulate_file
 from tests.conftest import REPO, run_cli
 
 

@@ -19,7 +19,7 @@ from tactiled.core.spikes import remove_spikes
 from tactiled.errors import WindowError
 from tactiled.files.recording import Recording, load_recording, save_recording
 from tactiled.run.replay import replay_recording
-from tactiled.sim.sensor_model import SimParams, default_surfaces, simulate_file, with_mode
+from tactiled.sim.physics import SimParams, default_surfaces, simulate_file, with_mode
 from tests.conftest import run_cli
 
 NAMES = feature_names(2)

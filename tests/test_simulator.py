@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tactiled.files.recording import load_recording
-from tactiled.sim.sensor_model import SensorModel, SimParams, Surface, _self_affine_profile, default_surfaces, simulate_file
+from tactiled.sim.physics import SensorSimulator, SimParams, Surface, _self_affine_profile, default_surfaces, simulate_file
 from tests.conftest import run_cli
 
 QUIET = dict(noise_v=0.0, mains_v=0.0, drift_v=0.0, spike_rate_hz=0.0, stick_slip=False)
@@ -24,7 +24,7 @@ def test_rq_over_ra_of_gaussian_profiles() -> None:
 
 
 def _slide_rms(params: SimParams, surface: Surface, seed: int = 0) -> float:
-    m = SensorModel(params, seed)
+    m = SensorSimulator(params, seed)
     m.add_rest(0.2)
     t = m.add_slide(surface, 1.0)
     v = m.read_volts(m.scheduled_end)
@@ -42,7 +42,7 @@ def test_spectral_peak_moves_with_speed() -> None:
     peaks = []
     for speed in (0.03, 0.09):
         p = replace(SimParams(mode="robot", robot_speed_mps=speed, fn_hz=(5000.0, 5000.0), zeta=0.7), **QUIET)  # type: ignore[arg-type]
-        m = SensorModel(p, 1)
+        m = SensorSimulator(p, 1)
         t = m.add_slide(default_surfaces()[10], 1.0)
         v = m.read_volts(m.scheduled_end)[t.start + 2000:t.stop - 2000, 0]
         spec = np.abs(np.fft.rfft(v * np.hanning(v.size))) ** 2
@@ -53,23 +53,23 @@ def test_spectral_peak_moves_with_speed() -> None:
 
 def test_chunked_equals_one_shot_and_seeded() -> None:
     def run(chunks: list[int]) -> np.ndarray:
-        m = SensorModel(SimParams(), 7)
+        m = SensorSimulator(SimParams(), 7)
         m.schedule_random(default_surfaces(), 60000)
         return np.concatenate([m.read(c) for c in chunks])
 
     one = run([60000])
     assert np.array_equal(one, run([1, 19, 20, 4000, 35960, 20000]))
     assert np.array_equal(one, run([60000]))
-    assert not np.array_equal(one, SensorModel(SimParams(), 8).read(60000))
+    assert not np.array_equal(one, SensorSimulator(SimParams(), 8).read(60000))
 
 
 def test_finite_and_clipping_only_beyond_full_scale() -> None:
     p = replace(SimParams(), gain_v_per_mps=5000.0)
-    m = SensorModel(p, 3)
+    m = SensorSimulator(p, 3)
     m.schedule_random(default_surfaces()[-3:], 80000)
     volts = m.read_volts(80000)
     assert np.all(np.isfinite(volts))
-    from tactiled.sim.sensor_model import adc
+    from tactiled.sim.physics import adc
 
     counts = adc(volts, p.volts_per_count)
     clipped = (counts == 32767) | (counts == -32768)
@@ -100,7 +100,7 @@ def test_dataset_cli(tmp_path: Path) -> None:
 
 
 def test_other_units_differ_within_the_stated_tolerance() -> None:
-    from tactiled.sim.sensor_model import TOLERANCE, SimParams, other_unit
+    from tactiled.sim.physics import TOLERANCE, SimParams, other_unit
 
     base = SimParams()
     assert other_unit(base, 0) is base
@@ -119,7 +119,7 @@ def test_other_units_differ_within_the_stated_tolerance() -> None:
 
 
 def test_new_specimens_keep_the_grades() -> None:
-    from tactiled.sim.sensor_model import TOLERANCE, default_surfaces, grating_surfaces, new_specimens
+    from tactiled.sim.physics import TOLERANCE, default_surfaces, grating_surfaces, new_specimens
 
     for make in (default_surfaces, grating_surfaces):
         nominal = make()
@@ -139,7 +139,7 @@ def test_new_specimens_keep_the_grades() -> None:
 
 
 def test_specimen_zero_is_todays_surfaces_and_another_has_another_profile() -> None:
-    from tactiled.sim.sensor_model import default_surfaces, grating_surfaces, pick_surfaces
+    from tactiled.sim.physics import default_surfaces, grating_surfaces, pick_surfaces
 
     first, last = default_surfaces()[0], default_surfaces()[-1]
     assert (first.name, first.ra_um, first.corr_um, first.hurst) == ("Ra0.44", 0.44, 39.515203688996024, 0.6421936392931707)
@@ -172,7 +172,7 @@ def test_unit_zero_and_specimen_zero_write_todays_files(tmp_path: Path) -> None:
 def test_simulate_dataset_of_another_unit_and_specimen(tmp_path: Path) -> None:
     from tactiled.cli.main import main
     from tactiled.files.recording import load_recording
-    from tactiled.sim.sensor_model import SimParams, other_unit
+    from tactiled.sim.physics import SimParams, other_unit
 
     assert main(["simulate", "dataset", "--out", str(tmp_path / "a"), "--scene", "robot", "--surfaces", "1", "--files-per-surface", "1",
                  "--slides-per-file", "1"]) == 0
@@ -192,19 +192,23 @@ def test_board_log_stays_bounded_when_nothing_reads_the_port(tmp_path: Path) -> 
     import io
     import threading
 
-    from tactiled.sim.sensor_model import SensorModel, SimParams, pick_surfaces
+    from tactiled.sim.physics import SensorSimulator, SimParams, pick_surfaces
     from tactiled.sim.virtualboard import VirtualBoard, read_log
 
     log = io.StringIO()
-    board = VirtualBoard(SensorModel(SimParams(), seed=2), pick_surfaces(2), link=str(tmp_path / "tty"), speed=20.0, seed=2, log=log)
+    board = VirtualBoard(SensorSimulator(SimParams(), seed=2), pick_surfaces(2), link=str(tmp_path / "tty"), speed=20.0, seed=2, log=log)
+    import time
+
     board.open()
+    began = time.monotonic()
     try:
         board.run(threading.Event(), seconds=20.0)  # 20 s of sensor time at 20x: about 1 s of wall time, 20 000 frames
     finally:
         board.close()
+    wall_s = time.monotonic() - began
     (tmp_path / "board.jsonl").write_text(log.getvalue())
     lines = [line for line in log.getvalue().splitlines() if '"overrun"' in line]
     events = read_log(tmp_path / "board.jsonl")
     frames = [e["index"] for e in events if e["event"] == "overrun"]
-    assert 1 <= len(lines) <= 4  # one line per second of wall time, plus the last
+    assert 1 <= len(lines) <= wall_s + 2  # one line per second of wall time, plus the last
     assert len(frames) > 15_000 and frames == sorted(set(frames)) and all(e["count"] == 20 for e in events if e["event"] == "overrun")

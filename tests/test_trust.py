@@ -176,7 +176,7 @@ def test_a_surface_unlike_every_training_slide_gets_no_label_and_is_counted() ->
     from tactiled.config import Config
     from tactiled.core.events import SlideResult
     from tactiled.core.pipeline import Pipeline
-    from tactiled.sim.sensor_model import SimParams, pick_surfaces, simulate_file
+    from tactiled.sim.physics import SimParams, pick_surfaces, simulate_file
 
     model = load_model()
     model.novelty_threshold = 1e-9  # nothing is near enough to a training slide

@@ -163,6 +163,7 @@ class BlockingReplay(_Player):
             yield entry
 
     def close(self) -> None:
+        """End the replay: :meth:`receive` raises UsageError afterwards."""
         self._entries = None
 
     def __enter__(self) -> BlockingReplay:

@@ -253,6 +253,7 @@ class ProvisionalLabel:
     novelty: float | None = None
 
     def to_map(self) -> dict[str, Any]:
+        """The fields as a dict (the object in a ``tactiled replay --json`` line)."""
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 

@@ -172,6 +172,7 @@ class BlockingSubscriber(_Tracker):
             yield self.receive()
 
     def close(self) -> None:
+        """Close the socket at once (messages not yet received are dropped)."""
         self._socket.close(linger=0)
 
     def __enter__(self) -> BlockingSubscriber:

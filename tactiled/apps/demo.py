@@ -18,13 +18,14 @@ from tactiled_client import BlockingSubscriber, NoData, Roughness
 from tactiled_client.truth import overlapping
 
 from tactiled.apps.monitor import read_truth, run_monitor
+from tactiled.signals import sigterm_as_exit
 
 
 def run_demo(scene: str = "hand", seed: int = 0, publish: str | None = None, headless: bool = False, seconds: float = 20.0) -> int:
     """Run the demo (see the module docstring) on ``scene`` with ``seed``, publishing on ``publish`` (default: an ipc socket in
     the temporary folder); ``headless``: label lines for ``seconds`` of wall time instead of the monitor. Exit code: 0 if
     final labels came (headless) or the monitor was quit, 1 if not."""
-    with tempfile.TemporaryDirectory(prefix="tactiled-demo-") as tmp:
+    with sigterm_as_exit(), tempfile.TemporaryDirectory(prefix="tactiled-demo-") as tmp:
         link, board_log, daemon_log = f"{tmp}/tty", f"{tmp}/board.jsonl", Path(tmp) / "daemon.log"
         endpoint = publish or f"ipc://{tmp}/pub"
         exe = [sys.executable, "-m", "tactiled"]
@@ -44,9 +45,7 @@ def run_demo(scene: str = "hand", seed: int = 0, publish: str | None = None, hea
             print(f"tactiled: no label in {seconds:g} s; the daemon's last words: {last[-1] if last else '(nothing)'}", file=sys.stderr)
             return 1
         finally:
-            for proc in (daemon, board):
-                proc.terminate()
-                proc.wait(5)
+            stop_processes(daemon, board)
 
 
 def print_labels(endpoint: str, seconds: float, board_log: str) -> int:
@@ -71,3 +70,15 @@ def print_labels(endpoint: str, seconds: float, board_log: str) -> int:
                   flush=True)
             labels += bool(msg.final and msg.label)
     return labels
+
+
+def stop_processes(*procs: subprocess.Popen[bytes] | subprocess.Popen[str], grace_s: float = 5.0) -> None:
+    """Send SIGTERM to every process in ``procs``, wait ``grace_s`` seconds for each, then SIGKILL what is left."""
+    for proc in procs:
+        proc.terminate()
+    for proc in procs:
+        try:
+            proc.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

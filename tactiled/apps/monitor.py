@@ -73,6 +73,7 @@ class MonitorState:
         self._truth: list[tuple[int, int, str]] = []
 
     def update(self, msg: Any) -> None:
+        """Fold one message (status, slide, roughness or samples) into the state, adding the messages it says were missed."""
         self.last_message = time.monotonic()
         self.missed += msg.missed
         if isinstance(msg, Status):
@@ -113,6 +114,10 @@ class MonitorState:
         return 10 * np.log10(band + 1e-20), hi / bars
 
     def truth_for(self, start: int, stop: int) -> str | None:
+        """The true surface of the logged slide that overlaps [start, stop) (sensor sample indices) most; None without a log or a match.
+
+        The log is read again when it does not reach ``stop`` yet.
+        """
         if self.truth_log is None:
             return None
         if not self._truth or self._truth[-1][1] < stop:
@@ -232,6 +237,7 @@ def render_compact(model: MonitorState, endpoint: str, width: int, height: int) 
 
 
 def run_monitor(endpoint: str, truth_log: str | None = None) -> int:
+    """Show the live view of the daemon at ``endpoint`` (redrawn every 0.1 s) until ``q`` or Ctrl-C; exit code 0."""
     from rich.live import Live
 
     model = MonitorState(truth_log)

@@ -84,6 +84,7 @@ class ClockMap:
 
     @property
     def ready(self) -> bool:
+        """True once :meth:`observe` has placed a knot: :meth:`mono` and :meth:`host` can be read."""
         return bool(self._ki)
 
     def estimate(self, index: int) -> float:

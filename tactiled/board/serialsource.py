@@ -55,6 +55,7 @@ class KeepInputSerial(serial.Serial):
     _opening = False
 
     def open(self) -> None:
+        """Open the port as pyserial does, but keep the bytes already in its input buffer."""
         self._opening = True
         try:
             super().open()
@@ -132,6 +133,7 @@ class SerialSource:
         self._thread.start()
 
     def stop(self, timeout: float = 2.0) -> None:
+        """Stop the reader thread of :meth:`start`, waiting up to ``timeout`` s for it to end."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout)
@@ -297,7 +299,8 @@ class ByteSource(Protocol):
     arrival: float
     alive_at: float
 
-    async def run(self) -> None: ...
+    async def run(self) -> None:
+        """Read until cancelled or the source ends, handing bytes to ``on_bytes`` and state changes to ``on_state``."""
 
 
 class MemorySource:
@@ -319,6 +322,7 @@ class MemorySource:
         self._period = period_s
 
     async def run(self) -> None:
+        """Report connected, hand each chunk to ``on_bytes`` (awaited if it returns an awaitable) ``period_s`` apart, then report disconnected."""
         self.connected = True
         self._on_state(CONNECTED, "memory")
         for data in self._chunks:

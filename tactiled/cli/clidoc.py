@@ -44,6 +44,7 @@ def cli_markdown(parser: argparse.ArgumentParser, width: int = WIDTH) -> str:
 
 
 def main() -> int:
+    """Write docs/cli.md's text to stdout; exit code 0."""
     sys.stdout.write(cli_markdown(build_parser()))
     return 0
 

@@ -29,7 +29,7 @@ def cmd_features(args: argparse.Namespace) -> int:
     """Feature vectors of every window of every slide, into one .npz."""
     from tactiled.files.outputs import check_output
     from tactiled.learn.dataset import load_recordings
-    from tactiled.learn.features_file import write_features
+    from tactiled.learn.feature_table import write_features
 
     config = config_of(args)
     check_output(args.output, args.force, (".npz",))  # before every window is analysed, not after

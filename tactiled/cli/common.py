@@ -157,7 +157,7 @@ def int_in(low: int, high: int = 2**31) -> Callable[[str], int]:
 
 def scene(text: str) -> str:
     """A scene, or scenes joined by commas, that the simulator knows (checked when given: the simulator loads lazily)."""
-    from tactiled.sim.sensor_model import parse_scene
+    from tactiled.sim.physics import parse_scene
 
     try:
         parse_scene(text)

@@ -58,12 +58,14 @@ class AnalysisSettings:
         return st
 
     def to_dict(self) -> dict[str, Any]:
+        """The settings as a JSON-ready dict (``names`` a list), as stored in model files."""
         d = asdict(self)
         d["names"] = list(self.names)
         return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AnalysisSettings:
+        """Settings from a dict of :meth:`to_dict`."""
         return cls(**{**d, "names": tuple(d["names"])})
 
     def hop(self) -> float:
@@ -142,6 +144,11 @@ def window_settings(config: Config, channels: int, fs: float, duration_s: float,
 
 @dataclass
 class WindowResult:
+    """One window's analysis: ``features`` (F,) float64 in the settings' ``names`` order, or None and a ``reason``.
+
+    ``quality``: samples, lost (rows), saturated (fraction of rows clipped), spikes (removed).
+    """
+
     features: npt.NDArray[np.float64] | None
     reason: str | None
     quality: dict[str, Any]

@@ -42,7 +42,8 @@ class Classifier(Protocol):
     fingerprint: str
     settings: AnalysisSettings
 
-    def assess(self, features: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], float, float | None]: ...
+    def assess(self, features: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], float, float | None]:
+        """(probabilities (K,), calibrated confidence that the top class is right, novelty or None) of a slide's windows' raw features (w, F)."""
 
 
 
@@ -88,6 +89,7 @@ class Pipeline:
 
     @property
     def sliding(self) -> bool:
+        """True while a slide is in progress (its onset seen, its offset not yet)."""
         return self._onset is not None
 
     def swap_model(self, model: Classifier) -> None:

@@ -110,6 +110,7 @@ class JournalWriter:
         self.chunks += 1
 
     def close(self) -> None:
+        """Close the file, releasing its lock; closing again does nothing."""
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
@@ -159,10 +160,12 @@ class JournalScan:
 
     @property
     def rows(self) -> int:
+        """Rows from position 0 to the last intact chunk's end, lost rows included (0 without chunks)."""
         return self.chunks[-1].position + self.chunks[-1].rows if self.chunks else 0
 
     @property
     def first_index(self) -> int:
+        """Sensor sample index of row 0 (0 without chunks)."""
         return self.chunks[0].index - self.chunks[0].position if self.chunks else 0
 
     def lost(self) -> npt.NDArray[np.int64]:
@@ -331,6 +334,7 @@ class Recovered:
     fs: float
 
     def line(self) -> str:
+        """One line for the user: samples recovered (seconds, lost), chunks, and what was dropped."""
         dropped = (f"dropped {self.dropped_chunks} damaged or torn chunk(s), {self.dropped_bytes} bytes" if self.dropped_chunks
                    else "nothing dropped")
         return (f"recovered {self.samples} samples ({self.samples / self.fs:.3f} s, {self.samples_lost} lost) "

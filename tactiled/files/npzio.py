@@ -99,9 +99,11 @@ class NpzReader:
         self.close()
 
     def close(self) -> None:
+        """Close the archive."""
         self.zf.close()
 
     def keys(self) -> list[str]:
+        """The member names, without ``.npy``, in archive order."""
         return list(self.members)
 
     def __contains__(self, key: object) -> bool:

@@ -46,10 +46,12 @@ class Recording:
 
     @property
     def channels(self) -> int:
+        """C: the number of channels (columns of ``samples``)."""
         return int(self.samples.shape[1])
 
     @property
     def is_integer(self) -> bool:
+        """True for integer ADC counts (volts = counts × ``volts_per_count``), False for float volts."""
         return bool(np.issubdtype(self.samples.dtype, np.integer))
 
     def volts(self) -> npt.NDArray[np.float64]:

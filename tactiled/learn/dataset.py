@@ -60,7 +60,7 @@ def detect_slides(rec: Recording, config: Config) -> list[tuple[int, int]]:
 
 
 @dataclass(frozen=True)
-class Slide:
+class LabelledSlide:
     """One slide to learn from or to score: file number, [start, stop) positions, surface, and where its bounds came from."""
 
     file: int
@@ -80,23 +80,23 @@ class SlideCounts:
     false: dict[str, int] = field(default_factory=dict)
 
 
-def recording_slides(file: int, name: str, rec: Recording, config: Config, counts: SlideCounts) -> list[Slide]:
+def recording_slides(file: int, name: str, rec: Recording, config: Config, counts: SlideCounts) -> list[LabelledSlide]:
     """The slides of one recording (see the module docstring), updating ``counts``."""
     detected = detect_slides(rec, config)
     counts.detected += len(detected)
     truth = rec.slides()
     if not truth:
         source = "label" if rec.label is not None else "detected"
-        return [Slide(file, a, b, rec.label, source) for a, b in detected]
+        return [LabelledSlide(file, a, b, rec.label, source) for a, b in detected]
     counts.truth += len(truth)
     pairs = match_slides(detected, [(a, b) for a, b, _ in truth])
     out = []
     for (t_start, t_stop, surface), j in zip(truth, pairs, strict=True):
         if j is None:
             counts.missed[name] = counts.missed.get(name, 0) + 1
-            out.append(Slide(file, t_start, t_stop, surface, "truth"))
+            out.append(LabelledSlide(file, t_start, t_stop, surface, "truth"))
         else:
-            out.append(Slide(file, detected[j][0], detected[j][1], surface, "detected"))
+            out.append(LabelledSlide(file, detected[j][0], detected[j][1], surface, "detected"))
     false = len(detected) - sum(j is not None for j in pairs)
     if false:
         counts.false[name] = false
@@ -119,12 +119,13 @@ class WindowSet:
     spans: npt.NDArray[np.int64]
     names: list[str]
     files: list[str]
-    slides: list[Slide]
+    slides: list[LabelledSlide]
     reasons: list[str | None]
     counts: SlideCounts
     skipped: dict[str, int]
 
     def slide_labels(self) -> npt.NDArray[np.str_]:
+        """(s,) surface of every slide in ``slides`` order, "" when unknown."""
         return np.array([s.label or "" for s in self.slides], dtype=np.str_)
 
     def per_class(self) -> dict[str, tuple[int, int, int]]:
@@ -152,7 +153,8 @@ class WindowSet:
                          order.astype(np.int64), spans, self.names, self.files, self.slides, self.reasons, self.counts, self.skipped)
 
 
-def analyse_slide(analyser: Analyser, rec: Recording, valid: npt.NDArray[np.bool_], slide: Slide) -> tuple[list[tuple[int, int]], list[Any], str | None]:
+def analyse_slide(analyser: Analyser, rec: Recording, valid: npt.NDArray[np.bool_],
+                  slide: LabelledSlide) -> tuple[list[tuple[int, int]], list[Any], str | None]:
     """(spans, feature vectors, reason) of one slide: the windows that could be analysed and, if none, why."""
     spans = analyser.settings.spans(slide.start, min(slide.stop, rec.samples.shape[0]), rec.fs, analyser.plan.min_samples())
     if not spans:
@@ -168,14 +170,14 @@ def analyse_slide(analyser: Analyser, rec: Recording, valid: npt.NDArray[np.bool
     return good_spans, rows, None if rows else Counter(reasons).most_common(1)[0][0]
 
 
-def find_slides(recs: Sequence[tuple[str, Recording]], config: Config) -> tuple[list[list[Slide]], SlideCounts]:
+def find_slides(recs: Sequence[tuple[str, Recording]], config: Config) -> tuple[list[list[LabelledSlide]], SlideCounts]:
     """The slides of every recording (:func:`recording_slides`), and the pairing counts."""
     counts = SlideCounts()
     return [recording_slides(g, name, rec, config, counts) for g, (name, rec) in enumerate(recs)], counts
 
 
 def collect_windows(recs: Sequence[tuple[str, Recording]], config: Config, settings: AnalysisSettings, progress: Progress | None = None,
-                    require_labels: bool = True, found: tuple[list[list[Slide]], SlideCounts] | None = None,
+                    require_labels: bool = True, found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None,
                     jobs: int | None = 1) -> WindowSet:
     """Analyse every window of every slide of ``recs`` with ``settings`` (all of ``settings.names``).
 
@@ -186,7 +188,7 @@ def collect_windows(recs: Sequence[tuple[str, Recording]], config: Config, setti
 
     rows: list[Any] = []
     labels, groups, slide_idx, spans = [], [], [], []
-    slides: list[Slide] = []
+    slides: list[LabelledSlide] = []
     reasons: list[str | None] = []
     per_file, counts = found if found is not None else find_slides(recs, config)
     skipped: dict[str, int] = {}
@@ -215,8 +217,8 @@ def collect_windows(recs: Sequence[tuple[str, Recording]], config: Config, setti
                      [n for n, _ in recs], slides, reasons, counts, skipped)
 
 
-def file_windows(task: tuple[Recording, list[Slide], Config, AnalysisSettings, bool]
-                 ) -> tuple[list[Slide], list[tuple[list[tuple[int, int]], list[Any], str | None]], dict[str, int]]:
+def file_windows(task: tuple[Recording, list[LabelledSlide], Config, AnalysisSettings, bool]
+                 ) -> tuple[list[LabelledSlide], list[tuple[list[tuple[int, int]], list[Any], str | None]], dict[str, int]]:
     """One recording's part of :func:`collect_windows`: (the slides kept, their :func:`analyse_slide`, what was skipped and why).
 
     ``task``: (recording, its slides, config, settings, whether unlabelled slides are skipped).
@@ -224,7 +226,7 @@ def file_windows(task: tuple[Recording, list[Slide], Config, AnalysisSettings, b
     rec, file_slides, config, settings, require_labels = task
     analyser = Analyser(settings, rec.fs, rec.volts_per_count, rec.is_integer, config.classifier.max_saturated, config.classifier.max_lost)
     valid = rec.valid_mask()
-    kept: list[Slide] = []
+    kept: list[LabelledSlide] = []
     per_slide: list[tuple[list[tuple[int, int]], list[Any], str | None]] = []
     skipped: dict[str, int] = {}
     for slide in file_slides:

@@ -93,6 +93,7 @@ class ELMClassifier(ClassifierMixin, BaseEstimator):  # type: ignore[misc]
         self.beta_ = ridge_solve(self._hidden(x), t, self.alpha)
 
     def fit(self, X: npt.ArrayLike, y: npt.ArrayLike) -> ELMClassifier:
+        """Fit on X (n, F) and labels y (n,); with ``calibrate``, the softmax temperature from out-of-fold decision values. Returns self."""
         if not (isinstance(self.n_hidden, (int, np.integer)) and 1 <= self.n_hidden <= 100_000):
             raise ValueError(f"n_hidden must be an integer in 1..100000, got {self.n_hidden!r}")
         if not (np.isfinite(self.alpha) and self.alpha >= 0):
@@ -133,6 +134,7 @@ class ELMClassifier(ClassifierMixin, BaseEstimator):  # type: ignore[misc]
         return out
 
     def decision_function(self, x: npt.ArrayLike) -> FloatArray:
+        """Decision values of x (n, F): (n,) for two classes (positive means ``classes_[1]``), else (n, K)."""
         scores = self._scores(x)
         if len(self.classes_) == 2:
             binary: FloatArray = (scores[:, 1] - scores[:, 0]) / 2
@@ -140,12 +142,14 @@ class ELMClassifier(ClassifierMixin, BaseEstimator):  # type: ignore[misc]
         return scores[:, : len(self.classes_)]
 
     def predict_proba(self, x: npt.ArrayLike) -> FloatArray:
+        """Probabilities (n, K) of x (n, F): softmax of the decision values at the fitted temperature ((n, 1) of ones for one class)."""
         scores = self._scores(x)
         if len(self.classes_) == 1:
             return np.ones((scores.shape[0], 1))
         return _softmax(scores / self.temperature_)
 
     def predict(self, x: npt.ArrayLike) -> npt.NDArray[Any]:
+        """Labels (n,) of x (n, F): the class with the largest decision value."""
         scores = self._scores(x)
         out: npt.NDArray[Any] = self.classes_[np.argmax(scores[:, : len(self.classes_)], axis=1)]
         return out

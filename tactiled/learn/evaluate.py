@@ -34,7 +34,7 @@ from tactiled.core.analysis import AnalysisSettings
 from tactiled.core.features import FeaturePlan, classifier_inputs
 from tactiled.files.recording import Recording
 from tactiled.learn.cluster import hungarian_accuracy, kmeans, som_clusters
-from tactiled.learn.dataset import Slide, SlideCounts, WindowSet, collect_windows, find_slides
+from tactiled.learn.dataset import LabelledSlide, SlideCounts, WindowSet, collect_windows, find_slides
 from tactiled.learn.model import decision_scores, fit_pipeline, softmax
 from tactiled.learn.score import calibration_scores
 from tactiled.learn.search import (
@@ -79,7 +79,7 @@ class Evaluator:
         self.progress = progress or (lambda m: None)
         self.fs = self.recs[0][1].fs
         self.channels = self.recs[0][1].channels
-        self.found: dict[Any, tuple[list[list[Slide]], SlideCounts]] = {None: find_slides(self.recs, config)}
+        self.found: dict[Any, tuple[list[list[LabelledSlide]], SlideCounts]] = {None: find_slides(self.recs, config)}
         self._features: dict[tuple[Any, ...], WindowSet] = {}
         self._selection: dict[tuple[Any, ...], list[list[int]]] = {}
 
@@ -88,6 +88,7 @@ class Evaluator:
         return window_settings(self.config, self.channels, fs or self.fs, duration_s, ["dwt"], start_s=start_s, max_windows=1)
 
     def features(self, st: AnalysisSettings, recs: Sequence[tuple[str, Recording]] | None = None, key: Any = None) -> WindowSet:
+        """The windows of ``recs`` (default: all) under ``st``, cached per start, duration, DWT level and ``key`` (which recordings)."""
         k = (st.start_s, st.duration_s, st.level, key)
         if k not in self._features:
             if key not in self.found:
@@ -96,9 +97,11 @@ class Evaluator:
         return self._features[k]
 
     def folds(self, ws: WindowSet) -> Folds:
+        """Folds of ``ws``'s slides, grouped by file: (train, test) slide indices."""
         return slide_folds(ws, self.n_folds, self.seed)
 
     def classes(self, ws: WindowSet) -> tuple[list[str], Any]:
+        """(sorted surfaces, (s,) index of each slide's surface among them, -1 when unlabelled) of ``ws``."""
         classes = sorted({s.label for s in ws.slides if s.label is not None})
         return classes, np.array([classes.index(s.label) if s.label in classes else -1 for s in ws.slides])
 
@@ -147,12 +150,17 @@ class Evaluator:
     # ---- experiments ---------------------------------------------------------------------
 
     def base(self) -> tuple[AnalysisSettings, WindowSet]:
+        """The papers' settings (one 0.5 s window 0.3 s after the start, DWT statistics) and their windows; ValueError if fs cannot hold a DWT."""
         st = self.settings(0.3, 0.5)
         if st is None:
             raise ValueError(f"a 0.5 s window cannot hold a DWT at {self.fs:g} Hz")
         return st, self.features(st)
 
     def classifiers(self) -> dict[str, Any]:
+        """(a): each classifier's slide accuracy and inference time (ms) on the base windows with per-fold forward selection.
+
+        Also ELM and SVM RBF on all features, the features selected per fold and the detector's counts.
+        """
         _, ws = self.base()
         folds = self.folds(ws)
         sel = self.selections(ws, "base", folds)
@@ -167,6 +175,7 @@ class Evaluator:
                 "detector": {"truth": c.truth, "detected": c.detected, "missed": sum(c.missed.values()), "false": sum(c.false.values())}}
 
     def window_grid(self, starts: Sequence[float], durations: Sequence[float]) -> list[dict[str, Any]]:
+        """(b), (f): per window start × duration (s): ELM, kNN k=9 and SVM RBF accuracy, feature time (ms) and decision time (s)."""
         rows = []
         for s in starts:
             for d in durations:
@@ -184,6 +193,7 @@ class Evaluator:
         return rows
 
     def sampling_rates(self, rates: Sequence[float]) -> list[dict[str, Any]]:
+        """(c): ELM accuracy on the recordings decimated to each of ``rates`` (Hz), with the DWT levels that fit."""
         rows = []
         for rate in rates:
             recs = [(n, decimate(r, rate)) for n, r in self.recs] if rate < self.fs else self.recs
@@ -200,6 +210,7 @@ class Evaluator:
         return rows
 
     def feature_counts(self, up_to: int) -> list[dict[str, Any]]:
+        """(d): ELM and kNN k=9 accuracy with forward selection stopped at 1 .. ``up_to`` features."""
         _, ws = self.base()
         folds = self.folds(ws)
         rows: list[dict[str, Any]] = []
@@ -210,6 +221,10 @@ class Evaluator:
         return rows
 
     def unsupervised(self, repeats: int = 5) -> dict[str, Any]:
+        """(e): K-means (three metrics) and SOM accuracy, clusters Hungarian-matched to surfaces, over ``repeats`` seeds.
+
+        On all features and on those every fold's forward selection picked.
+        """
         _, ws = self.base()
         xin = classifier_inputs(ws.x, ws.names)
         k = len(self.classes(ws)[0])
@@ -336,6 +351,7 @@ def _pm(r: dict[str, Any]) -> str:
 
 
 def markdown(res: dict[str, Any], figures: list[str]) -> str:
+    """report.md: the results of :func:`run_evaluation` as Markdown sections and tables, then the ``figures`` (PNG names)."""
     out = [f"# Evaluation report\n\n{res['files']} recordings at {res['fs']:g} Hz, {res['channels']} channels; grouped {res['folds']}-fold "
            f"cross-validation (mean ± sd over folds; slides from the daemon's detector paired with the ground truth, every true slide counted); "
            f"{res['seconds']:.0f} s."

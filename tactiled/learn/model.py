@@ -111,15 +111,19 @@ class LogFeatures:
         self.names = names
 
     def fit(self, x: Any, y: Any = None) -> LogFeatures:
+        """Nothing to learn; returns self."""
         return self
 
     def transform(self, x: Any) -> FloatArray:
+        """Classifier inputs (n, F) of raw features x (n, F): log10 of the scale features (:func:`classifier_inputs`)."""
         return classifier_inputs(np.asarray(x, dtype=np.float64), list(self.names))
 
     def get_params(self, deep: bool = True) -> dict[str, Any]:
+        """``{"names": names}``, the step's only parameter (scikit-learn's contract)."""
         return {"names": self.names}
 
     def set_params(self, **params: Any) -> LogFeatures:
+        """Set ``names`` if given; returns self (scikit-learn's contract)."""
         self.names = params.get("names", self.names)
         return self
 
@@ -220,6 +224,7 @@ class Model:
 
     @property
     def names(self) -> tuple[str, ...]:
+        """The F raw feature names the model takes, in column order (its settings')."""
         return self.settings.names
 
     def scores(self, x: npt.ArrayLike) -> FloatArray:
@@ -281,6 +286,7 @@ class Model:
         return softmax(self.scores(x), self.temperature)
 
     def predict(self, x: npt.ArrayLike) -> npt.NDArray[np.str_]:
+        """Labels (n,) of single windows from raw features x (n, F): the class with the largest score."""
         return np.asarray(self.classes)[np.argmax(self.scores(x), axis=1)]
 
     def check_stream(self, fs: float, channels: int, where: str = "stream") -> None:

@@ -44,7 +44,7 @@ from tactiled.core.analysis import AnalysisSettings, window_settings
 from tactiled.core.features import name_family
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
-from tactiled.learn.dataset import Slide, SlideCounts, WindowSet, collect_windows, find_slides
+from tactiled.learn.dataset import LabelledSlide, SlideCounts, WindowSet, collect_windows, find_slides
 from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature, knn_distance, softmax
 
 Progress = Callable[[str], None]
@@ -111,6 +111,7 @@ class Candidate:
 
     @property
     def name(self) -> str:
+        """A readable name: families[+best k | +sfs] / classifier / duration s[ from start s][ x1][ / slide mean]."""
         where = f" from {self.start_s:g} s" if self.start_s else ""
         count = " x1" if self.max_windows == 1 else ""
         whole = " / slide mean" if self.fusion == "features" else ""
@@ -119,11 +120,13 @@ class Candidate:
 
     @property
     def params(self) -> dict[str, Any]:
+        """Classifier parameters: the papers' ELM's with forward selection, else the kind's defaults; ``kbest`` added when set."""
         base = PAPER_PARAMS if self.sfs else PARAMS[self.kind]
         return {**base, "kbest": self.kbest} if self.kbest else base
 
     @property
     def placement(self) -> tuple[float, float, int]:
+        """(start_s, duration_s, max_windows): where the windows lie in a slide (s, s, count; 0 all)."""
         return self.start_s, self.duration_s, self.max_windows
 
 
@@ -309,7 +312,7 @@ def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, li
 
 def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
            candidates: Sequence[Candidate] | None = None, progress: Progress | None = None, scheduler: str | None = None,
-           found: tuple[list[list[Slide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False) -> SearchResult:
+           found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False) -> SearchResult:
     """Score every candidate, pick and refit the winner (see the module docstring).
 
     ``keep_models``: also refit every other candidate (``SearchResult.models``, by name), to compare them on held-out recordings.
@@ -638,7 +641,7 @@ def window_oof(ws: WindowSet, cols: npt.NDArray[np.intp], kind: str, params: dic
 
 def paper(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
           progress: Progress | None = None, scheduler: str | None = None,
-          found: tuple[list[list[Slide]], SlideCounts] | None = None) -> SearchResult:
+          found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None) -> SearchResult:
     """The papers' DWT + SFS + ELM (:data:`PAPER`), cross-validated the same way as :func:`search`, then fitted on everything."""
     return search(recs, config, folds=folds, inner_folds=inner_folds, seed=seed, candidates=[PAPER], progress=progress, scheduler=scheduler,
                   found=found, method="paper")

@@ -15,7 +15,7 @@ from typing import Any
 from tactiled.config import Config
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
-from tactiled.learn.dataset import Slide, SlideCounts, find_slides, load_recordings
+from tactiled.learn.dataset import LabelledSlide, SlideCounts, find_slides, load_recordings
 from tactiled.learn.search import Candidate, SearchResult, paper, quick_candidates, search
 
 Progress = Callable[[str], None]
@@ -35,7 +35,7 @@ def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None
         raise TactiledError(f"recordings differ in fs {sorted(fs)} or channels {sorted(channels)}; train one rate at a time")
 
 
-def class_table(per_file: list[list[Slide]]) -> dict[str, tuple[int, int, int]]:
+def class_table(per_file: list[list[LabelledSlide]]) -> dict[str, tuple[int, int, int]]:
     """{surface: (slides, slides the detector found, files)}."""
     out: dict[str, list[Any]] = {}
     for slides in per_file:
@@ -99,7 +99,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
             "the cross-validated accuracy, the calibration and the novelty threshold are optimistic")
         serial = iter(range(sum(len(s) for s in per_file)))
         per_file = [[replace(s, file=next(serial)) for s in slides] for slides in per_file]
-    found: tuple[list[list[Slide]], SlideCounts] = (per_file, counts)
+    found: tuple[list[list[LabelledSlide]], SlideCounts] = (per_file, counts)
     if method == "paper":
         result = paper(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found)
     else:

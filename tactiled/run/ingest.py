@@ -67,6 +67,7 @@ class Ingest:
 
     @property
     def stats(self) -> DecoderStats:
+        """The decoder's counters (samples, lost, CRC errors, restarts, ...)."""
         return self.decoder.stats
 
     @property
@@ -123,13 +124,16 @@ class BatchCollector:
 
     @property
     def n(self) -> int:
+        """Rows kept so far, lost (zero) rows included."""
         return self._n
 
     @property
     def done(self) -> bool:
+        """True once ``limit`` rows are kept (never without a limit)."""
         return self.limit is not None and self._n >= self.limit
 
     def add(self, batch: Batch) -> None:
+        """Append ``batch``'s (n, C) int16 counts, after zero rows listed as lost for any index gap before it, up to ``limit`` rows."""
         if self.done:
             return
         if self.first_index is None:

@@ -40,15 +40,18 @@ from tactiled.run.ingest import Batch
 from tactiled.run.stream import Stream
 from tactiled.service.control import control_socket, parse_request, reply
 from tactiled.service.publish import Publisher
-from tactiled.service.rawbatch import raw_batches
 from tactiled.service.recorder import RecordingSink, link_counters
-from tactiled.service.signals import STOP_SIGNALS, sd_notify
+from tactiled.service.samples_topic import samples_chunks
+from tactiled.signals import STOP_SIGNALS, sd_notify
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class DaemonState:
+    """What status messages report: start (host monotonic, s), samples since the last status and their per-channel
+    sums of squares (C,) in counts², and the sensor index one past the newest sample."""
+
     started: float = field(default_factory=time.monotonic)
     samples_window: int = 0
     sumsq: np.ndarray | None = None
@@ -100,6 +103,7 @@ class Daemon:
 
     @property
     def endpoint(self) -> str:
+        """The endpoint the publisher is bound to, as ZeroMQ resolved it (a ``tcp://...:*`` bind shows its port)."""
         return self.publisher.endpoint
 
     def _make_source(self, tee: BinaryIO | None) -> ByteSource:
@@ -110,6 +114,10 @@ class Daemon:
                             retry_max_s=c.retry_max_s, read_interval_s=c.read_interval_s, tee=tee, hand_over_s=c.batch_s)
 
     async def run(self) -> None:
+        """Read, publish and serve control until SIGTERM or SIGINT (or a finite source's end); SIGHUP reloads the model.
+
+        On the way out: a stopping status, sockets and the raw file closed, the recording written.
+        """
         loop = asyncio.get_running_loop()
         s = self.config.sensor
         tee = open(self.raw_to, "wb") if self.raw_to else None  # noqa: SIM115 - closed in finally
@@ -278,7 +286,7 @@ class Daemon:
         """The batch's raw samples on ``samples/<id>``: every index from the last batch's end on, lost ones as zero rows."""
         s = self.config.sensor
         to_host = self.clock.host if self.clock.ready else None
-        for b in raw_batches([(x.index, x.samples) for x in batches], self._raw_next, max_fill=round(s.fs)):
+        for b in samples_chunks([(x.index, x.samples) for x in batches], self._raw_next, max_fill=round(s.fs)):
             n = b.samples.shape[0]
             self.publisher.publish(schema.samples(s.id, b.index, b.samples.astype("<i2", copy=False).tobytes(), n, s.channels, fs=s.fs,
                                                   volts_per_count=s.volts_per_count, lost=b.lost, lost_before=b.lost_before,

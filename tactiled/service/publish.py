@@ -99,6 +99,7 @@ class Publisher:
         return bool(self.socket.poll(int(timeout_s * 1000), zmq.POLLIN))
 
     def close(self) -> None:
+        """Close the socket at once (unsent messages dropped) and stop the CURVE authenticator, if any."""
         self.socket.close(linger=0)
         if self.authenticator is not None:
             self.authenticator.stop()

@@ -31,7 +31,7 @@ from tactiled.files.outputs import check_output
 from tactiled.files.recording import fsync_dir
 from tactiled.run.ingest import Batch, max_gap_for
 from tactiled.run.stream import Stream
-from tactiled.service.signals import STOP_SIGNALS
+from tactiled.signals import STOP_SIGNALS
 
 log = logging.getLogger(__name__)
 
@@ -208,6 +208,8 @@ class RecordingSink:
 
 @dataclass
 class RecordSummary:
+    """What :func:`record` did: seconds (of sensor time) and samples saved, samples lost, CRC failures, reconnects, and a write error."""
+
     seconds: float
     samples: int
     samples_lost: int
@@ -216,6 +218,7 @@ class RecordSummary:
     error: str | None = None  # the capture stopped on a write error (the journal keeps what was written)
 
     def line(self) -> str:
+        """One line for the user: seconds, samples, lost, CRC failures and reconnects."""
         return (f"recorded {self.seconds:.3f} s: {self.samples} samples, {self.samples_lost} lost, "
                 f"{self.crc_errors} CRC failures, {self.reconnects} reconnects")
 

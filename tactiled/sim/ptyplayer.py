@@ -41,6 +41,7 @@ class PtyPlayer:
             self.paths.append(path)
 
     def run(self, stop: threading.Event) -> None:
+        """Write each stream into its pty at ``bytes_per_s``, every ``period_s``, until ``stop`` is set; what a full pty refuses is lost (``overruns``)."""
         sent = [0] * len(self.streams)
         t0 = time.monotonic()
         while not stop.wait(self.period):  # the write period, not synchronisation
@@ -60,6 +61,7 @@ class PtyPlayer:
                     sent[k] += written
 
     def close(self) -> None:
+        """Close both ends of every pty."""
         for fd in self.masters + self.slaves:
             os.close(fd)
         self.masters, self.slaves = [], []

@@ -1,4 +1,4 @@
-"""``tactiled simulate``: labelled datasets and the virtual board, from :mod:`tactiled.sim.sensor_model`."""
+"""``tactiled simulate``: labelled datasets and the virtual board, from :mod:`tactiled.sim.physics`."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ import numpy as np
 
 from tactiled.errors import OutputError, TactiledError
 from tactiled.files.recording import Recording, save_recording
-from tactiled.sim.sensor_model import (
-    SensorModel,
+from tactiled.sim.physics import (
+    SensorSimulator,
     SimParams,
     Surface,
     hot_gain,
@@ -111,7 +111,7 @@ def run_virtual_board(args: argparse.Namespace) -> int:
     board = None
     try:
         try:
-            board = VirtualBoard(SensorModel(params, args.seed), _surfaces(args.surfaces, params.family), link=args.link, speed=args.speed,
+            board = VirtualBoard(SensorSimulator(params, args.seed), _surfaces(args.surfaces, params.family), link=args.link, speed=args.speed,
                                  corrupt=args.corrupt, drop=args.drop, garbage=args.garbage, unplug_at=unplug_at,
                                  unplug_s=args.unplug_s, seed=args.seed, log=log)
         except ValueError as exc:
@@ -142,7 +142,7 @@ def write_figure(out: Path, scene: str | None = None, seed: int = 0, mode: str |
     surfaces = pick_surfaces(None)
     fig, axes = plt.subplots(len(surfaces), 2, figsize=(11, 1.1 * len(surfaces)), sharex="col")
     for row, surface in enumerate(surfaces):
-        model = SensorModel(params, seed + row)
+        model = SensorSimulator(params, seed + row)
         model.add_rest(0.3)
         truth = model.add_slide(surface, 1.3)
         model.add_rest(0.3)

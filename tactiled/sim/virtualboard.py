@@ -23,13 +23,13 @@ from typing import Any, TextIO
 import numpy as np
 
 from tactiled.board.frames import encode_frame
-from tactiled.sim.sensor_model import SensorModel, Surface
+from tactiled.sim.physics import SensorSimulator, Surface
 
 
 class VirtualBoard:
     """Streams ``model`` over a pty; :meth:`run` until ``stop`` is set or ``seconds`` of sensor time."""
 
-    def __init__(self, model: SensorModel, surfaces: Sequence[Surface], *, link: str | None = None,
+    def __init__(self, model: SensorSimulator, surfaces: Sequence[Surface], *, link: str | None = None,
                  speed: float = 1.0, corrupt: float = 0.0, drop: float = 0.0, garbage: float = 0.0,
                  unplug_at: Sequence[float] = (), unplug_s: float = 0.3, frame_count: int = 20,
                  seed: int = 0, log: TextIO | None = None, first_index: int = 0) -> None:

@@ -30,13 +30,17 @@ PATIENCE_S = 3.0  # six status intervals of the daemon: long enough to know what
 class Sink(Protocol):
     """Where a bridge sends the daemon's messages."""
 
-    def samples(self, msg: Samples) -> None: ...
+    def samples(self, msg: Samples) -> None:
+        """Take one samples message: n rows of C channels, int16 counts with their lost rows listed (docs/messages.md)."""
 
-    def roughness(self, msg: Roughness) -> None: ...
+    def roughness(self, msg: Roughness) -> None:
+        """Take one roughness message: a slide's provisional or final label."""
 
-    def status(self, msg: Status) -> None: ...
+    def status(self, msg: Status) -> None:
+        """Take one status message of the daemon."""
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Release the outlets, node or connections; no message follows."""
 
 
 @dataclass

@@ -84,6 +84,10 @@ class LslSink:
             self.raw = self._raw_outlet(self.meta)
 
     def samples(self, msg: Samples) -> None:
+        """Push the message's rows as float32 volts (n, C), each at its host monotonic time (s); lost rows left out (NaN with ``nan_lost``).
+
+        Each lost range also gets a ``lost`` marker; a change of channels, rate or scale makes the raw outlet again first.
+        """
         self._check(msg)
         v, valid, t = volts(msg)
         assert isinstance(v, np.ndarray) and isinstance(valid, np.ndarray)
@@ -105,12 +109,15 @@ class LslSink:
         self.pushed += int(rows.sum())
 
     def roughness(self, msg: Roughness) -> None:
+        """Push a ``roughness`` JSON marker, stamped at the host monotonic time of the slide's ``stop`` (s; 0 when unknown)."""
         marker = json.dumps({"event": "roughness", **{k: getattr(msg, k) for k in MARKER_FIELDS}})
         self.markers.push_sample([marker], msg.stop_mono or 0.0)
 
     def status(self, msg: Status) -> None:
+        """Ignored: LSL carries no status."""
         pass
 
     def close(self) -> None:
+        """Drop both outlets (pylsl closes an outlet when it is collected)."""
         self.raw = None
         self.markers = None

@@ -125,6 +125,7 @@ class Ros2Sink:
         return self.node.get_clock().now().to_msg()
 
     def samples(self, msg: Samples) -> None:
+        """Publish the message as one PointCloud2 table of n rows: film volts (float32, NaN when lost), ``t`` (s after the stamp), ``index``."""
         data, unix, dense = samples_table(msg)
         if len(self._fields) != msg.channels + 2:
             self._fields = [self.PointField(name=n, offset=o, datatype=d, count=1) for n, o, d in field_names(msg.channels)]
@@ -136,11 +137,13 @@ class Ros2Sink:
         self.pub_samples.publish(cloud)
 
     def roughness(self, msg: Roughness) -> None:
+        """Publish every roughness message as JSON on ``roughness/json``, and a final one's label ("" abstaining) on ``roughness``."""
         if msg.final:
             self.pub_label.publish(self.String(data=msg.label or ""))
         self.pub_json.publish(self.String(data=json.dumps(msg.to_map())))
 
     def status(self, msg: Status) -> None:
+        """Publish the status as JSON on ``status`` and as a DiagnosticStatus on ``/diagnostics``, stamped now."""
         self.pub_status.publish(self.String(data=json.dumps(msg.to_map())))
         st = self.DiagnosticStatus(level=bytes([LEVEL.get(msg.state, 0)]), name=f"tactiled/{self.sensor}", message=msg.state,
                                    hardware_id=self.sensor, values=[self.KeyValue(key=k, value=v) for k, v in status_values(msg)])
@@ -149,6 +152,7 @@ class Ros2Sink:
         self.pub_diag.publish(arr)
 
     def close(self) -> None:
+        """Stop spinning (waiting up to 5 s each for the executor and its thread), destroy the node; shut rclpy down if this sink started it."""
         self.executor.shutdown(timeout_sec=5.0)
         self._spin.join(5.0)
         self.node.destroy_node()

@@ -13,7 +13,7 @@ import numpy.typing as npt
 
 
 @dataclass
-class RawBatch:
+class SamplesChunk:
     """Rows ``index .. index + n`` (``samples`` (n, C) int16, lost rows zero), ``lost`` [[position, count], ...]."""
 
     index: int
@@ -22,13 +22,13 @@ class RawBatch:
     lost_before: int = 0  # samples lost just before ``index`` and not sent as rows (gap > max_fill)
 
 
-def raw_batches(blocks: list[tuple[int, npt.NDArray[np.int16]]], expected: int | None, max_fill: int) -> list[RawBatch]:
+def samples_chunks(blocks: list[tuple[int, npt.NDArray[np.int16]]], expected: int | None, max_fill: int) -> list[SamplesChunk]:
     """Batches covering ``blocks`` ((index, (n, C) int16) in increasing index order) from ``expected`` on.
 
     A gap of at most ``max_fill`` samples becomes zero rows listed in ``lost``; a longer one
     starts a new batch whose ``lost_before`` counts it. ``expected`` None: start at the first block.
     """
-    out: list[RawBatch] = []
+    out: list[SamplesChunk] = []
     rows: list[npt.NDArray[np.int16]] = []
     lost: list[list[int]] = []
     start = nxt = expected
@@ -38,11 +38,11 @@ def raw_batches(blocks: list[tuple[int, npt.NDArray[np.int16]]], expected: int |
             start = nxt = index
         gap = index - nxt
         if gap < 0:
-            raise ValueError(f"raw_batches: block at {index} overlaps the previous one (expected {nxt})")
+            raise ValueError(f"samples_chunks: block at {index} overlaps the previous one (expected {nxt})")
         if gap > max_fill:
             if n:
                 assert start is not None
-                out.append(RawBatch(start, np.concatenate(rows), lost, lost_before))
+                out.append(SamplesChunk(start, np.concatenate(rows), lost, lost_before))
             start, rows, lost, n, lost_before = index, [], [], 0, gap
         elif gap:
             lost.append([n, gap])
@@ -53,5 +53,5 @@ def raw_batches(blocks: list[tuple[int, npt.NDArray[np.int16]]], expected: int |
         nxt = index + block.shape[0]
     if n:
         assert start is not None
-        out.append(RawBatch(start, np.concatenate(rows).astype(np.int16, copy=False), lost, lost_before))
+        out.append(SamplesChunk(start, np.concatenate(rows).astype(np.int16, copy=False), lost, lost_before))
     return out

@@ -235,9 +235,11 @@ class SimParams:
     family: str = "self-affine"  # surface family: self-affine | grating
 
     def for_channel(self, values: tuple[float, ...], c: int, step: float) -> float:
+        """Channel ``c``'s value of a per-channel tuple: its own, or beyond the tuple the last one times ``step`` per channel further."""
         return values[c] if c < len(values) else values[-1] * step ** (c - len(values) + 1)
 
     def to_meta(self) -> dict[str, Any]:
+        """Every parameter as a dict (a recording's ``meta["simulator"]``)."""
         return asdict(self)
 
 
@@ -272,7 +274,7 @@ def _self_affine_profile(n: int, dx: float, surface: Surface, rng: np.random.Gen
     return scaled, q
 
 
-class SensorModel:
+class SensorSimulator:
     """A stream of samples from a fingertip sliding over ``surfaces``.
 
     Call :meth:`add_slide` / :meth:`add_rest` to schedule episodes (or let
@@ -463,6 +465,7 @@ class SensorModel:
 
     @property
     def position(self) -> int:
+        """Samples read so far: the index of the next sample."""
         return self._pos
 
 
@@ -474,6 +477,8 @@ def adc(volts: FloatArray, volts_per_count: float, full_scale_v: float = 5.0) ->
 
 @dataclass
 class SimulatedFile:
+    """One simulated recording: ``samples`` (n, C) int16 counts or float32 volts, and the ground truth of its slides."""
+
     samples: npt.NDArray[Any]  # (n, C) int16 counts, or float32 volts
     truth: list[SlideTruth] = field(default_factory=list)
 
@@ -485,7 +490,7 @@ def simulate_file(params: SimParams, surface: Surface, slides: int, seed: int) -
     (``continuous_s`` long, cut from the middle of a longer slide), ground truth the whole file.
     ``params.float_output``: float32 volts (clipped at the rails, not quantised), else int16 counts.
     """
-    model = SensorModel(params, seed)
+    model = SensorSimulator(params, seed)
     lead = 0
     if params.continuous:
         keep = round(model.rng.uniform(*params.continuous_s) * params.fs)
@@ -560,7 +565,7 @@ def hot_gain(surfaces: Sequence[Surface], surface: Surface, params: SimParams, s
         return 1.0
     rank = hot.index(surface) / max(1, len(hot) - 1) if len(hot) > 1 else 1.0
     k = 1.96 + (0.84 - 1.96) * rank
-    pilot = SensorModel(replace(params, extra_gain=1.0, dips_per_s=0.0, spike_rate_hz=0.0), seed)
+    pilot = SensorSimulator(replace(params, extra_gain=1.0, dips_per_s=0.0, spike_rate_hz=0.0), seed)
     truth = pilot.add_slide(surface, 1.5)
     volts = pilot.read_volts(pilot.scheduled_end)[truth.start + round(0.4 * params.fs):truth.stop]
     sigma = float(np.sqrt(np.mean(np.var(volts, axis=0))))

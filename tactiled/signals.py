@@ -6,6 +6,9 @@ import logging
 import os
 import signal
 import socket
+from collections.abc import Iterator
+from contextlib import contextmanager
+from types import FrameType
 
 log = logging.getLogger(__name__)
 
@@ -25,3 +28,17 @@ def sd_notify(message: str) -> None:
             sock.sendall(message.encode())
         except OSError as exc:
             log.warning("sd_notify failed: %s", exc)
+
+
+@contextmanager
+def sigterm_as_exit() -> Iterator[None]:
+    """Within the block, SIGTERM raises ``SystemExit(143)`` like Ctrl-C raises KeyboardInterrupt, so ``finally`` clauses run
+    (a parent that starts processes stops them instead of leaving them orphaned)."""
+    def handler(signum: int, frame: FrameType | None) -> None:
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
