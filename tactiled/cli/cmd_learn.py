@@ -1,4 +1,4 @@
-"""``tactiled features``, ``train``, ``score`` and ``evaluate``: learning from labelled recordings."""
+"""``tactiled features``, ``train``, ``enrol``, ``score`` and ``evaluate``: learning from labelled recordings."""
 
 from __future__ import annotations
 
@@ -68,6 +68,23 @@ def cmd_train(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_enrol(args: argparse.Namespace) -> int:
+    """Add a surface (or more slides of known ones) to a model; write a new model file, the input untouched."""
+    from tactiled.files.outputs import check_output
+    from tactiled.learn.enrol import enrol
+
+    config = config_of(args)
+    check_output(args.output, args.force, (".npz",))
+    if args.model and Path(args.model).resolve() == Path(args.output).resolve():
+        raise TactiledError(f"{args.output}: is the input model; enrol writes a new file and never changes its input")
+    done = enrol(args.model or None, args.files, config, args.label, args.min_slides, say)
+    for name, n in done.added.items():
+        print(f"{name}: {n} slides{' (a new surface)' if name in done.new_classes else ' added to a known surface'}")
+    fingerprint = done.model.save(args.output)
+    print(f"{args.output}: {done.model.describe()}; fingerprint {fingerprint}")
+    return EXIT_OK
+
+
 def cmd_score(args: argparse.Namespace) -> int:
     """Accuracy, coverage and calibration of a model over every true slide of held-out recordings."""
     from tactiled.learn.dataset import load_recordings
@@ -121,7 +138,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def add_commands(sub: Sub) -> None:
-    """features, train, evaluate, score."""
+    """features, train, evaluate, enrol, score."""
     p = command(sub, "features", "feature vectors of every slide", cmd_features, "tactiled features data/sim/*.npz -o features.npz")
     p.add_argument("files", nargs="+", help="recordings (.npz) whose slides to analyse")
     p.add_argument("-o", "--output", required=True, help="features file to write (.npz: one row per window, docs/features.md)")
@@ -160,6 +177,17 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--folds", type=c.int_in(2, 1000), default=5, help="cross-validation folds, grouped by file")
     p.add_argument("--quick", action="store_true", help="small grids and fewer features (for tests)")
     p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP)
+
+    p = command(sub, "enrol", "teach a trained model a new surface from a few slides (no new search)", cmd_enrol,
+                "tactiled enrol my_model.npz new_surface/*.npz --label P60 -o my_model2.npz")
+    p.add_argument("model", help="model file (.npz) to start from; it is never changed ('' for the shipped model)")
+    p.add_argument("files", nargs="+", help="recordings (.npz) of the surface; every slide in them is enrolled")
+    p.add_argument("--label", help="the surface's name for every slide of the files (default: the recordings' own labels, "
+                                   "e.g. recordings of known surfaces made with another unit of the sensor)")
+    p.add_argument("-o", "--output", required=True, help="new model file to write (.npz)")
+    p.add_argument("--force", action="store_true", help=c.FORCE_HELP)
+    p.add_argument("--min-slides", type=c.count, default=5, help="fewest usable slides a surface needs (default 5)")
+    p.add_argument("--config", help=c.CONFIG_HELP)
 
     p = command(sub, "score", "accuracy of a model on ground-truth slides", cmd_score, "tactiled score my_model.npz held_out/*.npz")
     p.add_argument("model", help="model file (.npz) to score")

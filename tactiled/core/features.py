@@ -171,6 +171,14 @@ def classifier_inputs(x: npt.NDArray[np.float64], names: Sequence[str]) -> npt.N
     return out
 
 
+def raw_features(inputs: npt.NDArray[np.float64], names: Sequence[str]) -> npt.NDArray[np.float64]:
+    """The inverse of :func:`classifier_inputs`: raw features (n, F) whose classifier inputs are ``inputs`` (n, F)."""
+    out = np.array(inputs, dtype=np.float64, copy=True)
+    mask = log_mask(tuple(names))
+    out[:, mask] = np.power(10.0, np.clip(out[:, mask], -300.0, 300.0))
+    return out
+
+
 @dataclass(frozen=True)
 class ParsedName:
     """A DWT feature name, parsed."""

@@ -38,8 +38,9 @@ def check_output(out: str | Path, force: bool, suffixes: tuple[str, ...] = ()) -
 
 
 def check_folder(out: str | Path, force: bool) -> None:
-    """Raise :class:`OutputError` naming ``out`` unless a folder of outputs can be made there: its parent exists and is
-    writable, nothing but a folder is there, and, without ``force``, no non-empty folder is there already."""
+    """Raise :class:`OutputError` naming ``out`` unless a folder of outputs can be made there (with its missing parents,
+    as ``mkdir -p``): the nearest existing ancestor is a writable folder, nothing but a folder is there, and, without
+    ``force``, no non-empty folder is there already."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out}: exists and is not a folder")
@@ -49,4 +50,7 @@ def check_folder(out: str | Path, force: bool) -> None:
         if not force and any(out.iterdir()):
             raise OutputError(f"{out}: folder exists and is not empty (--force writes into it, replacing files of the same names)")
         return
-    check_output(out, force=True)  # the folder's parent: exists, is a folder, is writable
+    parent = out.absolute().parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    check_output(parent / out.name, force=True)  # the nearest existing ancestor: a folder, writable

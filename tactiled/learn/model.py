@@ -26,7 +26,9 @@ svm ``train_x`` (n, F) standardised and ``train_y`` (n,) (both deterministic, re
 load; at most :data:`MAX_REFIT_ROWS` rows so a load never hangs); svm also the fitted
 ``svm_support``, ``svm_dual_coef``, ``svm_intercept``, ``svm_n_support``, ``svm_gamma``; from format 3 on, every
 model also has ``calibration`` (2, m) knots (top probability, P(right)), both nondecreasing in [0, 1], and
-``novelty_x`` (n, F') the standardised mean features of its n training slides
+``novelty_x`` (n, F') the standardised mean features of its n training slides; from format 4 on, every model
+also keeps ``train_x`` (n, F) and ``train_y`` (n,) (the standardised rows its classifier was fitted on) and
+``novelty_y`` and ``novelty_groups`` (n,) (each novelty row's surface and recording), which ``tactiled enrol`` refits on
 (optional: :mod:`tactiled.learn.infer` evaluates the model with numpy alone, no refit, no
 scikit-learn import; ``load_model(lean=False)`` takes the scikit-learn path; an svm that
 must be refit at load has at most :data:`MAX_SVM_REFIT_ROWS` rows). Only the arrays of the
@@ -56,16 +58,17 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.core.analysis import Analyser, AnalysisSettings
-from tactiled.core.features import FeaturePlan, classifier_inputs
+from tactiled.core.features import FeaturePlan, classifier_inputs, raw_features
 from tactiled.errors import ModelError
 from tactiled.files.npzio import NpzError, NpzReader, load_json_bounded
 from tactiled.files.recording import atomic_savez
-from tactiled.learn.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, log_proba, pm_half, svm_arrays
+from tactiled.learn.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, log_proba, pair_matrices, pairwise_scores, pm_half, svm_arrays
 
 FORMAT = "tactiled-model"
-FORMAT_VERSION = 3
-READ_VERSIONS = (2, 3)  # format 2 (before calibration and novelty) still loads: confidence uncalibrated, novelty None
+FORMAT_VERSION = 4
+READ_VERSIONS = (2, 3, 4)  # format 2 (before calibration and novelty) still loads: confidence uncalibrated, novelty None; 3: no enrolment
 TRUST_ARRAYS = ("calibration", "novelty_x")
+ENROL_ARRAYS = ("train_x", "train_y", "novelty_y", "novelty_groups")  # format 4: what tactiled enrol refits on
 CLASSIFIERS = ("elm", "knn", "svm", "linear")
 MAX_REFIT_ROWS = 20_000
 MAX_SVM_REFIT_ROWS = 4000  # an RBF SVM refit at load (a file without its fitted SVM, or lean=False): 4000 rows of noise take ~2 s, 20 000 minutes
@@ -145,10 +148,19 @@ def make_pipeline(names: tuple[str, ...] | list[str], kind: str, params: dict[st
 def decision_scores(clf: Any, z: FloatArray) -> FloatArray:
     """Scores (n, K) of a fitted classifier, columns in ``clf.classes_`` order, higher is likelier.
 
-    Decision values where the classifier has them (a binary (n,) becomes ±d/2), else the log
+    Decision values where the classifier has them (a binary (n,) becomes ±d/2; an SVM of more than two classes gives
+    the soft count of its one-vs-one duels, :func:`tactiled.learn.infer.pairwise_scores`), else the log
     of its probabilities (floored at 1e-3, so one window can never veto a class).
     """
-    if hasattr(clf, "decision_function") and len(clf.classes_) > 1:
+    k = len(clf.classes_)
+    if getattr(clf, "decision_function_shape", None) is not None and k > 2:  # an SVC: its one-vs-one duels, softly counted
+        shape = clf.decision_function_shape
+        clf.decision_function_shape = "ovo"
+        try:
+            return pairwise_scores(np.asarray(clf.decision_function(z), dtype=np.float64), *pair_matrices(k))
+        finally:
+            clf.decision_function_shape = shape
+    if hasattr(clf, "decision_function") and k > 1:
         d = np.asarray(clf.decision_function(z), dtype=np.float64)
         return pm_half(d) if d.ndim == 1 else d
     return log_proba(np.asarray(clf.predict_proba(z), dtype=np.float64))
@@ -216,11 +228,13 @@ class Model:
     seed: int = 0
     summary: dict[str, Any] = field(default_factory=dict)
     fingerprint: str = ""
-    refit: tuple[FloatArray, npt.NDArray[np.str_]] | None = None  # kNN/SVM: standardised training set and labels, stored in the file
+    refit: tuple[FloatArray, npt.NDArray[np.str_]] | None = None  # standardised training rows and labels (kNN/SVM refit on them; enrol)
     calibration: FloatArray | None = None  # (2, m): top softmax probability -> P(label right); None: uncalibrated (format 2)
     novelty_x: FloatArray | None = None  # (n, F'): standardised mean features of the training slides; None: no novelty (format 2)
     novelty_k: int = 3
     novelty_threshold: float = math.inf
+    novelty_y: npt.NDArray[np.str_] | None = None  # (n,): the surface of each novelty_x row (format 4; enrol refits the threshold)
+    novelty_groups: npt.NDArray[np.int64] | None = None  # (n,): the recording of each novelty_x row, numbered from 0
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -281,6 +295,14 @@ class Model:
             return self.pipeline.transform(x)
         return np.asarray(self.pipeline[:-1].transform(x), dtype=np.float64)
 
+    def unstandardise(self, z: FloatArray) -> FloatArray:
+        """Raw features (n, F) whose classifier inputs are ``z`` (n, F): the inverse of :meth:`standardise`."""
+        if isinstance(self.pipeline, LeanPipeline):
+            mean, scale = self.pipeline.mean, self.pipeline.scale
+        else:
+            mean, scale = self.pipeline.named_steps["scale"].mean_, self.pipeline.named_steps["scale"].scale_
+        return raw_features(np.asarray(z, dtype=np.float64) * scale + mean, self.names)
+
     def predict_proba(self, x: npt.ArrayLike) -> FloatArray:
         """(n, K) probabilities of single windows."""
         return softmax(self.scores(x), self.temperature)
@@ -316,17 +338,21 @@ class Model:
             arrays.update(weights=clf.weights_, biases=clf.biases_, beta=clf.beta_, elm_temperature=np.float64(clf.temperature_))
         elif self.kind == "linear":
             arrays.update(coef=np.asarray(clf.coef_, dtype=np.float64), intercept=np.asarray(clf.intercept_, dtype=np.float64))
-        else:
-            assert self.refit is not None, "a kNN or SVM model keeps its training set"
-            arrays.update(train_x=np.asarray(self.refit[0], dtype=np.float64), train_y=np.asarray(self.refit[1], dtype=np.str_))
-            if self.kind == "svm":  # the fitted SVM, so that loading needs no refit (tactiled/learn/infer.py)
-                arrays.update(svm_arrays(clf))
+        elif self.kind == "svm":  # the fitted SVM, so that loading needs no refit (tactiled/learn/infer.py)
+            arrays.update(svm_arrays(clf))
+        if self.refit is None:
+            raise ModelError("a model keeps its standardised training rows (kNN and SVM refit on them, enrol adds to them)")
+        arrays.update(train_x=np.asarray(self.refit[0], dtype=np.float64), train_y=np.asarray(self.refit[1], dtype=np.str_))
         return arrays
 
     def _trust_arrays(self) -> dict[str, Any]:
         calibration = self.calibration if self.calibration is not None else np.array([[0.0, 1.0], [0.0, 1.0]])
         novelty_x = self.novelty_x if self.novelty_x is not None else np.zeros((0, len(self.names)))
-        return {"calibration": np.asarray(calibration, dtype=np.float64), "novelty_x": np.asarray(novelty_x, dtype=np.float64)}
+        n = novelty_x.shape[0]
+        novelty_y = self.novelty_y if self.novelty_y is not None and len(self.novelty_y) == n else np.full(n, "", dtype=np.str_)
+        groups = self.novelty_groups if self.novelty_groups is not None and len(self.novelty_groups) == n else np.arange(n)
+        return {"calibration": np.asarray(calibration, dtype=np.float64), "novelty_x": np.asarray(novelty_x, dtype=np.float64),
+                "novelty_y": np.asarray(novelty_y, dtype=np.str_), "novelty_groups": np.asarray(groups, dtype=np.int64)}
 
     def _header(self) -> dict[str, Any]:
         return {"format": FORMAT, "version": FORMAT_VERSION, "method": self.method, "classifier": self.kind, "params": self.params,
@@ -345,13 +371,13 @@ class Model:
 
 
 def fit_pipeline(x: FloatArray, y: npt.NDArray[Any], names: list[str] | tuple[str, ...], kind: str, params: dict[str, Any],
-                 seed: int = 0) -> tuple[Any, tuple[FloatArray, npt.NDArray[np.str_]] | None]:
+                 seed: int = 0) -> tuple[Any, tuple[FloatArray, npt.NDArray[np.str_]]]:
     """Fit :func:`make_pipeline` on raw features ``x`` (n, F).
 
-    Returns the pipeline and, for kNN and SVM (refit at load), their standardised training
-    set. Both are fitted on at most :data:`MAX_REFIT_ROWS` rows (an SVM on at most
-    :data:`MAX_SVM_REFIT_ROWS`: its fit time grows with the square of the rows); beyond that, a
-    seeded subsample.
+    Returns the pipeline and its standardised training rows with their labels (kNN and SVM are refit on them at
+    load; ``tactiled enrol`` adds to them). kNN and SVM are fitted on at most :data:`MAX_REFIT_ROWS` rows (an SVM on
+    at most :data:`MAX_SVM_REFIT_ROWS`: its fit time grows with the square of the rows); beyond that, a seeded
+    subsample; the rows kept for the ELM and the linear model are capped the same way (they are fitted on all).
     """
     if kind == "knn":  # never more neighbours than the rarest class has rows: more would outvote it wherever it is
         fewest = int(np.unique(y, return_counts=True)[1].min()) if len(y) else 1
@@ -362,8 +388,10 @@ def fit_pipeline(x: FloatArray, y: npt.NDArray[Any], names: list[str] | tuple[st
         keep = np.sort(np.random.default_rng(seed).choice(x.shape[0], cap, replace=False))
         x, y = x[keep], y[keep]
     pipe.fit(x, y)
-    refit = (pipe[:-1].transform(x), np.asarray(y, dtype=np.str_)) if kind in ("svm", "knn") else None
-    return pipe, refit
+    if x.shape[0] > MAX_REFIT_ROWS:
+        keep = np.sort(np.random.default_rng(seed).choice(x.shape[0], MAX_REFIT_ROWS, replace=False))
+        x, y = x[keep], y[keep]
+    return pipe, (pipe[:-1].transform(x), np.asarray(y, dtype=np.str_))
 
 
 def _fingerprint(header: dict[str, Any], arrays: dict[str, Any]) -> str:
@@ -403,8 +431,9 @@ def load_model(path: str | Path | None = None, lean: bool = True) -> Model:
             kind = header.get("classifier")
             _need(kind in CLASSIFIERS, path, f"header.classifier: unknown {kind!r}")
             optional = [k for k in SVM_ARRAYS if k in reader] if kind == "svm" else []
-            trust = TRUST_ARRAYS if header.get("version") == FORMAT_VERSION else ()
-            keys = ("classes", "scaler_mean", "scaler_scale", *ARRAYS[kind], *optional, *trust)
+            version = header.get("version")
+            trust = (*TRUST_ARRAYS, *ENROL_ARRAYS) if version == 4 else TRUST_ARRAYS if version == 3 else ()
+            keys = tuple(dict.fromkeys(("classes", "scaler_mean", "scaler_scale", *ARRAYS[kind], *optional, *trust)))
             missing, extra = [k for k in keys if k not in reader], sorted(set(reader.keys()) - {"header", *keys})
             _need(not missing, path, f"{', '.join(missing)}: missing")
             _need(not extra, path, f"{', '.join(extra)}: not an array of a {kind} model (the fingerprint covers every array)")
@@ -518,7 +547,8 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
         rows = 1 if len(classes) == 2 else len(classes)
         _need(coef.shape == (rows, f) and intercept.shape == (rows,) and _finite(coef) and _finite(intercept), path,
               "coef, intercept: shapes do not match the header or not finite")
-    else:
+    refit = None
+    if "train_x" in arrays:
         train_x, train_y = arrays["train_x"], arrays["train_y"]
         _need(train_x.ndim == 2 and train_x.shape[1] == f and 1 <= train_x.shape[0] <= MAX_REFIT_ROWS and train_y.shape == (train_x.shape[0],),
               path, f"train_x, train_y: shapes do not match the header (at most {MAX_REFIT_ROWS} rows)")
@@ -527,6 +557,7 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
         _need(set(map(str, train_y)) == set(classes), path, "train_y: classes differ from the header's")
         if kind == "knn":
             _need(int(params.get("n_neighbors", 9)) <= train_x.shape[0], path, "params.n_neighbors: more than the training rows")
+        refit = (train_x, train_y)
     pipe = lean_pipeline(kind, settings.names, classes, params, arrays) if lean else None
     if pipe is None:
         if kind == "svm":
@@ -534,7 +565,7 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
                   "an svm is refit on at load (save it with this tactiled to store the fitted SVM)")
         pipe = _sklearn_pipeline(settings, kind, params, seed, classes, arrays)
     model = Model(str(header.get("method", kind)), kind, params, classes, settings, fs, channels, pipe, temperature, seed,
-                  dict(summary), fingerprint or "", None if kind in ("elm", "linear") else (train_x, train_y))
+                  dict(summary), fingerprint or "", refit)
     if "calibration" in arrays:
         _check_trust(path, model, header, arrays)
     _probe(path, model)
@@ -555,6 +586,11 @@ def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[
           "header.novelty.k: must be an integer in 1..100")
     threshold = nov.get("threshold")
     _need(threshold is None or (_is_number(threshold) and threshold > 0), path, "header.novelty.threshold: must be a number > 0 or null")
+    if "novelty_y" in arrays:
+        ny, groups = arrays["novelty_y"], arrays["novelty_groups"]
+        _need(ny.shape == (nx.shape[0],) and ny.dtype.kind == "U" and groups.shape == (nx.shape[0],) and groups.dtype.kind == "i", path,
+              "novelty_y, novelty_groups: must be one unicode label and one integer per novelty_x row")
+        model.novelty_y, model.novelty_groups = ny, groups
     model.calibration, model.novelty_x, model.novelty_k = cal, nx, int(nov["k"])
     model.novelty_threshold = float(threshold) if threshold is not None else math.inf
 

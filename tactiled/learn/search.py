@@ -427,7 +427,7 @@ def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: C
     slides = ws if c.fusion == "features" else ws.averaged()  # one row per slide: the mean of its windows' raw features
     labelled = np.flatnonzero(slides.y != "")
     z = model.standardise(slides.x[labelled][:, cols])
-    model.novelty_x = z
+    model.novelty_x, model.novelty_y, model.novelty_groups = z, slides.y[labelled], slides.groups[labelled]
     model.novelty_threshold, nov_info = fit_novelty(z, slides.groups[labelled], slides.y[labelled], model.novelty_k)
     model.summary = {**summary, "calibration": cal_info, "novelty": nov_info}
     return model

@@ -1,0 +1,93 @@
+"""``tactiled enrol``: teach a trained model one more surface (or more slides of surfaces it knows) in seconds.
+
+The search is not run again: the model keeps its features, windows, classifier and parameters. Its file keeps the
+standardised rows its classifier was fitted on (format 4), so enrolment maps them back to raw features, adds the
+new slides' rows (analysed exactly as the daemon analyses them), and fits the same classifier on the union; the
+novelty data gets the new slides and its threshold is fitted again by the same grouped rule as in training. The
+confidence keeps the original model's calibration (fitted on its out-of-fold scores; enrolment has none of its own).
+
+A surface needs at least :data:`MIN_SLIDES` usable slides. Without a ``label`` the recordings' own labels are used:
+that is how recordings of known surfaces made with *another unit* of the sensor are added, after a fingertip swap.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tactiled.config import Config
+from tactiled.errors import ModelError, TactiledError
+from tactiled.learn.dataset import Progress, collect_windows, find_slides, load_recordings
+from tactiled.learn.model import Model, fit_pipeline, load_model
+from tactiled.learn.search import PARAMS, fit_novelty
+
+MIN_SLIDES = 5
+
+
+@dataclass
+class Enrolled:
+    """What :func:`enrol` made: the new model (not yet saved), the usable slides added per surface, and the files."""
+
+    model: Model
+    added: dict[str, int]
+    files: list[str]
+    new_classes: list[str]
+
+
+def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Config, label: str | None = None,
+          min_slides: int = MIN_SLIDES, progress: Progress | None = None) -> Enrolled:
+    """Add the slides of the recordings ``paths`` to the model at ``model_path`` (None: the shipped one), each labelled
+    ``label`` (None: the recordings' own labels). Raises :class:`TactiledError` (one line) when the model keeps no
+    training rows, a recording does not fit the model, or a surface has fewer than ``min_slides`` usable slides."""
+    say = progress or (lambda m: None)
+    old = load_model(model_path)
+    where = model_path or "the shipped model"
+    if old.refit is None or old.novelty_x is None or old.novelty_y is None or old.novelty_groups is None:
+        raise ModelError(f"{where}: an older model file keeps no training rows; retrain it with this tactiled to enrol into it")
+    if label is not None and not label.strip():
+        raise TactiledError("--label: must not be empty")
+    recs = load_recordings(paths, say)
+    if len(recs) != len(paths):
+        raise TactiledError(f"{len(paths) - len(recs)} of {len(paths)} recordings unreadable (named above); nothing enrolled")
+    for name, rec in recs:
+        old.check_stream(rec.fs, rec.channels, name)
+    per_file, counts = find_slides(recs, config)
+    if label is not None:
+        per_file = [[replace(s, label=label) for s in slides] for slides in per_file]
+    ws = collect_windows(recs, config, old.settings, found=(per_file, counts))
+    slides = ws.averaged()  # one row per slide with a usable window
+    labelled = slides.y != ""
+    if not labelled.any():
+        raise TactiledError("the recordings carry no labels (per-slide ground truth or a file label): pass --label NAME")
+    added = dict(sorted(Counter(str(y) for y in slides.y[labelled]).items()))
+    short = [f"{k} ({n})" for k, n in added.items() if n < min_slides]
+    if short:
+        raise TactiledError(f"too few usable slides for {', '.join(short)}: enrolment needs at least {min_slides} per surface; record more")
+    rows = slides if old.settings.fusion == "features" else ws
+    keep = rows.y != ""
+    x = np.vstack([old.unstandardise(old.refit[0]), rows.x[keep]])
+    y = np.concatenate([np.asarray(old.refit[1], dtype=np.str_), rows.y[keep]])
+    params = dict(old.params)
+    if old.kind == "knn":  # as many neighbours as the search asks for, unless the rarest surface has fewer rows (fit_pipeline)
+        params["n_neighbors"] = max(int(params.get("n_neighbors", 1)), int(PARAMS["knn"]["n_neighbors"]))
+    pipe, refit = fit_pipeline(x, y, old.names, old.kind, params, old.seed)
+    if old.kind == "knn":
+        params["n_neighbors"] = int(pipe[-1].n_neighbors)
+    files = [Path(n).name for n, _ in recs]
+    record = {"from": old.fingerprint, "slides": added, "files": files}
+    summary: dict[str, Any] = {**old.summary, "enrolled": [*old.summary.get("enrolled", []), record]}
+    new = Model(old.method, old.kind, params, [str(k) for k in pipe[-1].classes_], old.settings, old.fs, old.channels, pipe,
+                old.temperature, old.seed, summary, "", refit, old.calibration)
+    new_x = slides.x[labelled]
+    z = new.standardise(np.vstack([old.unstandardise(old.novelty_x), new_x]))
+    groups = np.concatenate([old.novelty_groups, slides.groups[labelled] + int(old.novelty_groups.max(initial=-1)) + 1])
+    labels = np.concatenate([old.novelty_y, slides.y[labelled]]).astype(np.str_)
+    new.novelty_x, new.novelty_y, new.novelty_groups, new.novelty_k = z, labels, groups, old.novelty_k
+    new.novelty_threshold, info = fit_novelty(z, groups, labels, old.novelty_k)
+    new.summary["novelty"] = info
+    return Enrolled(new, added, files, [k for k in added if k not in old.classes])

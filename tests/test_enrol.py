@@ -1,0 +1,68 @@
+"""tactiled enrol: a surface added to a trained model from a few slides, the input model untouched, a record in the header."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tactiled.config import Config
+from tactiled.errors import TactiledError
+from tactiled.learn.enrol import enrol
+from tactiled.learn.model import load_model
+from tests.conftest import run_cli
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[str]]:
+    """A model trained on two of three surfaces (robot scene), and the folder holding the recordings of all three."""
+    root = tmp_path_factory.mktemp("enrol")
+    data = root / "d"
+    assert run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "2", "--slides-per-file", "3",
+                   "--scene", "robot", "--seed", "4").returncode == 0
+    surfaces = sorted({p.name.split("_")[1] for p in data.glob("*.npz")})
+    known = [str(p) for p in sorted(data.glob("*.npz")) if f"_{surfaces[2]}_" not in p.name]
+    res = run_cli("train", *known, "-o", str(root / "m.npz"), "--method", "quick", "--folds", "2")
+    assert res.returncode == 0, res.stderr
+    return root / "m.npz", data, surfaces
+
+
+def test_enrol_adds_a_surface_from_six_slides_and_labels_it(trained: tuple[Path, Path, list[str]], tmp_path: Path) -> None:
+    model, data, surfaces = trained
+    new = sorted(str(p) for p in data.glob(f"*_{surfaces[2]}_*.npz"))
+    before = model.read_bytes()
+    res = run_cli("enrol", str(model), *new, "--label", "NEW", "-o", str(tmp_path / "m2.npz"))
+    assert res.returncode == 0, res.stderr
+    assert "NEW: 6 slides (a new surface)" in res.stdout
+    assert model.read_bytes() == before  # the input is never changed
+    old, m2 = load_model(model), load_model(tmp_path / "m2.npz")
+    assert m2.classes == sorted([*old.classes, "NEW"]) and m2.fingerprint != old.fingerprint
+    record = m2.summary["enrolled"][-1]
+    assert record == {"from": old.fingerprint, "slides": {"NEW": 6}, "files": [Path(p).name for p in new]}
+    assert m2.novelty_y is not None and list(m2.novelty_y).count("NEW") == 6 and np.isfinite(m2.novelty_threshold)
+    relabelled = run_cli("replay", "--json", "--model", str(tmp_path / "m2.npz"), *new)
+    finals = [json.loads(line) for line in relabelled.stdout.splitlines() if line.startswith("{") and '"final": true' in line]
+    assert finals and sum(m.get("label") == "NEW" for m in finals) >= len(finals) - 1
+
+
+def test_enrol_refuses_too_few_slides_the_input_as_output_and_an_empty_label(trained: tuple[Path, Path, list[str]], tmp_path: Path) -> None:
+    model, data, surfaces = trained
+    one = sorted(str(p) for p in data.glob(f"*_{surfaces[2]}_*.npz"))[:1]
+    res = run_cli("enrol", str(model), *one, "--label", "NEW", "-o", str(tmp_path / "m2.npz"))
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "NEW (3)" in res.stderr and "at least 5" in res.stderr, res.stderr
+    assert not (tmp_path / "m2.npz").exists()
+    same = run_cli("enrol", str(model), *one, "--label", "NEW", "-o", str(model), "--force")
+    assert same.returncode == 2 and "never changes its input" in same.stderr
+    with pytest.raises(TactiledError, match="--label: must not be empty"):
+        enrol(model, one, Config(), label=" ")
+
+
+def test_enrol_adds_slides_of_known_surfaces_by_their_own_labels(trained: tuple[Path, Path, list[str]], tmp_path: Path) -> None:
+    """Without --label (recordings of known surfaces, e.g. from another unit of the sensor): rows added to those classes."""
+    model, data, surfaces = trained
+    known = sorted(str(p) for p in data.glob(f"*_{surfaces[0]}_*.npz"))
+    done = enrol(model, known, Config())
+    assert done.added == {surfaces[0]: 6} and done.new_classes == [] and done.model.classes == load_model(model).classes
+    assert done.model.refit is not None and list(done.model.refit[1]).count(surfaces[0]) > list(load_model(model).refit[1]).count(surfaces[0])
