@@ -52,6 +52,18 @@ def test_defaults_are_shown() -> None:
     assert "(default: False)" not in "".join(p.format_help() for p in COMMANDS.values())
 
 
+def test_every_option_that_takes_a_value_says_its_default() -> None:
+    """Each optional, non-required option with a value names its default in --help (a value, the config key, or what none means)."""
+    import argparse
+
+    from tactiled.cli.common import HelpFormatter
+
+    silent = [f"tactiled {words} {'/'.join(a.option_strings)}" for words, parser in COMMANDS.items() for a in parser._actions
+              if a.option_strings and a.nargs != 0 and not a.required and not isinstance(a, argparse._HelpAction)
+              and "default" not in HelpFormatter("x")._get_help_string(a)]
+    assert not silent, silent
+
+
 def test_docs_cli_md_is_generated_from_the_parser() -> None:
     wanted = cli_markdown(build_parser())
     have = (REPO / "docs" / "cli.md").read_text(encoding="utf-8")
@@ -181,6 +193,9 @@ def test_first_day_mistakes_get_one_line_before_any_work(argv: tuple[str, ...], 
     (["run", "--raw", "{tmp}/r.npz"], "r.npz: must end in .bin"),
     (["simulate", "figure", "-o", "{tmp}/f.jpg"], "f.jpg: must end in .png"),
     (["simulate", "dataset", "--out", "{existing}"], "exists and is not a folder"),
+    (["simulate", "serial", "--link", "{existing}", "--seconds", "1"], "old.npz: exists and is not a symlink"),
+    (["simulate", "serial", "--link", "{missing}/tty", "--seconds", "1"], "folder {missing} does not exist"),
+    (["simulate", "serial", "--log", "{existing}", "--seconds", "1"], "old.npz: exists (--force overwrites it)"),
     (["curve-keys", "{existing}", "daemon"], "exists and is not a folder"),
     (["curve-keys", "{full}", "robot"], "robot.key: exists (--force overwrites it)"),
 ])

@@ -102,13 +102,13 @@ def add_commands(sub: Sub) -> None:
     p = command(sub, "record", "record serial frames into a .npz recording", cmd_record,
                 "tactiled record --port /dev/ttyACM0 --seconds 60 --label P120 -o p120_01.npz")
     p.add_argument("--config", help=c.CONFIG_HELP)
-    p.add_argument("--port", help="serial device path (overrides sensor.port)")
+    p.add_argument("--port", help="serial device path " + c.overrides("sensor.port"))
     p.add_argument("--seconds", type=c.positive, required=True, help="sensor time to record, s")
     p.add_argument("-o", "--output", required=True, help="recording file to write (.npz, or .mcap with --format mcap)")
-    p.add_argument("--label", help="surface of the whole file (its ground truth for train and score)")
-    p.add_argument("--fs", type=c.positive, help="sample rate, Hz (overrides sensor.fs)")
-    p.add_argument("--channels", type=c.channels, help="channels (overrides sensor.channels)")
-    p.add_argument("--volts-per-count", type=c.positive, help="ADC scale, V per count (overrides sensor.volts_per_count)")
+    p.add_argument("--label", help="surface of the whole file (its ground truth for train and score; default: none, the file is unlabelled)")
+    p.add_argument("--fs", type=c.positive, help="sample rate, Hz " + c.overrides("sensor.fs"))
+    p.add_argument("--channels", type=c.channels, help="channels " + c.overrides("sensor.channels"))
+    p.add_argument("--volts-per-count", type=c.positive, help="ADC scale, V per count " + c.overrides("sensor.volts_per_count"))
     p.add_argument("--format", choices=("npz", "mcap"), default="npz",
                    help="npz recording, or MCAP: the .npz is recorded beside it (same name, kept) and converted at the end, as export does")
     p.add_argument("--model", help="with --format mcap: " + c.MODEL_HELP)
@@ -144,7 +144,7 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--model", help=c.MODEL_HELP)
     p.add_argument("--no-model", action="store_true", help="no classification (labels are null)")
     p.add_argument("--publish", help="also publish the daemon's messages on this ZeroMQ endpoint: slides, labels and status (and the "
-                                     "raw samples with --samples), so bridges and the monitor work on a replay as on a live sensor")
+                                     "raw samples with --samples), so bridges and the monitor work on a replay as on a live sensor (default: publish nothing)")
     p.add_argument("--wait-subscriber", type=c.wait_s, default=1.0, metavar="S",
                    help="with --publish: wait up to S s for a first subscriber before sending, so that one already started misses "
                         "nothing (0: send at once)")

@@ -80,17 +80,17 @@ def add_commands(sub: Sub) -> None:
     """run, monitor, lsl, ros2, demo."""
     p = command(sub, "run", "the daemon: serial port -> roughness labels over ZeroMQ", cmd_run, "tactiled run --config my.toml --model my_model.npz")
     p.add_argument("--config", help=c.CONFIG_HELP)
-    p.add_argument("--port", help="serial device (overrides sensor.port)")
+    p.add_argument("--port", help="serial device " + c.overrides("sensor.port"))
     p.add_argument("--model", help="model file (overrides model.path; default: the shipped model)")
     p.add_argument("--no-model", action="store_true", help="publish slides and status only")
     p.add_argument("--shadow", metavar="MODEL", help="a candidate model to run in the shadow of the live one (overrides model.shadow): its "
-                                                     "labels on shadow/<id>, never as the live ones; status.shadow says how often they agree")
-    p.add_argument("--publish", help="ZeroMQ endpoint to bind (overrides publish.endpoint)")
-    p.add_argument("--sensor-id", help="sensor id in topics (overrides sensor.id)")
+                                                     "labels on shadow/<id>, never as the live ones; status.shadow says how often they agree; default: none)")
+    p.add_argument("--publish", help="ZeroMQ endpoint to bind " + c.overrides("publish.endpoint"))
+    p.add_argument("--sensor-id", help="sensor id in topics " + c.overrides("sensor.id"))
     p.add_argument("--record", help="also write every sample received to this .npz, streamed to disk as OUT.npz.journal (tactiled recover) "
-                   "and converted on exit (an existing file needs --force)")
+                   "and converted on exit (an existing file needs --force; default: no recording)")
     p.add_argument("--samples", action="store_true", help="also publish the raw samples on samples/<id> (sets publish.samples)")
-    p.add_argument("--raw", metavar="OUT.bin", help="also write every byte read from the port, as read (replay it with tactiled replay OUT.bin)")
+    p.add_argument("--raw", metavar="OUT.bin", help="also write every byte read from the port, as read (replay it with tactiled replay OUT.bin; default: none)")
     p.add_argument("--no-wait", action="store_true", help="exit 2 at once if the serial device is missing (default: wait for it)")
     p.add_argument("--force", action="store_true", help="let --record and --raw replace existing files, and run a model whose analysis "
                                                         "cannot keep up with the sensor (below 5x real time on this machine)")
@@ -98,7 +98,7 @@ def add_commands(sub: Sub) -> None:
     p = command(sub, "monitor", "terminal view of a running daemon", cmd_monitor, "tactiled monitor --connect tcp://127.0.0.1:7350")
     p.add_argument("--connect", help=c.CONNECT_HELP)
     p.add_argument("--config", help=c.CONFIG_HELP)
-    p.add_argument("--truth", help="a virtual board's log (simulate serial --log): show the true surface of each slide")
+    p.add_argument("--truth", help="a virtual board's log (simulate serial --log): show the true surface of each slide (default: none)")
 
     for name, help_, handler, example in (
             ("lsl", "Lab Streaming Layer outlets of a daemon's raw samples and labels (tactiled[lsl])", cmd_lsl,
@@ -115,7 +115,7 @@ def add_commands(sub: Sub) -> None:
         else:
             p.add_argument("--ros-args", nargs=argparse.REMAINDER, default=None, metavar="ARG",
                            help="the rest goes to ROS: -r __ns:=/robot1, -r __node:=NAME, -r FROM:=TO, -p endpoint:=…, -p sensor_id:=…, "
-                                "-p frame_id:=…, --params-file F (docs/integrations.md)")
+                                "-p frame_id:=…, --params-file F (docs/integrations.md; default: none)")
 
     p = command(sub, "demo", "simulated sensor + daemon + monitor", cmd_demo, "tactiled demo --scene robot")
     p.add_argument("--scene", type=c.scene, default="hand",

@@ -9,7 +9,7 @@ from pathlib import Path
 from tactiled.cli import common as c
 from tactiled.cli.common import EXIT_OK, Sub, command
 
-MODE_HELP = "older spelling of --scene hand / --scene robot"
+MODE_HELP = "older spelling of --scene hand / --scene robot (default: the scene's)"
 
 
 def cmd_dataset(args: argparse.Namespace) -> int:
@@ -38,8 +38,18 @@ def cmd_figure(args: argparse.Namespace) -> int:
 
 def cmd_serial(args: argparse.Namespace) -> int:
     """A virtual board on a pty until stopped (or for --seconds)."""
+    from tactiled.errors import OutputError
+    from tactiled.files.outputs import check_output
     from tactiled.sim.simulate import run_virtual_board
 
+    if args.link:  # checked before the pty opens: the link replaces only a link (a stale one of an earlier board)
+        link = Path(args.link)
+        if not link.parent.is_dir():
+            raise OutputError(f"{link}: folder {link.parent} does not exist")
+        if link.exists() and not link.is_symlink():
+            raise OutputError(f"{link}: exists and is not a symlink (--link makes a symlink and replaces only a symlink)")
+    if args.log:
+        check_output(args.log, args.force)
     return run_virtual_board(args)
 
 
@@ -76,7 +86,7 @@ def add_commands(sub: Sub) -> None:
 
     p = command(group, "serial", "a virtual board streaming frames on a pty", cmd_serial,
                 "tactiled simulate serial --link /tmp/tactile0 --drop 0.01 --unplug-at 30")
-    p.add_argument("--link", help="keep this symlink pointing at the pty (removed on exit)")
+    p.add_argument("--link", help="keep this symlink pointing at the pty (removed on exit; default: none, the pty's path is printed)")
     p.add_argument("--scene", type=c.scene, default=None, help=c.SCENE_HELP)
     p.add_argument("--surfaces", default=None, help=c.SURFACES_HELP)
     p.add_argument("--mode", choices=("manual", "robot"), default=None, help=MODE_HELP)
@@ -84,10 +94,11 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--corrupt", type=c.probability, default=0.0, help="probability a frame is corrupted")
     p.add_argument("--drop", type=c.probability, default=0.0, help="probability a frame is dropped")
     p.add_argument("--garbage", type=c.probability, default=0.0, help="probability of garbage before a frame")
-    p.add_argument("--unplug-at", default="", help="comma-separated sensor times (s) at which to unplug for --unplug-s")
+    p.add_argument("--unplug-at", default="", help="comma-separated sensor times (s) at which to unplug for --unplug-s (default: never)")
     p.add_argument("--unplug-s", type=c.positive, default=0.3, help="how long each unplug lasts, s of sensor time")
     p.add_argument("--seconds", type=c.positive, default=None, help="stop after this much sensor time, s (default: run until stopped)")
     p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP)
     p.add_argument("--fs", type=c.positive, default=None, help="sample rate, Hz (default: the scene's)")
     p.add_argument("--channels", type=c.channels, default=None, help="channels (default: the scene's)")
-    p.add_argument("--log", help="write one JSON line per event sent (slides, faults) to this file")
+    p.add_argument("--log", help="write one JSON line per event sent (slides, faults) to this file (default: no log)")
+    p.add_argument("--force", action="store_true", help="replace an existing --log file")

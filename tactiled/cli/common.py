@@ -97,6 +97,16 @@ def subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentP
     return out
 
 
+def overrides(key: str) -> str:
+    """Help for an option that overrides config ``key`` (``section.name``): the key, and its built-in default."""
+    from tactiled.config import Config
+
+    section, name = key.split(".")
+    value = getattr(getattr(Config(), section), name)
+    built_in = f"built in {value!r}" if value not in ("", None) else "none built in"
+    return f"(overrides {key}; default: the config's, {built_in})"
+
+
 def command(sub: Sub, name: str, help: str, handler: Handler, example: str = "") -> argparse.ArgumentParser:
     """A subcommand ``name`` of ``sub``: its one-line ``help`` (also its description), the ``handler`` that runs it, and
     an ``example`` shown at the end of its --help."""

@@ -1,0 +1,80 @@
+"""How many slides does ``tactiled enrol`` need to teach a model one more surface, against a full retrain?
+
+Per scene: a training set of 15 surfaces (3 files per surface, 3 slides per file, seed 100); one surface (``--new``,
+inside the range) is left out and a model is trained on the other 14 with ``train``'s defaults. The left-out surface
+is then enrolled from 1, 3, 5, 10 and 20 slides (files of one slide each, seed 300), and every model is replayed on a
+test set of all 15 surfaces (2 files per surface, 3 slides per file, seed 200), every true slide counted: the new
+surface's accuracy, and the 14 known surfaces' accuracy against the model before enrolment. The full retrain is
+``train`` on all 15 surfaces' training files.
+
+Usage: python bench/enrol.py [--scenes robot,hand] [--new Ra1.40] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from tactiled.config import Config
+from tactiled.files.recording import Recording
+from tactiled.learn.dataset import load_recordings
+from tactiled.learn.enrol import enrol
+from tactiled.learn.model import Model
+from tactiled.learn.train import train
+from tactiled.run.replay import pair_results, replay_recording
+from tactiled.sim.simulate import write_dataset
+
+COUNTS = (1, 3, 5, 10, 20)
+
+
+def accuracy(recs: list[tuple[str, Recording]], config: Config, model: Model, new: str, label: str) -> tuple[float, float]:
+    """(accuracy on the new surface's true slides, on the others'), every true slide counted; ``label`` is the new one's name."""
+    hits = {True: [0, 0], False: [0, 0]}
+    for _, rec in recs:
+        truth, paired, _ = pair_results(rec, replay_recording(rec, config, model))
+        for t, r in zip(truth, paired, strict=True):
+            is_new = t == new
+            hits[is_new][0] += r is not None and r.label == (label if is_new else t)
+            hits[is_new][1] += 1
+    return hits[True][0] / max(1, hits[True][1]), hits[False][0] / max(1, hits[False][1])
+
+
+def main() -> None:
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scenes", default="robot,hand")
+    ap.add_argument("--new", default="Ra1.40", help="the surface left out of training and enrolled")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    config, root = Config(), Path(args.out or tempfile.mkdtemp(prefix="tactiled-enrol-"))
+    print("| scene | model | new surface | 14 known surfaces | seconds |")
+    print("|---|---|---|---|---|")
+    for scene in args.scenes.split(","):
+        tr = write_dataset(root / scene / "train", scene=scene, seed=100, files_per_surface=3, slides_per_file=3)
+        pool = write_dataset(root / scene / "pool", scene=scene, seed=300, surfaces=args.new, files_per_surface=max(COUNTS), slides_per_file=1)
+        test = load_recordings(write_dataset(root / scene / "test", scene=scene, seed=200, files_per_surface=2, slides_per_file=3))
+        rows: list[tuple[str, Any, float]] = []
+        t0 = time.perf_counter()
+        base = train([p for p in tr if f"_{args.new}_" not in p.name], config).model
+        rows.append(("trained on 14 (before enrolment)", base, time.perf_counter() - t0))
+        base_path = root / scene / "base.npz"
+        base.save(base_path)
+        for n in COUNTS:
+            t0 = time.perf_counter()
+            done = enrol(base_path, pool[:n], config, label="NEW", min_slides=1)
+            rows.append((f"enrolled from {n} slide{'s' * (n > 1)}", done.model, time.perf_counter() - t0))
+        t0 = time.perf_counter()
+        rows.append(("full retrain on 15", train(tr, config).model, time.perf_counter() - t0))
+        for name, model, seconds in rows:
+            label = args.new if name.startswith("full") else "NEW"
+            new_acc, known_acc = accuracy(test, config, model, args.new, label)
+            print(f"| {scene} | {name} | {100 * new_acc:.1f} % | {100 * known_acc:.1f} % | {seconds:.1f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
