@@ -2,7 +2,7 @@
 
 An unknown key or a bad value is one :class:`~tactiled.errors.ConfigError` naming the key
 path (``detector.on_factor: must be > detector.off_factor``). Every number is finite and
-within documented bounds (configs/tactiled.toml), including the memory the ring buffer
+within documented bounds (the example config: ``tactiled config --example``), including the memory the ring buffer
 would take; a file larger than :data:`MAX_CONFIG_BYTES` or nested too deeply is refused. CLI flags override fields
 through :meth:`Config.override`; nothing else merges in.
 """

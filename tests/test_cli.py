@@ -217,3 +217,13 @@ def test_a_dataset_folder_takes_more_scenes_but_replaces_nothing_unasked(tmp_pat
     capsys.readouterr()
     assert main(base) == 2 and "hand_Ra0.44_00.npz: exists (2 of the files to write do; --force replaces them)" in capsys.readouterr().err
     assert main([*base, "--force"]) == 0
+
+
+def test_config_example_prints_the_shipped_example_that_loads(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tactiled.config import load_config
+
+    assert main(["config", "--example"]) == 0
+    text = capsys.readouterr().out
+    assert text == (REPO / "configs" / "tactiled.toml").read_text(encoding="utf-8") and "[sensor]" in text
+    (tmp_path / "my.toml").write_text(text)
+    load_config(tmp_path / "my.toml")  # raises on any bad key

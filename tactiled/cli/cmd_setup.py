@@ -1,4 +1,4 @@
-"""``tactiled check-config`` and ``tactiled curve-keys``: setting a sensor up."""
+"""``tactiled config``, ``check-config`` and ``curve-keys``: setting a sensor up."""
 
 from __future__ import annotations
 
@@ -6,6 +6,14 @@ import argparse
 
 from tactiled.cli.common import EXIT_OK, Sub, command
 from tactiled.config import load_config
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    """Print the example config (every key, its default and what it does), shipped inside the package."""
+    from importlib import resources
+
+    print(resources.files("tactiled").joinpath("data/tactiled.toml").read_text(encoding="utf-8"), end="")
+    return EXIT_OK
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
@@ -25,7 +33,9 @@ def cmd_curve_keys(args: argparse.Namespace) -> int:
 
 
 def add_commands(sub: Sub) -> None:
-    """check-config, curve-keys."""
+    """config, check-config, curve-keys."""
+    p = command(sub, "config", "print the example config (every key explained)", cmd_config, "tactiled config --example")
+    p.add_argument("--example", action="store_true", required=True, help="print the example config, shipped inside the package")
     p = command(sub, "check-config", "validate a config file", cmd_check_config, "tactiled check-config configs/tactiled.toml")
     p.add_argument("file", help="TOML config file to check")
 

@@ -183,7 +183,7 @@ count, seed, channels = int_in(1), int_in(0, 2**32 - 1), int_in(1, 8)
 probability, wait_s = number_in(0.0, 1.0, "probability"), number_in(0.0, 3600.0, "seconds")
 jobs = int_in(0, 4096)
 
-CONFIG_HELP = "TOML config file (every key is explained in configs/tactiled.toml; default: the built-in defaults)"
+CONFIG_HELP = "TOML config file (every key is explained in the example: tactiled config --example; default: the built-in defaults)"
 JOBS_HELP = "worker processes over the files (default 0: one per core; 1: in this process)"
 SCENE_HELP = ("scene, or scenes joined by commas: hand (default), robot, continuous, fluctuating, hot-gain, one-channel, grating "
               "(docs/simulator.md), e.g. continuous,one-channel")
