@@ -252,6 +252,15 @@ def test_headless_demo_prints_labels_with_the_truth_and_stops() -> None:
     assert finals and all("true surface Ra" in line for line in finals)
 
 
+def test_headless_demo_without_labels_exits_1_quoting_the_daemons_last_line(tmp_path: Path) -> None:
+    """A daemon that cannot start (its endpoint's folder is missing): the demo says so in one line, exit 1, never 0."""
+    endpoint = f"ipc://{tmp_path}/missing/pub"
+    res = run_cli("demo", "--headless", "--seconds", "2", "--scene", "robot", "--publish", endpoint, timeout=120)
+    assert res.returncode == 1 and res.stdout == ""
+    line = res.stderr.strip()
+    assert len(line.splitlines()) == 1 and "no label in 2 s; the daemon's last words:" in line and f"cannot bind {endpoint}" in line, line
+
+
 def test_monitor_shows_live_labels_in_a_terminal(tmp_path: Path) -> None:
     from tactiled.learn.model import load_model as _lm
     from tactiled.sim.physics import SimParams
