@@ -7,7 +7,12 @@ test set of all 15 surfaces (2 files per surface, 3 slides per file, seed 200), 
 surface's accuracy, and the 14 known surfaces' accuracy against the model before enrolment. The full retrain is
 ``train`` on all 15 surfaces' training files.
 
-Usage: python bench/enrol.py [--scenes robot,hand] [--new Ra1.40] [--out DIR]
+Then, with ``--units``, a fingertip swap: the model trained on unit 0 (all 15 surfaces) meets units 1 and 2 (new
+specimens too; docs/simulator.md); one recording of 5 slides per surface made with the new unit is enrolled under the
+recordings' own labels, and the model is replayed on other recordings of that unit (2 files × 3 slides per surface),
+beside the plain whole-slide spectral baseline of bench/labels.py trained on unit 0.
+
+Usage: python bench/enrol.py [--scenes robot,hand] [--new Ra1.40] [--out DIR] [--units]
 """
 
 from __future__ import annotations
@@ -50,8 +55,12 @@ def main() -> None:
     ap.add_argument("--scenes", default="robot,hand")
     ap.add_argument("--new", default="Ra1.40", help="the surface left out of training and enrolled")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--units", action="store_true", help="the fingertip-swap table instead")
     args = ap.parse_args()
     config, root = Config(), Path(args.out or tempfile.mkdtemp(prefix="tactiled-enrol-"))
+    if args.units:
+        unit_swap(args.scenes.split(","), root, config)
+        return
     print("| scene | model | new surface | 14 known surfaces | seconds |")
     print("|---|---|---|---|---|")
     for scene in args.scenes.split(","):
@@ -74,6 +83,36 @@ def main() -> None:
             label = args.new if name.startswith("full") else "NEW"
             new_acc, known_acc = accuracy(test, config, model, args.new, label)
             print(f"| {scene} | {name} | {100 * new_acc:.1f} % | {100 * known_acc:.1f} % | {seconds:.1f} |", flush=True)
+
+
+def unit_swap(scenes: list[str], root: Path, config: Config) -> None:
+    """The fingertip-swap table (see the module docstring)."""
+    from labels import plain_baseline
+
+    print("| scene | unit | trained on unit 0 | after enrolling 5 slides per surface of the unit | plain baseline (unit 0) |")
+    print("|---|---|---|---|---|")
+    for scene in scenes:
+        tr = write_dataset(root / scene / "train", scene=scene, seed=100, files_per_surface=3, slides_per_file=3)
+        model = train(tr, config).model
+        model.save(root / scene / "m.npz")
+        for u in (1, 2):
+            new = write_dataset(root / scene / f"enrol{u}", scene=scene, seed=500 + u, files_per_surface=1, slides_per_file=5, unit=u, specimen=u)
+            test = load_recordings(write_dataset(root / scene / f"test{u}", scene=scene, seed=200 + 100 * u, files_per_surface=2,
+                                                 slides_per_file=3, unit=u, specimen=u))
+            enrolled = enrol(root / scene / "m.npz", new, config).model
+            plain = plain_baseline(load_recordings(tr), {"test": test})["test"]
+            print(f"| {scene} | {u} | {100 * overall(test, config, model):.1f} % | {100 * overall(test, config, enrolled):.1f} % | "
+                  f"{100 * plain:.1f} % |", flush=True)
+
+
+def overall(recs: list[tuple[str, Recording]], config: Config, model: Model) -> float:
+    """Accuracy over every true slide of ``recs`` (an abstention is wrong)."""
+    right = total = 0
+    for _, rec in recs:
+        truth, paired, _ = pair_results(rec, replay_recording(rec, config, model))
+        right += sum(r is not None and r.label == t for t, r in zip(truth, paired, strict=True))
+        total += len(truth)
+    return right / max(1, total)
 
 
 if __name__ == "__main__":
