@@ -6,14 +6,22 @@ Every test builds real files in ``tmp_path`` and states the bound it checks.
 
 from __future__ import annotations
 
+import binascii
+import errno
 import tracemalloc
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pytest
 
 from tactiled.board.frames import encode_frame
+from tactiled.cli.main import main
 from tactiled.config import Config
+from tactiled.files import journal
 from tactiled.files.capture import Capture
+from tactiled.files.journal import CHUNK_MAGIC, encode_chunk, encode_header, read_journal
+from tactiled.files.recording import load_recording
 from tactiled.run.replay import replay_capture, summary_line
 
 MB = 1 << 20
@@ -35,3 +43,91 @@ def test_a_capture_whose_index_jumps_keeps_zero_rows_bounded_by_its_size_and_cou
     assert rec.meta["samples_lost"] == 99 * 398_999 and rec.meta["samples"] == 100
     assert rec.samples.shape[0] <= Capture(path).lost_rows_budget() + 100 and "truncated_at" in rec.meta
     assert summary_line([], rec).endswith(f", {99 * 398_999} samples lost")
+
+
+def _journal(path: Path, *chunks: bytes) -> Path:
+    path.write_bytes(encode_header(20_000.0, 2, 1e-4, "a", {}) + b"".join(chunks))
+    return path
+
+
+def _good_chunk(position: int = 0, rows: int = 10) -> bytes:
+    return encode_chunk(position, position, rows, [], {"samples": rows}, np.arange(2 * rows, dtype=np.int16).reshape(rows, 2))
+
+
+def _cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, list[str]]:
+    code = main(list(argv))
+    return code, capsys.readouterr().err.strip().splitlines()
+
+
+def test_a_journal_claiming_2_to_the_40_rows_is_refused_before_writing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Bound: lost rows written <= max(2^24, bytes of the journal); 2^40 rows of zeros from 205 bytes (it filled the
+    disk) is one line, exit 2, and nothing written, not even a temporary file."""
+    j = _journal(tmp_path / "huge.npz.journal", encode_chunk(0, 0, 1 << 40, [(0, 1 << 40)], {}, np.zeros((0, 2), np.int16)))
+    code, err = _cli(capsys, "recover", str(j), "-o", str(tmp_path / "out.npz"))
+    assert code == 2 and len(err) == 1 and "1099511627776 rows" in err[0] and str(j) in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["huge.npz.journal"]
+
+
+def test_a_journal_within_its_lost_rows_budget_still_recovers(tmp_path: Path) -> None:
+    """Bound: a gap of 2^24 rows (14 min at 20 kHz) between two chunks is still recovered, listed as lost."""
+    j = _journal(tmp_path / "gap.npz.journal", _good_chunk(0), _good_chunk(10 + (1 << 24)))
+    result = journal.recover(j, tmp_path / "gap.npz")
+    assert result.samples_lost == 1 << 24 and result.samples == 20 + (1 << 24)
+    assert load_recording(tmp_path / "gap.npz").lost.tolist() == [[10, 1 << 24]]
+
+
+@pytest.mark.parametrize("padding", ["markers", "markers claiming the rest of the file"])
+def test_resync_over_a_journal_padded_with_chunk_markers_is_linear(padding: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bound: bytes CRC-checked <= 2 x the journal's size (each byte at most once, plus the header), for 512 kB of
+    chunk markers (it took 68 s: every marker re-read the rest of the file); the good chunks before and after are kept."""
+    n = 512 << 10
+    if padding == "markers":
+        pad = CHUNK_MAGIC * (n // 4)
+    else:  # every 8 bytes a marker whose declared body ends exactly at the end of the file, and fails its CRC
+        tail = _good_chunk(20)
+        pad = b"".join(CHUNK_MAGIC + (n - 8 * i - 12 + len(tail)).to_bytes(4, "little") for i in range(n // 8))
+    j = _journal(tmp_path / "pad.npz.journal", _good_chunk(0), pad, _good_chunk(20) if padding == "markers" else tail)
+    crc = binascii.crc32
+    checked = 0
+
+    def counting(data: Any, value: int = 0) -> int:
+        nonlocal checked
+        checked += len(data)
+        return crc(data, value)
+
+    monkeypatch.setattr(binascii, "crc32", counting)
+    scan = read_journal(j)
+    assert checked <= 2 * j.stat().st_size, f"{checked} bytes CRC-checked for a {j.stat().st_size} byte journal"
+    if padding == "markers":
+        assert [c.position for c in scan.chunks] == [0, 20] and scan.dropped_bytes == len(pad)
+    else:  # the first padding marker frames the rest of the file as one damaged chunk
+        assert [c.position for c in scan.chunks] == [0] and scan.dropped_chunks == 1
+
+
+def test_a_chunk_declaring_more_lost_ranges_than_it_holds_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Bound: a chunk (CRC intact) declaring 1 000 lost ranges in 2 bytes is dropped as damaged (it raised struct.error):
+    one line, exit 2; with a good chunk before it, that one is recovered."""
+    body = journal._body.pack(0, 0, 10, 1000, 2) + b"{}"
+    head = CHUNK_MAGIC + journal._u32.pack(len(body)) + body
+    bad = head + journal._u32.pack(binascii.crc32(head))
+    code, err = _cli(capsys, "recover", str(_journal(tmp_path / "r.npz.journal", bad)), "-o", str(tmp_path / "r.npz"))
+    assert code == 2 and len(err) == 1 and "no intact chunk" in err[0], err
+    scan = read_journal(_journal(tmp_path / "r2.npz.journal", _good_chunk(0), bad.replace(journal._body.pack(0, 0, 10, 1000, 2),
+                                                                                           journal._body.pack(10, 10, 10, 1000, 2))))
+    assert [c.position for c in scan.chunks] == [0] and scan.dropped_chunks == 1
+
+
+def test_recover_into_a_full_disk_is_one_line_exit_1_and_leaves_no_temporary(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bound: ENOSPC while writing the recording (injected: no tmpfs without privileges) is one line naming the output,
+    exit 1 (a failure, not bad input); no .tmp is left and the journal is kept."""
+    from tactiled.files import recording
+
+    def full(*_: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(recording, "_write_streamed", full)
+    j = _journal(tmp_path / "ok.npz.journal", _good_chunk(0))
+    code, err = _cli(capsys, "recover", str(j), "-o", str(tmp_path / "ok.npz"))
+    assert code == 1 and len(err) == 1 and "No space left on device" in err[0] and "ok.npz" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.npz.journal"]

@@ -75,6 +75,12 @@ class Recording:
         return [(int(a), int(b), None if s is None else str(s)) for a, b, s in zip(self.slide_start, self.slide_stop, names, strict=True)]
 
 
+def lost_rows_budget(file_bytes: int, floor: int) -> int:
+    """Rows of zeros a reader may make for the lost samples a file of ``file_bytes`` declares or implies (index gaps,
+    lost ranges): one per byte of the file, and at least ``floor``. Beyond it, a few bytes could claim terabytes."""
+    return max(floor, file_bytes)
+
+
 def _fail(path: object, key: str, message: str) -> RecordingError:
     return RecordingError(f"{path}: {key}: {message}")
 
