@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import binascii
 import errno
+import os
 import tracemalloc
 from pathlib import Path
 from typing import Any
@@ -21,8 +22,10 @@ from tactiled.config import Config
 from tactiled.files import journal
 from tactiled.files.capture import Capture
 from tactiled.files.journal import CHUNK_MAGIC, encode_chunk, encode_header, read_journal
+from tactiled.files.npzio import MAX_FILE_BYTES
 from tactiled.files.recording import load_recording
 from tactiled.run.replay import replay_capture, summary_line
+from tests.conftest import REPO
 
 MB = 1 << 20
 
@@ -131,3 +134,35 @@ def test_recover_into_a_full_disk_is_one_line_exit_1_and_leaves_no_temporary(tmp
     code, err = _cli(capsys, "recover", str(j), "-o", str(tmp_path / "ok.npz"))
     assert code == 1 and len(err) == 1 and "No space left on device" in err[0] and "ok.npz" in err[0], err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.npz.journal"]
+
+
+def _not_a_file(kind: str, tmp_path: Path, suffix: str) -> str:
+    if kind == "fifo":
+        path = tmp_path / f"fifo{suffix}"
+        os.mkfifo(path)
+        return str(path)
+    if kind == "oversize":  # sparse: the size the file system states, nothing written
+        path = tmp_path / f"big{suffix}"
+        with open(path, "wb") as fh:
+            fh.truncate(MAX_FILE_BYTES + 1)
+        return str(path)
+    return "/dev/zero"
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device", "oversize"])
+@pytest.mark.parametrize("command, suffix", [("replay", ".bin"), ("replay", ".npz"), ("recover", ".journal"), ("export", ".npz"),
+                                             ("features", ".npz"), ("score", ".npz")])
+def test_a_recording_that_is_not_a_regular_file_below_the_limit_is_refused_without_reading_it(
+        command: str, suffix: str, kind: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Bound: 0 bytes read from a FIFO (it would block), /dev/zero (it never ends) or a file over the limit (sparse,
+    16 GiB + 1): exit 2 and one line naming the path (score and features: the file is skipped in one line, then say
+    nothing was left)."""
+    path = _not_a_file(kind, tmp_path, suffix)
+    argv = {"replay": ["replay", "--no-model", path], "recover": ["recover", path, "-o", str(tmp_path / "o.npz")],
+            "export": ["export", "--no-model", path, "-o", str(tmp_path / "o.mcap")], "features": ["features", path, "-o", str(tmp_path / "f.npz")],
+            "score": ["score", str(REPO / "tactiled" / "data" / "default_model.npz"), path]}[command]
+    code, err = _cli(capsys, *argv)
+    named = [line for line in err if path in line]
+    assert code == 2 and len(named) == 1 and ("not a regular file" if kind != "oversize" else "more than the") in named[0], err
+    assert len(err) == (2 if command in ("features", "score") else 1), err
+    assert not (tmp_path / "o.npz").exists() and not (tmp_path / "o.mcap").exists()

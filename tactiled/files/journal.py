@@ -32,8 +32,9 @@ import numpy.typing as npt
 
 from tactiled.board.frames import MAX_CHANNELS
 from tactiled.errors import RecordingError
-from tactiled.files.npzio import load_json_bounded
+from tactiled.files.npzio import MAX_FILE_BYTES, load_json_bounded
 from tactiled.files.recording import MAX_FS, MIN_FS, Recording, StreamedArray, fsync_dir, lost_rows_budget, save_recording
+from tactiled.readable import file_problem
 
 MAGIC = b"TACTJNL\x01"
 CHUNK_MAGIC = b"TJCK"
@@ -45,6 +46,7 @@ _u32 = struct.Struct("<I")
 _body = struct.Struct("<qqqII")
 _range = struct.Struct("<qq")
 ZERO_BLOCK = 1 << 16  # rows of zeros written at a time for lost rows
+MAX_JOURNAL_BYTES = MAX_FILE_BYTES  # a journal is streamed, never held: the limit of every tactiled file
 MIN_LOST_ROWS = 1 << 24  # lost rows recover writes for any journal (14 min at 20 kHz); more only for a journal of more bytes
 
 
@@ -244,9 +246,12 @@ def read_journal(path: str | Path) -> JournalScan:
 
     A chunk that fails its length or CRC check is skipped and the next chunk marker is looked for after it, so
     one damaged chunk costs only its own rows (listed as lost). Raises :class:`RecordingError` for a missing
-    file or a bad header.
+    file, one that is not a regular file of at most :data:`MAX_JOURNAL_BYTES`, or a bad header.
     """
     path = Path(path)
+    problem = file_problem(path, MAX_JOURNAL_BYTES)
+    if problem is not None:
+        raise RecordingError(f"{path}: {problem}")
     try:
         fh = open(path, "rb")  # noqa: SIM115 (closed below)
     except OSError as exc:
