@@ -166,3 +166,100 @@ def test_a_recording_that_is_not_a_regular_file_below_the_limit_is_refused_witho
     assert code == 2 and len(named) == 1 and ("not a regular file" if kind != "oversize" else "more than the") in named[0], err
     assert len(err) == (2 if command in ("features", "score") else 1), err
     assert not (tmp_path / "o.npz").exists() and not (tmp_path / "o.mcap").exists()
+
+
+GOOD = REPO / "tests" / "hostile" / "rec-good.npz"
+MODEL = str(REPO / "tactiled" / "data" / "default_model.npz")
+
+
+def _window(seed: int = 3, n: int = 4096) -> np.ndarray:
+    return np.random.default_rng(seed).standard_normal((n, 2)) * 0.01
+
+
+def test_features_of_a_huge_window_are_the_scaled_features_bit_for_bit_or_a_window_error() -> None:
+    """Bound: features of x·2^300 are the features of x times 2^(300·degree), bit for bit but for the ones through
+    logarithms (flatness, slope: within 1e-12), as the window is scaled by a power of two before squaring; at 1e307 V,
+    where energies pass float64, a WindowError 'non_finite', never OverflowError or inf."""
+    from tactiled.core.analysis import AnalysisSettings
+    from tactiled.core.features import FeaturePlan, feature_degree
+    from tactiled.errors import WindowError
+
+    names = AnalysisSettings.from_config(Config(), 2, 20_000.0).names
+    plan = FeaturePlan(names, fs=20_000.0)
+    x = _window()
+    degrees = np.array([feature_degree(n) for n in names])
+    big, small = plan.compute(np.ldexp(x, 300)), np.ldexp(plan.compute(x), 300 * degrees)
+    logs = np.array([n.endswith((".flatness", ".slope")) for n in names])
+    assert np.array_equal(big[~logs], small[~logs]) and np.allclose(big[logs], small[logs], rtol=1e-12, atol=0)
+    with pytest.raises(WindowError) as err:
+        plan.compute(x / np.abs(x).max() * 1e307)
+    assert err.value.reason == "non_finite"
+
+
+def test_the_median_of_two_samples_near_the_float64_limit_stays_finite() -> None:
+    """Bound: median_last of (1.7e308, 1.7e308) is 1.7e308, not inf (halves summed, not the sum halved)."""
+    from tactiled.core.spikes import median_last
+
+    assert median_last(np.array([[1.7e308, 1.7e308]]))[0] == 1.7e308
+
+
+def _huge(tmp_path: Path) -> Path:
+    from tactiled.files.recording import Recording, save_recording
+
+    path = tmp_path / "huge.npz"
+    save_recording(path, Recording(samples=_window() / 0.04 * 1e307, fs=20_000.0, label="Ra0.44"))
+    return path
+
+
+def test_samples_near_1e307_are_one_line_and_a_multi_file_replay_goes_on(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Bound: |samples| <= 1e9 V at load; a file of samples near 1e307 V is one line naming it and its key, exit 2, and
+    replay then plays the next file."""
+    huge = _huge(tmp_path)
+    code = main(["replay", "--no-model", str(huge), str(GOOD)])
+    out, err = capsys.readouterr()
+    assert code == 2 and err.strip().splitlines() == [err.strip()] and f"{huge}: samples: reach" in err and "Traceback" not in err, err
+    assert f"{GOOD}: " in out
+
+
+@pytest.mark.parametrize("command", ["features", "score", "export"])
+def test_samples_near_1e307_are_one_line_for_features_score_and_export(command: str, tmp_path: Path,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """Bound: exit 2, a line naming the file and 'samples' (features and score skip it, then say nothing was left)."""
+    huge = str(_huge(tmp_path))
+    argv = {"features": ["features", huge, "-o", str(tmp_path / "f.npz")], "score": ["score", "--jobs", "1", MODEL, huge],
+            "export": ["export", "--no-model", huge, "-o", str(tmp_path / "x.mcap")]}[command]
+    code, err = _cli(capsys, *argv)
+    assert code == 2 and sum(f"{huge}: samples: reach" in line for line in err) == 1 and len(err) <= 2, err
+
+
+def test_score_of_a_recording_with_no_detected_slide_reports_0_slides(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Bound: a labelled file of silence (no slide to detect) scores 0 of 0 true slides, exit 0 (it raised IndexError)."""
+    from tactiled.files.recording import Recording, save_recording
+
+    flat = tmp_path / "flat.npz"
+    save_recording(flat, Recording(samples=np.zeros((40_000, 2), np.int16), fs=20_000.0, label="Ra0.44"))
+    code = main(["score", "--jobs", "1", MODEL, str(flat)])
+    out = capsys.readouterr().out
+    assert code == 0 and "(0 of 0 true slides)" in out, out
+
+
+@pytest.mark.parametrize("key", ["label", "surface"])
+def test_a_4m_character_label_is_refused_at_load_within_a_bounded_allocation(key: str, tmp_path: Path) -> None:
+    """Bound: surface names <= 256 characters; a 4M-character one (16 MB as UTF-32; score used 1 GB) is one
+    RecordingError naming the key, with a peak allocation < 50 MB while loading."""
+    from tactiled.errors import RecordingError
+    from tactiled.files.recording import Recording, load_recording, save_recording
+
+    name = "x" * 4_000_000
+    rec = Recording(samples=np.zeros((1000, 2), np.int16), fs=20_000.0, label=name if key == "label" else None)
+    if key == "surface":
+        rec.slide_start, rec.slide_stop, rec.surface = np.array([10]), np.array([900]), np.array([name])
+    save_recording(tmp_path / "l.npz", rec)
+    tracemalloc.start()
+    try:
+        with pytest.raises(RecordingError, match=f"{key}: .*4000000 characters, more than the 256"):
+            load_recording(tmp_path / "l.npz")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 50 * MB, f"peak {peak / MB:.0f} MB"

@@ -25,6 +25,8 @@ from tactiled.files.npzio import NpzError, load_json_bounded, read_npz
 
 KEYS = ("samples", "fs", "volts_per_count", "first_index", "label", "meta", "lost", "slide_start", "slide_stop", "surface", "ra_um")
 MIN_FS, MAX_FS, MAX_CHANNELS = 1.0, 1e7, 64
+MAX_LABEL_CHARS = 256  # a surface name (label, surface[i]): longer ones are refused at load (a 4M-character label cost score 1 GB)
+MAX_VOLTS = 1e9  # |samples| in volts: 30x what a config's volts_per_count allows an int16 board; squares and sums stay far from overflow
 MAX_RECORDING_BYTES = 2 << 30  # 2 GiB inflated: 7 h of 2 channels of int16 at 20 kHz; split longer recordings
 
 
@@ -129,11 +131,17 @@ def _validate(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
     vpc = float(_scalar(path, a, "volts_per_count", "f")) if "volts_per_count" in a else 1.0
     if not (np.isfinite(vpc) and vpc > 0):
         raise _fail(path, "volts_per_count", f"must be > 0, got {vpc}")
+    peak = float(np.max(np.abs(samples))) * (vpc if samples.dtype.kind == "i" else 1.0) if samples.size else 0.0
+    if not peak <= MAX_VOLTS:
+        raise _fail(path, "samples", f"reach {peak:.3g} V, beyond the {MAX_VOLTS:g} V of any sensor (samples are volts, or counts "
+                                     "times volts_per_count)")
     rec = Recording(samples=samples, fs=fs, volts_per_count=vpc)
     if "first_index" in a:
         rec.first_index = int(_scalar(path, a, "first_index", "i"))
     if "label" in a:
         rec.label = str(_scalar(path, a, "label", "U"))
+        if len(rec.label) > MAX_LABEL_CHARS:
+            raise _fail(path, "label", f"{len(rec.label)} characters, more than the {MAX_LABEL_CHARS} a surface name may have")
     if "meta" in a:
         try:
             meta = load_json_bounded(_scalar(path, a, "meta", "U"), "meta")
@@ -172,7 +180,10 @@ def _validate(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
         if "surface" in a:
             if a["surface"].dtype.kind != "U":
                 raise _fail(path, "surface", f"must be unicode, got {a['surface'].dtype}")
-            rec.surface = a["surface"]
+            longest = int(np.char.str_len(a["surface"]).max()) if k else 0
+            if longest > MAX_LABEL_CHARS:
+                raise _fail(path, "surface", f"a name of {longest} characters, more than the {MAX_LABEL_CHARS} a surface name may have")
+            rec.surface = a["surface"].astype(f"<U{max(1, longest)}")  # no wider than its longest name, whatever the file declared
         elif rec.label is None:
             raise _fail(path, "surface", "missing (slides need a surface, or a file-level label)")
         if "ra_um" in a:
