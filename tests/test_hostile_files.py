@@ -263,3 +263,33 @@ def test_a_4m_character_label_is_refused_at_load_within_a_bounded_allocation(key
     finally:
         tracemalloc.stop()
     assert peak < 50 * MB, f"peak {peak / MB:.0f} MB"
+
+
+@pytest.mark.parametrize("layout", ["disjoint", "overlapping"])
+def test_export_with_1000_lost_ranges_is_one_sweep_and_lists_every_lost_row_once(layout: str, tmp_path: Path,
+                                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """Bound: over 1 000 lost ranges (disjoint, or every one running to the end of the file), the ranges the samples
+    messages list add up to at most messages + merged ranges (linear: overlapping ranges made every message scan, and
+    list, all of them: 37 s for 12 s of samples), and the MCAP gives back exactly the recording's valid rows and samples."""
+    from tactiled.files.recording import Recording, merge_ranges, save_recording
+    from tactiled.service.mcap_export import BATCH, batches, read_mcap_samples
+
+    n = 40_000
+    rng = np.random.default_rng(5)
+    samples = rng.integers(-2000, 2000, size=(n, 2)).astype(np.int16)
+    if layout == "disjoint":
+        starts = np.arange(1000) * 40 + 3
+        lost = np.column_stack([starts, np.full(1000, 7)])
+    else:
+        starts = rng.integers(0, n, size=1000)
+        lost = np.column_stack([starts, n - starts])
+    rec = Recording(samples=samples, fs=20_000.0, volts_per_count=1e-3, label="a", lost=lost)
+    samples[~rec.valid_mask()] = 0
+    save_recording(tmp_path / "l.npz", rec)
+    listed = sum(len(inside) for _, _, inside in batches(n, lost, BATCH))
+    assert listed <= -(-n // BATCH) + len(merge_ranges(lost))
+    code = main(["export", "--no-model", str(tmp_path / "l.npz"), "-o", str(tmp_path / "l.mcap")])
+    assert code == 0, capsys.readouterr().err
+    volts, valid, _, _ = read_mcap_samples(tmp_path / "l.mcap")
+    assert np.array_equal(valid, rec.valid_mask()) and np.allclose(volts, samples * 1e-3, rtol=0, atol=1e-12)
+    assert (~valid).sum() == merge_ranges(lost)[:, 1].sum()

@@ -65,7 +65,7 @@ class Recording:
     def valid_mask(self) -> npt.NDArray[np.bool_]:
         """(n,) False where samples were lost."""
         mask = np.ones(self.samples.shape[0], dtype=bool)
-        for pos, count in self.lost:
+        for pos, count in merge_ranges(self.lost):
             mask[pos:pos + count] = False
         return mask
 
@@ -75,6 +75,20 @@ class Recording:
             return []
         names = self.surface if self.surface is not None else [self.label] * len(self.slide_start)
         return [(int(a), int(b), None if s is None else str(s)) for a, b, s in zip(self.slide_start, self.slide_stop, names, strict=True)]
+
+
+def merge_ranges(ranges: npt.ArrayLike) -> npt.NDArray[np.int64]:
+    """(g, 2) [position, count] ranges, sorted by position, overlapping and touching ones joined: the same rows, each
+    once. ``lost`` of a file may list ranges in any order and overlapping; a sweep over these is linear. O(g log g)."""
+    r = np.asarray(ranges, dtype=np.int64).reshape(-1, 2)
+    if len(r) < 2:
+        return r
+    r = r[np.argsort(r[:, 0], kind="stable")]
+    start, end = r[:, 0], r[:, 0] + r[:, 1]
+    new = np.concatenate(([True], start[1:] > np.maximum.accumulate(end)[:-1]))
+    first = np.flatnonzero(new)
+    ends = np.maximum.reduceat(end, first)
+    return np.column_stack([start[first], ends - start[first]])
 
 
 def lost_rows_budget(file_bytes: int, floor: int) -> int:

@@ -22,7 +22,7 @@ from tactiled.core.events import PipelineEvent, SlideResult
 from tactiled.core.matching import match_slides
 from tactiled.errors import RecordingError
 from tactiled.files.capture import Capture
-from tactiled.files.recording import Recording
+from tactiled.files.recording import Recording, merge_ranges
 from tactiled.run.ingest import Batch, BatchCollector
 from tactiled.run.pacer import Pacer
 from tactiled.run.pool import map_files
@@ -90,7 +90,7 @@ def samples_lost(rec: Recording) -> int:
     """Samples lost in ``rec``: its meta's ``samples_lost`` if it says (a replayed capture: every gap, kept as rows or
     not), else the rows its ``lost`` ranges list."""
     counted = rec.meta.get("samples_lost")
-    return int(counted) if isinstance(counted, int) else int(rec.lost[:, 1].sum())
+    return int(counted) if isinstance(counted, int) else int(merge_ranges(rec.lost)[:, 1].sum())
 
 
 def _to_file(ev: SlideResult, base: int) -> SlideResult:
