@@ -293,3 +293,12 @@ def test_export_with_1000_lost_ranges_is_one_sweep_and_lists_every_lost_row_once
     volts, valid, _, _ = read_mcap_samples(tmp_path / "l.mcap")
     assert np.array_equal(valid, rec.valid_mask()) and np.allclose(volts, samples * 1e-3, rtol=0, atol=1e-12)
     assert (~valid).sum() == merge_ranges(lost)[:, 1].sum()
+
+
+def test_a_journal_whose_label_is_longer_than_a_surface_name_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Bound: the same 256 characters as a recording's label (what recovers must load): one line, exit 2, nothing written."""
+    j = tmp_path / "l.npz.journal"
+    j.write_bytes(encode_header(20_000.0, 2, 1e-4, "x" * 300_000, {}) + _good_chunk(0))
+    code, err = _cli(capsys, "recover", str(j), "-o", str(tmp_path / "l.npz"))
+    assert code == 2 and len(err) == 1 and "label: 300000 characters" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["l.npz.journal"]
