@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from tactiled.errors import ConfigError
+from tactiled.readable import file_problem
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:7350"
 MAX_CONFIG_BYTES = 1 << 20
@@ -295,11 +296,8 @@ def _readable_file(path: str, where: str, max_bytes: int) -> None:
     """
     if not path:
         return
-    f = Path(path)
-    _check(f.exists(), where, f"{path} does not exist")
-    _check(f.is_file(), where, f"{path} is not a regular file (a device, FIFO or folder is never read)")
-    size = f.stat().st_size
-    _check(size <= max_bytes, where, f"{path} is {size} bytes, more than the {max_bytes} a file there may have")
+    problem = file_problem(path, max_bytes)
+    _check(problem is None, where, f"{path}: {problem}")
 
 
 def is_local_endpoint(endpoint: str) -> bool:

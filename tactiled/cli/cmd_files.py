@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 from tactiled.cli import common as c
 from tactiled.cli.common import EXIT_FAIL, EXIT_OK, EXIT_USAGE, Sub, command, config_of, say
 from tactiled.config import Config
+from tactiled.errors import TactiledError
 
 if TYPE_CHECKING:
     from tactiled.learn.choose import ModelChoice
@@ -53,7 +54,13 @@ def cmd_recover(args: argparse.Namespace) -> int:
     from tactiled.files.outputs import check_output
 
     check_output(args.output, args.force, (".npz",))
-    result = recover(args.journal, args.output, {"recovered_from": str(args.journal)})
+    try:
+        result = recover(args.journal, args.output, {"recovered_from": str(args.journal)})
+    except TactiledError:
+        raise
+    except OSError as exc:  # a full disk, an I/O error: a failure, not bad input; the journal is left as it was
+        say(f"error: {exc.filename or args.output}: {exc.strerror or exc}; nothing written, the journal {args.journal} is kept")
+        return EXIT_FAIL
     print(f"{args.output}: {result.line()}")
     return EXIT_OK
 

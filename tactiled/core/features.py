@@ -24,6 +24,10 @@ of the power lies), ``flatness`` (geometric / arithmetic mean of the PSD, 0..1),
 (Pearson's, of the samples), ``crest`` (peak |x − mean| / RMS), ``zcr`` (zero crossings of
 x − mean per second), ``rms`` (V). A silent window gives 0 for every descriptor.
 
+Every feature is computed without overflow for any finite window: a window with samples beyond 2**100 V is scaled
+down by a power of two first (exact) and its features scaled back by their degree (:func:`feature_degree`); one that
+is still beyond float64 (the energy of samples near 1e307) is a :class:`WindowError` (``non_finite``), not inf.
+
 Classifiers see log10 of the positive, decade-spanning features (:func:`is_log_feature`:
 DWT sd/energy/rms, psd power, tex rms/centroid/spread/rolloff), floored at 1e-30; the
 rest as they are (:func:`classifier_inputs`).
@@ -61,7 +65,7 @@ def band_stats(c: npt.NDArray[np.float64], stats: Sequence[str]) -> dict[str, fl
     m2 = float(np.dot(d, d)) / n
     out: dict[str, float] = {}
     scale = max(abs(mean), float(c.max()), -float(c.min()), 1e-300)  # max |c|
-    flat = m2 <= (1e-12 * scale) ** 2
+    flat = m2 <= (1e-12 * scale) * (1e-12 * scale)  # a float product overflows to inf; ** would raise OverflowError
     energy = float(np.dot(c, c)) if "energy" in stats or "rms" in stats else 0.0
     for s in stats:
         if s == "mean":
@@ -136,6 +140,33 @@ def family_names(family: str, channels: int, fs: float, settings: Any = None) ->
     if family == "tex":
         return [f"film{c + 1}.tex.{t}" for c in range(channels) for t in TEX_NAMES]
     raise ValueError(f"unknown feature family {family!r}; known: {', '.join(FAMILIES)}")
+
+
+HUGE_EXPONENT = 100  # a window with samples beyond 2**100 V is analysed scaled down by a power of two (squares stay finite)
+
+
+def pow2_normalised(x: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], int]:
+    """(``x`` · 2**-k, k): k is 0 (``x`` itself) unless some |x| exceeds 2**:data:`HUGE_EXPONENT`, then the power of two that
+    brings max |x| into [0.5, 1). Scaling by a power of two is exact, so sums, squares and FFTs of the scaled window,
+    scaled back, are the unscaled ones bit for bit wherever those are finite (what goes through a logarithm, to rounding);
+    sums of squares of samples near 1e307 no longer overflow."""
+    top = float(np.max(np.abs(x))) if x.size else 0.0
+    if not top > 2.0 ** HUGE_EXPONENT or not math.isfinite(top):
+        return x, 0
+    k = math.frexp(top)[1]
+    return np.ldexp(x, -k), k
+
+
+def feature_degree(name: str) -> int:
+    """How a feature scales with the window's amplitude: ``a·x`` gives ``a**degree`` times it (0: scale-free, 1: volts,
+    2: squared volts: DWT energy, psd power)."""
+    fam = name_family(name)
+    last = name.rsplit(".", 1)[-1]
+    if fam == "psd":
+        return 2
+    if fam == "tex":
+        return 1 if last == "rms" else 0
+    return {"mean": 1, "sd": 1, "rms": 1, "energy": 2}.get(last, 0)
 
 
 def name_family(name: str) -> str:
@@ -323,6 +354,7 @@ class FeaturePlan:
                     stats.append(p.stat)
             channels.append(c)
         self.channels_needed = 1 + max(channels, default=-1)
+        self._degrees = np.array([feature_degree(n) for n in self.names], dtype=np.int64)
         self._slope_range = (20.0, 0.45 * fs)
 
     def min_samples(self) -> int:
@@ -344,6 +376,7 @@ class FeaturePlan:
             raise ValueError(f"window must have shape (n, >= {self.channels_needed}), got {x.shape}")
         if x.shape[0] < self.min_samples():
             raise WindowError("window_too_short", f"window of {x.shape[0]} samples is shorter than the {self.min_samples()} the features need")
+        x, k = pow2_normalised(x)
         values: dict[str, float] = {}
         for (channel, domain), level in self._levels.items():
             sig = x[:, channel]
@@ -376,7 +409,10 @@ class FeaturePlan:
                 for t, value in texture(x[:, channel], f, p, self.fs, self._tex[channel], self._slope_range).items():
                     values[f"film{channel + 1}.tex.{t}"] = value
         out = np.array([values[n] for n in self.names], dtype=np.float64)
-        # energies of a saturated window reach ~1e9; anything non-finite would be a bug upstream
+        if k:  # back to the window's own scale; a feature beyond float64 (energy of samples near 1e307) becomes inf
+            with np.errstate(over="ignore"):
+                out = np.ldexp(out, k * self._degrees)
+        # energies of a saturated window reach ~1e9; a non-finite one comes only from samples beyond any real sensor
         if not np.all(np.isfinite(out)):
-            raise WindowError("non_finite", "features are not finite")
+            raise WindowError("non_finite", "features are not finite" + (f" (samples up to 2^{k} V: their energies are beyond float64)" if k else ""))
         return out

@@ -61,5 +61,5 @@ def median_last(a: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         odd: npt.NDArray[np.float64] = np.partition(a, k, axis=-1)[..., k]
         return odd
     p = np.partition(a, k, axis=-1)  # one selection; the (k-1)-th is the largest below it (faster than kth=(k-1, k))
-    out: npt.NDArray[np.float64] = (p[..., :k].max(axis=-1) + p[..., k]) / 2
+    out: npt.NDArray[np.float64] = p[..., :k].max(axis=-1) / 2 + p[..., k] / 2  # halves first: no overflow, the same rounding
     return out

@@ -14,7 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from tactiled.board.frames import encode_frames
-from tactiled.files.recording import Recording
+from tactiled.files.recording import Recording, lost_rows_budget
+
+MIN_LOST_ROWS = 1 << 20  # zero rows a replayed capture may keep for its gaps whatever its size (4 MiB at 2 channels)
 
 
 @dataclass(frozen=True)
@@ -22,6 +24,11 @@ class Capture:
     """A raw capture at ``path``: the bytes a port gave, decoded with a config's sensor settings (rate, channels, scale)."""
 
     path: Path
+
+    def lost_rows_budget(self) -> int:
+        """Zero rows a replay may keep for the capture's index gaps: one per byte of the file, and at least
+        :data:`MIN_LOST_ROWS` (a capture of a few bytes cannot justify hundreds of MB of rows it never held)."""
+        return lost_rows_budget(self.path.stat().st_size, MIN_LOST_ROWS)
 
     def chunks(self, size: int = 1 << 16) -> Iterator[bytes]:
         """The capture's bytes in pieces of ``size``."""

@@ -1,7 +1,7 @@
 """The one place that picks a file's reader by its name: ``open_recording(path)``.
 
 - ``.bin``: a raw capture (the bytes as read from a port): :class:`~tactiled.files.capture.Capture`, decoded later
-  with a config's sensor settings;
+  with a config's sensor settings; a regular file of at most :data:`~tactiled.files.recording.MAX_RECORDING_BYTES`;
 - ``.mcap``: a tactiled MCAP file (``tactiled export``, ``record --format mcap``) is not read here: its labels replay
   with the client library (``python -m tactiled_client replay``);
 - anything else: an ``.npz`` recording (docs/recordings.md), checked as it loads.
@@ -13,7 +13,8 @@ from pathlib import Path
 
 from tactiled.errors import RecordingError
 from tactiled.files.capture import Capture
-from tactiled.files.recording import Recording, load_recording
+from tactiled.files.recording import MAX_RECORDING_BYTES, Recording, load_recording
+from tactiled.readable import file_problem
 
 
 def open_recording(path: str | Path) -> Recording | Capture:
@@ -22,6 +23,9 @@ def open_recording(path: str | Path) -> Recording | Capture:
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix == ".bin":
+        problem = file_problem(p, MAX_RECORDING_BYTES)
+        if problem is not None:
+            raise RecordingError(f"{p}: {problem}")
         return Capture(p)
     if suffix == ".mcap":
         raise RecordingError(f"{p}: an MCAP file: replay reads .npz recordings and .bin captures "

@@ -10,14 +10,16 @@ A journal is a header then chunks, each self-delimiting and guarded by a CRC-32:
 All integers little-endian. A chunk covers the rows ``position .. position + rows`` of the recording; its lost
 ranges (absolute positions) are not stored, its samples are the other rows in order. :class:`JournalWriter`
 appends whole chunks and fsyncs each; :func:`read_journal` checks every chunk and drops the ones that fail
-(a torn last chunk after a kill or a power cut), and :func:`recover` turns a journal into a normal recording
-without holding the samples in memory.
+(a torn last chunk after a kill or a power cut), in time linear in the journal's size, and :func:`recover` turns a
+journal into a normal recording without holding the samples in memory. A journal whose chunks declare more lost rows
+than its size can justify (:func:`~tactiled.files.recording.lost_rows_budget`) is refused before anything is written.
 """
 
 from __future__ import annotations
 
 import binascii
 import json
+import mmap
 import os
 import struct
 from collections.abc import Iterator
@@ -30,8 +32,9 @@ import numpy.typing as npt
 
 from tactiled.board.frames import MAX_CHANNELS
 from tactiled.errors import RecordingError
-from tactiled.files.npzio import load_json_bounded
-from tactiled.files.recording import MAX_FS, MIN_FS, Recording, StreamedArray, fsync_dir, save_recording
+from tactiled.files.npzio import MAX_FILE_BYTES, load_json_bounded
+from tactiled.files.recording import MAX_FS, MAX_LABEL_CHARS, MIN_FS, Recording, StreamedArray, fsync_dir, lost_rows_budget, save_recording
+from tactiled.readable import file_problem
 
 MAGIC = b"TACTJNL\x01"
 CHUNK_MAGIC = b"TJCK"
@@ -43,6 +46,8 @@ _u32 = struct.Struct("<I")
 _body = struct.Struct("<qqqII")
 _range = struct.Struct("<qq")
 ZERO_BLOCK = 1 << 16  # rows of zeros written at a time for lost rows
+MAX_JOURNAL_BYTES = MAX_FILE_BYTES  # a journal is streamed, never held: the limit of every tactiled file
+MIN_LOST_ROWS = 1 << 24  # lost rows recover writes for any journal (14 min at 20 kHz); more only for a journal of more bytes
 
 
 def journal_path(out: str | Path) -> Path:
@@ -241,9 +246,12 @@ def read_journal(path: str | Path) -> JournalScan:
 
     A chunk that fails its length or CRC check is skipped and the next chunk marker is looked for after it, so
     one damaged chunk costs only its own rows (listed as lost). Raises :class:`RecordingError` for a missing
-    file or a bad header.
+    file, one that is not a regular file of at most :data:`MAX_JOURNAL_BYTES`, or a bad header.
     """
     path = Path(path)
+    problem = file_problem(path, MAX_JOURNAL_BYTES)
+    if problem is not None:
+        raise RecordingError(f"{path}: {problem}")
     try:
         fh = open(path, "rb")  # noqa: SIM115 (closed below)
     except OSError as exc:
@@ -258,39 +266,62 @@ def read_journal(path: str | Path) -> JournalScan:
         if not (np.isfinite(fs) and MIN_FS <= fs <= MAX_FS and 1 <= channels <= MAX_CHANNELS and np.isfinite(vpc) and vpc > 0
                 and isinstance(meta, dict)):
             raise RecordingError(f"{path}: header: fs, channels or volts_per_count out of range")
+        if label is not None and len(str(label)) > MAX_LABEL_CHARS:  # what recovers must load
+            raise RecordingError(f"{path}: header: label: {len(str(label))} characters, more than the {MAX_LABEL_CHARS} a surface name may have")
         scan = JournalScan(path, fs, channels, vpc, None if label is None else str(label), meta, size=os.fstat(fh.fileno()).st_size)
-        pos = fh.tell()
-        while pos < scan.size:
-            chunk = _chunk_at(fh, pos, channels)
-            if chunk is not None and chunk[0].position >= scan.rows:
-                scan.chunks.append(chunk[0])
-                pos += chunk[1]
-                continue
-            scan.dropped_chunks += 1
-            nxt = _find(fh, CHUNK_MAGIC, pos + 1)
-            scan.dropped_bytes += (nxt if nxt >= 0 else scan.size) - pos
-            if nxt < 0:
-                break
-            pos = nxt
+        start = fh.tell()
+        if start < scan.size:
+            with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as data:
+                _scan_chunks(scan, data, start)
     return scan
 
 
-def _chunk_at(fh: IO[bytes], pos: int, channels: int) -> tuple[Chunk, int] | None:
-    """The intact chunk at ``pos`` and its size in bytes, or None."""
-    fh.seek(pos)
-    head = fh.read(8)
-    if len(head) < 8 or head[:4] != CHUNK_MAGIC:
+def _scan_chunks(scan: JournalScan, data: mmap.mmap, pos: int) -> None:
+    """Every chunk of ``data`` from ``pos`` into ``scan``, in time linear in the bytes (each byte is CRC-checked at most once).
+
+    An intact chunk is kept (if it does not overlap the ones before) and skipped whole. A marker whose declared length
+    ends on the next marker or at the end of the file frames a chunk even if its CRC fails (damaged inside): it is
+    dropped and skipped whole. Any other marker is not trusted: the next marker is looked for one byte on.
+    """
+    size = len(data)
+    while pos < size:
+        framed = _framed_at(data, pos)
+        if framed is not None:
+            chunk = _chunk_at(data, pos, framed, scan.channels)
+            if chunk is not None and chunk.position >= scan.rows:
+                scan.chunks.append(chunk)
+                pos += 8 + framed + 4
+                continue
+        scan.dropped_chunks += 1
+        nxt = pos + 8 + framed + 4 if framed is not None else data.find(CHUNK_MAGIC, pos + 1)
+        scan.dropped_bytes += (nxt if nxt >= 0 else size) - pos
+        if nxt < 0:
+            break
+        pos = nxt
+
+
+def _framed_at(data: mmap.mmap, pos: int) -> int | None:
+    """The body length of the chunk marker at ``pos`` if it frames a chunk (in range, ending at the next marker or at the
+    end of the file), else None. O(1)."""
+    if data[pos:pos + 4] != CHUNK_MAGIC or pos + 8 > len(data):
         return None
-    (n,) = _u32.unpack_from(head, 4)
-    if n < _body.size or n > MAX_CHUNK_BYTES:
+    (n,) = _u32.unpack_from(data, pos + 4)
+    end = pos + 8 + n + 4
+    if n < _body.size or n > MAX_CHUNK_BYTES or end > len(data):
         return None
-    body = fh.read(n)
-    crc = fh.read(4)
-    if len(body) != n or len(crc) != 4 or binascii.crc32(body, binascii.crc32(head)) != _u32.unpack(crc)[0]:
+    return n if end == len(data) or data[end:end + 4] == CHUNK_MAGIC else None
+
+
+def _chunk_at(data: mmap.mmap, pos: int, n: int, channels: int) -> Chunk | None:
+    """The intact chunk of body length ``n`` at ``pos``, or None (CRC or structure wrong)."""
+    body = data[pos + 8:pos + 8 + n]
+    if binascii.crc32(body, binascii.crc32(data[pos:pos + 8])) != _u32.unpack_from(data, pos + 8 + n)[0]:
         return None
     position, index, rows, g, s = _body.unpack_from(body)
-    lost = [_range.unpack_from(body, _body.size + 16 * i) for i in range(g)]
     at = _body.size + 16 * g
+    if at + s > n:  # more lost ranges or counters than the chunk holds
+        return None
+    lost = [_range.unpack_from(body, _body.size + 16 * i) for i in range(g)]
     try:
         counters = json.loads(body[at:at + s])
     except (ValueError, RecursionError):
@@ -303,23 +334,7 @@ def _chunk_at(fh: IO[bytes], pos: int, channels: int) -> tuple[Chunk, int] | Non
         end = p + c
     if position < 0 or stored < 0 or n - at - s != 2 * channels * stored or not isinstance(counters, dict):
         return None
-    return Chunk(position, index, rows, lost, counters, pos + 8 + at + s, stored), 8 + n + 4
-
-
-def _find(fh: IO[bytes], marker: bytes, start: int, block: int = 1 << 20) -> int:
-    """Offset of the next ``marker`` at or after ``start``, or -1."""
-    fh.seek(start)
-    base, tail = start, b""
-    while True:
-        data = fh.read(block)
-        if not data:
-            return -1
-        buf = tail + data
-        i = buf.find(marker)
-        if i >= 0:
-            return base - len(tail) + i
-        tail = buf[-(len(marker) - 1):]
-        base += len(data)
+    return Chunk(position, index, rows, lost, counters, pos + 8 + at + s, stored)
 
 
 @dataclass
@@ -349,6 +364,11 @@ def recover(journal: str | Path, out: str | Path, extra_meta: dict[str, Any] | N
     no samples, what a recorder stopped before the first frame writes).
     """
     scan = read_journal(journal)
+    implied = scan.rows - sum(c.stored for c in scan.chunks)
+    budget = lost_rows_budget(scan.size, MIN_LOST_ROWS)
+    if implied > budget:
+        raise RecordingError(f"{journal}: declares {scan.rows} rows, {implied} of them lost, in {scan.size} bytes: more than the {budget} lost "
+                             f"rows a journal of that size may imply (one per byte, at least {MIN_LOST_ROWS}); nothing written")
     if not scan.chunks and not allow_empty:
         raise RecordingError(f"{journal}: no intact chunk: nothing to recover"
                              + (f" ({scan.dropped_bytes} bytes dropped)" if scan.dropped_bytes else ""))

@@ -20,9 +20,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
-import stat
 import tokenize
 import zipfile
 from collections.abc import Iterable
@@ -32,6 +30,8 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+from tactiled.readable import MISSING, file_problem
 
 MAX_MEMBERS = 64
 MAX_FILE_BYTES = 1 << 34  # 16 GiB: a recording, model or feature file larger than this is refused before it is opened
@@ -69,18 +69,16 @@ class NpzReader:
         self.path = path
         self.remaining = max_bytes
         self.max_bytes = max_bytes
+        problem = file_problem(path, MAX_FILE_BYTES)
+        if problem is not None:
+            raise NpzError("", problem)
         try:
-            info = os.stat(path)
-            if not stat.S_ISREG(info.st_mode):
-                raise NpzError("", "not a regular file (a device, FIFO or folder is never read)")
-            if info.st_size > MAX_FILE_BYTES:
-                raise NpzError("", f"{info.st_size} bytes, more than the {MAX_FILE_BYTES} a tactiled file may have")
             count = _entry_count(path)
             if count is not None and count > MAX_MEMBERS:
                 raise NpzError("", f"lists {count} members, more than the {MAX_MEMBERS} a tactiled file has")
             self.zf = zipfile.ZipFile(path)
         except FileNotFoundError:
-            raise NpzError("", "no such file") from None
+            raise NpzError("", MISSING) from None
         except NpzError:
             raise
         except _ARCHIVE_ERRORS as exc:

@@ -25,6 +25,8 @@ from tactiled.files.npzio import NpzError, load_json_bounded, read_npz
 
 KEYS = ("samples", "fs", "volts_per_count", "first_index", "label", "meta", "lost", "slide_start", "slide_stop", "surface", "ra_um")
 MIN_FS, MAX_FS, MAX_CHANNELS = 1.0, 1e7, 64
+MAX_LABEL_CHARS = 256  # a surface name (label, surface[i]): longer ones are refused at load (a 4M-character label cost score 1 GB)
+MAX_VOLTS = 1e9  # |samples| in volts: 30x what a config's volts_per_count allows an int16 board; squares and sums stay far from overflow
 MAX_RECORDING_BYTES = 2 << 30  # 2 GiB inflated: 7 h of 2 channels of int16 at 20 kHz; split longer recordings
 
 
@@ -63,7 +65,7 @@ class Recording:
     def valid_mask(self) -> npt.NDArray[np.bool_]:
         """(n,) False where samples were lost."""
         mask = np.ones(self.samples.shape[0], dtype=bool)
-        for pos, count in self.lost:
+        for pos, count in merge_ranges(self.lost):
             mask[pos:pos + count] = False
         return mask
 
@@ -73,6 +75,26 @@ class Recording:
             return []
         names = self.surface if self.surface is not None else [self.label] * len(self.slide_start)
         return [(int(a), int(b), None if s is None else str(s)) for a, b, s in zip(self.slide_start, self.slide_stop, names, strict=True)]
+
+
+def merge_ranges(ranges: npt.ArrayLike) -> npt.NDArray[np.int64]:
+    """(g, 2) [position, count] ranges, sorted by position, overlapping and touching ones joined: the same rows, each
+    once. ``lost`` of a file may list ranges in any order and overlapping; a sweep over these is linear. O(g log g)."""
+    r = np.asarray(ranges, dtype=np.int64).reshape(-1, 2)
+    if len(r) < 2:
+        return r
+    r = r[np.argsort(r[:, 0], kind="stable")]
+    start, end = r[:, 0], r[:, 0] + r[:, 1]
+    new = np.concatenate(([True], start[1:] > np.maximum.accumulate(end)[:-1]))
+    first = np.flatnonzero(new)
+    ends = np.maximum.reduceat(end, first)
+    return np.column_stack([start[first], ends - start[first]])
+
+
+def lost_rows_budget(file_bytes: int, floor: int) -> int:
+    """Rows of zeros a reader may make for the lost samples a file of ``file_bytes`` declares or implies (index gaps,
+    lost ranges): one per byte of the file, and at least ``floor``. Beyond it, a few bytes could claim terabytes."""
+    return max(floor, file_bytes)
 
 
 def _fail(path: object, key: str, message: str) -> RecordingError:
@@ -123,11 +145,17 @@ def _validate(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
     vpc = float(_scalar(path, a, "volts_per_count", "f")) if "volts_per_count" in a else 1.0
     if not (np.isfinite(vpc) and vpc > 0):
         raise _fail(path, "volts_per_count", f"must be > 0, got {vpc}")
+    peak = float(np.max(np.abs(samples))) * (vpc if samples.dtype.kind == "i" else 1.0) if samples.size else 0.0
+    if not peak <= MAX_VOLTS:
+        raise _fail(path, "samples", f"reach {peak:.3g} V, beyond the {MAX_VOLTS:g} V of any sensor (samples are volts, or counts "
+                                     "times volts_per_count)")
     rec = Recording(samples=samples, fs=fs, volts_per_count=vpc)
     if "first_index" in a:
         rec.first_index = int(_scalar(path, a, "first_index", "i"))
     if "label" in a:
         rec.label = str(_scalar(path, a, "label", "U"))
+        if len(rec.label) > MAX_LABEL_CHARS:
+            raise _fail(path, "label", f"{len(rec.label)} characters, more than the {MAX_LABEL_CHARS} a surface name may have")
     if "meta" in a:
         try:
             meta = load_json_bounded(_scalar(path, a, "meta", "U"), "meta")
@@ -166,7 +194,10 @@ def _validate(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
         if "surface" in a:
             if a["surface"].dtype.kind != "U":
                 raise _fail(path, "surface", f"must be unicode, got {a['surface'].dtype}")
-            rec.surface = a["surface"]
+            longest = int(np.char.str_len(a["surface"]).max()) if k else 0
+            if longest > MAX_LABEL_CHARS:
+                raise _fail(path, "surface", f"a name of {longest} characters, more than the {MAX_LABEL_CHARS} a surface name may have")
+            rec.surface = a["surface"].astype(f"<U{max(1, longest)}")  # no wider than its longest name, whatever the file declared
         elif rec.label is None:
             raise _fail(path, "surface", "missing (slides need a surface, or a file-level label)")
         if "ra_um" in a:

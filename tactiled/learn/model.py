@@ -63,6 +63,7 @@ from tactiled.errors import ModelError
 from tactiled.files.npzio import NpzError, NpzReader, load_json_bounded
 from tactiled.files.recording import atomic_savez
 from tactiled.learn.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, log_proba, pair_matrices, pairwise_scores, pm_half, svm_arrays
+from tactiled.readable import MISSING
 
 FORMAT = "tactiled-model"
 FORMAT_VERSION = 4
@@ -439,7 +440,7 @@ def load_model(path: str | Path | None = None, lean: bool = True) -> Model:
             _need(not extra, path, f"{', '.join(extra)}: not an array of a {kind} model (the fingerprint covers every array)")
             arrays = {k: reader.read(k) for k in keys}
     except NpzError as exc:
-        what = "no such model file" if str(exc) == "no such file" else str(exc)
+        what = "no such model file" if str(exc) == MISSING else str(exc)
         raise ModelError(f"{path}: array {exc.key}: {what}" if exc.key else f"{path}: {what}") from None
     try:
         return _build(path, header, arrays, lean)

@@ -29,7 +29,7 @@ def confusion(y_true: Sequence[str], y_pred: Sequence[str | None], classes: Sequ
     labels = sorted(set(classes) | set(y_true))
     cols = [*labels, "-"]
     pred = [p if p is not None else "-" for p in y_pred]
-    cm = confusion_matrix(list(y_true), pred, labels=cols)[: len(labels)] if len(y_true) else np.zeros((0, len(cols)), dtype=int)
+    cm = confusion_matrix(list(y_true), pred, labels=cols)[: len(labels)] if len(y_true) else np.zeros((len(labels), len(cols)), dtype=int)
     recall = {c: float(cm[i, i] / cm[i].sum()) for i, c in enumerate(labels) if cm[i].sum()}
     return {"classes": cols, "confusion": cm.tolist(), "recall": recall}
 

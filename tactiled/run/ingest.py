@@ -111,16 +111,25 @@ class BatchCollector:
     """Batches kept in memory as one contiguous recording: index gaps become zero rows listed in ``lost``.
 
     ``limit``: keep at most this many rows (then :attr:`done`). A restart continues the timeline,
-    so nothing here grows with the size of an index jump.
+    so nothing here grows with the size of an index jump. ``max_lost``: keep at most this many zero
+    rows for gaps in all; a gap that would go over it ends the rows kept (:attr:`truncated`, then
+    :attr:`done`), so a few bytes claiming huge gaps cost no more than the budget. Every gap is
+    still counted, kept or not, in :attr:`samples_lost` (and the samples after it in :attr:`samples_seen`).
     """
 
     channels: int
     limit: int | None = None
+    max_lost: int | None = None
     first_index: int | None = None
     restarts: int = 0
+    truncated: bool = False
+    samples_seen: int = 0
+    samples_lost: int = 0
     _chunks: list[npt.NDArray[np.int16]] = field(default_factory=list)
     _lost: list[tuple[int, int]] = field(default_factory=list)
     _n: int = 0
+    _n_lost: int = 0
+    _next: int | None = None
 
     @property
     def n(self) -> int:
@@ -129,11 +138,16 @@ class BatchCollector:
 
     @property
     def done(self) -> bool:
-        """True once ``limit`` rows are kept (never without a limit)."""
-        return self.limit is not None and self._n >= self.limit
+        """True once ``limit`` rows are kept, or a gap went over ``max_lost`` (never without either)."""
+        return self.truncated or (self.limit is not None and self._n >= self.limit)
 
     def add(self, batch: Batch) -> None:
-        """Append ``batch``'s (n, C) int16 counts, after zero rows listed as lost for any index gap before it, up to ``limit`` rows."""
+        """Append ``batch``'s (n, C) int16 counts, after zero rows listed as lost for any index gap before it, up to ``limit``
+        rows and ``max_lost`` zero rows; the gap and the samples are counted even when no longer kept."""
+        gap = 0 if self._next is None else max(0, batch.index - self._next)
+        self.samples_lost += gap
+        self.samples_seen += batch.samples.shape[0]
+        self._next = batch.end
         if self.done:
             return
         if self.first_index is None:
@@ -141,7 +155,12 @@ class BatchCollector:
         self.restarts += batch.restart
         gap = batch.index - (self.first_index + self._n)
         if gap > 0:
-            self._append(np.zeros((gap, self.channels), dtype=np.int16), lost=True)
+            if self.max_lost is not None and self._n_lost + gap > self.max_lost:
+                self.truncated = True  # rows for this gap would cost more than the file could justify: keep what came before
+                return
+            self._n_lost += gap
+            keep = gap if self.limit is None else min(gap, self.limit - self._n)
+            self._append(np.zeros((keep, self.channels), dtype=np.int16), lost=True)
         self._append(batch.samples, lost=False)
 
     def _append(self, block: npt.NDArray[np.int16], lost: bool) -> None:

@@ -22,7 +22,7 @@ from tactiled.core.events import PipelineEvent, SlideResult
 from tactiled.core.matching import match_slides
 from tactiled.errors import RecordingError
 from tactiled.files.capture import Capture
-from tactiled.files.recording import Recording
+from tactiled.files.recording import Recording, merge_ranges
 from tactiled.run.ingest import Batch, BatchCollector
 from tactiled.run.pacer import Pacer
 from tactiled.run.pool import map_files
@@ -82,7 +82,15 @@ def summary_line(results: list[SlideResult], rec: Recording) -> str:
         t, paired, _ = pair_results(rec, results)
         right = sum(p is not None and p.label == x for x, p in zip(t, paired, strict=True))
         line += f", {right} of {len(t)} true slides right"
-    return line
+    lost = samples_lost(rec)
+    return line + (f", {lost} samples lost" if lost else "")
+
+
+def samples_lost(rec: Recording) -> int:
+    """Samples lost in ``rec``: its meta's ``samples_lost`` if it says (a replayed capture: every gap, kept as rows or
+    not), else the rows its ``lost`` ranges list."""
+    counted = rec.meta.get("samples_lost")
+    return int(counted) if isinstance(counted, int) else int(merge_ranges(rec.lost)[:, 1].sum())
 
 
 def _to_file(ev: SlideResult, base: int) -> SlideResult:
@@ -142,12 +150,19 @@ def replay_capture(capture: Capture, config: Config, model: Any | None, *, pacer
     (``config.sensor`` gives fs, channels and scale); the events do not depend on how the bytes are cut.
 
     Returns every slide result (positions from the first sample decoded, as for a recording) and the samples
-    decoded, as a recording (lost samples listed). ``pacer``, ``on_event`` as for :func:`replay_recording`;
-    ``on_batch`` sees every decoded batch before the pipeline does.
+    decoded, as a recording (lost samples listed). Its zero rows for index gaps are bounded by the capture's size
+    (:meth:`~tactiled.files.capture.Capture.lost_rows_budget`): past that, the recording ends at the gap that went over
+    (meta ``truncated_at``), and meta ``samples`` and ``samples_lost`` count every sample decoded and lost in the whole
+    capture. ``pacer``, ``on_event`` as for :func:`replay_recording`; ``on_batch`` sees every decoded batch before the
+    pipeline does.
     """
     s = config.sensor
     stream = Stream(config, model)
-    collector = BatchCollector(s.channels)
+    try:
+        budget = capture.lost_rows_budget()
+    except OSError as exc:
+        raise RecordingError(f"{capture.path}: cannot read: {exc.strerror or exc}") from None
+    collector = BatchCollector(s.channels, max_lost=budget)
     events: list[PipelineEvent] = []
 
     def run(step_batches: list[Batch], finish: bool = False) -> None:
@@ -175,5 +190,8 @@ def replay_capture(capture: Capture, config: Config, model: Any | None, *, pacer
     results = [_to_file(ev, base) for ev in events if isinstance(ev, SlideResult)]
     st = stream.stats
     info = {"capture": str(capture.path), "crc_errors": st.crc_errors, "bytes_discarded": st.bytes_discarded, "restarts": st.restarts,
-            "channel_errors": st.channel_errors, "duplicate_frames": st.duplicates}
+            "channel_errors": st.channel_errors, "duplicate_frames": st.duplicates, "samples": collector.samples_seen,
+            "samples_lost": collector.samples_lost}
+    if collector.truncated:
+        info["truncated_at"] = collector.n
     return results, collector.recording(s.fs, s.volts_per_count, info)
