@@ -105,15 +105,17 @@ class Publisher:
             self.authenticator.stop()
 
     def publish_event(self, sensor: str, ev: PipelineEvent, fs: float, model: str, detected_at: float | None = None,
-                      to_host: schema.HostTime | None = None) -> None:
-        """Publish one pipeline event; ``detected_at`` (perf_counter) is when its block was handed in; ``to_host`` maps indices to host times."""
+                      to_host: schema.HostTime | None = None, overloaded: bool = False) -> None:
+        """Publish one pipeline event; ``detected_at`` (perf_counter) is when its block was handed in; ``to_host`` maps indices to host
+        times; ``overloaded``: a result of a slide whose analysis was cut short by load shedding."""
         if isinstance(ev, SlideStarted):
             self.publish(schema.slide_start(sensor, ev.slide_id, ev.start, fs, to_host))
         elif isinstance(ev, SlideEnded):
             self.publish(schema.slide_end(sensor, ev.slide_id, ev.start, ev.stop, ev.reason, fs, to_host))
         elif isinstance(ev, SlideResult):
             latency = 0.0 if detected_at is None else (time.perf_counter() - detected_at) * 1e3
-            self.publish(schema.roughness(sensor, ev, fs=fs, model=model, version=__version__, latency_ms=latency, to_host=to_host))
+            self.publish(schema.roughness(sensor, ev, fs=fs, model=model, version=__version__, latency_ms=latency, to_host=to_host,
+                                             overloaded=overloaded))
 
 
 def create_curve_pair(folder: str | Path, name: str, force: bool = False) -> tuple[Path, Path]:
