@@ -165,3 +165,28 @@ def test_the_watchdog_is_fed_while_the_daemon_keeps_up_and_starved_while_it_cann
             assert proc.returncode == 0
     finally:
         notify.close()
+
+
+def test_a_subscription_longer_than_any_topic_drops_its_peer_and_a_real_one_is_served(tmp_path: Path) -> None:
+    """The publisher disconnects a peer whose subscription exceeds MAX_INBOUND_BYTES (again at each reconnect), so its length
+    never enters the daemon; a subscriber of a real topic is served all along."""
+    import zmq
+
+    from tactiled.service.publish import MAX_INBOUND_BYTES
+
+    endpoint = f"ipc://{tmp_path}/pub"
+    ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
+    with BlockingSubscriber(endpoint, topics=["status"], timeout=30) as good, daemon_process(str(tmp_path / "absent"), endpoint) as proc:
+        assert isinstance(good.receive(), Status)
+        hostile = ctx.socket(zmq.SUB)
+        monitor = hostile.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        hostile.setsockopt(zmq.SUBSCRIBE, b"status/" + b"x" * MAX_INBOUND_BYTES)
+        hostile.connect(endpoint)
+        try:
+            assert monitor.poll(30_000), "the publisher kept a peer whose subscription is longer than any topic"
+            assert statuses(good, 2) and proc.poll() is None
+        finally:
+            hostile.disable_monitor()
+            monitor.close(0)
+            hostile.close(0)
+            ctx.term()

@@ -22,10 +22,12 @@ from tactiled.files.outputs import check_folder, check_output
 
 M = TypeVar("M", bound=schema.Message)
 # a subscription is one inbound message: a flag byte and a topic prefix (the longest topic: "roughness/" and a
-# 64-character sensor id, 75 bytes). Each distinct subscription costs the publisher memory, growing with its length
-# (about 12 kB for a 4 000-byte one), so a peer sending a message longer than this is disconnected. The cap leaves
-# room for the CURVE handshake's commands (HELLO 200 bytes, INITIATE about 300 with its metadata).
-MAX_INBOUND_BYTES = 1024
+# 64-character sensor id, 75 bytes). Each distinct subscription costs the publisher memory, growing with its length, and
+# glibc keeps most of it after the peer leaves, so a peer sending a message longer than this is disconnected. The cap
+# leaves room for the CURVE handshake's commands (HELLO 200 bytes, INITIATE about 300 with its metadata; 128 cut it).
+# Measured (bench/bench_subscriptions.py): 10 000 distinct 370-byte subscriptions from one peer add 20 MB (16 MB kept
+# after it leaves); at 1 024 they added 51 MB (45 MB kept); 1 000-byte ones now drop the peer and add nothing.
+MAX_INBOUND_BYTES = 384
 
 
 class Publisher:
