@@ -190,3 +190,28 @@ def test_a_subscription_longer_than_any_topic_drops_its_peer_and_a_real_one_is_s
             monitor.close(0)
             hostile.close(0)
             ctx.term()
+
+
+def test_connections_over_the_cap_are_dropped_and_those_within_it_are_served(tmp_path: Path) -> None:
+    """With publish.max_connections = 2, a third connection is disconnected as soon as it is accepted; the first two get status."""
+    import zmq
+
+    endpoint = f"ipc://{tmp_path}/pub"
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[publish]\nmax_connections = 2\nstatus_interval_s = 0.1\n")
+    ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context()
+    with BlockingSubscriber(endpoint, topics=["status"], timeout=30) as first, BlockingSubscriber(endpoint, topics=["status"], timeout=30) as second, \
+            daemon_process(str(tmp_path / "absent"), endpoint, "--config", str(cfg)) as proc:
+        assert isinstance(first.receive(), Status) and isinstance(second.receive(), Status)
+        third = ctx.socket(zmq.SUB)
+        monitor = third.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        third.setsockopt(zmq.SUBSCRIBE, b"status")
+        third.connect(endpoint)
+        try:
+            assert monitor.poll(30_000), "a connection over publish.max_connections was kept"
+            assert statuses(first, 2) and statuses(second, 2) and proc.poll() is None
+        finally:
+            third.disable_monitor()
+            monitor.close(0)
+            third.close(0)
+            ctx.term()

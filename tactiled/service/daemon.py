@@ -153,7 +153,8 @@ class Daemon:
                 self._reader = tg.create_task(self._read(), name="reader")
                 status = tg.create_task(self._status(), name="status")
                 stopped = tg.create_task(self.stop_event.wait(), name="stop")
-                tasks = [self._reader, status, stopped]
+                limit = tg.create_task(self.publisher.limit_connections(), name="connections")
+                tasks = [self._reader, status, stopped, limit]
                 if self.control is not None:
                     tasks.append(tg.create_task(self._serve_control(), name="control"))
                 await asyncio.wait([self._reader, stopped], return_when=asyncio.FIRST_COMPLETED)

@@ -7,11 +7,15 @@ every subscriber count what it missed.
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import socket
 import time
 from pathlib import Path
 from typing import Any, TypeVar
 
 import zmq
+import zmq.asyncio
 from tactiled_client import schema
 
 from tactiled import __version__
@@ -20,6 +24,7 @@ from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideSt
 from tactiled.errors import ConfigError, OutputError
 from tactiled.files.outputs import check_folder, check_output
 
+log = logging.getLogger(__name__)
 M = TypeVar("M", bound=schema.Message)
 # a subscription is one inbound message: a flag byte and a topic prefix (the longest topic: "roughness/" and a
 # 64-character sensor id, 75 bytes). Each distinct subscription costs the publisher memory, growing with its length, and
@@ -54,6 +59,43 @@ class Publisher:
         self._seq: dict[str, int] = {}
         self.sent = 0
         self.dropped = 0
+        self.max_connections = config.max_connections
+        self.connections: set[int] = set()  # the file descriptors of the subscriber connections accepted and not yet closed
+        self.refused = 0  # connections over max_connections, disconnected at once
+
+    async def limit_connections(self) -> None:
+        """Until cancelled: keep at most ``max_connections`` subscriber connections, shutting down each one accepted beyond
+        that (ZeroMQ then drops it like any peer that went away), so silent peers cannot take every file descriptor."""
+        addr = f"inproc://tactiled-publisher-monitor-{id(self)}"
+        self.socket.monitor(addr, zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_CLOSED)
+        events = zmq.asyncio.Context.shadow(self.context.underlying).socket(zmq.PAIR)
+        events.connect(addr)
+        try:
+            while True:
+                frames = await events.recv_multipart()
+                event, fd = int.from_bytes(frames[0][:2], "little"), int.from_bytes(frames[0][2:6], "little")
+                if event == zmq.EVENT_ACCEPTED:
+                    if len(self.connections) >= self.max_connections:
+                        self._refuse(fd)
+                    else:
+                        self.connections.add(fd)
+                else:
+                    self.connections.discard(fd)
+        finally:
+            with contextlib.suppress(zmq.ZMQError):
+                self.socket.disable_monitor()
+            events.close(0)
+
+    def _refuse(self, fd: int) -> None:
+        """Shut down the connection on ``fd`` (libzmq sees it end and closes it)."""
+        self.refused += 1
+        if self.refused in (1, 10, 100) or self.refused % 1000 == 0:
+            log.warning("publish: %d connection(s) refused over publish.max_connections = %d", self.refused, self.max_connections)
+        with contextlib.suppress(OSError), socket.socket(fileno=fd) as conn:
+            try:
+                conn.shutdown(socket.SHUT_RDWR)
+            finally:
+                conn.detach()  # the descriptor stays libzmq's: it closes it
 
     def _curve(self, config: PublishConfig) -> None:
         """CURVE: encrypt, and admit only subscribers whose public certificate is in the authorised folder."""
