@@ -4,6 +4,7 @@ baseline + 10 MB).
 
     .venv/bin/python bench/bench_subscriptions.py --count 10000 --length 60
     .venv/bin/python bench/bench_subscriptions.py --count 10000 --length 1000
+    .venv/bin/python bench/bench_subscriptions.py --silent 5000     # silent connections held open instead (publish.max_connections)
 
 The daemon runs with no board (a port that does not exist: it waits for it and publishes status), publishing on ipc
 in a temporary folder. Memory is read from /proc/PID/status (VmRSS) once it has stopped changing for a second.
@@ -12,6 +13,9 @@ in a temporary folder. Memory is read from /proc/PID/status (VmRSS) once it has 
 from __future__ import annotations
 
 import argparse
+import os
+import resource
+import socket
 import subprocess
 import sys
 import tempfile
@@ -48,11 +52,14 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--count", type=int, default=10_000)
     ap.add_argument("--length", type=int, default=60)
+    ap.add_argument("--silent", type=int, default=0, help="hold this many silent connections open instead (the daemon's nofile: 1024)")
     args = ap.parse_args()
+    if args.silent:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (args.silent + 1024, max(args.silent + 1024, resource.getrlimit(resource.RLIMIT_NOFILE)[1])))
     with tempfile.TemporaryDirectory() as tmp:
         endpoint = f"ipc://{tmp}/pub"
         proc = subprocess.Popen([sys.executable, "-m", "tactiled", "run", "--port", f"{tmp}/absent", "--publish", endpoint],
-                                stderr=subprocess.DEVNULL)
+                                stderr=subprocess.DEVNULL, preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (1024, 4096)))
         ctx = zmq.Context()
         try:
             watch = ctx.socket(zmq.SUB)
@@ -60,6 +67,28 @@ def main() -> int:
             watch.connect(endpoint)
             watch.recv_multipart()  # the daemon is up and serving
             base = settled(proc.pid)
+            if args.silent:
+                fds = len(os.listdir(f"/proc/{proc.pid}/fd"))
+                held, failed = [], 0
+                for _ in range(args.silent):
+                    conn = socket.socket(socket.AF_UNIX)
+                    conn.settimeout(5)
+                    try:
+                        conn.connect(f"{tmp}/pub")
+                    except OSError:  # the listen backlog full (refused, or timed out)
+                        conn.close()
+                        failed += 1
+                        continue
+                    held.append(conn)
+                loaded = settled(proc.pid)
+                watch.recv_multipart()  # still serving
+                print(f"{len(held)} silent connections held ({failed} could not connect): RSS {base:.1f} MB before, {loaded:.1f} MB with them; "
+                      f"daemon file descriptors "
+                      f"{fds} before, {len(os.listdir(f'/proc/{proc.pid}/fd'))} with them")
+                for conn in held:
+                    conn.close()
+                watch.close(0)
+                return 0
             peer = ctx.socket(zmq.SUB)
             peer.setsockopt(zmq.LINGER, 0)
             peer.connect(endpoint)
