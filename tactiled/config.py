@@ -256,6 +256,7 @@ class PublishConfig:
     curve_secret_key_file: str = ""
     curve_authorized_dir: str = ""
     samples: bool = False
+    max_connections: int = 64  # subscriber connections at once; one more is disconnected as soon as it is accepted
 
     def validate(self, p: str) -> None:
         """Check endpoint (tcp://, ipc:// or inproc://; loopback unless ``allow_remote``), status_interval_s (s), and the CURVE key file and folder.
@@ -266,6 +267,7 @@ class PublishConfig:
                f"must be set together with {p}.curve_secret_key_file")
         _check(self.endpoint.startswith(("tcp://", "ipc://", "inproc://")), f"{p}.endpoint", "must start with tcp://, ipc:// or inproc://")
         _check(0.01 <= self.status_interval_s <= 1.0, f"{p}.status_interval_s", "must be in [0.01, 1] s")
+        _check(1 <= self.max_connections <= 512, f"{p}.max_connections", "must be in 1..512 (the unit's LimitNOFILE is 1024)")
         _check(self.allow_remote or is_local_endpoint(self.endpoint), f"{p}.endpoint",
                "binds a non-loopback address; set publish.allow_remote = true to allow it")
         _readable_file(self.curve_secret_key_file, f"{p}.curve_secret_key_file", MAX_KEY_FILE_BYTES)

@@ -23,7 +23,8 @@ from typing import Any, ClassVar, Protocol, TypeVar
 
 import msgpack
 
-SCHEMA_VERSION = 4  # 3: roughness messages carry novelty; reason unknown_surface. 4: shadow messages, status.shadow
+SCHEMA_VERSION = 5  # 3: roughness messages carry novelty; reason unknown_surface. 4: shadow messages, status.shadow.
+# 5: roughness.overloaded; status.overloaded, status.behind_s, status.input_shed_bytes (load shed when the daemon cannot keep up)
 ROUGHNESS, SLIDE, STATUS, SAMPLES, SHADOW = "roughness", "slide", "status", "samples", "shadow"
 TOPICS = (ROUGHNESS, SLIDE, STATUS, SAMPLES, SHADOW)
 
@@ -138,6 +139,7 @@ class LabelFields(Message):
     stop_mono: float | None = None  # host time of sample `stop`
     stop_unix: float | None = None
     novelty: float | None = None  # > 1: unlike every surface the model was trained on (label nil, reason unknown_surface); nil: not known
+    overloaded: bool = False  # the daemon could not keep up and skipped analysing part of this slide (it ended where analysis stopped)
 
 
 @dataclass
@@ -195,6 +197,9 @@ class Status(Message):
     unknown: int = 0  # final labels withheld as unknown_surface since start (most slides unknown: another unit, or untaught surfaces)
     shadow: dict[str, Any] | None = None  # a candidate model run in the shadow of the live one (run --shadow): model, slides,
     # agreement with the live labels, its mean confidence and unknown rate (nil without one)
+    overloaded: int = 0  # samples decoded (recorded, published, counted) whose analysis was skipped because the daemon fell behind
+    behind_s: float = 0.0  # how long the oldest input read but not yet processed has waited, s (0: keeping up)
+    input_shed_bytes: int = 0  # bytes read but dropped before decoding because the backlog was full (their samples count as lost)
 
     def host_mono(self, index: int) -> float | None:
         """Host monotonic time of sensor sample ``index`` by this status's clock mapping (None before samples)."""
@@ -316,8 +321,9 @@ def _host(to_host: HostTime | None, index: int | None) -> tuple[float | None, fl
 
 
 def roughness(sensor: str, r: SlideOutcome, *, fs: float, model: str, version: str, latency_ms: float = 0.0,
-              to_host: HostTime | None = None) -> Roughness:
-    """The roughness message of slide result ``r`` (sensor indices; ``seq`` and ``time_unix`` are set when sent)."""
+              to_host: HostTime | None = None, overloaded: bool = False) -> Roughness:
+    """The roughness message of slide result ``r`` (sensor indices; ``seq`` and ``time_unix`` are set when sent); ``overloaded``:
+    the daemon skipped analysing part of the slide."""
     start_mono, start_unix = _host(to_host, r.start)
     stop_mono, stop_unix = _host(to_host, r.stop)
     return Roughness(**_head(ROUGHNESS, sensor), label=r.label, reason=r.reason, confidence=r.confidence,
@@ -325,13 +331,14 @@ def roughness(sensor: str, r: SlideOutcome, *, fs: float, model: str, version: s
                      t_start=r.start / fs, t_stop=r.stop / fs, latency_ms=round(latency_ms, 3), model=model,
                      quality={**r.quality, "compute_ms": round(r.compute_ms, 3)}, version=version, final=r.final,
                      used_s=round(r.used_s, 6), start_mono=start_mono, start_unix=start_unix, stop_mono=stop_mono, stop_unix=stop_unix,
-                     novelty=r.novelty)
+                     novelty=r.novelty, overloaded=overloaded)
 
 
 def shadow(sensor: str, r: SlideOutcome, *, fs: float, model: str, version: str, latency_ms: float = 0.0,
-           to_host: HostTime | None = None) -> Shadow:
+           to_host: HostTime | None = None, overloaded: bool = False) -> Shadow:
     """A candidate model's result for slide ``r``: the fields of :func:`roughness`, on the shadow topic."""
-    return Shadow.from_map({**roughness(sensor, r, fs=fs, model=model, version=version, latency_ms=latency_ms, to_host=to_host).to_map(),
+    return Shadow.from_map({**roughness(sensor, r, fs=fs, model=model, version=version, latency_ms=latency_ms, to_host=to_host,
+                                        overloaded=overloaded).to_map(),
                             "type": SHADOW})
 
 

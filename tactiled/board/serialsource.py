@@ -22,6 +22,14 @@ Bytes go to ``on_bytes`` (awaited if it returns an awaitable), state changes to
 blocking users (``record``: :meth:`SerialSource.start` / :meth:`SerialSource.stop`), on the
 reader thread. ``tee``: a binary file that receives every byte read, exactly (a raw capture
 for ``tactiled replay x.bin``).
+
+The loop always turns: :meth:`SerialSource.run` yields to the event loop after every item it hands
+over, so status, the watchdog and signals are served between them however fast items queue up.
+:attr:`SerialSource.behind` says how long the oldest bytes read but not yet consumed have waited
+(the consumer uses it to shed work); the bytes waiting are bounded by ``max_backlog_bytes``: a read
+that would exceed it is dropped and counted in :attr:`SerialSource.shed_bytes` (the decoder then
+counts the samples in it as lost), so input that costs more to consume than it takes to arrive
+cannot grow the daemon without bound.
 """
 
 from __future__ import annotations
@@ -34,6 +42,7 @@ import os
 import select
 import threading
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable, Iterable
 from typing import BinaryIO, Protocol
 
@@ -44,6 +53,7 @@ from tactiled.errors import DeviceError
 log = logging.getLogger(__name__)
 
 PRESENCE_POLL_S = 0.01
+MAX_BACKLOG_BYTES = 4 << 20  # bytes read but not yet consumed: beyond this, new reads are dropped (counted) until the loop catches up
 CONNECTED = "connected"
 DISCONNECTED = "disconnected"
 
@@ -100,6 +110,7 @@ class SerialSource:
         read_size: int = 1 << 20,
         tee: BinaryIO | None = None,
         hand_over_s: float = 0.0,
+        max_backlog_bytes: int = MAX_BACKLOG_BYTES,
     ) -> None:
         self.path = path
         self.reconnects = 0
@@ -118,6 +129,16 @@ class SerialSource:
         self._url = "://" in path
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self.shed_bytes = 0  # bytes read but dropped before the consumer saw them (the backlog was full)
+        self._max_backlog = max_backlog_bytes
+        self._backlog = 0  # bytes handed to the loop and not yet consumed (run only)
+        self._backlog_lock = threading.Lock()
+        self._waiting: deque[float] = deque()  # read times of the items queued and not yet consumed (on the loop)
+
+    @property
+    def behind(self) -> float:
+        """Seconds the oldest bytes read but not yet consumed have waited (0: nothing waiting; :meth:`run` only)."""
+        return time.monotonic() - self._waiting[0] if self._waiting else 0.0
 
     # ---- blocking users: callbacks on the reader thread ------------------------------------
 
@@ -152,12 +173,29 @@ class SerialSource:
     # ---- asyncio users: bytes handed over to the loop -----------------------------------------
 
     async def run(self) -> None:
-        """Read until cancelled, handing bytes to the loop at most once per ``hand_over_s``; never returns otherwise."""
+        """Read until cancelled, handing bytes to the loop at most once per ``hand_over_s``; never returns otherwise.
+
+        Yields to the loop after each item, whatever the queue holds, so no backlog can starve the loop's other tasks.
+        """
         loop = asyncio.get_running_loop()
         queue: asyncio.Queue[bytes | tuple[str, str]] = asyncio.Queue()
         self._stop.clear()
-        self._thread = threading.Thread(target=self._reader, args=(lambda item: loop.call_soon_threadsafe(queue.put_nowait, item), self._hand_over),
-                                        name=f"serial:{self.path}", daemon=True)
+
+        def arrive(read_at: float, item: bytes | tuple[str, str]) -> None:  # on the loop
+            if isinstance(item, bytes):
+                self._waiting.append(read_at)
+            queue.put_nowait(item)
+
+        def hand(item: bytes | tuple[str, str]) -> None:  # on the reader thread
+            if isinstance(item, bytes):
+                with self._backlog_lock:
+                    if self._backlog + len(item) > self._max_backlog:
+                        self.shed_bytes += len(item)
+                        return
+                    self._backlog += len(item)
+            loop.call_soon_threadsafe(arrive, time.monotonic(), item)
+
+        self._thread = threading.Thread(target=self._reader, args=(hand, self._hand_over), name=f"serial:{self.path}", daemon=True)
         self._thread.start()
         try:
             while True:
@@ -165,12 +203,18 @@ class SerialSource:
                 if isinstance(item, tuple):
                     self._on_state(*item)
                     continue
-                result = self._consume(item)
-                if inspect.isawaitable(result):
-                    try:
-                        await result
-                    except Exception as exc:  # as in _consume: the daemon keeps running
-                        self._consumer_failed(exc)
+                try:
+                    result = self._consume(item)
+                    if inspect.isawaitable(result):
+                        try:
+                            await result
+                        except Exception as exc:  # as in _consume: the daemon keeps running
+                            self._consumer_failed(exc)
+                finally:
+                    self._waiting.popleft()
+                    with self._backlog_lock:
+                        self._backlog -= len(item)
+                await asyncio.sleep(0)  # the loop turns between items, however many are queued
         finally:
             self._stop.set()
             await asyncio.to_thread(self._thread.join, 5.0)
@@ -298,6 +342,11 @@ class ByteSource(Protocol):
     errors: int
     arrival: float
     alive_at: float
+    shed_bytes: int
+
+    @property
+    def behind(self) -> float:
+        """Seconds the oldest bytes read but not yet consumed have waited (0: keeping up)."""
 
     async def run(self) -> None:
         """Read until cancelled or the source ends, handing bytes to ``on_bytes`` and state changes to ``on_state``."""
@@ -316,6 +365,8 @@ class MemorySource:
         self.errors = 0
         self.arrival = 0.0
         self.alive_at = time.monotonic()
+        self.shed_bytes = 0
+        self.behind = 0.0  # a memory source hands over one chunk at a time: never behind
         self._chunks = chunks
         self._on_bytes = on_bytes
         self._on_state = on_state or (lambda state, detail: None)

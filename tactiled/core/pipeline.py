@@ -78,6 +78,8 @@ class Pipeline:
         capacity = max(round(config.ring.seconds * fs), 2 * window + round(config.detector.off_hold_s * fs) + round(fs))
         self.ring = RingBuffer(capacity, channels, np.int16 if integer else np.float64)
         self.detector = SlideDetector(config.detector, fs, channels)
+        self._detector_args = (config.detector, fs, channels)
+        self._fresh_detector = False  # after shed(): the next samples fed start a new detector
         self.volts_per_count = volts_per_count if integer else 1.0
         self.slides = 0
         self.labels = 0
@@ -117,8 +119,19 @@ class Pipeline:
         """True if feeding samples up to absolute index ``end`` completes a window of the slide in progress (feature work)."""
         return self._onset is not None and self._next is not None and end >= self._next[1]
 
+    def shed(self) -> list[PipelineEvent]:
+        """Stop analysing (load shed: the caller cannot keep up): a slide in progress ends at the last sample fed and gets
+        its final result, as at the end of a stream. The next block fed, at any later index, starts a new detector there,
+        so the samples skipped in between cost nothing (they are not walked as lost samples)."""
+        events = self.finish()
+        self._fresh_detector = True
+        return events
+
     def feed(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None = None) -> list[PipelineEvent]:
         """Process ``samples`` (n, C) whose first sample has absolute ``index`` (gaps are lost samples)."""
+        if self._fresh_detector:
+            self.detector = SlideDetector(*self._detector_args)
+            self._fresh_detector = False
         self.ring.write(index, samples, valid)
         volts = samples.astype(np.float64) * self.volts_per_count
         if valid is not None:

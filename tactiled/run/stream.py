@@ -119,6 +119,13 @@ class Stream:
             step += self._feed(b.index, b.samples, None)
         return step
 
+    def shed(self) -> Step:
+        """Stop analysing until the next batch (load shed): slides in progress end at the last sample fed and get their final
+        results; the next batch processed, at any later index, starts new detectors there (tactiled.core.pipeline.Pipeline.shed)."""
+        if self.pipeline is None:
+            return Step()
+        return Step(events=self.pipeline.shed(), shadow=self.shadow.shed() if self.shadow is not None else [])
+
     def feed_bytes(self, data: bytes | bytearray | memoryview) -> Step:
         """Bytes read from a port or a capture, cut anywhere: the events do not depend on how."""
         return self.process(self.decode(data))

@@ -6,11 +6,22 @@ survives unplugs and any exception), whose bytes go through the ingest core (tac
 batches of ``serial.batch_s``) into the pipeline and the publisher: batches that complete an
 analysis window run in a worker thread so feature extraction never stalls the loop,
 detection-only batches run inline, cheaper than a thread hop; ``status`` (at least once a
-second, and the systemd watchdog, fed only while the reader is alive); ``stop`` (SIGTERM,
+second, and the systemd watchdog, fed only while the reader is alive and the daemon keeps up); ``stop`` (SIGTERM,
 SIGINT). A finite source (tests) ends the stream explicitly and the daemon stops. SIGHUP
 (``systemctl reload``) loads the model file again: validated as at start-up (a bad file is refused
 in one line and the running model stays), it takes over at the next slide, so a slide in progress
 ends with the model it began with and no sample is lost.
+
+The loop always turns, whatever the input costs: the source yields after every item it hands over, and
+the bytes of one item are decoded in slices of :data:`SLICE_BYTES` and their batches processed one at a
+time, with a turn of the loop whenever :data:`TURN_S` of work has passed, so status, the watchdog and
+SIGTERM are served within a fraction of a second. When input waits longer than :data:`SHED_AFTER_S`
+(the pipeline cannot keep up), the daemon sheds load in a counted way: slides in progress end where
+analysis stopped (their label says ``overloaded``), and the samples that follow are still decoded,
+recorded and published in order but not analysed (``status.overloaded`` counts them) until the
+backlog has drained below :data:`RESUME_BELOW_S`. The watchdog is fed only while the reader is alive
+and the daemon keeps up: nothing waits longer than :data:`SHED_AFTER_S`, or samples are being handled
+at no less than :data:`KEEPING_UP` of real time.
 """
 
 from __future__ import annotations
@@ -46,6 +57,12 @@ from tactiled.signals import STOP_SIGNALS, sd_notify
 
 log = logging.getLogger(__name__)
 
+SLICE_BYTES = 4096  # bytes decoded per step (a flood of headers claiming 16 kB frames costs ~12 ms per slice, measured)
+TURN_S = 0.02  # the most work, s, done between two turns of the event loop (beyond one slice or one batch)
+SHED_AFTER_S = 0.5  # input waiting longer than this: analysis is skipped (load shed) ...
+RESUME_BELOW_S = 0.1  # ... until the oldest input waiting is younger than this
+KEEPING_UP = 0.5  # the watchdog is fed only while samples are handled at no less than this fraction of real time
+
 
 @dataclass
 class DaemonState:
@@ -56,6 +73,8 @@ class DaemonState:
     samples_window: int = 0
     sumsq: np.ndarray | None = None
     last_index: int = 0
+    overloaded: int = 0  # samples decoded whose analysis was skipped (load shed)
+    shedding: bool = False
 
 
 class Daemon:
@@ -99,6 +118,7 @@ class Daemon:
         self.clock = ClockMap(s.fs)  # sample index -> host time
         self._raw_next: int | None = None  # next index of the samples topic
         self._reader: asyncio.Task[None] | None = None
+        self._turned = time.monotonic()  # when the loop last turned (work is bounded between turns)
         self.control = control_socket(config, self.publisher.context) if config.control.endpoint else None
 
     @property
@@ -133,7 +153,8 @@ class Daemon:
                 self._reader = tg.create_task(self._read(), name="reader")
                 status = tg.create_task(self._status(), name="status")
                 stopped = tg.create_task(self.stop_event.wait(), name="stop")
-                tasks = [self._reader, status, stopped]
+                limit = tg.create_task(self.publisher.limit_connections(), name="connections")
+                tasks = [self._reader, status, stopped, limit]
                 if self.control is not None:
                     tasks.append(tg.create_task(self._serve_control(), name="control"))
                 await asyncio.wait([self._reader, stopped], return_when=asyncio.FIRST_COMPLETED)
@@ -228,27 +249,65 @@ class Daemon:
         log.log(logging.INFO if state == CONNECTED else logging.WARNING, "%s: %s (%s)", self.config.sensor.port, state, detail)
 
     async def _on_bytes(self, data: bytes) -> None:
-        """Bytes read from the port: decode, and run the pipeline when a batch is complete."""
-        batches = self.stream.decode(data)
-        end = self.decoder.next_index
-        if end is not None and self.source is not None:
-            self.clock.observe(end, self.source.arrival)  # every sample decoded so far had arrived by then
-        if batches:
-            await self._process(batches)
+        """Bytes read from the port: decode them a slice at a time, and run the pipeline on each batch they complete,
+        turning the loop whenever :data:`TURN_S` of work has passed."""
+        self._turned = time.monotonic()  # the source yields before each item
+        view = memoryview(data)
+        for lo in range(0, len(view), SLICE_BYTES):
+            batches = self.stream.decode(view[lo:lo + SLICE_BYTES])
+            end = self.decoder.next_index
+            if end is not None and self.source is not None:
+                self.clock.observe(end, self.source.arrival)  # every sample decoded so far had arrived by then
+            if batches:
+                await self._process(batches)
+            await self._turn()
+
+    async def _turn(self) -> None:
+        """Let the loop turn (status, watchdog, signals) if :data:`TURN_S` of work has passed since it last did."""
+        if time.monotonic() - self._turned >= TURN_S:
+            await asyncio.sleep(0)  # a turn of the loop, not synchronisation
+            self._turned = time.monotonic()
+
+    def _shed_now(self) -> bool:
+        """Whether to skip analysis now: starts when input has waited over :data:`SHED_AFTER_S` (slides in progress end
+        there, their labels marked overloaded), stops once it waits less than :data:`RESUME_BELOW_S`."""
+        behind = self.source.behind if self.source is not None else 0.0
+        st = self.state
+        if st.shedding and behind < RESUME_BELOW_S:
+            st.shedding = False
+            log.warning("caught up (input %.2f s behind): analysing again from sample %d; %d samples not analysed so far",
+                        behind, st.last_index, st.overloaded)
+        elif not st.shedding and behind > SHED_AFTER_S:
+            st.shedding = True
+            log.warning("overloaded: input %.2f s behind; skipping analysis until the backlog drains (samples are still decoded, "
+                        "recorded and published)", behind)
+            step = self.stream.shed()
+            now = time.perf_counter()
+            self._publish(step.events, now, overloaded=True)
+            self._publish_shadow(step.shadow, now, overloaded=True)
+        return st.shedding
 
     async def _process(self, batches: list[Batch]) -> None:
+        """Decoded batches: recorded, published on the samples topic, then through the pipeline one at a time (analysis
+        off the loop) unless the daemon is shedding load."""
         if not batches:
             return
         self._take(batches)
         detected_at = time.perf_counter()
         if self.config.publish.samples:
             self._publish_samples(batches)
-        if self.stream.will_analyse(batches[-1].end) or any(b.restart for b in batches):
-            step = await asyncio.to_thread(self.stream.process, batches)  # feature extraction: off the event loop
-        else:  # detection only: cheaper than a thread hop
-            step = self.stream.process(batches)
-        self._publish(step.events, detected_at)
-        self._publish_shadow(step.shadow, detected_at)
+        for b in batches:
+            if self._shed_now():
+                self.state.overloaded += b.samples.shape[0]
+                continue
+            if self.stream.will_analyse(b.end) or b.restart:
+                step = await asyncio.to_thread(self.stream.process, [b])  # feature extraction: off the event loop
+                self._turned = time.monotonic()
+            else:  # detection only: cheaper than a thread hop
+                step = self.stream.process([b])
+            self._publish(step.events, detected_at)
+            self._publish_shadow(step.shadow, detected_at)
+            await self._turn()
 
     def _take(self, batches: list[Batch]) -> None:
         """Decoded batches into the recorder and the status's film levels."""
@@ -261,16 +320,16 @@ class Daemon:
             st.samples_window += b.samples.shape[0]
             st.last_index = b.end
 
-    def _publish(self, events: list[PipelineEvent], detected_at: float) -> None:
+    def _publish(self, events: list[PipelineEvent], detected_at: float, overloaded: bool = False) -> None:
         sensor = self.config.sensor
         to_host = self.clock.host if self.clock.ready else None
         for ev in events:  # a result names the model that made it (a reloaded one takes over between slides)
             model = ev.model if isinstance(ev, SlideResult) and ev.model else self.fingerprint
-            self.publisher.publish_event(sensor.id, ev, sensor.fs, model, detected_at, to_host)
+            self.publisher.publish_event(sensor.id, ev, sensor.fs, model, detected_at, to_host, overloaded=overloaded)
             if self.shadow_stats is not None and isinstance(ev, SlideResult):
                 self.shadow_stats.add_live(ev)
 
-    def _publish_shadow(self, events: list[PipelineEvent], detected_at: float) -> None:
+    def _publish_shadow(self, events: list[PipelineEvent], detected_at: float, overloaded: bool = False) -> None:
         """The shadow model's results on ``shadow/<id>`` (its slide events are the live ones': not sent again)."""
         if self.shadow_stats is None:
             return
@@ -280,7 +339,8 @@ class Daemon:
             if isinstance(ev, SlideResult):
                 self.shadow_stats.add_shadow(ev)
                 self.publisher.publish(schema.shadow(sensor.id, ev, fs=sensor.fs, model=ev.model or self.shadow_stats.model, version=__version__,
-                                                     latency_ms=(time.perf_counter() - detected_at) * 1e3, to_host=to_host))
+                                                     latency_ms=(time.perf_counter() - detected_at) * 1e3, to_host=to_host,
+                                                     overloaded=overloaded))
 
     def _publish_samples(self, batches: list[Batch]) -> None:
         """The batch's raw samples on ``samples/<id>``: every index from the last batch's end on, lost ones as zero rows."""
@@ -329,7 +389,9 @@ class Daemon:
                              dropped_messages=self.publisher.dropped, channel_errors=stats.channel_errors, duplicate_frames=stats.duplicates,
                              clock_index=clock_index,
                              clock_mono=clock_mono, clock_unix=clock_unix, fs_clock=round(self.clock.fs, 3),
-                             shadow=self.shadow_stats.summary() if self.shadow_stats is not None else None)
+                             shadow=self.shadow_stats.summary() if self.shadow_stats is not None else None,
+                             overloaded=st.overloaded, behind_s=round(self.source.behind, 3) if self.source else 0.0,
+                             input_shed_bytes=self.source.shed_bytes if self.source else 0)
 
     def reader_alive(self, now: float) -> bool:
         """The reader task runs and its loop ticked recently (reading, or waiting for the device)."""
@@ -337,9 +399,16 @@ class Daemon:
             return False
         return now - self.source.alive_at <= max(5.0, 2 * self.config.serial.retry_max_s)
 
+    def keeping_up(self, interval: float, handled: int) -> bool:
+        """True if nothing has waited longer than :data:`SHED_AFTER_S`, or ``handled`` samples in ``interval`` s are at least
+        :data:`KEEPING_UP` of real time (what the watchdog asks, besides a live reader)."""
+        behind = self.source.behind if self.source is not None else 0.0
+        return behind <= SHED_AFTER_S or handled >= KEEPING_UP * self.config.sensor.fs * interval
+
     async def _status(self) -> None:
         interval = self.config.publish.status_interval_s
         last = time.monotonic()
+        handled = self.stream.stats.samples
         watchdog = "WATCHDOG_USEC" in os.environ
         while True:
             await asyncio.sleep(interval)  # the status period itself, not synchronisation
@@ -347,6 +416,8 @@ class Daemon:
             self.publisher.publish(self._status_message(now - last))
             self.state.samples_window = 0
             self.state.sumsq = None
-            last = now
-            if watchdog and self.reader_alive(now):  # a dead reader starves the watchdog: systemd restarts the daemon
+            # a dead reader, or input the daemon cannot keep up with, starves the watchdog: systemd restarts the daemon
+            samples = self.stream.stats.samples
+            if watchdog and self.reader_alive(now) and self.keeping_up(now - last, samples - handled):
                 sd_notify("WATCHDOG=1")
+            last, handled = now, samples

@@ -7,11 +7,15 @@ every subscriber count what it missed.
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import socket
 import time
 from pathlib import Path
 from typing import Any, TypeVar
 
 import zmq
+import zmq.asyncio
 from tactiled_client import schema
 
 from tactiled import __version__
@@ -20,12 +24,15 @@ from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideSt
 from tactiled.errors import ConfigError, OutputError
 from tactiled.files.outputs import check_folder, check_output
 
+log = logging.getLogger(__name__)
 M = TypeVar("M", bound=schema.Message)
 # a subscription is one inbound message: a flag byte and a topic prefix (the longest topic: "roughness/" and a
-# 64-character sensor id, 75 bytes). Each distinct subscription costs the publisher memory, growing with its length
-# (about 12 kB for a 4 000-byte one), so a peer sending a message longer than this is disconnected. The cap leaves
-# room for the CURVE handshake's commands (HELLO 200 bytes, INITIATE about 300 with its metadata).
-MAX_INBOUND_BYTES = 1024
+# 64-character sensor id, 75 bytes). Each distinct subscription costs the publisher memory, growing with its length, and
+# glibc keeps most of it after the peer leaves, so a peer sending a message longer than this is disconnected. The cap
+# leaves room for the CURVE handshake's commands (HELLO 200 bytes, INITIATE about 300 with its metadata; 128 cut it).
+# Measured (bench/bench_subscriptions.py): 10 000 distinct 370-byte subscriptions from one peer add 20 MB (16 MB kept
+# after it leaves); at 1 024 they added 51 MB (45 MB kept); 1 000-byte ones now drop the peer and add nothing.
+MAX_INBOUND_BYTES = 384
 
 
 class Publisher:
@@ -52,6 +59,43 @@ class Publisher:
         self._seq: dict[str, int] = {}
         self.sent = 0
         self.dropped = 0
+        self.max_connections = config.max_connections
+        self.connections: set[int] = set()  # the file descriptors of the subscriber connections accepted and not yet closed
+        self.refused = 0  # connections over max_connections, disconnected at once
+
+    async def limit_connections(self) -> None:
+        """Until cancelled: keep at most ``max_connections`` subscriber connections, shutting down each one accepted beyond
+        that (ZeroMQ then drops it like any peer that went away), so silent peers cannot take every file descriptor."""
+        addr = f"inproc://tactiled-publisher-monitor-{id(self)}"
+        self.socket.monitor(addr, zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_CLOSED)
+        events = zmq.asyncio.Context.shadow(self.context.underlying).socket(zmq.PAIR)
+        events.connect(addr)
+        try:
+            while True:
+                frames = await events.recv_multipart()
+                event, fd = int.from_bytes(frames[0][:2], "little"), int.from_bytes(frames[0][2:6], "little")
+                if event == zmq.EVENT_ACCEPTED:
+                    if len(self.connections) >= self.max_connections:
+                        self._refuse(fd)
+                    else:
+                        self.connections.add(fd)
+                else:
+                    self.connections.discard(fd)
+        finally:
+            with contextlib.suppress(zmq.ZMQError):
+                self.socket.disable_monitor()
+            events.close(0)
+
+    def _refuse(self, fd: int) -> None:
+        """Shut down the connection on ``fd`` (libzmq sees it end and closes it)."""
+        self.refused += 1
+        if self.refused in (1, 10, 100) or self.refused % 1000 == 0:
+            log.warning("publish: %d connection(s) refused over publish.max_connections = %d", self.refused, self.max_connections)
+        with contextlib.suppress(OSError), socket.socket(fileno=fd) as conn:
+            try:
+                conn.shutdown(socket.SHUT_RDWR)
+            finally:
+                conn.detach()  # the descriptor stays libzmq's: it closes it
 
     def _curve(self, config: PublishConfig) -> None:
         """CURVE: encrypt, and admit only subscribers whose public certificate is in the authorised folder."""
@@ -105,15 +149,17 @@ class Publisher:
             self.authenticator.stop()
 
     def publish_event(self, sensor: str, ev: PipelineEvent, fs: float, model: str, detected_at: float | None = None,
-                      to_host: schema.HostTime | None = None) -> None:
-        """Publish one pipeline event; ``detected_at`` (perf_counter) is when its block was handed in; ``to_host`` maps indices to host times."""
+                      to_host: schema.HostTime | None = None, overloaded: bool = False) -> None:
+        """Publish one pipeline event; ``detected_at`` (perf_counter) is when its block was handed in; ``to_host`` maps indices to host
+        times; ``overloaded``: a result of a slide whose analysis was cut short by load shedding."""
         if isinstance(ev, SlideStarted):
             self.publish(schema.slide_start(sensor, ev.slide_id, ev.start, fs, to_host))
         elif isinstance(ev, SlideEnded):
             self.publish(schema.slide_end(sensor, ev.slide_id, ev.start, ev.stop, ev.reason, fs, to_host))
         elif isinstance(ev, SlideResult):
             latency = 0.0 if detected_at is None else (time.perf_counter() - detected_at) * 1e3
-            self.publish(schema.roughness(sensor, ev, fs=fs, model=model, version=__version__, latency_ms=latency, to_host=to_host))
+            self.publish(schema.roughness(sensor, ev, fs=fs, model=model, version=__version__, latency_ms=latency, to_host=to_host,
+                                             overloaded=overloaded))
 
 
 def create_curve_pair(folder: str | Path, name: str, force: bool = False) -> tuple[Path, Path]:
