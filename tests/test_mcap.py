@@ -111,10 +111,34 @@ def test_export_never_replaces_its_input_nor_a_file_unasked(tmp_path: Path) -> N
     assert run_cli("export", str(src), "-o", str(tmp_path / "x.mcap"), "--force").returncode == 0
 
 
-def test_replay_of_an_mcap_file_says_what_to_use_instead(tmp_path: Path) -> None:
-    from tests.conftest import REPO
+def test_replay_of_an_mcap_file_that_is_not_tactileds_is_one_line(tmp_path: Path) -> None:
+    (tmp_path / "junk.mcap").write_bytes(b"\x89MCAP0\r\n" + b"not records")
+    res = run_cli("replay", str(tmp_path / "junk.mcap"))
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1 and "junk.mcap: not a readable MCAP file" in res.stderr, res.stderr
 
-    assert run_cli("export", str(REPO / "tests" / "hostile" / "rec-good.npz"), "-o", str(tmp_path / "r.mcap")).returncode == 0
-    res = run_cli("replay", str(tmp_path / "r.mcap"))
-    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1
-    assert "an MCAP file" in res.stderr and "python -m tactiled_client replay" in res.stderr
+
+def test_replay_of_the_exported_mcap_gives_the_npz_replays_labels(tmp_path: Path) -> None:
+    """tactiled replay rec.mcap: the recording read back (counts, lost rows, truth, label, meta), labelled as the .npz is."""
+    from dataclasses import replace as dc_replace
+
+    from tactiled.config import Config
+    from tactiled.files.formats import open_recording
+    from tactiled.learn.model import load_model
+    from tactiled.run.replay import replay_recording
+
+    rec = dc_replace(lossy_recording(123_456), label="Ra1.00", meta={"note": "kept"})
+    save_recording(tmp_path / "r.npz", rec)
+    assert run_cli("export", str(tmp_path / "r.npz"), "-o", str(tmp_path / "r.mcap"), "--batch", "500").returncode == 0
+    back, npz = open_recording(tmp_path / "r.mcap"), load_recording(tmp_path / "r.npz")
+    assert isinstance(back, Recording)
+    assert back.samples.dtype == npz.samples.dtype and np.array_equal(back.samples[npz.valid_mask()], npz.samples[npz.valid_mask()])
+    assert np.array_equal(back.valid_mask(), npz.valid_mask()) and back.slides() == npz.slides() and back.first_index == npz.first_index
+    assert (back.fs, back.volts_per_count, back.label, back.meta["note"]) == (npz.fs, npz.volts_per_count, "Ra1.00", "kept")
+    model = load_model()
+    ours, theirs = replay_recording(npz, Config(), model), replay_recording(back, Config(), model)
+    fields = ("slide_id", "start", "stop", "window", "label", "reason", "confidence", "top", "final", "novelty")
+    assert ours and [[getattr(r, f) for f in fields] for r in ours] == [[getattr(r, f) for f in fields] for r in theirs]
+    ros = run_cli("export", str(tmp_path / "r.npz"), "-o", str(tmp_path / "ros.mcap"), "--profile", "ros2")
+    assert ros.returncode == 0, ros.stderr
+    refused = run_cli("replay", str(tmp_path / "ros.mcap"))
+    assert refused.returncode == 2 and "a ROS 2 bag" in refused.stderr and len(refused.stderr.strip().splitlines()) == 1, refused.stderr

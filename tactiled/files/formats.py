@@ -2,8 +2,8 @@
 
 - ``.bin``: a raw capture (the bytes as read from a port): :class:`~tactiled.files.capture.Capture`, decoded later
   with a config's sensor settings; a regular file of at most :data:`~tactiled.files.recording.MAX_RECORDING_BYTES`;
-- ``.mcap``: a tactiled MCAP file (``tactiled export``, ``record --format mcap``) is not read here: its labels replay
-  with the client library (``python -m tactiled_client replay``);
+- ``.mcap``: a tactiled MCAP file (``tactiled export``, ``record --format mcap``; JSON profile) read back as the
+  recording it holds (:func:`~tactiled.files.mcap_read.load_mcap_recording`; the ``mcap`` extra);
 - anything else: an ``.npz`` recording (docs/recordings.md), checked as it loads.
 """
 
@@ -28,6 +28,7 @@ def open_recording(path: str | Path) -> Recording | Capture:
             raise RecordingError(f"{p}: {problem}")
         return Capture(p)
     if suffix == ".mcap":
-        raise RecordingError(f"{p}: an MCAP file: replay reads .npz recordings and .bin captures "
-                             f"(the MCAP's labels replay with python -m tactiled_client replay {p})")
+        from tactiled.files.mcap_read import load_mcap_recording
+
+        return load_mcap_recording(p)
     return load_recording(p)

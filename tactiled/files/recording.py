@@ -111,7 +111,7 @@ def load_recording(path: str | Path) -> Recording:
         arrays = read_npz(path, KEYS, MAX_RECORDING_BYTES)
     except NpzError as exc:
         raise RecordingError(f"{path}: {exc.key}: {exc}" if exc.key else f"{path}: {exc}") from None
-    return _validate(path, arrays)
+    return validate_arrays(path, arrays)
 
 
 def _scalar(path: object, arrays: dict[str, Any], key: str, kind: str) -> Any:
@@ -127,7 +127,8 @@ def _scalar(path: object, arrays: dict[str, Any], key: str, kind: str) -> Any:
     return arr.item()
 
 
-def _validate(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
+def validate_arrays(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
+    """The recording the arrays ``a`` (the keys of docs/recordings.md) make, checked; :class:`RecordingError` names ``path`` and key."""
     for key in ("samples", "fs"):
         if key not in a:
             raise _fail(path, key, "missing (required)")

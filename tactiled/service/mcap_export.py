@@ -139,7 +139,8 @@ def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", 
         writer.start(profile="", library=f"tactiled {__version__}")
         writer.add_metadata("tactiled.recording", {
             "sensor": sensor, "label": rec.label or "", "fs": repr(rec.fs), "channels": str(channels), "volts_per_count": repr(rec.volts_per_count),
-            "first_index": str(rec.first_index), "model": model, "log_time_origin": origin_kind, "log_time_origin_unix": repr(origin),
+            "first_index": str(rec.first_index), "samples_dtype": str(rec.samples.dtype), "model": model,
+            "log_time_origin": origin_kind, "log_time_origin_unix": repr(origin),
             "meta": json.dumps(rec.meta, default=str)})
         film = [f"film{k + 1}" for k in range(channels)]
         example: dict[str, Any] = {"index": 0, "n": 0, "fs": 0.0, "volts_per_count": 0.0, "lost": [], **{f: [] for f in film}}

@@ -1,0 +1,86 @@
+"""A tactiled MCAP file (``tactiled export``, ``record --format mcap``; JSON profile) read back as a :class:`Recording`.
+
+The samples channel gives the rows (volts; lost rows marked in each message's ``lost``), the slides channel the ground
+truth, the ``tactiled.recording`` metadata record the rate, scale, label, first index, meta and the samples' dtype
+(integer counts come back as the same counts). The arrays then go through the same validation as an ``.npz``
+recording, so ``tactiled replay rec.mcap`` labels the slides exactly as ``tactiled replay rec.npz`` does. A ROS 2
+bag (``export --profile ros2``) is refused in one line: its samples are float32.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tactiled.errors import RecordingError
+from tactiled.extras import need
+from tactiled.files.recording import MAX_RECORDING_BYTES, Recording, validate_arrays
+from tactiled.readable import file_problem
+
+
+def load_mcap_recording(path: str | Path) -> Recording:
+    """The recording an MCAP file written by tactiled's JSON export holds; :class:`RecordingError` names file and problem."""
+    p = Path(path)
+    problem = file_problem(p, MAX_RECORDING_BYTES)
+    if problem is not None:
+        raise RecordingError(f"{p}: {problem}")
+    make_reader = need("mcap.reader", "mcap").make_reader
+    try:
+        with open(p, "rb") as fh:
+            reader = make_reader(fh)
+            header = reader.get_header()
+            if header.profile == "ros2":
+                raise RecordingError(f"{p}: a ROS 2 bag (export --profile ros2, float32 samples); replay reads the JSON export")
+            info = next((m.metadata for m in reader.iter_metadata() if m.name == "tactiled.recording"), None)
+            if info is None:
+                raise RecordingError(f"{p}: not a tactiled MCAP file (no tactiled.recording metadata)")
+            fh.seek(0)
+            rows, lost, slides = _messages(make_reader(fh), int(info.get("first_index", "0")))
+    except RecordingError:
+        raise
+    except Exception as exc:  # the mcap reader's own errors (bad magic, truncated records) and malformed JSON
+        raise RecordingError(f"{p}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
+    if not rows:
+        raise RecordingError(f"{p}: samples: no samples channel")
+    volts = np.concatenate(rows)
+    vpc = float(info.get("volts_per_count", "1.0"))
+    dtype = np.dtype(info.get("samples_dtype", "float64"))
+    samples = np.rint(volts / vpc).astype(dtype) if dtype.kind in "iu" else volts
+    arrays: dict[str, Any] = {"samples": samples, "fs": np.float64(float(info["fs"])), "volts_per_count": np.float64(vpc if dtype.kind in "iu" else 1.0),
+                              "first_index": np.int64(int(info.get("first_index", "0"))),
+                              "lost": np.asarray(lost, dtype=np.int64).reshape(-1, 2), "meta": np.str_(info.get("meta", "{}"))}
+    if info.get("label"):
+        arrays["label"] = np.str_(info["label"])
+    if slides:
+        arrays["slide_start"] = np.array([s[0] for s in slides], dtype=np.int64)
+        arrays["slide_stop"] = np.array([s[1] for s in slides], dtype=np.int64)
+        if any(s[2] is not None for s in slides):
+            arrays["surface"] = np.array([s[2] or "" for s in slides], dtype=np.str_)
+        if all(s[3] is not None for s in slides):
+            arrays["ra_um"] = np.array([s[3] for s in slides], dtype=np.float64)
+    return validate_arrays(p, arrays)
+
+
+def _messages(reader: Any, first: int) -> tuple[list[np.ndarray], list[list[int]], list[tuple[int, int, str | None, float | None]]]:
+    """(sample blocks (n, C) in volts, lost [position, count] in the file, true slides (start, stop, surface, Ra)) of an MCAP reader."""
+    rows: list[np.ndarray] = []
+    lost: list[list[int]] = []
+    slides: list[tuple[int, int, str | None, float | None]] = []
+    at = 0
+    for _schema, channel, message in reader.iter_messages(log_time_order=False):
+        body = json.loads(message.data)
+        if channel.topic.endswith("/samples"):
+            films = sorted((k for k in body if k.startswith("film")), key=lambda k: int(k[4:]))
+            block = np.column_stack([np.asarray(body[k], dtype=np.float64) for k in films]).reshape(int(body["n"]), len(films))
+            lo = int(body["index"]) - first
+            if lo != at:
+                raise RecordingError(f"samples: a message at row {lo} where row {at} was due")
+            lost += [[lo + int(q), int(c)] for q, c in body["lost"]]
+            rows.append(block)
+            at += block.shape[0]
+        elif channel.topic.endswith("/slides"):
+            slides.append((int(body["start"]) - first, int(body["stop"]) - first, body.get("surface"), body.get("ra_um")))
+    return rows, lost, slides
