@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tactiled.cli.clidoc import REGENERATE, cli_markdown
+from tactiled.cli.clidoc import REGENERATE, reference
 from tactiled.cli.main import build_parser, main, subcommands
 from tactiled.errors import TactiledError
 from tactiled.learn.model import load_model
@@ -65,7 +65,7 @@ def test_every_option_that_takes_a_value_says_its_default() -> None:
 
 
 def test_docs_cli_md_is_generated_from_the_parser() -> None:
-    wanted = cli_markdown(build_parser())
+    wanted = reference()
     have = (REPO / "docs" / "cli.md").read_text(encoding="utf-8")
     assert have == wanted, f"docs/cli.md is out of date: regenerate it with `{REGENERATE}`"
 

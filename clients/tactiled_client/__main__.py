@@ -25,7 +25,8 @@ from tactiled_client.errors import ClientError
 from tactiled_client.log import check_body
 
 
-def _parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``python -m tactiled_client`` (record, replay, control); docs/cli.md shows its help."""
     ap = argparse.ArgumentParser(prog="python -m tactiled_client", description="record and replay tactiled sessions (docs/messages.md)")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
     p = sub.add_parser("record", help="record what a daemon publishes to a session log")
@@ -67,7 +68,7 @@ def _jsonable(v: Any) -> Any:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """The command; returns the exit status."""
-    args = _parser().parse_args(argv)
+    args = build_parser().parse_args(argv)
     stopping = False
 
     def stop(signum: int, frame: object) -> None:

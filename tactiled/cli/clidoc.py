@@ -43,9 +43,22 @@ def cli_markdown(parser: argparse.ArgumentParser, width: int = WIDTH) -> str:
     return "\n".join(lines) + "\n"
 
 
+def reference(width: int = WIDTH) -> str:
+    """docs/cli.md: :func:`cli_markdown` of ``tactiled``, then the help of the client library's ``python -m tactiled_client``."""
+    from tactiled_client.__main__ import build_parser as client_parser
+
+    client = client_parser()
+    lines = ["", "# The client library's command line", "",
+             f"`{client.prog}` (installed with the client library alone: `pip install ./clients`) records and replays sessions",
+             "without the daemon and sends control requests to a running one.", ""]
+    for words, p in subcommands(client).items():
+        lines += ["", f"## {client.prog} {words}".rstrip(), "", "```", _help(p, width).rstrip(), "```"]
+    return cli_markdown(build_parser(), width) + "\n".join(lines) + "\n"
+
+
 def main() -> int:
     """Write docs/cli.md's text to stdout; exit code 0."""
-    sys.stdout.write(cli_markdown(build_parser()))
+    sys.stdout.write(reference())
     return 0
 
 
