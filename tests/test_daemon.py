@@ -211,6 +211,8 @@ def test_sighup_swaps_the_model_between_slides_and_refuses_a_bad_file(tmp_path: 
             wait_for(lambda: final_by(b), timeout=60, what="another label by the model that stayed")
             err = running_daemon.stop()
     assert proc.returncode == 0, err
+    summary = [line for line in err.splitlines() if "stopped after" in line]  # the one-line summary on SIGTERM
+    assert len(summary) == 1 and all(f" {word}" in summary[0] for word in ("samples,", "lost,", "slides,", "labels,")), err
     refused = [line for line in err.splitlines() if "reload refused" in line]
     assert len(refused) == 1 and str(live) in refused[0] and b in refused[0]
     ends = [m.slide_id for m in got if isinstance(m, Slide) and m.event == "end"]

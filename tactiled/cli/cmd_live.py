@@ -40,7 +40,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         daemon = Daemon(config, model, args.record, raw_to=args.raw, force=args.force, shadow=shadow,
                         model_path=str(choice.file) if model is not None and choice.file else None)  # what SIGHUP loads again
         print(f"tactiled: sensor {s.id} on {s.port}, publishing on {daemon.endpoint}", file=sys.stderr, flush=True)
-        await daemon.run()
+        try:
+            await daemon.run()
+        finally:
+            last = daemon.last_status
+            if last is not None:  # Ctrl-C, SIGTERM, or the end of the source: what the run did, in one line
+                print(f"tactiled: stopped after {last.uptime_s:.1f} s: {last.samples} samples, {last.samples_lost} lost, {last.slides} slides, "
+                      f"{last.labels} labels, {last.unknown} unknown surface", file=sys.stderr, flush=True)
 
     asyncio.run(main())
     return EXIT_OK

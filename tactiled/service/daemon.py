@@ -108,6 +108,7 @@ class Daemon:
         self.publisher = Publisher(config.publish)
         self.state = DaemonState()
         self.stop_event = asyncio.Event()
+        self.last_status: schema.Status | None = None  # the stopping status, once run() has ended
         self.source: ByteSource | None = None
         self.raw_to = raw_to
         self._source_factory = source_factory
@@ -162,7 +163,8 @@ class Daemon:
                     t.cancel()
         finally:
             sd_notify("STOPPING=1")
-            self.publisher.publish(self._status_message(stopping=True))
+            self.last_status = self._status_message(stopping=True)  # the CLI's one-line summary on the way out
+            self.publisher.publish(self.last_status)
             if self.control is not None:
                 self.control.close()
             self.publisher.close()
