@@ -43,6 +43,8 @@ def test_shipped_config_is_valid_and_matches_defaults() -> None:
         ("[window]\nstrt_s = 1\n", "window.strt_s: unknown key"),
         ("[features]\nstats = ['mean', 'median']\n", "features.stats: must be a non-empty subset"),
         ("[publish]\nendpoint = 'tcp://0.0.0.0:7350'\n", "publish.endpoint: binds a non-loopback address"),
+        ("[control]\nendpoint = 'tcp://0.0.0.0:7351'\n", "control.endpoint: must be empty, an ipc:// path or a tcp:// loopback address"),
+        ("[control]\nendpoint = 'tcp://10.1.2.3:7351'\n", "control.endpoint: must be empty, an ipc:// path or a tcp:// loopback"),
         ("[spikes\n", "not valid TOML"),
     ],
 )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -154,7 +155,7 @@ def test_curve_subscriber_without_the_key_receives_nothing(tmp_path: Path) -> No
     (allowed / "robot.key").write_bytes((keys / "robot.key").read_bytes())
     cfg = tmp_path / "c.toml"
     cfg.write_text(f'[publish]\nendpoint = "tcp://127.0.0.1:0"\ncurve_secret_key_file = "{keys / "daemon.key_secret"}"\n'
-                   f'curve_authorized_dir = "{allowed}"\nstatus_interval_s = 0.05\n')
+                   f'curve_authorized_dir = "{allowed}"\nstatus_interval_s = 0.05\n[control]\nendpoint = "ipc://{tmp_path}/control"\n')
     proc = subprocess.Popen(tactiled_cmd("run", "--config", str(cfg), "--port", str(tmp_path / "none"), "--no-model"),
                             stderr=subprocess.PIPE, text=True)
     try:
@@ -170,6 +171,14 @@ def test_curve_subscriber_without_the_key_receives_nothing(tmp_path: Path) -> No
         with BlockingSubscriber(endpoint, topics=["status"], timeout=2.0) as plain, pytest.raises(NoData):
             plain.receive()
         assert zmq.auth.load_certificate(str(keys / "daemon.key"))[1] is None  # the public file holds no secret
+
+        def control(*curve: str, timeout: str) -> subprocess.CompletedProcess[str]:
+            return subprocess.run([sys.executable, "-m", "tactiled_client", "control", f"ipc://{tmp_path}/control", "status", *curve,
+                                   "--timeout", timeout], capture_output=True, text=True, timeout=60)
+
+        assert control("--curve", str(keys / "daemon.key"), str(keys / "robot.key_secret"), timeout="10").returncode == 0
+        assert control("--curve", str(keys / "daemon.key"), str(keys / "stranger.key_secret"), timeout="2").returncode != 0  # the control
+        assert control(timeout="2").returncode != 0  # socket admits the subscriptions' certificates, no one else
     finally:
         proc.terminate()
         proc.wait(10)
