@@ -420,3 +420,59 @@ def test_record_drops_a_duplicated_frame_and_counts_it_in_meta(tmp_path: Path) -
     rec = load_recording(out)
     assert rec.lost.size == 0 and rec.meta["duplicate_frames"] == 1
     assert np.array_equal(rec.samples, np.concatenate([before, after]))
+
+
+@pytest.mark.parametrize("what", ["fifo", "file"])
+def test_the_sink_never_replaces_what_appeared_at_its_output(what: str, tmp_path: Path) -> None:
+    """At the end the output is checked again: a FIFO (or a device) there is never written, even with force; a file that
+    appeared is not replaced without force. The journal keeps the capture either way."""
+    out = tmp_path / "o.npz"
+    sink = RecordingSink(out, fs=20000.0, channels=2, volts_per_count=1e-4, force=what == "fifo")
+    for frame in _frames(np.ones((400, 2), dtype=np.int16), 0):
+        sink.add(frame)
+    if what == "fifo":
+        os.mkfifo(out)
+    else:
+        out.write_bytes(b"someone else's")
+    result = sink.finish()
+    assert result.error is not None and len(result.error.splitlines()) == 1
+    assert ("not a regular file" if what == "fifo" else "exists (--force overwrites it)") in result.error
+    assert sink.journal.exists() and read_journal(sink.journal).rows == 400
+    if what == "file":
+        assert out.read_bytes() == b"someone else's"
+
+
+def test_run_record_on_a_full_disk_exits_1(tmp_path: Path) -> None:
+    """``run --record`` on a disk that fills: the capture stops (one line), the daemon goes on publishing until SIGTERM, then
+    exits 1 (not 0), the journal kept for ``tactiled recover``."""
+    if shutil.which("unshare") is None or not _can_mount_tmpfs(tmp_path):
+        pytest.skip("needs unprivileged user and mount namespaces (unshare -rm) for a small tmpfs")
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    with running_board(tmp_path, seed=9) as board:
+        # a 100 kB disk: the header and about a second of samples; the daemon runs until the capture stopped, then SIGTERM
+        script = f'mount -t tmpfs -o size=100k tmpfs {disk} && exec "$@"'
+        with subprocess.Popen(["unshare", "-rm", "sh", "-c", script, "sh",
+                               *tactiled_cmd("run", "--no-model", "--port", board.link or "", "--publish", f"ipc://{tmp_path}/pub",
+                                             "--record", f"{disk}/r.npz")],
+                              stderr=subprocess.PIPE, text=True, cwd=REPO) as proc:
+            assert proc.stderr is not None
+            lines: list[str] = []
+
+            def stopped_line() -> bool:
+                line = proc.stderr.readline()  # blocks until the daemon writes a line (or exits: "")
+                if not line:
+                    raise AssertionError(f"run ended early: {''.join(lines)}")
+                lines.append(line)
+                return "No space left on device: capture stopped after" in line
+
+            try:
+                wait_for(stopped_line, timeout=60, what="the capture to stop on the full disk")
+                proc.send_signal(signal.SIGTERM)  # sh exec'd the daemon: the signal is its own
+                rest = proc.stderr.read()
+                proc.wait(30)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+    assert proc.returncode == 1, "".join(lines) + rest
+    assert "Traceback" not in "".join(lines) + rest

@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from tactiled.cli import common as c
-from tactiled.cli.common import EXIT_OK, Sub, command, config_of, say
+from tactiled.cli.common import EXIT_FAIL, EXIT_OK, Sub, command, config_of, say
 from tactiled.errors import TactiledError
 
 
@@ -36,7 +36,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
         check_port(s.port)
 
-    async def main() -> None:
+    async def main() -> int:
         daemon = Daemon(config, model, args.record, raw_to=args.raw, force=args.force, shadow=shadow,
                         model_path=str(choice.file) if model is not None and choice.file else None)  # what SIGHUP loads again
         print(f"tactiled: sensor {s.id} on {s.port}, publishing on {daemon.endpoint}", file=sys.stderr, flush=True)
@@ -47,9 +47,9 @@ def cmd_run(args: argparse.Namespace) -> int:
             if last is not None:  # Ctrl-C, SIGTERM, or the end of the source: what the run did, in one line
                 print(f"tactiled: stopped after {last.uptime_s:.1f} s: {last.samples} samples, {last.samples_lost} lost, {last.slides} slides, "
                       f"{last.labels} labels, {last.unknown} unknown surface", file=sys.stderr, flush=True)
+        return EXIT_OK if daemon.recording_error is None else EXIT_FAIL  # the recording failed (a full disk): logged, exit 1
 
-    asyncio.run(main())
-    return EXIT_OK
+    return asyncio.run(main())
 
 
 def cmd_monitor(args: argparse.Namespace) -> int:

@@ -112,10 +112,11 @@ class Daemon:
         self.source: ByteSource | None = None
         self.raw_to = raw_to
         self._source_factory = source_factory
-        self.recorder = RecordingSink(record_to, fs=s.fs, channels=s.channels, volts_per_count=s.volts_per_count, force=True,
+        self.recorder = RecordingSink(record_to, fs=s.fs, channels=s.channels, volts_per_count=s.volts_per_count, force=force,
                                       meta={"sensor": s.id, "port": s.port, "source": "tactiled run --record"},
                                       counters=lambda: link_counters(self.stream.stats, self.source),
                                       on_error=log.error) if record_to else None  # streams to record_to's journal (tactiled/files/journal.py)
+        self._recording_error: str | None = None
         self.clock = ClockMap(s.fs)  # sample index -> host time
         self._raw_next: int | None = None  # next index of the samples topic
         self._reader: asyncio.Task[None] | None = None
@@ -355,13 +356,21 @@ class Daemon:
                                                   to_host=to_host, fs_clock=round(self.clock.rate(b.index, b.index + n), 3)))
             self._raw_next = b.index + n
 
+    @property
+    def recording_error(self) -> str | None:
+        """The recording's failure in one line (a full disk while capturing, or the ``.npz`` not written at exit), or None:
+        ``tactiled run --record`` then exits 1."""
+        return self._recording_error or (self.recorder.error if self.recorder is not None else None)
+
     def _save_recording(self) -> None:
         assert self.recorder is not None
         result = self.recorder.finish()
         if result.error is None:
             log.info("%s: saved %d samples (%d lost)", self.recorder.out, result.samples, result.samples_lost)
-        elif not self.recorder.error:  # a failure while capturing was logged when it happened
-            log.error("%s", result.error)
+        else:
+            self._recording_error = result.error
+            if not self.recorder.error:  # a failure while capturing was logged when it happened
+                log.error("%s", result.error)
 
     def _status_message(self, interval: float = 0.0, stopping: bool = False) -> schema.Status:
         st, stats = self.state, self.stream.stats

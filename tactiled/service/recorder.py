@@ -82,6 +82,7 @@ class RecordingSink:
                  commit_s: float = COMMIT_S) -> None:
         check_output(out, force)
         self.out = Path(out)
+        self.force = force
         self.journal = claim_journal(out)
         self.channels = channels
         self.fs = fs
@@ -187,6 +188,9 @@ class RecordingSink:
     def finish(self, extra_meta: dict[str, Any] | None = None) -> SinkResult:
         """Commit what is queued, then write ``out`` from the journal and remove the journal.
 
+        ``out`` is checked again first (:func:`~tactiled.files.outputs.check_output`): a non-regular file is never written
+        or replaced, and a file that appeared since the start only with ``force``.
+
         ``extra_meta`` (default: the ``counters`` callable's final values) is merged into the recording's meta.
 
         On a write error (now or before) the journal is kept and :attr:`SinkResult.error` says how to recover it.
@@ -196,6 +200,11 @@ class RecordingSink:
         self._writer.close()
         if self.error is not None:
             return SinkResult(self._rows, self._lost, self.error)
+        try:
+            check_output(self.out, self.force)  # again: a file (or a device) may have appeared there since the start
+        except OutputError as exc:
+            return SinkResult(self._rows, self._lost, f"{exc}; the capture is kept in {self.journal}: "
+                                                      f"tactiled recover {self.journal} -o OUT.npz")
         try:
             recover(self.journal, self.out, self._counters() if extra_meta is None else extra_meta, allow_empty=True)
         except OSError as exc:
