@@ -23,10 +23,11 @@ def sd_notify(message: str) -> None:
     if path.startswith("@"):
         path = "\0" + path[1:]
     with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        sock.setblocking(False)  # never wait on the notify socket: a full queue must not stall the event loop
         try:
             sock.connect(path)
-            sock.sendall(message.encode())
-        except OSError as exc:
+            sock.send(message.encode())
+        except OSError as exc:  # BlockingIOError (the queue is full) among them: this notification is dropped
             log.warning("sd_notify failed: %s", exc)
 
 

