@@ -246,7 +246,7 @@ def test_training_on_a_local_dask_cluster(tmp_path: Path) -> None:
 
 
 def test_headless_demo_prints_labels_with_the_truth_and_stops() -> None:
-    res = run_cli("demo", "--headless", "--seconds", "15", "--scene", "robot", timeout=120)
+    res = run_cli("demo", "--headless", "--seconds", "10", "--scene", "robot", timeout=120)
     assert res.returncode == 0, res.stderr
     finals = [line for line in res.stdout.splitlines() if "final" in line]
     assert finals and all("true surface Ra" in line for line in finals)
