@@ -109,18 +109,25 @@ def usage_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
 
 
 @contextlib.contextmanager
+def in_thread(run: Callable[[threading.Event], Any]) -> Iterator[None]:
+    """``run(stop)`` in a thread of its own for the block; ``stop`` set and the thread joined when the block ends."""
+    stop = threading.Event()
+    thread = threading.Thread(target=run, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(10)
+
+
+@contextlib.contextmanager
 def running(board: VirtualBoard) -> Iterator[VirtualBoard]:
     """``board`` (opened if it was not) streaming from a thread of its own; stopped and joined when the block ends."""
     if not board.path:
         board.open()
-    stop = threading.Event()
-    thread = threading.Thread(target=board.run, args=(stop,), daemon=True)
-    thread.start()
-    try:
+    with in_thread(board.run):
         yield board
-    finally:
-        stop.set()
-        thread.join(10)
 
 
 @contextlib.contextmanager

@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import os
 import socket
-import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -20,7 +19,7 @@ from tactiled_client import BlockingSubscriber, Status
 
 from tactiled.board.frames import SYNC, VERSION, encode_frame
 from tactiled.sim.ptyplayer import PtyPlayer
-from tests.conftest import board_and_daemon, daemon_process, wait_for
+from tests.conftest import board_and_daemon, daemon_process, in_thread, wait_for
 
 HEADER_FLOOD_RATE = 1_000_000  # bytes/s of frame headers, each claiming a 16 kB frame (8 channels x 1 024 samples)
 GAP_FRAMES_RATE = 1_000  # one-sample frames/s, each 400 000 samples ahead of the last (a long walk for the slide detector)
@@ -43,14 +42,10 @@ def gap_frames() -> bytes:
 def flooding(stream: bytes, rate: float, link: str) -> Iterator[PtyPlayer]:
     """``stream`` written into a new pty behind ``link`` at ``rate`` bytes/s from a thread, until the block ends."""
     player = PtyPlayer([stream], rate, links=[link])
-    stop = threading.Event()
-    thread = threading.Thread(target=player.run, args=(stop,), daemon=True)
-    thread.start()
     try:
-        yield player
+        with in_thread(player.run):
+            yield player
     finally:
-        stop.set()
-        thread.join(10)
         player.close()
 
 
