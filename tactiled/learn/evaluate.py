@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +34,7 @@ from tactiled.core.analysis import AnalysisSettings
 from tactiled.core.features import FeaturePlan, classifier_inputs
 from tactiled.files.recording import Recording
 from tactiled.learn.cluster import hungarian_accuracy, kmeans, som_clusters
-from tactiled.learn.dataset import LabelledSlide, SlideCounts, WindowSet, collect_windows, find_slides
+from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, collect_windows, find_slides
 from tactiled.learn.model import decision_scores, fit_pipeline, softmax
 from tactiled.learn.score import calibration_scores
 from tactiled.learn.search import (
@@ -50,7 +50,6 @@ from tactiled.learn.search import (
     window_settings,
 )
 
-Progress = Callable[[str], None]
 Folds = list[tuple[Any, Any]]
 CLASSIFIERS: dict[str, tuple[str, dict[str, Any]]] = {
     "ELM": ("elm", {"n_hidden": 200, "alpha": 1e-6}),

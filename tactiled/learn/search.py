@@ -44,10 +44,9 @@ from tactiled.core.analysis import AnalysisSettings, window_settings
 from tactiled.core.features import name_family
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
-from tactiled.learn.dataset import LabelledSlide, SlideCounts, WindowSet, collect_windows, find_slides
+from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, collect_windows, find_slides
 from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature, knn_distance, softmax
 
-Progress = Callable[[str], None]
 FloatArray = npt.NDArray[np.float64]
 
 PARAMS: dict[str, dict[str, Any]] = {

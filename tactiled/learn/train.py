@@ -7,7 +7,7 @@ silently: the slides of every surface are counted first, and a surface with fewe
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -15,10 +15,9 @@ from typing import Any
 from tactiled.config import Config
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
-from tactiled.learn.dataset import LabelledSlide, SlideCounts, find_slides, load_recordings
+from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, find_slides, load_recordings
 from tactiled.learn.search import Candidate, SearchResult, paper, quick_candidates, search
 
-Progress = Callable[[str], None]
 METHODS = ("auto", "quick", "paper")
 GROUP_BY = ("file", "slide")
 

@@ -181,27 +181,14 @@ def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", 
 
 
 def read_mcap_samples(path: str | Path) -> tuple[np.ndarray, np.ndarray, int, float]:
-    """(volts (n, C), valid (n,), first index, fs) from the samples channel of an MCAP file written by :func:`export_mcap`."""
-    make_reader = need("mcap.reader", "mcap").make_reader
-    rows: list[np.ndarray] = []
-    valid: list[np.ndarray] = []
-    first, fs = 0, 0.0
-    with open(path, "rb") as fh:
-        for _schema, channel, message in make_reader(fh).iter_messages():
-            if not channel.topic.endswith("/samples"):
-                continue
-            body = json.loads(message.data)
-            if not rows:
-                first, fs = body["index"], body["fs"]
-            films = sorted((k for k in body if k.startswith("film")), key=lambda k: int(k[4:]))
-            rows.append(np.column_stack([body[k] for k in films]))
-            ok = np.ones(body["n"], dtype=bool)
-            for p, c in body["lost"]:
-                ok[p:p + c] = False
-            valid.append(ok)
-    if not rows:
-        raise TactiledError(f"{path}: no samples channel")
-    return np.concatenate(rows), np.concatenate(valid), first, fs
+    """(volts (n, C), valid (n,), first index, fs) of an MCAP file written by :func:`export_mcap` (lost rows zero)."""
+    from tactiled.files.mcap_read import load_mcap_recording
+
+    rec = load_mcap_recording(path)
+    valid = rec.valid_mask()
+    volts = rec.volts()
+    volts[~valid] = 0.0
+    return volts, valid, rec.first_index, rec.fs
 
 
 ROS2_BATCH = 500  # rows per PointCloud2 with --profile ros2 (25 ms at 20 kHz; the live bridge sends about 800)
