@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 import zmq
-from tactiled_client import BlockingSubscriber, NoData, Roughness, Status
+from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, Status
 
 
 def cpu_seconds(pid: int) -> float:
@@ -52,12 +52,16 @@ def rss_mb(pid: int) -> float:
 FS = 20_000
 
 
-def make_stream(seconds: float, seed: int = 11, corrupt: float = 0.0, drop: float = 0.0, garbage: float = 0.0) -> bytes:
-    """``seconds`` of the simulator's hand scene (slides over random surfaces) as the board's frames, faults injected per frame."""
+def make_stream(seconds: float, seed: int = 11, corrupt: float = 0.0, drop: float = 0.0, garbage: float = 0.0, scene: str = "hand") -> bytes:
+    """``seconds`` of a simulator scene (slides over random surfaces; 2 channels at 20 kHz) as the board's frames, faults injected per frame."""
     from tactiled.board.frames import encode_frame
-    from tactiled.sim.physics import SensorSimulator, SimParams, default_surfaces
+    from tactiled.sim.physics import SensorSimulator, default_surfaces
+    from tactiled.sim.simulate import scene_for
 
-    model = SensorSimulator(SimParams(), seed=seed)
+    _, params = scene_for(scene)
+    if params.fs != FS or params.channels != 2:
+        raise SystemExit(f"--scene {scene}: the player streams 2 channels at 20 kHz (the daemon's default sensor)")
+    model = SensorSimulator(params, seed=seed)
     rng = np.random.default_rng(seed)
     n = round(seconds * FS)
     parts = []
@@ -94,6 +98,7 @@ def main() -> None:
     ap.add_argument("--config", help="the daemon's config file (e.g. serial.read_interval_s, serial.batch_s)")
     ap.add_argument("--profile", help="write the daemon's cProfile stats here")
     ap.add_argument("--board", choices=("player", "sim"), default="player")
+    ap.add_argument("--scene", default="hand", help="the player's simulator scene (2 channels at 20 kHz: hand, robot, fluctuating, hot-gain, grating)")
     args = ap.parse_args()
     tmp = tempfile.mkdtemp(prefix="tactiled-bench-")
     link, endpoint, log = f"{tmp}/tty", f"ipc://{tmp}/pub", f"{tmp}/board.jsonl"
@@ -106,7 +111,7 @@ def main() -> None:
     else:
         stream = f"{tmp}/stream.bin"
         with open(stream, "wb") as fh:
-            fh.write(make_stream(args.seconds + 10, corrupt=args.corrupt, drop=args.drop, garbage=args.garbage))
+            fh.write(make_stream(args.seconds + 10, corrupt=args.corrupt, drop=args.drop, garbage=args.garbage, scene=args.scene))
         board = subprocess.Popen([sys.executable, os.path.join(os.path.dirname(__file__), "bench_load.py"), "--play", link, "--stream", stream],
                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert board.stdout is not None
@@ -118,8 +123,8 @@ def main() -> None:
     if args.profile:
         run = [sys.executable, "-m", "cProfile", "-o", args.profile, "-m", "tactiled", *run[3:]]
     daemon = subprocess.Popen(run, stderr=open(f"{tmp}/daemon.log", "w"))  # noqa: SIM115
-    latencies: list[float] = []
-    sensor_latencies: list[float] = []
+    standing: dict[int, tuple[float, float | None]] = {}  # slide id -> (daemon latency, sensor-side latency) of its last final label
+    withdrawn = [0]
     statuses: list[Status] = []
     labels = [0] * args.subscribers
     missed = [0] * args.subscribers
@@ -136,9 +141,10 @@ def main() -> None:
                 if isinstance(msg, Roughness):
                     labels[k] += 1
                     if k == 0 and msg.final:
-                        latencies.append(msg.latency_ms)
-                        if msg.stop_mono is not None:
-                            sensor_latencies.append((time.monotonic() - msg.stop_mono) * 1e3 + 1e3 / 20_000)
+                        sensor = None if msg.stop_mono is None else (time.monotonic() - msg.stop_mono) * 1e3 + 1e3 / 20_000
+                        standing[msg.slide_id] = (msg.latency_ms, sensor)
+                elif isinstance(msg, Slide) and k == 0 and msg.event == "resumed":  # that final label was withdrawn: the slide went on
+                    withdrawn[0] += standing.pop(msg.slide_id, None) is not None
                 elif isinstance(msg, Status) and k == 0:
                     statuses.append(msg)
 
@@ -147,6 +153,7 @@ def main() -> None:
         t.start()
     time.sleep(3.0)  # let the daemon start and import before measuring: benchmark warm-up, not synchronisation
     c0, t0 = cpu_seconds(daemon.pid), time.monotonic()
+    lost0 = statuses[-1].samples_lost if statuses else 0  # before: bytes the player wrote before the daemon opened the port
     load0 = round(os.getloadavg()[0], 2)
     rss = []
     while time.monotonic() - t0 < args.seconds:
@@ -162,7 +169,8 @@ def main() -> None:
     board.wait(10)
     lazy.close(linger=0)
     last = statuses[-1] if statuses else None
-    lat = np.array(latencies)
+    lat = np.array([d for d, _ in standing.values()])
+    sensor_latencies = [s for _, s in standing.values() if s is not None]
     accounting = None
     if last is not None and args.board == "sim":
         # reconcile: samples the daemon counted lost against what the board says it did not deliver intact
@@ -183,6 +191,8 @@ def main() -> None:
         "latency_ms_p99": round(float(np.percentile(lat, 99)), 3) if lat.size else None,
         "latency_ms_max": round(float(lat.max()), 3) if lat.size else None,
         "sensor_latency_ms_p50_p99_max": [round(float(np.percentile(sensor_latencies, q)), 1) for q in (50, 99, 100)] if sensor_latencies else None,
+        "samples_lost_while_measured": None if last is None else last.samples_lost - lost0,
+        "final_labels_standing": len(standing), "final_labels_withdrawn": withdrawn[0], "scene": args.scene,
         "config": args.config, "board": args.board, "load_avg_1min_start_end": [load0, round(os.getloadavg()[0], 2)],
         "rss_mb": rss, "rss_mb_first_last_max": [rss[0][1], rss[-1][1], max(r for _, r in rss)] if rss else None,
         "daemon_exit": daemon.returncode, "stop_s": round(stop_s, 3), "loss_accounting": accounting,

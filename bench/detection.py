@@ -1,4 +1,5 @@
-"""Detection on simulated scenes: recall, precision and boundary errors of the daemon's detector.
+"""Detection on simulated scenes: recall, precision and boundary errors of the daemon's detector, and how often an
+early end (after ``detector.end_hold_s`` of quiet: the final label is published then) was withdrawn because the slide went on.
 
 Usage: python bench/detection.py [--scenes hand,robot,...] [--files-per-surface 2] [--slides-per-file 3] [--out DIR] [--reuse]
 Prints one row per scene (markdown). Recordings are simulated into --out (a temporary folder by default);
@@ -14,11 +15,20 @@ from pathlib import Path
 import numpy as np
 
 from tactiled.config import Config
+from tactiled.core.detect import SlideDetector
+from tactiled.core.events import Resume
 from tactiled.core.matching import match_slides
 from tactiled.files.recording import load_recording
 from tactiled.learn.dataset import detect_slides
 from tactiled.sim.physics import SCENES
 from tactiled.sim.simulate import write_dataset
+
+
+def withdrawals(volts: np.ndarray, valid: np.ndarray, fs: float, config: Config) -> int:
+    """How many early ends the detector withdrew (:class:`Resume` events) in one recording's volts (n, C)."""
+    det = SlideDetector(config.detector, fs, volts.shape[1])
+    return sum(isinstance(e, Resume) for e in det.feed(0, volts, valid) + det.finish())
+
 
 DEFAULT = ",".join(SCENES) + ";continuous,one-channel;fluctuating,one-channel;robot,hot-gain"
 
@@ -36,20 +46,24 @@ def main() -> None:
     specs = [x for s in specs for x in (s.split(",") if s == DEFAULT.split(";")[0] else [s])]
     config = Config()
     root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-detect-"))
-    print("| scene | true slides | detections | recall | precision | start error median / p90, s | end error median / p90, s |")
-    print("|---|---|---|---|---|---|---|")
+    print("| scene | true slides | detections | recall | precision | start error median / p90, s | end error median / p90, s "
+          "| early ends withdrawn |")
+    print("|---|---|---|---|---|---|---|---|")
     for spec in specs:
         folder = root / spec.replace(",", "+")
         paths = sorted(folder.glob("*.npz")) if args.reuse else []
         if not paths:
             paths = write_dataset(folder, scene=spec, seed=args.seed, files_per_surface=args.files_per_surface,
                                   slides_per_file=args.slides_per_file)
-        n_true = n_det = paired = 0
+        n_true = n_det = paired = withdrawn = 0
         starts, ends = [], []
         for p in paths:
             rec = load_recording(p)
             truth = [(a, b) for a, b, _ in rec.slides()]
             det = detect_slides(rec, config)
+            volts, valid = rec.volts(), rec.valid_mask()
+            volts[~valid] = 0.0
+            withdrawn += withdrawals(volts, valid, rec.fs, config)
             pairs = match_slides(det, truth)
             n_true += len(truth)
             n_det += len(det)
@@ -60,7 +74,8 @@ def main() -> None:
                     ends.append(abs(det[i][1] - truth[j][1]) / rec.fs)
         s, e = np.array(starts), np.array(ends)
         print(f"| {spec} | {n_true} | {n_det} | {paired / n_true:.3f} | {paired / max(1, n_det):.3f} | "
-              f"{np.median(s):.3f} / {np.percentile(s, 90):.3f} | {np.median(e):.3f} / {np.percentile(e, 90):.3f} |", flush=True)
+              f"{np.median(s):.3f} / {np.percentile(s, 90):.3f} | {np.median(e):.3f} / {np.percentile(e, 90):.3f} | "
+              f"{withdrawn} ({100 * withdrawn / max(1, n_det):.0f} % of detections) |", flush=True)
 
 
 if __name__ == "__main__":

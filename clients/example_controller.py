@@ -20,7 +20,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 
-from tactiled_client import EndOfLog, NoData, Replay, Roughness, Status, Subscriber
+from tactiled_client import EndOfLog, NoData, Replay, Roughness, Slide, Status, Subscriber
 
 FAST, SLOW = 0.09, 0.05  # m/s
 
@@ -45,7 +45,7 @@ def speed_for(msg: Roughness | None, rough_ra: float, rough: set[str], min_confi
 
 
 async def main(args: argparse.Namespace) -> None:
-    topics = ["roughness", "status"]
+    topics = ["roughness", "status", "slide"]  # slide: a "resumed" withdraws a final label (sub.latest forgets it)
     source = Replay(args.replay, topics=topics, timeout=3.0) if args.replay else Subscriber(args.endpoint, topics=topics, timeout=3.0)
     rough = {name for name in args.rough.split(",") if name}
     async with source as sub:
@@ -67,6 +67,9 @@ async def main(args: argparse.Namespace) -> None:
                     kind = "final" if msg.final else "provisional"
                     print(f"slide {msg.slide_id}: {kind} {msg.label} p={msg.confidence:.2f}, {msg.latency_ms:.1f} ms after its last sample",
                           flush=True)
+                print(f"  -> sliding speed {speed_for(sub.latest(max_age_s=2.0), args.rough_ra, rough, args.min_confidence)} m/s", flush=True)
+            elif isinstance(msg, Slide) and msg.event == "resumed":
+                print(f"slide {msg.slide_id}: goes on, its label is withdrawn", flush=True)
                 print(f"  -> sliding speed {speed_for(sub.latest(max_age_s=2.0), args.rough_ra, rough, args.min_confidence)} m/s", flush=True)
             elif isinstance(msg, Status) and msg.state == "disconnected":
                 print("sensor disconnected: stopping the arm", flush=True)

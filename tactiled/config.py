@@ -111,11 +111,12 @@ class DetectorConfig:
     on_factor: float = 6.0
     off_factor: float = 3.0
     off_hold_s: float = 0.3
+    end_hold_s: float = 0.05  # a final label after this much quiet, withdrawn ("resumed") if the slide goes on within off_hold_s
     min_slide_s: float = 0.15
     max_slide_s: float = 0.0
     holdoff_s: float = 0.1
     floor_tau_s: float = 2.0
-    initial_s: float = 0.2
+    initial_s: float = 0.4
     lookback_s: float = 0.2
     settle_s: float = 0.02
 
@@ -135,6 +136,7 @@ class DetectorConfig:
         _check(1.0 < self.off_factor <= 1e6, f"{p}.off_factor", "must be in (1, 1e6]")
         _check(self.off_factor < self.on_factor <= 1e6, f"{p}.on_factor", f"must be > {p}.off_factor (and <= 1e6)")
         _check(0 <= self.off_hold_s <= 60, f"{p}.off_hold_s", "must be in [0, 60] s")
+        _check(0 <= self.end_hold_s <= 60, f"{p}.end_hold_s", "must be in [0, 60] s (0 or >= off_hold_s: labels only at the end)")
         _check(0 < self.min_slide_s <= 60, f"{p}.min_slide_s", "must be in (0, 60] s")
         _check(self.max_slide_s == 0 or self.min_slide_s < self.max_slide_s <= 86_400, f"{p}.max_slide_s",
                f"must be 0 (no limit) or in ({p}.min_slide_s, 86400] s")

@@ -40,6 +40,18 @@ def wait_for(predicate: Callable[[], object], timeout: float = 20.0, what: str =
             raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
+def standing_finals(messages: list[Any]) -> list[Any]:
+    """The final roughness messages of ``messages`` that stood: a ``resumed`` slide message withdraws the final label
+    of its slide published before it (docs/messages.md, *Early ends and withdrawals*)."""
+    out: list[Any] = []
+    for m in messages:
+        if getattr(m, "type", "") == "roughness" and m.final:
+            out.append(m)
+        elif getattr(m, "type", "") == "slide" and m.event == "resumed":
+            out = [r for r in out if not (r.slide_id == m.slide_id and r.sensor == m.sensor)]
+    return out
+
+
 def tactiled_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "tactiled", *args]
 
@@ -86,6 +98,9 @@ class BridgeSink:
         self.got.append(msg)
 
     def roughness(self, msg: object) -> None:
+        self.got.append(msg)
+
+    def withdrawn(self, msg: object) -> None:
         self.got.append(msg)
 
     def status(self, msg: object) -> None:

@@ -12,11 +12,11 @@ import threading
 from pathlib import Path
 
 import numpy as np
-from tactiled_client import Roughness, Samples, Status, schema
+from tactiled_client import Samples, Status, schema
 
 from tactiled.apps.bridges import lost_ranges, run_bridge
 from tactiled.files.recording import save_recording
-from tests.conftest import REPO, BridgeSink, lossy_recording, tactiled_cmd
+from tests.conftest import REPO, BridgeSink, lossy_recording, standing_finals, tactiled_cmd
 
 
 def test_a_bridge_on_a_replay_gets_every_sample_its_losses_status_and_labels(tmp_path: Path) -> None:
@@ -52,5 +52,5 @@ def test_a_bridge_on_a_replay_gets_every_sample_its_losses_status_and_labels(tmp
     assert len(status) >= 2 and status[-1].state == schema.STATE_STOPPING
     assert (status[-1].samples, status[-1].samples_lost, status[-1].index) == (len(samples) - 2037, 2037, first + len(samples))
     assert status[-1].slides == 2 and status[-1].model and len(status[-2].level) == 2 and status[-2].level[0] > 0
-    labels = [m for m in sink.got if isinstance(m, Roughness) and m.final]
+    labels = standing_finals(sink.got)
     assert len(labels) == 2 and all(first <= m.start < first + len(samples) for m in labels)

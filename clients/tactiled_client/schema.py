@@ -23,8 +23,9 @@ from typing import Any, ClassVar, Protocol, TypeVar
 
 import msgpack
 
-SCHEMA_VERSION = 5  # 3: roughness messages carry novelty; reason unknown_surface. 4: shadow messages, status.shadow.
+SCHEMA_VERSION = 6  # 3: roughness messages carry novelty; reason unknown_surface. 4: shadow messages, status.shadow.
 # 5: roughness.overloaded; status.overloaded, status.behind_s, status.input_shed_bytes (load shed when the daemon cannot keep up)
+# 6: slide event "resumed": an end published after a short quiet (detector.end_hold_s) is withdrawn with its final label
 ROUGHNESS, SLIDE, STATUS, SAMPLES, SHADOW = "roughness", "slide", "status", "samples", "shadow"
 TOPICS = (ROUGHNESS, SLIDE, STATUS, SAMPLES, SHADOW)
 
@@ -44,7 +45,7 @@ STATE_CONNECTED, STATE_DISCONNECTED, STATE_IDLE, STATE_SLIDING, STATE_STOPPING =
 STATES = (STATE_DISCONNECTED, STATE_CONNECTED, STATE_IDLE, STATE_SLIDING, STATE_STOPPING)
 
 # slide events, and why a slide ended
-SLIDE_START, SLIDE_END, SLIDE_CANCELLED = "start", "end", "cancelled"
+SLIDE_START, SLIDE_END, SLIDE_CANCELLED, SLIDE_RESUMED = "start", "end", "cancelled", "resumed"
 END_QUIET, END_MAX_DURATION, END_TOO_SHORT = "quiet", "max_duration", "too_short"
 
 HostTime = Callable[[int], tuple[float, float]]
@@ -149,7 +150,8 @@ class Roughness(LabelFields):
 
 @dataclass
 class Slide(Message):
-    """A slide started (``event`` = "start"), ended ("end") or was too short to be one ("cancelled")."""
+    """A slide started (``event`` = "start"), ended ("end"), was too short to be one ("cancelled"), or went on after an
+    end ("resumed": the end at ``stop`` and its final roughness label are withdrawn; a new end and label follow)."""
 
     ABSENT_IF_NONE: ClassVar[frozenset[str]] = frozenset({"stop", "t_stop", "reason", "stop_mono", "stop_unix"})
 
@@ -360,6 +362,14 @@ def slide_end(sensor: str, slide_id: int, start: int, stop: int, reason: str, fs
     stop_mono, stop_unix = _host(to_host, stop)
     return Slide(**_head(SLIDE, sensor), event=SLIDE_CANCELLED if reason == END_TOO_SHORT else SLIDE_END, slide_id=slide_id,
                  start=start, stop=stop, t_start=start / fs, t_stop=stop / fs, reason=reason,
+                 start_mono=start_mono, start_unix=start_unix, stop_mono=stop_mono, stop_unix=stop_unix)
+
+
+def slide_resumed(sensor: str, slide_id: int, start: int, stop: int, fs: float, to_host: HostTime | None = None) -> Slide:
+    """Slide ``slide_id``, said to have ended at ``stop``, goes on: that end and its final label are withdrawn."""
+    start_mono, start_unix = _host(to_host, start)
+    stop_mono, stop_unix = _host(to_host, stop)
+    return Slide(**_head(SLIDE, sensor), event=SLIDE_RESUMED, slide_id=slide_id, start=start, stop=stop, t_start=start / fs, t_stop=stop / fs,
                  start_mono=start_mono, start_unix=start_unix, stop_mono=stop_mono, stop_unix=stop_unix)
 
 

@@ -58,6 +58,9 @@ class _Tracker:
         msg.missed = gap
         if isinstance(msg, schema.Roughness):
             self._latest = (self.now(), msg)
+        elif (isinstance(msg, schema.Slide) and msg.event == schema.SLIDE_RESUMED and self._latest is not None
+              and self._latest[1].slide_id == msg.slide_id and self._latest[1].sensor == msg.sensor):
+            self._latest = None  # its final label is withdrawn: the slide went on
         return msg
 
     def now(self) -> float:
@@ -65,7 +68,8 @@ class _Tracker:
         return time.monotonic()
 
     def latest(self, max_age_s: float) -> schema.Roughness | None:
-        """The newest roughness message if it arrived at most ``max_age_s`` ago, else None."""
+        """The newest roughness message if it arrived at most ``max_age_s`` ago, else None (also when a ``resumed`` slide
+        message withdrew it; subscribe to ``slide`` to see those)."""
         if self._latest is None or self.now() - self._latest[0] > max_age_s:
             return None
         return self._latest[1]

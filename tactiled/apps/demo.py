@@ -14,7 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from tactiled_client import BlockingSubscriber, NoData, Roughness
+from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, schema
 from tactiled_client.truth import overlapping
 
 from tactiled.apps.monitor import read_truth, run_monitor
@@ -56,11 +56,14 @@ def print_labels(endpoint: str, seconds: float, board_log: str) -> int:
 
     labels = 0
     deadline = time.monotonic() + seconds
-    with BlockingSubscriber(endpoint, topics=["roughness"], timeout=1.0) as sub:
+    with BlockingSubscriber(endpoint, topics=["roughness", "slide"], timeout=1.0) as sub:
         while time.monotonic() < deadline:
             try:
                 msg = sub.receive(timeout=min(1.0, max(0.01, deadline - time.monotonic())))
             except NoData:
+                continue
+            if isinstance(msg, Slide) and msg.event == schema.SLIDE_RESUMED:
+                print(f"slide {msg.slide_id}: goes on, its final label is withdrawn", flush=True)
                 continue
             if not isinstance(msg, Roughness):
                 continue

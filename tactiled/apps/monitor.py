@@ -78,6 +78,9 @@ class MonitorState:
         self.missed += msg.missed
         if isinstance(msg, Status):
             self.status = msg
+        elif isinstance(msg, Slide) and msg.event == schema.SLIDE_RESUMED:  # its final label is withdrawn: the slide goes on
+            self.labels = deque((r for r in self.labels if not (r.final and r.slide_id == msg.slide_id)), maxlen=LABEL_HISTORY)
+            self.slide = msg
         elif isinstance(msg, Slide):
             self.slide = msg if msg.event == schema.SLIDE_START else None
         elif isinstance(msg, Roughness):

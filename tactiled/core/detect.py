@@ -23,11 +23,12 @@ Decisions at rest and in a slide use the median envelope of the last three hops,
 loud hop neither starts a slide nor interrupts the quiet that ends one.
 
 States. The detector starts *undecided*: it does not know whether the stream began at rest
-or in the middle of a slide. Its reference is the median envelope over the first
-``initial_s``. If the median envelope over the last ``initial_s`` then rises above
+or in the middle of a slide. Its reference is the 80th percentile of the envelope over the first
+``initial_s`` (a slide's level, not its dips'). If the median envelope over the last ``initial_s`` then rises above
 ``on_factor`` × the reference (a sustained rise: the level of a slide fluctuates from hop to
 hop by more than that), the stream began at rest: the reference becomes the noise floor and a slide starts. If it stays below
-reference / ``on_factor`` for ``off_hold_s``, the stream began in a slide: a slide from the
+reference / ``on_factor`` for ``off_hold_s`` + ``initial_s`` (longer than in a slide: the drop is
+measured against the slide's own level, which dips further than a floor), the stream began in a slide: a slide from the
 first sample to the drop is reported (a retroactive :class:`Onset`), and the low level
 becomes the floor. If neither happens before :meth:`SlideDetector.finish`, the whole stream
 was one slide (reason ``end_of_stream``).
@@ -37,8 +38,10 @@ slide starts when the envelope exceeds ``on_factor`` × floor (its onset moved b
 hops of the last ``lookback_s`` that were above ``off_factor`` × floor) and ends when it stays
 below ``off_factor`` × floor for ``off_hold_s`` (the reported stop is where the quiet
 began, so a level dip inside a slide shorter than ``off_hold_s`` never splits it), or after
-``max_slide_s``. Slides shorter than ``min_slide_s`` are dropped (reason ``too_short``);
-after a slide nothing starts for ``holdoff_s``.
+``max_slide_s``. Waiting ``off_hold_s`` would delay every label by as much, so after ``end_hold_s`` of the
+same quiet (when shorter) a :class:`Pause` says the slide has probably ended there; if the level comes back
+before ``off_hold_s`` a :class:`Resume` withdraws it, else the :class:`Offset` has the Pause's ``stop``.
+Slides shorter than ``min_slide_s`` are dropped (reason ``too_short``); after a slide nothing starts for ``holdoff_s``.
 
 Lost samples (``valid`` False, and index gaps) never start a slide nor move the floor,
 count as quiet within a slide, and the ``settle_s`` after them (at least the comb's P + L − 1
@@ -58,7 +61,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.config import DetectorConfig
-from tactiled.core.events import DetectorEvent, Offset, Onset
+from tactiled.core.events import DetectorEvent, Offset, Onset, Pause, Resume
 from tactiled.core.spikes import median_last
 
 CHUNK = 4096  # samples per step of the envelope's front end
@@ -128,12 +131,18 @@ class SlideDetector:
         self._alpha = 1.0 - math.exp(-self.hop / (config.floor_tau_s * fs))
         self._initial: list[float] = []  # undecided: envelopes of the first initial_s
         self._initial_hops = max(1, round(config.initial_s * fs / self.hop))
+        # a drop from a slide's own level (not yet from a noise floor) must last off_hold_s + initial_s to be its end:
+        # a slide's level dips further below its own median than below a floor
+        self._undecided_hold = (config.off_hold_s + config.initial_s) * fs
         lookback = max(1, round(config.lookback_s * fs / self.hop))
         self._recent: deque[tuple[int, float]] = deque(maxlen=max(lookback, self._initial_hops))
         self._reference: float | None = None
         self.sliding = False
         self._start = 0
         self._quiet_since: int | None = None
+        self._paused = False  # a Pause was reported for the current quiet
+        hold = config.end_hold_s if 0 < config.end_hold_s < config.off_hold_s else math.inf
+        self._end_hold = hold * fs
         self._holdoff_until = -1
         self._last3: deque[float] = deque(maxlen=3)
         self.envelope = 0.0
@@ -243,7 +252,7 @@ class SlideDetector:
         if len(self._initial) < self._initial_hops:
             self._initial.append(env)
             if len(self._initial) == self._initial_hops:
-                self._reference = float(np.median(self._initial))
+                self._reference = float(np.quantile(self._initial, 0.8))  # the level of a slide, not of its dips
             return []
         ref = self._reference or 0.0
         self._recent.append((at, env))
@@ -265,7 +274,7 @@ class SlideDetector:
         if env < ref / c.on_factor:
             if self._quiet_since is None:
                 self._quiet_since = at
-            if at + self.hop - self._quiet_since >= c.off_hold_s * self.fs:  # the stream began in a slide, which ended here
+            if at + self.hop - self._quiet_since >= self._undecided_hold:  # the stream began in a slide, which ended here
                 assert self._first is not None
                 self._floor = max(env, 1e-300)
                 self.floor = self._floor
@@ -307,16 +316,30 @@ class SlideDetector:
                 self._quiet_since = at
             if end - self._quiet_since >= c.off_hold_s * self.fs:
                 return self._finish_at(self._start, self._quiet_since, "quiet")
+            if (not self._paused and end - self._quiet_since >= self._end_hold
+                    and self._quiet_since - self._start >= c.min_slide_s * self.fs):
+                self._paused = True
+                self._recent.append((at, env))
+                return [Pause(self._start, self._quiet_since)]
         else:
+            events: list[DetectorEvent] = []
+            if self._paused:
+                assert self._quiet_since is not None
+                events.append(Resume(self._start, self._quiet_since))
+                self._paused = False
             self._quiet_since = None
             if c.max_slide_s > 0 and end - self._start >= c.max_slide_s * self.fs:
-                return self._finish_at(self._start, end, "max_duration")
+                return events + self._finish_at(self._start, end, "max_duration")
+            if events:
+                self._recent.append((at, env))
+                return events
         self._recent.append((at, env))
         return []
 
     def _finish_at(self, start: int, stop: int, reason: str) -> list[DetectorEvent]:
         self.sliding = False
         self._quiet_since = None
+        self._paused = False
         self._holdoff_until = stop + round(self.c.holdoff_s * self.fs)
         self._recent.clear()
         if stop - start < self.c.min_slide_s * self.fs:

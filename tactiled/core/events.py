@@ -42,7 +42,27 @@ class Offset:
     at: int = -1
 
 
-DetectorEvent = Onset | Offset
+@dataclass(frozen=True)
+class Pause:
+    """A slide in progress has been quiet since ``stop`` for ``detector.end_hold_s``: probably its end, not yet certain
+    (that takes ``off_hold_s``). Either an :class:`Offset` at the same ``stop`` or a :class:`Resume` follows; ``at`` as in
+    :class:`Onset`. The pipeline publishes the slide's end and final label at once (low latency)."""
+
+    start: int
+    stop: int
+    at: int = -1
+
+
+@dataclass(frozen=True)
+class Resume:
+    """The quiet after a :class:`Pause` at ``stop`` was a dip: the slide that began at ``start`` goes on; ``at`` as in :class:`Onset`."""
+
+    start: int
+    stop: int
+    at: int = -1
+
+
+DetectorEvent = Onset | Offset | Pause | Resume
 
 
 @dataclass
@@ -96,4 +116,14 @@ class SlideResult:
     model: str = ""
 
 
-PipelineEvent = SlideStarted | SlideEnded | SlideResult
+@dataclass
+class SlideResumed:
+    """Slide ``slide_id``, said to have ended at ``stop`` (a :class:`SlideEnded` and a final :class:`SlideResult` were
+    emitted after a short quiet), goes on: that end and that label are withdrawn; a new end and final label follow."""
+
+    slide_id: int
+    start: int
+    stop: int
+
+
+PipelineEvent = SlideStarted | SlideEnded | SlideResult | SlideResumed

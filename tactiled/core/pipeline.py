@@ -11,8 +11,10 @@ top class is right, and the novelty); when the confidence first reaches
 ``classifier.provisional_confidence`` (and again whenever the leading label changes
 while above it) and the slide is not novel, a provisional :class:`SlideResult` (``final=False``)
 is emitted. When the slide ends, the windows that lie inside it are fused into the final
-result; a novelty above 1 gives no label, with reason ``unknown_surface``. Windows
-that could not be analysed (lost samples, too short, ...) are skipped; a slide with
+result. The end is published as soon as the detector's short quiet (:class:`~tactiled.core.events.Pause`,
+``detector.end_hold_s``) says it probably came, not after the whole ``off_hold_s``: if the slide goes on, a
+:class:`SlideResumed` withdraws that end and label, and a new pair follows when it really ends. In the final result, a novelty above 1 gives no label, with
+reason ``unknown_surface``. Windows that could not be analysed (lost samples, too short, ...) are skipped; a slide with
 none gets no label and the most common reason. :meth:`Pipeline.finish` ends the stream:
 a slide still running is analysed as far as it goes.
 """
@@ -30,7 +32,7 @@ import numpy.typing as npt
 from tactiled.config import Config
 from tactiled.core.analysis import Analyser, AnalysisSettings, WindowResult
 from tactiled.core.detect import SlideDetector
-from tactiled.core.events import DetectorEvent, Offset, Onset, PipelineEvent, SlideEnded, SlideResult, SlideStarted
+from tactiled.core.events import DetectorEvent, Offset, Onset, Pause, PipelineEvent, Resume, SlideEnded, SlideResult, SlideResumed, SlideStarted
 from tactiled.core.ringbuffer import RingBuffer
 from tactiled.errors import OverwrittenError, WindowError
 
@@ -88,6 +90,8 @@ class Pipeline:
         self._windows: list[_Window] = []
         self._next: tuple[int, int] | None = None  # the next window of the slide in progress
         self._provisional: str | None = None
+        self._paused: SlideResult | None = None  # the final result published at a Pause, while the quiet lasts
+        self.resumed = 0  # ends withdrawn because the slide went on
 
     @property
     def sliding(self) -> bool:
@@ -157,15 +161,36 @@ class Pipeline:
                 self._next = self.settings.first_span(ev.start, self.fs)
                 events.append(SlideStarted(self._slide_id, ev.start))
                 events += self._analyse_ready(until=ev.at if ev.at >= 0 else None)
+            elif isinstance(ev, Pause):
+                events.append(SlideEnded(self._slide_id, ev.start, ev.stop, "quiet"))
+                self._paused = self._final(ev.start, ev.stop)
+                events.append(self._paused)
+            elif isinstance(ev, Resume):
+                if self._paused is not None:
+                    self._withdraw(self._paused)
+                    events.append(SlideResumed(self._slide_id, ev.start, ev.stop))
+                self._paused = None
             elif isinstance(ev, Offset):
-                events.append(SlideEnded(self._slide_id, ev.start, ev.stop, ev.reason))
-                if ev.reason != "too_short":
-                    events.append(self._final(ev.start, ev.stop))
+                paused, self._paused = self._paused, None
+                if paused is None or paused.stop != ev.stop:  # else its end and label were published at the Pause
+                    if paused is not None:
+                        self._withdraw(paused)
+                        events.append(SlideResumed(self._slide_id, ev.start, paused.stop))
+                    events.append(SlideEnded(self._slide_id, ev.start, ev.stop, ev.reason))
+                    if ev.reason != "too_short":
+                        events.append(self._final(ev.start, ev.stop))
                 self._onset = None
                 self._next = None
                 self._take_pending_model()
                 self._windows = []
         return events
+
+    def _withdraw(self, result: SlideResult) -> None:
+        """Take a withdrawn final result out of the counters."""
+        self.resumed += 1
+        self.slides -= 1
+        self.labels -= result.label is not None
+        self.unknown -= result.reason == "unknown_surface"
 
     def _analyse_ready(self, until: int | None = None) -> list[PipelineEvent]:
         """Analyse every window of the slide in progress that the ring holds (up to ``until``); provisional results."""
@@ -205,7 +230,7 @@ class Pipeline:
         return self.analyser.analyse(samples, valid)
 
     def _provisional_result(self, t0: float) -> SlideResult | None:
-        if self.model is None or self._onset is None or self.provisional_confidence >= 1.0:
+        if self.model is None or self._onset is None or self.provisional_confidence >= 1.0 or self._paused is not None:
             return None
         used = [w for w in self._windows if w.usable]
         assessed = self._assess(used)

@@ -28,16 +28,20 @@ class ShadowStats:
     confidence_sum: float = 0.0  # over the labelled candidate results
     _live: dict[int, SlideResult] = field(default_factory=dict, repr=False)
     _shadow: dict[int, SlideResult] = field(default_factory=dict, repr=False)
+    _paired: dict[int, tuple[int, bool]] = field(default_factory=dict, repr=False)  # live/shadow start -> (other start, agreed)
+    _last: dict[bool, SlideResult] = field(default_factory=dict, repr=False)  # the last final result of each (True: shadow)
 
     def add_live(self, result: SlideResult) -> None:
         """A final result of the live model."""
         if result.final:
+            self._last[False] = result
             self._pair(result, self._live, self._shadow)
 
     def add_shadow(self, result: SlideResult) -> None:
         """A final result of the candidate."""
         if not result.final:
             return
+        self._last[True] = result
         self.finals += 1
         if result.label is not None:
             self.labelled += 1
@@ -58,6 +62,33 @@ class ShadowStats:
             return
         self.slides += 1
         self.agreed += (result.label == match.label)
+        self._paired[result.start] = (match.start, result.label == match.label)
+        self._paired[match.start] = (result.start, result.label == match.label)
+        while len(self._paired) > 2 * PENDING_MAX:
+            self._paired.pop(next(iter(self._paired)))
+
+    def withdraw(self, shadow: bool) -> None:
+        """The last final result of the candidate (``shadow``) or of the live model was withdrawn (its slide went on): uncount it."""
+        result = self._last.pop(shadow, None)
+        if result is None:
+            return
+        if shadow:
+            self.finals -= 1
+            if result.label is not None:
+                self.labelled -= 1
+                self.confidence_sum -= result.confidence or 0.0
+            elif result.reason == "unknown_surface":
+                self.unknown -= 1
+        mine = self._shadow if shadow else self._live
+        if mine.pop(result.start, None) is None and result.start in self._paired:
+            other, agreed = self._paired.pop(result.start)
+            self._paired.pop(other, None)
+            self.slides -= 1
+            self.agreed -= agreed
+            # the other model's result waits again for this slide's new final result
+            kept = self._last.get(not shadow)
+            if kept is not None and kept.start == other:
+                (self._live if shadow else self._shadow)[other] = kept
 
     def summary(self) -> dict[str, Any]:
         """For the status message: the candidate's fingerprint, slides compared, agreement with the live labels,

@@ -18,7 +18,7 @@ from tactiled_client.truth import overlapping
 
 from tactiled import __version__
 from tactiled.config import Config
-from tactiled.core.events import PipelineEvent, SlideResult
+from tactiled.core.events import PipelineEvent, SlideResult, SlideResumed
 from tactiled.core.matching import match_slides
 from tactiled.errors import RecordingError
 from tactiled.files.capture import Capture
@@ -98,6 +98,18 @@ def _to_file(ev: SlideResult, base: int) -> SlideResult:
     return replace(ev, start=ev.start - base, stop=ev.stop - base, window=(ev.window[0] - base, ev.window[1] - base))
 
 
+def collect(results: list[SlideResult], ev: PipelineEvent, base: int) -> None:
+    """Add a result event to ``results`` (positions of the file: sensor index less ``base``); a :class:`SlideResumed`
+    takes back the final result it withdraws, so that each slide keeps the one final result that stood."""
+    if isinstance(ev, SlideResult):
+        results.append(_to_file(ev, base))
+    elif isinstance(ev, SlideResumed):
+        for i in range(len(results) - 1, -1, -1):
+            if results[i].final and results[i].slide_id == ev.slide_id:
+                del results[i]
+                break
+
+
 def replay_recording(rec: Recording, config: Config, model: Any | None, *, block: int = BLOCK, pacer: Pacer | None = None,
                      on_event: Callable[[PipelineEvent], None] | None = None,
                      on_block: Callable[[int, np.ndarray, np.ndarray], None] | None = None) -> list[SlideResult]:
@@ -118,8 +130,7 @@ def replay_recording(rec: Recording, config: Config, model: Any | None, *, block
         for ev in events:
             if on_event:
                 on_event(ev)
-            if isinstance(ev, SlideResult):
-                results.append(_to_file(ev, base))
+            collect(results, ev, base)
 
     for lo in range(0, rec.samples.shape[0], block):
         hi = min(lo + block, rec.samples.shape[0])
@@ -187,7 +198,9 @@ def replay_capture(capture: Capture, config: Config, model: Any | None, *, pacer
         raise RecordingError(f"{capture.path}: cannot read: {exc.strerror or exc}") from None
     run([], finish=True)
     base = collector.first_index or 0
-    results = [_to_file(ev, base) for ev in events if isinstance(ev, SlideResult)]
+    results: list[SlideResult] = []
+    for ev in events:
+        collect(results, ev, base)
     st = stream.stats
     info = {"capture": str(capture.path), "crc_errors": st.crc_errors, "bytes_discarded": st.bytes_discarded, "restarts": st.restarts,
             "channel_errors": st.channel_errors, "duplicate_frames": st.duplicates, "samples": collector.samples_seen,

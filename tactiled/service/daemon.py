@@ -42,7 +42,7 @@ from tactiled import __version__
 from tactiled.board.clockmap import ClockMap
 from tactiled.board.serialsource import CONNECTED, ByteSource, SerialSource
 from tactiled.config import Config
-from tactiled.core.events import PipelineEvent, SlideResult
+from tactiled.core.events import PipelineEvent, SlideResult, SlideResumed
 from tactiled.core.shadow import ShadowStats
 from tactiled.errors import TactiledError
 from tactiled.learn.cost import check_speed
@@ -331,6 +331,8 @@ class Daemon:
             self.publisher.publish_event(sensor.id, ev, sensor.fs, model, detected_at, to_host, overloaded=overloaded)
             if self.shadow_stats is not None and isinstance(ev, SlideResult):
                 self.shadow_stats.add_live(ev)
+            elif self.shadow_stats is not None and isinstance(ev, SlideResumed):
+                self.shadow_stats.withdraw(shadow=False)
 
     def _publish_shadow(self, events: list[PipelineEvent], detected_at: float, overloaded: bool = False) -> None:
         """The shadow model's results on ``shadow/<id>`` (its slide events are the live ones': not sent again)."""
@@ -339,6 +341,8 @@ class Daemon:
         sensor = self.config.sensor
         to_host = self.clock.host if self.clock.ready else None
         for ev in events:
+            if isinstance(ev, SlideResumed):
+                self.shadow_stats.withdraw(shadow=True)
             if isinstance(ev, SlideResult):
                 self.shadow_stats.add_shadow(ev)
                 self.publisher.publish(schema.shadow(sensor.id, ev, fs=sensor.fs, model=ev.model or self.shadow_stats.model, version=__version__,

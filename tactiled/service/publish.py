@@ -20,7 +20,7 @@ from tactiled_client import schema
 
 from tactiled import __version__
 from tactiled.config import PublishConfig
-from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideStarted
+from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideResumed, SlideStarted
 from tactiled.errors import ConfigError, OutputError
 from tactiled.files.outputs import check_folder, check_output
 
@@ -156,6 +156,8 @@ class Publisher:
             self.publish(schema.slide_start(sensor, ev.slide_id, ev.start, fs, to_host))
         elif isinstance(ev, SlideEnded):
             self.publish(schema.slide_end(sensor, ev.slide_id, ev.start, ev.stop, ev.reason, fs, to_host))
+        elif isinstance(ev, SlideResumed):
+            self.publish(schema.slide_resumed(sensor, ev.slide_id, ev.start, ev.stop, fs, to_host))
         elif isinstance(ev, SlideResult):
             latency = 0.0 if detected_at is None else (time.perf_counter() - detected_at) * 1e3
             self.publish(schema.roughness(sensor, ev, fs=fs, model=model, version=__version__, latency_ms=latency, to_host=to_host,

@@ -22,7 +22,7 @@ from tactiled_client import schema
 
 from tactiled import __version__
 from tactiled.config import Config
-from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideStarted
+from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideResumed, SlideStarted
 from tactiled.errors import RecordingError, WindowError
 from tactiled.files.capture import Capture
 from tactiled.files.formats import open_recording
@@ -114,6 +114,7 @@ class ReplayFeed:
         self.chunk = max(1, round(fs / 25))
         self.sliding = False
         self.slides = self.labels = self.unknown = 0
+        self._last_final: SlideResult | None = None
         self.count = self.lost = 0
         self.index: int | None = None  # the next sensor index expected
         self._sumsq = np.zeros(channels)
@@ -131,9 +132,16 @@ class ReplayFeed:
         elif isinstance(ev, SlideEnded):
             self.sliding = False
         elif isinstance(ev, SlideResult) and ev.final:
+            self._last_final = ev
             self.slides += 1
             self.labels += ev.label is not None
             self.unknown += ev.reason == schema.REASON_UNKNOWN_SURFACE
+        elif isinstance(ev, SlideResumed) and self._last_final is not None:  # that end and label are withdrawn: the slide goes on
+            self.sliding = True
+            self.slides -= 1
+            self.labels -= self._last_final.label is not None
+            self.unknown -= self._last_final.reason == schema.REASON_UNKNOWN_SURFACE
+            self._last_final = None
         model = ev.model if isinstance(ev, SlideResult) and ev.model else self.model
         self.publisher.publish_event(self.sensor, ev, self.fs, model, time.perf_counter(), self.pacer.to_host)
 

@@ -2,8 +2,8 @@
 
 A bridge is a :class:`Sink` fed by :func:`run_bridge`, which subscribes to a daemon (or to
 ``tactiled replay --publish``) and hands every samples, roughness and status message of one
-sensor to it. The sinks take the messages' own fields, host times included (docs/messages.md),
-so they never rebuild a message body. Their heavy imports live in their own modules.
+sensor to it, and every withdrawal of a final label (a slide message ``resumed``). The sinks take
+the messages' own fields, host times included (docs/messages.md), so they never rebuild a message body. Their heavy imports live in their own modules.
 
 :func:`run_bridge` also says, in one line each, what a user would otherwise wait for in silence:
 a sensor id the daemon does not publish (an error: exit 2), nothing at all from the endpoint,
@@ -20,7 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from tactiled_client import BlockingSubscriber, NoData, Roughness, Samples, Status
+from tactiled_client import BlockingSubscriber, NoData, Roughness, Samples, Slide, Status, schema
 
 from tactiled.errors import TactiledError
 
@@ -38,6 +38,9 @@ class Sink(Protocol):
 
     def status(self, msg: Status) -> None:
         """Take one status message of the daemon."""
+
+    def withdrawn(self, msg: Slide) -> None:
+        """Take one slide message of event ``resumed``: the final label of slide ``msg.slide_id`` is withdrawn (it went on)."""
 
     def close(self) -> None:
         """Release the outlets, node or connections; no message follows."""
@@ -86,7 +89,7 @@ def run_bridge(endpoint: str, sink: Sink, stop: threading.Event, sensor: str | N
     others: set[str] = set()
     ours_at: float | None = None  # when the first message of the sensor came
     samples_seen = heard_any = said_silent = said_no_samples = False
-    with BlockingSubscriber(endpoint, topics=["samples", "roughness", "status"]) as sub:
+    with BlockingSubscriber(endpoint, topics=["samples", "roughness", "status", "slide"]) as sub:
         try:
             while not stop.is_set():
                 try:
@@ -107,6 +110,10 @@ def run_bridge(endpoint: str, sink: Sink, stop: threading.Event, sensor: str | N
                         sink.roughness(msg)
                     elif isinstance(msg, Status):
                         sink.status(msg)
+                    elif isinstance(msg, Slide) and msg.event == schema.SLIDE_RESUMED:
+                        sink.withdrawn(msg)
+                    else:
+                        continue  # other slide events: not bridged
                     forwarded += 1
                 now = time.monotonic()
                 if now - started < patience_s:

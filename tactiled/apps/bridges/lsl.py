@@ -27,7 +27,7 @@ import logging
 from typing import Any
 
 import numpy as np
-from tactiled_client import Roughness, Samples, Status
+from tactiled_client import Roughness, Samples, Slide, Status
 
 from tactiled import __version__
 from tactiled.apps.bridges import StreamMeta, lost_ranges, volts
@@ -111,6 +111,11 @@ class LslSink:
     def roughness(self, msg: Roughness) -> None:
         """Push a ``roughness`` JSON marker, stamped at the host monotonic time of the slide's ``stop`` (s; 0 when unknown)."""
         marker = json.dumps({"event": "roughness", **{k: getattr(msg, k) for k in MARKER_FIELDS}})
+        self.markers.push_sample([marker], msg.stop_mono or 0.0)
+
+    def withdrawn(self, msg: Slide) -> None:
+        """Push a ``resumed`` JSON marker (slide_id, start, stop: the final label of that slide is withdrawn), stamped at the withdrawn ``stop``."""
+        marker = json.dumps({"event": "resumed", "slide_id": msg.slide_id, "start": msg.start, "stop": msg.stop})
         self.markers.push_sample([marker], msg.stop_mono or 0.0)
 
     def status(self, msg: Status) -> None:

@@ -34,7 +34,7 @@ import threading
 from typing import Any
 
 import numpy as np
-from tactiled_client import Roughness, Samples, Status, schema
+from tactiled_client import Roughness, Samples, Slide, Status, schema
 
 from tactiled.apps.bridges import json_value, volts
 from tactiled.errors import TactiledError
@@ -140,6 +140,10 @@ class Ros2Sink:
         """Publish every roughness message as JSON on ``roughness/json``, and a final one's label ("" abstaining) on ``roughness``."""
         if msg.final:
             self.pub_label.publish(self.String(data=msg.label or ""))
+        self.pub_json.publish(self.String(data=json.dumps(msg.to_map())))
+
+    def withdrawn(self, msg: Slide) -> None:
+        """Publish the slide message (event ``resumed``: that slide's final label is withdrawn) as JSON on ``roughness/json``."""
         self.pub_json.publish(self.String(data=json.dumps(msg.to_map())))
 
     def status(self, msg: Status) -> None:
