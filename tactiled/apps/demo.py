@@ -63,7 +63,7 @@ def print_labels(endpoint: str, seconds: float, board_log: str) -> int:
             except NoData:
                 continue
             if isinstance(msg, Slide) and msg.event == schema.SLIDE_RESUMED:
-                print(f"slide {msg.slide_id}: goes on, its final label is withdrawn", flush=True)
+                print(f"slide {msg.slide_id}: label withdrawn, the slide goes on", flush=True)
                 continue
             if not isinstance(msg, Roughness):
                 continue

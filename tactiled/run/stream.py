@@ -110,6 +110,11 @@ class Stream:
         """Bytes through the ingest core only: the batches they complete (hand them to :meth:`process`)."""
         return self.ingest.feed(data)
 
+    def held(self) -> list[Batch]:
+        """The samples decoded but still held for the next batch (``min_batch``), as batches, without analysing them:
+        for a stop, so that what the counters include reaches the recording too."""
+        return self.ingest.flush()
+
     def process(self, batches: list[Batch]) -> Step:
         """Decoded batches through the pipelines; a batch after a board restart first ends the slide in progress."""
         step = Step(batches=batches)

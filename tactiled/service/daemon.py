@@ -164,6 +164,10 @@ class Daemon:
                     t.cancel()
         finally:
             sd_notify("STOPPING=1")
+            held = self.stream.held()  # decoded (and counted) but not yet handed over: recorded and published all the same
+            self._take(held)
+            if self.config.publish.samples:
+                self._publish_samples(held)
             self.last_status = self._status_message(stopping=True)  # the CLI's one-line summary on the way out
             self.publisher.publish(self.last_status)
             if self.control is not None:
