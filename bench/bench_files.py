@@ -1,10 +1,10 @@
-"""Many files on every core: files per second of ``tactiled score`` and ``tactiled features`` at 1, 2 and all cores.
+"""Many files on every core: files per second of ``tactiled score``, ``features`` and ``replay`` at 1, 2 and all cores.
 
 Writes ten simulated recordings (robot scene, 3 slides each, about 6 s) and copies them to make folders of 10, 100
 and 1 000 files; times each whole command (start-up, loading and the work) with ``--jobs 1``, ``2`` and ``0`` (every
 core). Copies replay exactly like their originals, so the work per file is the same at every size.
 
-Usage: python bench/bench_files.py [--sizes 10,100,1000] [--jobs 1,2,0] [--commands score,features] [--out DIR]
+Usage: python bench/bench_files.py [--sizes 10,100,1000] [--jobs 1,2,0] [--commands score,features,replay] [--out DIR]
 """
 
 from __future__ import annotations
@@ -58,6 +58,8 @@ def main() -> None:
             for jobs in args.jobs.split(","):
                 if command == "score":
                     cmd = [sys.executable, "-m", "tactiled", "score", str(default_model_path()), *paths, "--json", "--jobs", jobs]
+                elif command == "replay":
+                    cmd = [sys.executable, "-m", "tactiled", "replay", *paths, "--json", "--jobs", jobs]
                 else:
                     cmd = [sys.executable, "-m", "tactiled", "features", *paths, "-o", str(root / "f.npz"), "--jobs", jobs]
                 t0 = time.perf_counter()

@@ -124,6 +124,13 @@ def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
         assert res.returncode == 0, res.stderr
     with np.load(tmp_path / "f1.npz") as one, np.load(tmp_path / "f2.npz") as two:
         assert one.files == two.files and all(np.array_equal(one[k], two[k]) for k in one.files)
+    one, two = (run_cli("replay", "--json", "--model", str(model), *files, "--jobs", jobs) for jobs in ("1", "2"))
+    assert one.returncode == two.returncode == 0 and one.stderr == two.stderr, two.stderr
+
+    def steady(out: str) -> list[dict[str, object]]:  # every field but the time each took
+        return [{k: v if k != "quality" else {q: x for q, x in v.items() if q != "compute_ms"} for k, v in json.loads(line).items()
+                 if k not in ("time_unix", "latency_ms")} for line in out.splitlines()]
+    assert steady(one.stdout) == steady(two.stdout) and len(steady(one.stdout)) == 18  # the same slides and labels, in order
     res = run_cli("replay", "--json", "--model", str(model), files[0])
     lines = [json.loads(line) for line in res.stdout.splitlines()]
     assert res.returncode == 0 and len(lines) == 3, res.stdout

@@ -83,7 +83,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     config = config_of(args)
     failed = 0
     for done in replay_files(args.files, config, _choice(args, config), block=args.block or BLOCK, speed=args.speed,
-                             publish=args.publish, wait_subscriber_s=args.wait_subscriber, samples=args.samples):
+                             publish=args.publish, wait_subscriber_s=args.wait_subscriber, samples=args.samples, jobs=args.jobs):
         if done.error is not None or done.rec is None:
             say(f"error: {done.error}")
             failed += 1
@@ -157,4 +157,5 @@ def add_commands(sub: Sub) -> None:
                         "nothing (0: send at once)")
     p.add_argument("--samples", action="store_true", help="with --publish: also publish the raw samples on samples/<id>, as run --samples")
     p.add_argument("--block", type=c.count, default=None, help="samples per block fed to the pipeline (default 65536)")
+    p.add_argument("--jobs", type=c.jobs, default=0, metavar="N", help=c.JOBS_HELP + "; not with --speed or --publish, which play the files in turn")
     p.add_argument("--force", action="store_true", help="run a model whose analysis cannot keep up with real time (below 5x on this machine)")
