@@ -22,7 +22,7 @@ from typing import Any, TypeVar
 from tactiled.errors import ConfigError
 from tactiled.readable import file_problem
 
-DEFAULT_ENDPOINT = "tcp://127.0.0.1:7350"
+DEFAULT_ENDPOINT = "auto"  # ipc://<runtime folder>/<sensor id>.sock (tactiled_client.endpoints); TCP is opt-in
 MAX_CONFIG_BYTES = 1 << 20
 MAX_KEY_FILE_BYTES = 64 << 10  # a CURVE certificate is a few hundred bytes
 MAX_MODEL_FILE_BYTES = 1 << 30  # a model file on disk (its arrays inflated are bounded again at load)
@@ -259,6 +259,7 @@ class PublishConfig:
     curve_authorized_dir: str = ""
     samples: bool = False
     max_connections: int = 64  # subscriber connections at once; one more is disconnected as soon as it is accepted
+    socket_group: str = "tactiled"  # an ipc socket's group (mode 660), when that group exists and the daemon is in it
 
     def validate(self, p: str) -> None:
         """Check endpoint (tcp://, ipc:// or inproc://; loopback unless ``allow_remote``), status_interval_s (s), and the CURVE key file and folder.
@@ -267,7 +268,8 @@ class PublishConfig:
         """
         _check(bool(self.curve_secret_key_file) == bool(self.curve_authorized_dir), f"{p}.curve_authorized_dir",
                f"must be set together with {p}.curve_secret_key_file")
-        _check(self.endpoint.startswith(("tcp://", "ipc://", "inproc://")), f"{p}.endpoint", "must start with tcp://, ipc:// or inproc://")
+        _check(self.endpoint == DEFAULT_ENDPOINT or self.endpoint.startswith(("tcp://", "ipc://", "inproc://")), f"{p}.endpoint",
+               f"must be {DEFAULT_ENDPOINT!r} or start with tcp://, ipc:// or inproc://")
         _check(0.01 <= self.status_interval_s <= 1.0, f"{p}.status_interval_s", "must be in [0.01, 1] s")
         _check(1 <= self.max_connections <= 512, f"{p}.max_connections", "must be in 1..512 (the unit's LimitNOFILE is 1024)")
         _check(self.allow_remote or is_local_endpoint(self.endpoint), f"{p}.endpoint",
@@ -304,8 +306,19 @@ def _readable_file(path: str, where: str, max_bytes: int) -> None:
     _check(problem is None, where, f"{path}: {problem}")
 
 
+def subscribe_endpoint(config: Config, sensor: str | None = None) -> str:
+    """Where a subscriber on this machine finds the daemon of ``config``: its ``publish.endpoint``, or for ``auto`` the
+    local socket of ``sensor`` (default: its sensor id; :func:`tactiled_client.endpoints.local_endpoint`)."""
+    from tactiled_client.endpoints import local_endpoint
+
+    endpoint = config.publish.endpoint
+    return local_endpoint(sensor or config.sensor.id) if endpoint == DEFAULT_ENDPOINT else endpoint
+
+
 def is_local_endpoint(endpoint: str) -> bool:
-    """True for ipc://, inproc:// and tcp:// endpoints on a loopback address."""
+    """True for ``auto``, ipc://, inproc:// and tcp:// endpoints on a loopback address."""
+    if endpoint == DEFAULT_ENDPOINT:
+        return True
     if not endpoint.startswith("tcp://"):
         return True
     host = endpoint[len("tcp://"):].rsplit(":", 1)[0].strip("[]")

@@ -7,6 +7,7 @@ import contextlib
 import os
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -23,6 +24,9 @@ if TYPE_CHECKING:
     from tactiled.sim.virtualboard import VirtualBoard
 
 REPO = Path(__file__).resolve().parents[1]
+# daemons started without --publish bind ipc://$TACTILED_RUNTIME_DIR/<sensor id>.sock: one folder per test process,
+# so that parallel test processes never meet (tactiled_client.endpoints)
+os.environ["TACTILED_RUNTIME_DIR"] = tempfile.mkdtemp(prefix="tactiled-run-")
 
 
 def wait_for(predicate: Callable[[], object], timeout: float = 20.0, what: str = "condition") -> object:

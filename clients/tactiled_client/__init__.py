@@ -7,6 +7,7 @@ stays light. Every error the library raises on purpose is a :class:`ClientError`
 
 from typing import TYPE_CHECKING, Any
 
+from tactiled_client.endpoints import local_endpoint
 from tactiled_client.errors import ClientError, EndOfLog, LogError, NoData, UsageError
 from tactiled_client.schema import SCHEMA_VERSION, Message, Roughness, Samples, Shadow, Slide, Status
 
@@ -16,7 +17,7 @@ if TYPE_CHECKING:
     from tactiled_client.subscriber import BlockingSubscriber, Subscriber
 
 __all__ = ["SCHEMA_VERSION", "BlockingReplay", "BlockingSubscriber", "ClientError", "EndOfLog", "LogError", "Message", "NoData", "Replay",
-           "Roughness", "Samples", "Shadow", "Slide", "Status", "Subscriber", "UsageError", "record"]
+           "Roughness", "Samples", "Shadow", "Slide", "Status", "Subscriber", "UsageError", "local_endpoint", "record"]
 
 _LAZY = {"BlockingSubscriber": "subscriber", "Subscriber": "subscriber", "BlockingReplay": "replay", "Replay": "replay", "record": "record"}
 

@@ -1,14 +1,14 @@
 """Subscribe to one or more tactiled daemons.
 
-Async::
+Async (``from tactiled_client import Subscriber, local_endpoint``)::
 
-    async with Subscriber("tcp://127.0.0.1:7350", topics=["roughness"]) as sub:
+    async with Subscriber(local_endpoint("fingertip0"), topics=["roughness"]) as sub:   # or "tcp://host:port"
         async for msg in sub:
             print(msg.label, msg.confidence)
 
 Blocking (scripts)::
 
-    with BlockingSubscriber("tcp://127.0.0.1:7350") as sub:
+    with BlockingSubscriber(local_endpoint("fingertip0")) as sub:
         for msg in sub:
             ...
 

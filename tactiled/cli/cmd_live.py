@@ -7,6 +7,7 @@ import sys
 
 from tactiled.cli import common as c
 from tactiled.cli.common import EXIT_FAIL, EXIT_OK, Sub, command, config_of, say
+from tactiled.config import subscribe_endpoint
 from tactiled.errors import TactiledError
 
 
@@ -56,7 +57,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     """The terminal view of a running daemon."""
     from tactiled.apps.monitor import run_monitor
 
-    return run_monitor(args.connect or config_of(args).publish.endpoint, args.truth)
+    return run_monitor(args.connect or subscribe_endpoint(config_of(args)), args.truth)
 
 
 def cmd_lsl(args: argparse.Namespace) -> int:
@@ -101,16 +102,16 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--force", action="store_true", help="let --record and --raw replace existing files, and run a model whose analysis "
                                                         "cannot keep up with the sensor (below 5x real time on this machine)")
 
-    p = command(sub, "monitor", "terminal view of a running daemon", cmd_monitor, "tactiled monitor --connect tcp://127.0.0.1:7350")
+    p = command(sub, "monitor", "terminal view of a running daemon", cmd_monitor, "tactiled monitor --connect ipc:///run/tactiled/fingertip0.sock")
     p.add_argument("--connect", help=c.CONNECT_HELP)
     p.add_argument("--config", help=c.CONFIG_HELP)
     p.add_argument("--truth", help="a virtual board's log (simulate serial --log): show the true surface of each slide (default: none)")
 
     for name, help_, handler, example in (
             ("lsl", "Lab Streaming Layer outlets of a daemon's raw samples and labels (tactiled[lsl])", cmd_lsl,
-             "tactiled lsl --connect tcp://127.0.0.1:7350"),
+             "tactiled lsl --sensor-id fingertip0"),
             ("ros2", "ROS 2 topics of a daemon's labels, status and raw samples (tactiled[ros2])", cmd_ros2,
-             "tactiled ros2 --connect tcp://127.0.0.1:7350 --sensor-id fingertip0 --ros-args -r __ns:=/robot1")):
+             "tactiled ros2 --sensor-id fingertip0 --ros-args -r __ns:=/robot1")):
         p = command(sub, name, help_, handler, example)
         p.add_argument("--connect", help=c.CONNECT_HELP)
         p.add_argument("--config", help=c.CONFIG_HELP)

@@ -189,7 +189,8 @@ SCENE_HELP = ("scene, or scenes joined by commas: hand (default), robot, continu
               "(docs/simulator.md), e.g. continuous,one-channel")
 SURFACES_HELP = ("N surfaces spread over the range, or names such as Ra0.44,Ra4.43 (the grating scene: G0.10mm,G1.00mm) "
                  "(default: all 15)")
-CONNECT_HELP = "daemon endpoint to subscribe to (default: publish.endpoint of --config, or the built-in default)"
+CONNECT_HELP = ("daemon endpoint to subscribe to (default: publish.endpoint of --config; for 'auto', the built-in default, "
+                "the local daemon's socket: /run/tactiled/<sensor.id>.sock or $XDG_RUNTIME_DIR/tactiled/<sensor.id>.sock)")
 SEED_HELP = "random seed"
 MODEL_HELP = "model file (default: the shipped model, when it fits the recording's rate and channels)"
 FORCE_HELP = "replace an existing output file"

@@ -105,7 +105,7 @@ class Daemon:
         self.pipeline = self.stream.live
         self.shadow_stats: ShadowStats | None = None
         self.set_shadow(shadow)
-        self.publisher = Publisher(config.publish)
+        self.publisher = Publisher(config.publish, sensor=config.sensor.id)
         self.state = DaemonState()
         self.stop_event = asyncio.Event()
         self.last_status: schema.Status | None = None  # the stopping status, once run() has ended

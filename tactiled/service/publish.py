@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import socket
 import time
 from pathlib import Path
@@ -17,6 +18,7 @@ from typing import Any, TypeVar
 import zmq
 import zmq.asyncio
 from tactiled_client import schema
+from tactiled_client.endpoints import AUTO, local_socket
 
 from tactiled import __version__
 from tactiled.config import PublishConfig
@@ -35,11 +37,56 @@ M = TypeVar("M", bound=schema.Message)
 MAX_INBOUND_BYTES = 384
 
 
-class Publisher:
-    """Binds ``config.endpoint``; :meth:`publish` stamps seq and time_unix on schema messages and sends them."""
+SOCKET_MODE = 0o660  # an ipc socket: the daemon's user and group may connect (add subscribers' users to the group)
+FOLDER_MODE = 0o750  # the runtime folder made for it
 
-    def __init__(self, config: PublishConfig, context: zmq.Context[Any] | None = None, see_subscribers: bool = False) -> None:
-        """``see_subscribers``: an XPUB socket, so that :meth:`wait_subscriber` can tell when a subscription arrived."""
+
+def bind_address(endpoint: str, sensor: str) -> str:
+    """The address to bind for ``publish.endpoint``: ``auto`` is ``ipc://`` + :func:`tactiled_client.endpoints.local_socket`
+    (its folder made, mode 750); for an ipc:// path, a socket another process still listens on is refused (ConfigError:
+    ZeroMQ would silently take it over), a stale one is replaced."""
+    if endpoint == AUTO:
+        path = local_socket(sensor)
+        try:
+            path.parent.mkdir(mode=FOLDER_MODE, parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"publish.endpoint: cannot make {path.parent} for the daemon's socket: {exc.strerror or exc}") from None
+        endpoint = f"ipc://{path}"
+    if endpoint.startswith("ipc://") and Path(endpoint[6:]).is_socket():
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+            try:
+                probe.connect(endpoint[6:])
+            except OSError:
+                pass  # nobody listens: a stale socket of a daemon that died, replaced by the bind
+            else:
+                raise ConfigError(f"publish.endpoint: another process already publishes on {endpoint} (another daemon for sensor "
+                                  f"{sensor}?); stop it or give this one another endpoint")
+    return endpoint
+
+
+def _share(path: Path, group: str) -> None:
+    """Mode 660 on the socket at ``path``, and group ``group`` when it exists and this process belongs to it (else the
+    file keeps this process's group): the users of that group may subscribe, as gpsd's users do through its socket."""
+    with contextlib.suppress(OSError):
+        path.chmod(SOCKET_MODE)
+        if group:
+            import grp
+
+            try:
+                gid = grp.getgrnam(group).gr_gid
+            except KeyError:
+                return
+            if gid in os.getgroups() or gid == os.getegid():
+                os.chown(path, -1, gid)
+
+
+class Publisher:
+    """Binds ``config.endpoint`` (``auto``: :func:`bind_address`); :meth:`publish` stamps seq and time_unix on schema messages and sends them."""
+
+    def __init__(self, config: PublishConfig, context: zmq.Context[Any] | None = None, see_subscribers: bool = False,
+                 sensor: str = "fingertip0") -> None:
+        """``see_subscribers``: an XPUB socket, so that :meth:`wait_subscriber` can tell when a subscription arrived; ``sensor``:
+        the id that names the socket of ``auto``."""
         self.context = context or zmq.Context.instance()
         self.socket = self.context.socket(zmq.XPUB if see_subscribers else zmq.PUB)
         self.socket.setsockopt(zmq.LINGER, 0)
@@ -51,11 +98,17 @@ class Publisher:
         if config.curve_secret_key_file:
             self._curve(config)
         try:
-            self.socket.bind(config.endpoint)
+            address = bind_address(config.endpoint, sensor)
+            self.socket.bind(address)
         except zmq.ZMQError as exc:
             self.socket.close()
-            raise ConfigError(f"publish.endpoint: cannot bind {config.endpoint}: {exc}") from None
+            raise ConfigError(f"publish.endpoint: cannot bind {address}: {exc}") from None
+        except ConfigError:
+            self.socket.close()
+            raise
         self.endpoint = self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
+        if self.endpoint.startswith("ipc://"):
+            _share(Path(self.endpoint[6:]), config.socket_group)
         self._seq: dict[str, int] = {}
         self.sent = 0
         self.dropped = 0

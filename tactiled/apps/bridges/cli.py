@@ -6,6 +6,7 @@ import threading
 from typing import Any
 
 from tactiled.apps.bridges import StreamMeta, _say, first_status, run_bridge
+from tactiled.config import subscribe_endpoint
 
 
 def serve(kind: str, config: Any, connect: str | None = None, sensor_id: str | None = None, *, nan_lost: bool = False,
@@ -18,7 +19,7 @@ def serve(kind: str, config: Any, connect: str | None = None, sensor_id: str | N
     """
     import signal
 
-    endpoint = connect or config.publish.endpoint
+    endpoint = connect or subscribe_endpoint(config, sensor_id)
     sensor = sensor_id or config.sensor.id
     sink: Any
     if kind == "lsl":

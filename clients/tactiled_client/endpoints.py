@@ -1,0 +1,39 @@
+"""Where a daemon on this machine publishes by default: an ``ipc://`` socket in a runtime folder, as gpsd keeps its
+socket under ``/run``. Local subscribers find it by sensor id; TCP is opt-in (``publish.endpoint``).
+
+The folder, first that applies: ``$TACTILED_RUNTIME_DIR``; ``$RUNTIME_DIRECTORY`` (what systemd sets for the unit's
+``RuntimeDirectory=tactiled``: ``/run/tactiled``); ``$XDG_RUNTIME_DIR/tactiled`` (a user's own daemon);
+``/tmp/tactiled-<uid>``. The socket is ``<folder>/<sensor id>.sock``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+SYSTEM_DIR = Path("/run/tactiled")  # the systemd unit's RuntimeDirectory=tactiled
+AUTO = "auto"  # publish.endpoint's default: local_socket(sensor id)
+
+
+def runtime_dir() -> Path:
+    """The folder this process's daemon binds its socket in (see the module docstring)."""
+    for var in ("TACTILED_RUNTIME_DIR", "RUNTIME_DIRECTORY"):
+        value = os.environ.get(var, "").split(":")[0]
+        if value:
+            return Path(value)
+    xdg = os.environ.get("XDG_RUNTIME_DIR")
+    return Path(xdg) / "tactiled" if xdg else Path(f"/tmp/tactiled-{os.getuid()}")
+
+
+def local_socket(sensor: str) -> Path:
+    """The socket a daemon of ``sensor`` binds by default from this process's environment."""
+    return runtime_dir() / f"{sensor}.sock"
+
+
+def local_endpoint(sensor: str = "fingertip0") -> str:
+    """The endpoint of the local daemon of ``sensor``: this environment's socket if it exists, else the system
+    service's (``/run/tactiled/<sensor>.sock``) if that exists, else this environment's (the daemon may start later)."""
+    own = local_socket(sensor)
+    system = SYSTEM_DIR / f"{sensor}.sock"
+    path = own if own.exists() or not system.exists() or "TACTILED_RUNTIME_DIR" in os.environ else system
+    return f"ipc://{path}"
