@@ -211,3 +211,26 @@ def test_shadow_stats_pair_overlapping_slides_and_count_agreement_confidence_and
     for k in range(3 * PENDING_MAX):  # results the other model never matches stay bounded
         stats.add_live(result(10_000 + k, "Ra1"))
     assert len(stats._live) <= PENDING_MAX
+
+
+def test_shadow_stats_uncount_a_withdrawn_final_label() -> None:
+    from tactiled.core.events import SlideResult
+    from tactiled.core.shadow import ShadowStats
+
+    def result(stop: int, label: str | None, confidence: float | None = None) -> SlideResult:
+        return SlideResult(0, 0, stop, (0, stop), label, None, confidence, [], {})
+
+    stats = ShadowStats(model="cafe")
+    stats.add_live(result(100, "Ra1"))
+    stats.add_shadow(result(100, "Ra2", 0.6))  # paired at the early end: disagree
+    stats.withdraw(shadow=False)  # the slide went on: both early labels are withdrawn, in either order
+    stats.withdraw(shadow=True)
+    assert stats.summary() == {"model": "cafe", "slides": 0, "agreement": None, "confidence": None, "unknown_rate": None}
+    stats.add_shadow(result(900, "Ra1", 0.9))  # the real end: the candidate first this time
+    stats.add_live(result(900, "Ra1"))
+    assert stats.summary() == {"model": "cafe", "slides": 1, "agreement": 1.0, "confidence": 0.9, "unknown_rate": 0.0}
+    stats.add_live(result(1900, "Ra3"))  # one model withdraws, the other's result waits for the new pair
+    stats.add_shadow(result(1900, "Ra3", 0.5))
+    stats.withdraw(shadow=True)
+    stats.add_shadow(result(2500, "Ra2", 0.7))
+    assert (stats.slides, stats.agreed, stats.finals, round(stats.confidence_sum, 6)) == (2, 1, 2, 1.6)
