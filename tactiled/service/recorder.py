@@ -29,7 +29,7 @@ from tactiled.errors import OutputError
 from tactiled.files.journal import JournalWriter, encode_chunk, encode_header, is_locked, journal_path, recover
 from tactiled.files.outputs import check_output
 from tactiled.files.recording import fsync_dir
-from tactiled.run.ingest import Batch, max_gap_for
+from tactiled.run.ingest import Batch
 from tactiled.run.stream import Stream
 from tactiled.signals import STOP_SIGNALS
 
@@ -244,8 +244,10 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     """Record ``seconds`` of sensor time from ``config.sensor``'s port into ``out``; SIGINT, SIGTERM or SIGHUP stops early and saves.
 
     The bytes go through the daemon's ingest core (a :class:`~tactiled.run.stream.Stream` that decodes only): frames of
-    another channel count are counted and skipped, and a forward jump of the index beyond the ring's length is a board
-    restart, recorded as continuing, never as a long run of lost samples.
+    another channel count are counted and skipped, and a forward jump of the index (an unplug, however long, as long as the
+    board's counter can say how many) is a lost range of that length in the recording, never a splice: the rows after it
+    keep their sensor time (``--seconds`` counts sensor time, the gap included). Only a board restart (the index back,
+    not a repeated frame) continues the rows, and is counted in ``meta["restarts"]``.
 
     The port and the output path are checked first (:class:`~tactiled.errors.DeviceError`,
     :class:`~tactiled.errors.OutputError`); a write error during the capture stops it and is returned in
@@ -255,7 +257,7 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     s = config.sensor
     check_port(s.port)
     chunks: queue.Queue[bytes | None] = queue.Queue()
-    stream = Stream(config, analyse=False, max_gap=max_gap_for(config.ring.seconds, s.fs))
+    stream = Stream(config, analyse=False)
     source: SerialSource | None = None
 
     def counters() -> dict[str, int]:
