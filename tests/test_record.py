@@ -422,6 +422,34 @@ def test_record_drops_a_duplicated_frame_and_counts_it_in_meta(tmp_path: Path) -
     assert np.array_equal(rec.samples, np.concatenate([before, after]))
 
 
+def test_record_writes_an_unplug_as_a_gap_never_a_splice(tmp_path: Path) -> None:
+    """A 25 s unplug (the index 500 000 samples ahead when frames come back) is a lost range of 500 000 rows, counted: the rows
+    after it keep their sensor time, never spliced onto the rows before it."""
+    from tactiled.board.frames import encode_frames
+
+    rng = np.random.default_rng(6)
+    before, after = (rng.integers(-900, 900, (800, 2)).astype(np.int16) for _ in range(2))
+    gap = 500_000
+    out, _ = _record_bytes(tmp_path, encode_frames(1000, before) + encode_frames(1000 + 800 + gap, after), (1600 + gap) / 20000)
+    rec = load_recording(out)
+    assert rec.first_index == 1000 and rec.lost.tolist() == [[800, gap]] and rec.meta["restarts"] == 0
+    assert rec.samples.shape[0] == 1600 + gap
+    assert np.array_equal(rec.samples[:800], before) and np.array_equal(rec.samples[800 + gap:], after)
+
+
+def test_record_takes_a_board_reset_at_a_small_index_as_a_restart_not_duplicates(tmp_path: Path) -> None:
+    """A board reset while its index is under the duplicate window (65 536): other samples at indices already recorded are a
+    restart (counted in meta), never dropped as duplicates: every sample after the reset is kept."""
+    from tactiled.board.frames import encode_frames
+
+    rng = np.random.default_rng(7)
+    before, after = (rng.integers(-900, 900, (800, 2)).astype(np.int16) for _ in range(2))
+    out, _ = _record_bytes(tmp_path, encode_frames(1000, before) + encode_frames(0, after), 0.08)
+    rec = load_recording(out)
+    assert rec.meta["restarts"] == 1 and rec.meta["duplicate_frames"] == 0 and rec.lost.size == 0
+    assert np.array_equal(rec.samples, np.concatenate([before, after]))
+
+
 @pytest.mark.parametrize("what", ["fifo", "file"])
 def test_the_sink_never_replaces_what_appeared_at_its_output(what: str, tmp_path: Path) -> None:
     """At the end the output is checked again: a FIFO (or a device) there is never written, even with force; a file that
