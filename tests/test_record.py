@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tactiled.board.frames import Frame
+from tactiled.board.frames import Frame, frame_size
 from tactiled.files.journal import JournalWriter, encode_chunk, encode_header, journal_path, read_journal, recover
 from tactiled.files.recording import load_recording
 from tactiled.service.recorder import RecordingSink
@@ -87,17 +87,20 @@ def test_record_keeps_every_intact_sample_through_faults_and_unplug(tmp_path: Pa
     # the expected stream: regenerate the same seeded samples
     truth = board_truth(3, default_surfaces()[:3], rec.first_index - first, n)
     bad = np.zeros(n, dtype=bool)
+    unplugged: dict[str, int] | None = None
     for e in events:
-        if e["event"] in ("drop", "corrupt", "overrun", "unplug"):
+        if e["event"] in ("drop", "corrupt", "overrun"):
             lo = e["index"] - rec.first_index
-            hi = lo + (e.get("count") or 20)
-            if e["event"] == "unplug":
-                # down 0.2 s; then until the reader's backoff reopens the port the new pty's ~4 KB
-                # buffer overflows (a real device is no better): bounded by one second
-                hi = lo + round(1.0 * params.fs)
-            if e["event"] == "unplug":
-                lo -= round(0.05 * params.fs)  # frames still unread in the pty when it closed (one read period)
-            bad[max(lo, 0):max(min(hi, n), 0)] = True
+            bad[max(lo, 0):max(min(lo + e["count"], n), 0)] = True
+        elif e["event"] == "unplug":
+            unplugged = e
+        elif e["event"] == "open" and unplugged is not None:
+            # the unplug: the frames the reader had not taken when the pty closed (the board logs their bytes), then every
+            # sample up to the first frame of the new pty (frames the new pty would not take before the reader reopened it
+            # are logged as overruns)
+            stranded = -(-unplugged["unread"] // frame_size(2, 20)) * 20
+            bad[max(unplugged["index"] - stranded - rec.first_index, 0):max(min(e["index"] - rec.first_index, n), 0)] = True
+            unplugged = None
     valid = rec.valid_mask()
     # every intact sample the board sent is present at its index
     assert np.array_equal(rec.samples[valid], truth[valid])
@@ -504,3 +507,4 @@ def test_run_record_on_a_full_disk_exits_1(tmp_path: Path) -> None:
                     proc.kill()
     assert proc.returncode == 1, "".join(lines) + rest
     assert "Traceback" not in "".join(lines) + rest
+

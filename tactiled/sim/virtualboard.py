@@ -2,8 +2,8 @@
 
 It opens a pty, keeps an optional symlink pointing at it, and streams frames per
 docs/sensor-frames.md in real time (or ``speed`` times faster). It can corrupt,
-drop and garble frames, unplug (close the pty, keep sampling, open a new pty behind
-the same symlink: the index goes on, so the samples of the unplug are a gap) and reset (the
+drop and garble frames, unplug (remove the symlink and close the pty, keep sampling, then open a new pty
+and point the symlink at it: the index goes on, so the samples of the unplug are a gap) and reset (the
 index starts again at ``reset_to``, as a board that restarted). With a log it writes one JSON
 line per event (slides scheduled, frames dropped or corrupted, garbage, unplugs with the bytes
 the reader had not taken yet, resets) so tests can check what arrived; frames the pty would not take
@@ -13,11 +13,8 @@ the reader had not taken yet, resets) so tests can check what arrived; frames th
 
 from __future__ import annotations
 
-import fcntl
 import json
 import os
-import struct
-import termios
 import threading
 import time
 import tty
@@ -113,14 +110,29 @@ class VirtualBoard:
         self._event("open", path=self.path, index=self.first_index + self.sent_samples + self._shift)
         return self.path
 
-    def _unread(self) -> int:
-        """Bytes written to the pty that its reader has not taken yet (0 if the pty is closed)."""
+    def _strand(self) -> int:
+        """At an unplug: the bytes written to the pty that its reader has not taken, read off the board's own end of it so that
+        they are gone, as a hung-up tty's are; returns how many (0 if the pty is closed).
+
+        Reading counts them exactly: FIONREAD sees only the line discipline's buffer, not what still waits in the tty's flip
+        buffers (up to 64 kB), while a read that finds nothing waits for those to be flushed first.
+        """
         if self._slave < 0:
             return 0
-        return int(struct.unpack("i", fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0"))[0])
+        os.set_blocking(self._slave, False)  # the board's own open file: the reader's is another
+        n = 0
+        while True:
+            try:
+                chunk = os.read(self._slave, 1 << 16)
+            except OSError:  # EAGAIN: nothing left
+                break
+            if not chunk:
+                break
+            n += len(chunk)
+        return n
 
     def close(self) -> None:
-        """Close the pty (the link stays: an unplug reopens behind it)."""
+        """Close the pty (the link stays; an unplug removes it first, :meth:`run`)."""
         for fd in (self._master, self._slave):
             if fd >= 0:
                 os.close(fd)
@@ -173,6 +185,7 @@ class VirtualBoard:
                 block = self.model.read(n)
                 if resets and self.sent_samples >= resets[0]:
                     resets.pop(0)
+                    self._flush_overruns(force=True)  # the overruns logged before a reset are of the old indices, those after of the new
                     self._event("reset", index=self.first_index + self.sent_samples + self._shift, to=self.reset_to)
                     self._shift = self.reset_to - self.first_index - self.sent_samples
                 index = self.first_index + self.sent_samples + self._shift
@@ -180,7 +193,10 @@ class VirtualBoard:
                 if unplugs and self.sent_samples >= unplugs[0]:
                     unplugs.pop(0)
                     self._flush_overruns(force=True)
-                    self._event("unplug", index=index, unread=self._unread())  # the frames still queued are lost with the pty
+                    self._event("unplug", index=index, unread=self._strand())  # the frames still queued are lost with the pty
+                    # the link goes first, as udev removes /dev/serial/by-id/ links: once the pty is closed its number is free, and a
+                    # link left pointing at it names the next pty anyone opens (another board's), which the reader would then read
+                    self.remove_link()
                     self.close()
                     down_until = self.sent_samples + round(self.unplug_s * fs)
                 if down_until >= 0:
