@@ -508,3 +508,41 @@ def test_run_record_on_a_full_disk_exits_1(tmp_path: Path) -> None:
     assert proc.returncode == 1, "".join(lines) + rest
     assert "Traceback" not in "".join(lines) + rest
 
+
+def test_a_jump_the_recording_cannot_hold_ends_it_in_bounded_memory(tmp_path: Path) -> None:
+    """A 2**31 - 1 jump (the longest the counter can say: 8 GiB of zero rows at 2 channels) never reaches the journal or the .npz
+    as rows: the recording ends before it, the gap in meta. Memory stays small."""
+    import tracemalloc
+
+    rng = np.random.default_rng(8)
+    before, after = (rng.integers(-900, 900, (800, 2)).astype(np.int16) for _ in range(2))
+    out = tmp_path / "o.npz"
+    sink = RecordingSink(out, fs=20000.0, channels=2, volts_per_count=1e-4)
+    jump = (1 << 31) - 1
+    tracemalloc.start()
+    try:
+        for frame in _frames(before, 1000):
+            sink.add(frame)
+        for frame in _frames(after, 1800 + jump):
+            sink.add(frame)
+        result = sink.finish()
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 << 20, peak
+    assert result.error is None and sink.done and sink.ended_by_gap == jump
+    rec = load_recording(out)
+    assert np.array_equal(rec.samples, before) and rec.lost.size == 0 and rec.meta["ended_by_gap"] == jump
+
+
+def test_a_gap_across_the_limit_ends_a_limited_recording(tmp_path: Path) -> None:
+    """``record --seconds``: a gap that runs past the limit ends the recording at its last row received (it used to wait
+    for ever: rows beyond the limit were dropped one frame at a time without ever reaching it)."""
+    before = np.ones((400, 2), dtype=np.int16)
+    sink = RecordingSink(tmp_path / "o.npz", fs=20000.0, channels=2, volts_per_count=1e-4, limit=1000)
+    for frame in _frames(before, 0):
+        sink.add(frame)
+    assert not sink.done
+    sink.add(Frame(5000, before[:20]))
+    assert sink.done and sink.finish().error is None
+    assert load_recording(tmp_path / "o.npz").samples.shape[0] == 400
