@@ -177,14 +177,44 @@ def test_encode_frames_splits_like_firmware() -> None:
 
 
 def test_a_run_overlapping_what_was_placed_drops_whole_frames_like_per_frame_decoding() -> None:
-    """Bulk runs give the frames one-by-one decoding gives: a frame starting before the expected index is a duplicate, whole."""
-    first, _ = _stream(1)
-    later, _ = _stream(3, first=10, seed=2)  # frames at 10, 30, 50: the first overlaps the frame at 0
-    data = b"".join(first + later)
+    """Bulk runs give the frames one-by-one decoding gives: a repeated frame (same index, same bytes) is a duplicate, whole,
+    and the new frames after it in the same run are kept."""
+    frames, _ = _stream(4)  # frames at 0, 20, 40, 60
+    data = b"".join(frames[:2] + frames[1:2] + frames[2:])  # the frame at 20 twice, then 40 and 60 in the same run
     runs = FrameDecoder()
     got = runs.feed_runs(data)
-    assert [(f.index, f.samples.shape[0], f.lost) for f in got] == [(0, 20, 0), (30, 40, 10)]
+    assert [(f.index, f.samples.shape[0], f.lost) for f in got] == [(0, 40, 0), (40, 40, 0)]
     per_frame = FrameDecoder()
-    assert [(f.index, f.lost) for f in per_frame.feed(data)] == [(0, 0), (30, 10), (50, 0)]
+    assert [(f.index, f.lost) for f in per_frame.feed(data)] == [(0, 0), (20, 0), (40, 0), (60, 0)]
     assert runs.stats.duplicates == per_frame.stats.duplicates == 1
-    assert runs.stats.samples_lost == per_frame.stats.samples_lost == 10
+    assert runs.stats.samples_lost == per_frame.stats.samples_lost == 0
+    assert runs.stats.restarts == per_frame.stats.restarts == 0
+
+
+def test_a_board_reset_at_a_small_index_is_a_restart_not_duplicates() -> None:
+    """A board reset while its index is under the duplicate window: frames at indices already placed but with other samples are
+    a new session (a restart), never dropped as duplicates; every sample after the reset is delivered."""
+    before, _ = _stream(100)  # 0 .. 1999
+    after, _ = _stream(50, seed=9)  # the board restarted at 0: other samples at the same indices
+    for cut in (None, 1):
+        dec = FrameDecoder()
+        got = dec.feed(b"".join(before + after)) if cut is None else [f for b in b"".join(before + after) for f in dec.feed(bytes([b]))]
+        assert dec.stats.restarts == 1 and dec.stats.duplicates == 0 and dec.stats.samples_lost == 0
+        assert dec.stats.samples == 3000 and len(got) == 150
+        assert got[100].restart and got[100].index == 2000  # the host timeline continues
+
+
+def test_a_forward_gap_of_any_length_the_counter_can_say_is_lost_samples() -> None:
+    """An unplug of 25 s at 20 kHz, and the longest jump the 32-bit counter can say (2**31 - 1): counted as lost, nothing allocated."""
+    for gap in (500_000, (1 << 31) - 1 - 20):
+        dec = FrameDecoder()
+        a, _ = _stream(2)
+        b, _ = _stream(2, first=40 + gap, seed=3)
+        got = dec.feed(b"".join(a + b))
+        assert [(f.index, f.lost, f.restart) for f in got] == [(0, 0, False), (20, 0, False), (40 + gap, gap, False), (60 + gap, 0, False)]
+        assert dec.stats.samples_lost == gap and dec.stats.restarts == 0
+    dec = FrameDecoder()  # 2**31 ahead is as far behind: the counter cannot say which, so it is a restart
+    a, _ = _stream(2)
+    b, _ = _stream(2, first=40 + (1 << 31), seed=3)
+    got = dec.feed(b"".join(a + b))
+    assert dec.stats.restarts == 1 and dec.stats.samples_lost == 0 and got[2].index == 40

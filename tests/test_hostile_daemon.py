@@ -18,11 +18,17 @@ import pytest
 from tactiled_client import BlockingSubscriber, Status
 
 from tactiled.board.frames import SYNC, VERSION, encode_frame
+from tactiled.config import Config
+from tactiled.core.detect import SlideDetector
 from tactiled.sim.ptyplayer import PtyPlayer
 from tests.conftest import board_and_daemon, daemon_process, in_thread, wait_for
 
 HEADER_FLOOD_RATE = 1_000_000  # bytes/s of frame headers, each claiming a 16 kB frame (8 channels x 1 024 samples)
-GAP_FRAMES_RATE = 1_000  # one-sample frames/s, each 400 000 samples ahead of the last (a long walk for the slide detector)
+GAP_FRAMES_RATE = 10_000  # one-sample frames/s, each GAP samples ahead of the last (a walk for the slide detector)
+# the longest gap the slide detector walks through (a longer one it skips in constant time, SlideDetector._skip_after): 8 002
+# samples at the defaults, 0.3 ms a frame here, so 10 000 frames/s are 3 s of work a second. Frames 400 000 ahead used to be
+# the flood, a 20 ms walk each; since every forward gap is lost samples and the detector skips long ones they cost 0.1 ms.
+GAP = SlideDetector(Config().detector, Config().sensor.fs, Config().sensor.channels)._skip_after
 STATUS_WAIT_S = 3.0  # generous: the daemon publishes status every 0.5 s and must never go 1 s without
 
 
@@ -33,9 +39,9 @@ def header_flood() -> bytes:
 
 
 def gap_frames() -> bytes:
-    """Intact one-sample frames, each 400 000 samples after the one before (indices wrap at 2**32 as the board's do)."""
+    """Intact one-sample frames, each :data:`GAP` samples after the one before (indices wrap at 2**32 as the board's do)."""
     one = np.array([[120, -80]], dtype=np.int16)
-    return b"".join(encode_frame(k * 400_000, one) for k in range(20_000))
+    return b"".join(encode_frame(k * GAP, one) for k in range(200_000))
 
 
 @contextlib.contextmanager
@@ -74,7 +80,7 @@ def status_where(sub: BlockingSubscriber, predicate: Callable[[Status], bool], t
 
 
 @pytest.mark.parametrize(("flood", "rate"), [(header_flood, HEADER_FLOOD_RATE), (gap_frames, GAP_FRAMES_RATE * 16)],
-                         ids=["headers-claiming-16kB-frames", "one-sample-frames-400000-ahead"])
+                         ids=["headers-claiming-16kB-frames", "one-sample-frames-far-ahead"])
 def test_status_keeps_coming_and_sigterm_stops_the_daemon_under_input_that_costs_more_than_it_takes_to_arrive(
         flood: object, rate: float, tmp_path: Path) -> None:
     link, endpoint = str(tmp_path / "tty"), f"ipc://{tmp_path}/pub"
@@ -144,7 +150,6 @@ def test_the_watchdog_is_fed_while_the_daemon_keeps_up_and_starved_while_it_cann
     directly: how far behind a flood puts the daemon depends on the machine (a quiet one keeps up with a header flood)."""
     from types import SimpleNamespace
 
-    from tactiled.config import Config
     from tactiled.service.daemon import Daemon
 
     notify = NotifySocket(tmp_path / "notify")

@@ -31,7 +31,7 @@ MB = 1 << 20
 
 
 def test_a_capture_whose_index_jumps_keeps_zero_rows_bounded_by_its_size_and_counts_every_gap(tmp_path: Path) -> None:
-    """Bound: 100 one-sample frames (1.6 kB), each 399 000 samples after the last (under the ring's 400 000, so each
+    """Bound: 100 one-sample frames (1.6 kB), each 399 000 samples after the last (each
     gap is lost samples), peak Python allocation < 50 MB (it was ~160 MB: 1.6 MB of zero rows per gap); every gap still
     counted: 99 x 398 999 samples lost, in the meta and the summary line."""
     path = tmp_path / "gaps.bin"

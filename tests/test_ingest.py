@@ -74,8 +74,10 @@ def _frames(first: int, n: int, channels: int = 2, seed: int = 0) -> bytes:
     return encode_frames(first, rng.integers(-500, 500, (n * 20, channels)).astype(np.int16))
 
 
-@pytest.mark.parametrize("jump", [2**31 + 12345, 2**24])
-def test_a_huge_forward_jump_is_a_restart_in_constant_memory(jump: int) -> None:
+@pytest.mark.parametrize(("jump", "counted"), [(2**31 + 12345, False), (2**24, True), (2**31 - 1 - 1000, True)])
+def test_a_huge_forward_jump_costs_constant_memory(jump: int, counted: bool) -> None:
+    """A jump the 32-bit counter can say (below 2**31) is lost samples, however long; one it cannot (2**31 ahead is as far
+    behind) is a restart. Either way nothing is proportional to the gap, and a slide in progress would end before it."""
     stream = Stream(Config(), None)
     stream.feed_bytes(_frames(5000, 50))
     tracemalloc.start()
@@ -85,9 +87,14 @@ def test_a_huge_forward_jump_is_a_restart_in_constant_memory(jump: int) -> None:
     finally:
         tracemalloc.stop()
     assert peak < 4 << 20, peak  # nothing proportional to the gap (2**24 int16 pairs alone would be 64 MiB)
-    assert stream.stats.restarts == 1 and stream.stats.samples_lost == 0
-    assert [(b.index, b.restart) for b in after] == [(6000, True)]  # the timeline continues where it was
-    assert stream.live.ring.end == 7000
+    if counted:
+        assert stream.stats.restarts == 0 and stream.stats.samples_lost == jump
+        assert [(b.index, b.lost, b.restart) for b in after] == [(6000 + jump, jump, False)]  # positions stay sensor time
+        assert stream.live.ring.end == 7000 + jump
+    else:
+        assert stream.stats.restarts == 1 and stream.stats.samples_lost == 0
+        assert [(b.index, b.restart) for b in after] == [(6000, True)]  # the timeline continues where it was
+        assert stream.live.ring.end == 7000
 
 
 def test_a_gap_within_the_ring_is_lost_samples_not_a_restart() -> None:

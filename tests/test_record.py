@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tactiled.board.frames import Frame
+from tactiled.board.frames import Frame, frame_size
 from tactiled.files.journal import JournalWriter, encode_chunk, encode_header, journal_path, read_journal, recover
 from tactiled.files.recording import load_recording
 from tactiled.service.recorder import RecordingSink
@@ -87,17 +87,20 @@ def test_record_keeps_every_intact_sample_through_faults_and_unplug(tmp_path: Pa
     # the expected stream: regenerate the same seeded samples
     truth = board_truth(3, default_surfaces()[:3], rec.first_index - first, n)
     bad = np.zeros(n, dtype=bool)
+    unplugged: dict[str, int] | None = None
     for e in events:
-        if e["event"] in ("drop", "corrupt", "overrun", "unplug"):
+        if e["event"] in ("drop", "corrupt", "overrun"):
             lo = e["index"] - rec.first_index
-            hi = lo + (e.get("count") or 20)
-            if e["event"] == "unplug":
-                # down 0.2 s; then until the reader's backoff reopens the port the new pty's ~4 KB
-                # buffer overflows (a real device is no better): bounded by one second
-                hi = lo + round(1.0 * params.fs)
-            if e["event"] == "unplug":
-                lo -= round(0.05 * params.fs)  # frames still unread in the pty when it closed (one read period)
-            bad[max(lo, 0):max(min(hi, n), 0)] = True
+            bad[max(lo, 0):max(min(lo + e["count"], n), 0)] = True
+        elif e["event"] == "unplug":
+            unplugged = e
+        elif e["event"] == "open" and unplugged is not None:
+            # the unplug: the frames the reader had not taken when the pty closed (the board logs their bytes), then every
+            # sample up to the first frame of the new pty (frames the new pty would not take before the reader reopened it
+            # are logged as overruns)
+            stranded = -(-unplugged["unread"] // frame_size(2, 20)) * 20
+            bad[max(unplugged["index"] - stranded - rec.first_index, 0):max(min(e["index"] - rec.first_index, n), 0)] = True
+            unplugged = None
     valid = rec.valid_mask()
     # every intact sample the board sent is present at its index
     assert np.array_equal(rec.samples[valid], truth[valid])
@@ -422,6 +425,34 @@ def test_record_drops_a_duplicated_frame_and_counts_it_in_meta(tmp_path: Path) -
     assert np.array_equal(rec.samples, np.concatenate([before, after]))
 
 
+def test_record_writes_an_unplug_as_a_gap_never_a_splice(tmp_path: Path) -> None:
+    """A 25 s unplug (the index 500 000 samples ahead when frames come back) is a lost range of 500 000 rows, counted: the rows
+    after it keep their sensor time, never spliced onto the rows before it."""
+    from tactiled.board.frames import encode_frames
+
+    rng = np.random.default_rng(6)
+    before, after = (rng.integers(-900, 900, (800, 2)).astype(np.int16) for _ in range(2))
+    gap = 500_000
+    out, _ = _record_bytes(tmp_path, encode_frames(1000, before) + encode_frames(1000 + 800 + gap, after), (1600 + gap) / 20000)
+    rec = load_recording(out)
+    assert rec.first_index == 1000 and rec.lost.tolist() == [[800, gap]] and rec.meta["restarts"] == 0
+    assert rec.samples.shape[0] == 1600 + gap
+    assert np.array_equal(rec.samples[:800], before) and np.array_equal(rec.samples[800 + gap:], after)
+
+
+def test_record_takes_a_board_reset_at_a_small_index_as_a_restart_not_duplicates(tmp_path: Path) -> None:
+    """A board reset while its index is under the duplicate window (65 536): other samples at indices already recorded are a
+    restart (counted in meta), never dropped as duplicates: every sample after the reset is kept."""
+    from tactiled.board.frames import encode_frames
+
+    rng = np.random.default_rng(7)
+    before, after = (rng.integers(-900, 900, (800, 2)).astype(np.int16) for _ in range(2))
+    out, _ = _record_bytes(tmp_path, encode_frames(1000, before) + encode_frames(0, after), 0.08)
+    rec = load_recording(out)
+    assert rec.meta["restarts"] == 1 and rec.meta["duplicate_frames"] == 0 and rec.lost.size == 0
+    assert np.array_equal(rec.samples, np.concatenate([before, after]))
+
+
 @pytest.mark.parametrize("what", ["fifo", "file"])
 def test_the_sink_never_replaces_what_appeared_at_its_output(what: str, tmp_path: Path) -> None:
     """At the end the output is checked again: a FIFO (or a device) there is never written, even with force; a file that
@@ -476,3 +507,42 @@ def test_run_record_on_a_full_disk_exits_1(tmp_path: Path) -> None:
                     proc.kill()
     assert proc.returncode == 1, "".join(lines) + rest
     assert "Traceback" not in "".join(lines) + rest
+
+
+def test_a_jump_the_recording_cannot_hold_ends_it_in_bounded_memory(tmp_path: Path) -> None:
+    """A 2**31 - 1 jump (the longest the counter can say: 8 GiB of zero rows at 2 channels) never reaches the journal or the .npz
+    as rows: the recording ends before it, the gap in meta. Memory stays small."""
+    import tracemalloc
+
+    rng = np.random.default_rng(8)
+    before, after = (rng.integers(-900, 900, (800, 2)).astype(np.int16) for _ in range(2))
+    out = tmp_path / "o.npz"
+    sink = RecordingSink(out, fs=20000.0, channels=2, volts_per_count=1e-4)
+    jump = (1 << 31) - 1
+    tracemalloc.start()
+    try:
+        for frame in _frames(before, 1000):
+            sink.add(frame)
+        for frame in _frames(after, 1800 + jump):
+            sink.add(frame)
+        result = sink.finish()
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 << 20, peak
+    assert result.error is None and sink.done and sink.ended_by_gap == jump
+    rec = load_recording(out)
+    assert np.array_equal(rec.samples, before) and rec.lost.size == 0 and rec.meta["ended_by_gap"] == jump
+
+
+def test_a_gap_across_the_limit_ends_a_limited_recording(tmp_path: Path) -> None:
+    """``record --seconds``: a gap that runs past the limit ends the recording at its last row received (it used to wait
+    for ever: rows beyond the limit were dropped one frame at a time without ever reaching it)."""
+    before = np.ones((400, 2), dtype=np.int16)
+    sink = RecordingSink(tmp_path / "o.npz", fs=20000.0, channels=2, volts_per_count=1e-4, limit=1000)
+    for frame in _frames(before, 0):
+        sink.add(frame)
+    assert not sink.done
+    sink.add(Frame(5000, before[:20]))
+    assert sink.done and sink.finish().error is None
+    assert load_recording(tmp_path / "o.npz").samples.shape[0] == 400

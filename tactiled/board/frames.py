@@ -8,11 +8,14 @@ and hunts for the next sync word, so a corrupted frame costs only that frame.
 Intact consecutive frames are decoded in bulk (one numpy view over the run, one CRC call
 per frame), so :meth:`FrameDecoder.feed_runs` costs little more per read than per frame.
 
-The 32-bit sample index is unwrapped into a 64-bit one. A forward jump counts the samples
-lost; a jump back by less than ``duplicate_window`` samples is a duplicated frame (dropped
-and counted); a larger jump back, or a jump forward by more than ``max_gap``, is a board
-restart (or a frame that passed the CRC by chance): counted, flagged on the frame, and the
-host's timeline continues from where it was (the samples lost across a restart are unknown).
+The 32-bit sample index is unwrapped into a 64-bit one. A forward jump (less than half the
+counter's range, 2**31 samples: more could as well be a jump back) counts the samples lost,
+however many: the host index jumps with it, so positions stay equal to sensor time. A jump back
+by at most ``duplicate_window`` samples to a frame already placed, with the same CRC, is a
+duplicated frame (dropped and counted); any other jump back (a board reset to a small index
+sends other samples at those indices), or a forward jump of ``max_gap`` or more when one is set,
+is a board restart (or a frame that passed the CRC by chance): counted, flagged on the frame, and
+the host's timeline continues from where it was (the samples lost across a restart are unknown).
 Nothing is allocated for a gap. Frames with a foreign channel count never move the index.
 """
 
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import binascii
 import struct
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -98,8 +102,8 @@ class DecoderStats:
     truncated: int = 0  # incomplete frames at the end of a finite stream (flush)
     bytes_discarded: int = 0
     samples_lost: int = 0
-    restarts: int = 0  # backward jumps beyond the duplicate window and forward jumps beyond max_gap
-    duplicates: int = 0
+    restarts: int = 0  # backward jumps that are not duplicates, and forward jumps the counter cannot make
+    duplicates: int = 0  # frames dropped as repeats of frames already placed
     channel_errors: int = 0  # intact frames with a channel count other than the expected one (skipped)
 
 
@@ -107,10 +111,15 @@ class FrameDecoder:
     """Sans-IO decoder: ``feed(bytes) -> list[Frame]`` (one per frame) or ``feed_runs`` (runs of frames); counters in :attr:`stats`.
 
     ``channels``: if set, intact frames with another channel count are counted in
-    ``stats.channel_errors`` and skipped without moving the index. ``max_gap``: if set, a
-    forward jump of more than this many samples is a restart (resync), as a large backward
-    jump is: the timeline continues where it was, in O(1), and nothing is allocated for
-    the gap.
+    ``stats.channel_errors`` and skipped without moving the index. ``max_gap``: the longest
+    forward jump counted as lost samples (default, and at most, 2**31 - 1: the longest the
+    32-bit counter can say unambiguously); a longer one is a restart, as a jump back that is
+    not a duplicate is: the timeline continues where it was, in O(1). Nothing is allocated
+    for a gap either way.
+
+    Duplicates are recognised by content: the decoder keeps the CRC of each frame placed in
+    the last ``duplicate_window`` samples (a few kB), and a frame whose index goes back is a
+    duplicate only if it repeats one of them exactly.
     """
 
     def __init__(self, duplicate_window: int = 65536, *, channels: int | None = None, max_gap: int | None = None) -> None:
@@ -119,7 +128,9 @@ class FrameDecoder:
         self._next32 = 0  # the board's 32-bit index expected next
         self._duplicate_window = duplicate_window
         self._channels = channels
-        self._max_gap = _HALF if max_gap is None else min(max(int(max_gap), 0), _HALF)
+        self._max_gap = _HALF - 1 if max_gap is None else min(max(int(max_gap), 0), _HALF - 1)
+        self._placed: dict[int, int] = {}  # board index -> CRC of the frames placed in the last duplicate_window samples
+        self._placed_order: deque[int] = deque()  # their indices, oldest first
         self.stats = DecoderStats()
 
     @property
@@ -201,8 +212,12 @@ class FrameDecoder:
             good = 0
             p = pos
             last = n - total
-            while p <= last and buf.startswith(head, p) and unpack_index(buf, p + 6)[0] == next32 \
-                    and crc_hqx(view[p + 2:p + total - CRC_SIZE], 0xFFFF) == unpack_crc(buf, p + total - CRC_SIZE)[0]:
+            crcs: list[int] = []
+            while p <= last and buf.startswith(head, p) and unpack_index(buf, p + 6)[0] == next32:
+                crc = unpack_crc(buf, p + total - CRC_SIZE)[0]
+                if crc_hqx(view[p + 2:p + total - CRC_SIZE], 0xFFFF) != crc:
+                    break
+                crcs.append(crc)
                 good += 1
                 p += total
                 next32 = (next32 + count) % _WRAP
@@ -220,14 +235,14 @@ class FrameDecoder:
             else:
                 run = np.frombuffer(buf, dtype=np.uint8, count=good * total, offset=start).reshape(good, total)
                 samples = np.ascontiguousarray(run[:, HEADER_SIZE:total - CRC_SIZE]).view("<i2").reshape(good * count, channels)
-            frame = self._place(first32, samples, count)
+            frame = self._place(first32, samples, count, crcs)
             if frame is not None:
                 out.append(frame)
         self._buf = buf[pos:]
         return out
 
-    def _place(self, index32: int, samples: npt.NDArray[np.int16], count: int) -> Frame | None:
-        """Place a run of consecutive frames (``count`` samples each) starting at board index ``index32``."""
+    def _place(self, index32: int, samples: npt.NDArray[np.int16], count: int, crcs: list[int]) -> Frame | None:
+        """Place a run of consecutive frames (``count`` samples each, CRCs ``crcs``) starting at board index ``index32``."""
         stats = self.stats
         expected = self._next
         lost = 0
@@ -236,30 +251,50 @@ class FrameDecoder:
             index = index32
         else:
             delta = (index32 - self._next32) % _WRAP
-            if delta <= self._max_gap and delta < _HALF:
+            back = _WRAP - delta
+            if delta <= self._max_gap:
                 lost = delta
                 index = expected + delta
-            elif _WRAP - delta <= self._duplicate_window:
-                # frames that start before what was already placed are duplicates, whole frames as if fed one by one
-                drop = -(-(_WRAP - delta) // count)
-                stats.duplicates += min(drop, -(-samples.shape[0] // count))
-                if drop * count >= samples.shape[0]:
+            elif back <= self._duplicate_window and self._placed.get(index32) == crcs[0]:
+                # a repeat of a frame already placed: the frames that start before what was placed are duplicates,
+                # whole frames as if fed one by one
+                drop = -(-back // count)
+                stats.duplicates += min(drop, len(crcs))
+                if drop >= len(crcs):
                     return None
                 samples = samples[drop * count:]
-                lost = drop * count - (_WRAP - delta)
+                crcs = crcs[drop:]
+                lost = drop * count - back
                 index32 = (index32 + drop * count) % _WRAP
                 index = expected + lost
             else:
+                # the board restarted (a reset to a small index sends other samples at indices already placed),
+                # or the counter jumped further than it can say
                 restart = True
                 stats.restarts += 1
                 index = expected
+                self._placed.clear()
+                self._placed_order.clear()
         n = samples.shape[0]
         stats.frames += -(-n // count)
         stats.samples += n
         stats.samples_lost += lost
         self._next = index + n
         self._next32 = (index32 + n) % _WRAP
+        self._remember(index32, count, crcs)
         return Frame(index, samples, lost, restart, count)
+
+    def _remember(self, index32: int, count: int, crcs: list[int]) -> None:
+        """Keep the CRCs of the frames just placed, forgetting those more than ``duplicate_window`` samples behind."""
+        placed, order = self._placed, self._placed_order
+        for k in range(max(0, len(crcs) - self._duplicate_window // count - 1), len(crcs)):
+            i = (index32 + k * count) % _WRAP
+            if i not in placed:
+                order.append(i)
+            placed[i] = crcs[k]
+        nxt, window = self._next32, self._duplicate_window
+        while order and (nxt - order[0]) % _WRAP > window:
+            placed.pop(order.popleft(), None)
 
 
 def _split(runs: list[Frame]) -> list[Frame]:

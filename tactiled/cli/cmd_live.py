@@ -95,7 +95,8 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--publish", help="ZeroMQ endpoint to bind " + c.overrides("publish.endpoint"))
     p.add_argument("--sensor-id", help="sensor id in topics " + c.overrides("sensor.id"))
     p.add_argument("--record", help="also write every sample received to this .npz, streamed to disk as OUT.npz.journal (tactiled recover) "
-                   "and converted on exit (an existing file needs --force; default: no recording)")
+                   "and converted on exit (an existing file needs --force; a device or FIFO is never written; if the recording fails, "
+                   "a full disk, the daemon goes on publishing and exits 1; default: no recording)")
     p.add_argument("--samples", action="store_true", help="also publish the raw samples on samples/<id> (sets publish.samples)")
     p.add_argument("--raw", metavar="OUT.bin", help="also write every byte read from the port, as read (replay it with tactiled replay OUT.bin; default: none)")
     p.add_argument("--no-wait", action="store_true", help="exit 2 at once if the serial device is missing (default: wait for it)")

@@ -96,6 +96,8 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--garbage", type=c.probability, default=0.0, help="probability of garbage before a frame")
     p.add_argument("--unplug-at", default="", help="comma-separated sensor times (s) at which to unplug for --unplug-s (default: never)")
     p.add_argument("--unplug-s", type=c.positive, default=0.3, help="how long each unplug lasts, s of sensor time")
+    p.add_argument("--reset-at", default="", help="comma-separated sensor times (s) at which the board resets: its index starts "
+                   "again at 0 (the daemon counts a restart; default: never)")
     p.add_argument("--seconds", type=c.positive, default=None, help="stop after this much sensor time, s (default: run until stopped)")
     p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP)
     p.add_argument("--fs", type=c.positive, default=None, help="sample rate, Hz (default: the scene's)")

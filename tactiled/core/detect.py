@@ -127,6 +127,9 @@ class SlideDetector:
         self._first: int | None = None
         self._settle = max(round(config.settle_s * fs), self.front.history)
         self._settle_until = -1
+        # a gap longer than this is skipped in constant time (:meth:`_skip`): it holds more than the comb's history, two hops
+        # and the quiet that ends a slide
+        self._skip_after = max(round((config.off_hold_s + config.settle_s) * fs), 1) + 2 * self.front.history + 8 * self.hop
         self._floor: float | None = None
         self._alpha = 1.0 - math.exp(-self.hop / (config.floor_tau_s * fs))
         self._initial: list[float] = []  # undecided: envelopes of the first initial_s
@@ -164,6 +167,9 @@ class SlideDetector:
             self._pending_index = index  # hops start at the first sample fed
             self._first = index
         expected = self._pending_index + self._pending.shape[0]
+        events: list[DetectorEvent] = []
+        if index - expected > self._skip_after:
+            events, expected = self._skip(expected, index, samples.shape[1])
         if index != expected:
             if index < expected:
                 raise ValueError(f"block at {index} overlaps samples already fed up to {expected}")
@@ -172,7 +178,6 @@ class SlideDetector:
         buf = np.concatenate([self._pending, samples]) if self._pending.shape[0] else samples
         vbuf = np.concatenate([self._pending_valid, valid]) if self._pending_valid.shape[0] else valid
         hops = buf.shape[0] // self.hop
-        events: list[DetectorEvent] = []
         if hops:
             used = hops * self.hop
             energy = self._envelope(buf, hops)
@@ -188,6 +193,32 @@ class SlideDetector:
         self._pending_valid = vbuf[hops * self.hop:]
         self._pending_index += hops * self.hop
         return events
+
+    def _skip(self, expected: int, index: int, channels: int) -> tuple[list[DetectorEvent], int]:
+        """A gap of lost samples from ``expected`` to ``index``, longer than :attr:`_skip_after`, in time independent of its length.
+
+        Feeding the gap as invalid samples would end a slide in progress after ``off_hold_s`` of quiet (those hops are fed,
+        a bounded number) and then only repeat what an invalid hop does at rest (no event, the recent envelopes forgotten,
+        settling after the gap); so the detector jumps to the last hop boundary before ``index`` in that state, with zeros
+        (the gap) as the comb's history. The events are those of feeding the whole gap. Returns them and the new expected index.
+        """
+        events: list[DetectorEvent] = []
+        head = self._skip_after // 2
+        while self.sliding and index - expected > self._skip_after:
+            events += self.feed(expected, np.zeros((head, channels)), np.zeros(head, dtype=bool))
+            expected += head
+        if index - expected <= self._skip_after:
+            return events, expected
+        assert self._pending_index is not None
+        last = self._pending_index + (index - self._pending_index) // self.hop * self.hop  # the hop boundary at or before index
+        self._settle_until = last + self._settle  # the last invalid hop starts at last - hop
+        self._recent.clear()
+        self.envelope = 0.0
+        self._history = np.zeros((self.front.history, channels))
+        self._pending = np.zeros((index - last, channels))
+        self._pending_valid = np.zeros(index - last, dtype=bool)
+        self._pending_index = last
+        return events, index
 
     def _envelope(self, buf: npt.NDArray[np.float64], hops: int) -> list[float]:
         """Envelopes of the first ``hops`` hops of ``buf``, in chunks of about :data:`CHUNK` samples that stay in cache

@@ -7,12 +7,15 @@ takes the batches. Nothing here does I/O or reads a clock.
 - **Decoder** (:class:`~tactiled.board.frames.FrameDecoder`): frames in bulk, CRC-checked.
 - **Channel policy**: an intact frame whose channel count is not the sensor's is counted in
   ``stats.channel_errors`` and skipped; it never moves the sample index.
-- **Gap policy**: a forward jump of the index up to ``max_gap`` samples is lost samples (the
-  pipeline marks them invalid); a jump back beyond the duplicate window, or forward beyond
-  ``max_gap`` (by default the ring's length: nothing older could be analysed anyway), is a
-  board restart or a resync. It costs O(1): counted in ``stats.restarts``, the host's timeline
-  continues where it was, and the batch after it carries ``restart`` so the pipeline ends
-  the stream (a slide in progress ends there) before going on.
+- **Gap policy**: a forward jump of the index is lost samples, however long, as long as the
+  board's 32-bit counter can say how many (below 2**31, or ``max_gap`` if set): the batch after it
+  carries ``lost`` and its index jumps with it (nothing is allocated for the gap; the pipeline
+  marks the samples invalid, and skips a gap longer than the ring in constant time). A jump back
+  that is not a repeat of a frame already placed (a board reset, even to a small index), or a
+  forward jump beyond ``max_gap``, is a board restart or a resync. It costs O(1): counted in
+  ``stats.restarts``, the host's timeline continues where it was, and the batch after it carries
+  ``restart`` so the pipeline ends the stream (a slide in progress ends there) before going on.
+  Repeated frames are dropped and counted in ``stats.duplicates``.
 - **Batches**: decoded frames are held until at least ``min_batch`` samples are there, then
   handed out as contiguous :class:`Batch` es (the pipeline's cost is mostly per call).
 - **End of stream**: :meth:`Ingest.flush`.
@@ -51,14 +54,14 @@ class Batch:
 
 
 def max_gap_for(ring_seconds: float, fs: float) -> int:
-    """The default gap limit, samples: the ring's length (a longer gap leaves nothing to analyse across it)."""
+    """The ring's length, samples: a longer gap leaves nothing to analyse across it (it ends a slide in progress)."""
     return max(1, round(ring_seconds * fs))
 
 
 class Ingest:
     """Bytes in, :class:`Batch` es out; counters in :attr:`stats` (see the module docstring)."""
 
-    def __init__(self, channels: int, *, max_gap: int, min_batch: int = 1, duplicate_window: int = 65536) -> None:
+    def __init__(self, channels: int, *, max_gap: int | None = None, min_batch: int = 1, duplicate_window: int = 65536) -> None:
         self.channels = channels
         self.min_batch = max(1, int(min_batch))
         self.decoder = FrameDecoder(duplicate_window, channels=channels, max_gap=max_gap)

@@ -5,8 +5,9 @@ recording or a capture, the recorder, the benches and the tests. Nobody wires th
 pipeline by hand, and nobody has to remember what the end of a stream or a board restart asks of them:
 
 - **Bytes** (:meth:`Stream.feed_bytes`) go through the ingest core (tactiled/run/ingest.py: decoder, channel
-  and gap policies, batches), then the pipeline; a batch after a board restart ends the stream's slide
-  in progress before it goes on.
+  and gap policies, batches), then the pipeline; a batch after a board restart, or after a gap longer than
+  the ring (an unplug: nothing could be analysed across it), ends the stream's slide in progress before it
+  goes on.
 - **Sample blocks** (:meth:`Stream.feed_samples`) go straight to the pipeline, at their sensor indices.
 - **The end** (:meth:`Stream.finish`) is explicit: what the decoder still held, then a slide in progress
   ends at the last sample fed (it gets its final result).
@@ -53,7 +54,8 @@ class Stream:
 
     ``fs`` (Hz), ``channels``, ``volts_per_count`` default to ``config.sensor``'s; ``integer``: samples are int16
     counts (False: float volts, from a recording). ``min_batch``: samples the ingest core holds before it hands a
-    batch on (bytes only). ``max_gap``: the longest index jump counted as lost samples (default: the ring's length).
+    batch on (bytes only). ``max_gap``: the longest index jump counted as lost samples (default: any the board's
+    counter can say, 2**31 - 1; a longer one is a restart). A gap longer than the ring ends a slide in progress.
     ``analyse`` False: decode only (a recorder), no detection and no labels. ``shadow``: a second model run on the
     same samples (:meth:`set_shadow`).
     """
@@ -67,8 +69,8 @@ class Stream:
         self.channels = channels if channels is not None else s.channels
         self.volts_per_count = volts_per_count if volts_per_count is not None else s.volts_per_count
         self.integer = integer
-        self.ingest = Ingest(self.channels, max_gap=max_gap if max_gap is not None else max_gap_for(config.ring.seconds, self.fs),
-                             min_batch=min_batch)
+        self.ingest = Ingest(self.channels, max_gap=max_gap, min_batch=min_batch)
+        self.long_gap = max_gap_for(config.ring.seconds, self.fs)  # a gap longer than this ends a slide in progress
         self.pipeline = self._pipeline(model) if analyse else None
         self.shadow: Pipeline | None = None
         self.set_shadow(shadow)
@@ -116,10 +118,11 @@ class Stream:
         return self.ingest.flush()
 
     def process(self, batches: list[Batch]) -> Step:
-        """Decoded batches through the pipelines; a batch after a board restart first ends the slide in progress."""
+        """Decoded batches through the pipelines; a batch after a board restart or a gap longer than the ring first ends the
+        slide in progress (the detector then skips the gap in constant time)."""
         step = Step(batches=batches)
         for b in batches:
-            if b.restart:
+            if b.restart or b.lost > self.long_gap:
                 step += self._finish_pipelines()
             step += self._feed(b.index, b.samples, None)
         return step

@@ -26,10 +26,10 @@ from tactiled.board.frames import DecoderStats, Frame
 from tactiled.board.serialsource import DISCONNECTED, ByteSource, SerialSource, check_port
 from tactiled.config import Config
 from tactiled.errors import OutputError
-from tactiled.files.journal import JournalWriter, encode_chunk, encode_header, is_locked, journal_path, recover
+from tactiled.files.journal import MIN_LOST_ROWS, JournalWriter, encode_chunk, encode_header, is_locked, journal_path, recover
 from tactiled.files.outputs import check_output
-from tactiled.files.recording import fsync_dir
-from tactiled.run.ingest import Batch, max_gap_for
+from tactiled.files.recording import fsync_dir, lost_rows_budget
+from tactiled.run.ingest import Batch
 from tactiled.run.stream import Stream
 from tactiled.signals import STOP_SIGNALS
 
@@ -71,9 +71,18 @@ class RecordingSink:
     :meth:`add` only queues the frame (cheap: a lock and an append; never blocks); every :data:`COMMIT_S` a
     writer thread takes what is queued, places each frame at its position (``frame.index`` - the first frame's
     index: gaps become lost ranges, never stored) and commits it as chunks of at most ``commit_s`` of sensor
-    time. With ``limit``, rows from position ``limit`` on are ignored and :attr:`done` turns True. A write error
+    time. With ``limit``, rows from position ``limit`` on are ignored and :attr:`done` turns True (also when a gap
+    crosses the limit: the recording then ends at its last row received). A write error
     (a full disk) stops the writing: :attr:`error` says so in one line, the journal keeps every chunk committed
     before, ``on_error`` is called with the line.
+
+    A gap is a lost range (two numbers in the journal, zero rows in the ``.npz``), however long, as long as the
+    recording can hold it: the lost rows of a recording may not exceed what ``tactiled recover`` writes for a journal
+    of its size (:func:`~tactiled.files.recording.lost_rows_budget`: one per byte stored, at least
+    :data:`~tactiled.files.journal.MIN_LOST_ROWS`, 14 min at 20 kHz). A gap beyond that (a 2**31 jump from a hostile
+    or broken board) ends the recording before it, never spliced and never written as gigabytes of zeros:
+    :attr:`done` turns True, :attr:`ended_by_gap` holds the gap (also in the recording's ``meta``), and a warning
+    says so.
     """
 
     def __init__(self, out: str | Path, *, fs: float, channels: int, volts_per_count: float, label: str | None = None,
@@ -91,6 +100,9 @@ class RecordingSink:
         self.restarts = 0
         self.channel_errors = 0
         self.queue_dropped = 0  # samples dropped because the writer fell behind (listed as lost)
+        self.ended_by_gap = 0  # the gap (samples) that ended the recording: more lost rows than it may hold
+        self._gaps = 0  # lost rows queued so far (gaps between the rows queued)
+        self._stored = 0  # bytes of samples queued so far
         self.error: str | None = None
         self._counters = counters or dict
         self._on_error = on_error
@@ -113,8 +125,8 @@ class RecordingSink:
 
     @property
     def done(self) -> bool:
-        """True once ``limit`` rows have been queued."""
-        return self.limit is not None and self._end >= self.limit
+        """True once ``limit`` rows have been queued, or a gap the recording cannot hold ended it."""
+        return bool(self.ended_by_gap) or (self.limit is not None and self._end >= self.limit)
 
     def add(self, frame: Frame | Batch) -> None:
         """Queue one decoded frame or batch (never blocks; one the writer has no room for is lost, and counted)."""
@@ -130,8 +142,17 @@ class RecordingSink:
         self.restarts += frame.restart
         position = frame.index - self.first_index
         if self.limit is not None:
-            samples = samples[: max(0, self.limit - position)]
+            if position >= self.limit:  # a gap across the end: nothing more is recorded
+                self._end = self.limit
+                return
+            samples = samples[: self.limit - position]
         if not samples.shape[0]:
+            return
+        gap = max(0, position - self._end)
+        if gap and self._gaps + gap > lost_rows_budget(self._stored, MIN_LOST_ROWS):
+            self.ended_by_gap = gap
+            log.warning("%s: the index jumped %d samples (%.1f s) ahead at row %d: more lost rows than a recording of %d rows may hold; "
+                        "the recording ends there (the gap is counted)", self.out, gap, gap / self.fs, self._end, self._end)
             return
         with self._lock:
             if self._queued + samples.nbytes > QUEUE_BYTES:
@@ -140,6 +161,8 @@ class RecordingSink:
             self._queued += samples.nbytes
             self._batch.append((position, samples))
         self._end = position + samples.shape[0]
+        self._gaps += gap
+        self._stored += samples.nbytes
 
     def _run(self) -> None:
         start = end = 0  # the next chunk's first row; the row after the newest placed
@@ -205,8 +228,11 @@ class RecordingSink:
         except OutputError as exc:
             return SinkResult(self._rows, self._lost, f"{exc}; the capture is kept in {self.journal}: "
                                                       f"tactiled recover {self.journal} -o OUT.npz")
+        meta = self._counters() if extra_meta is None else extra_meta
+        if self.ended_by_gap:
+            meta = {**meta, "ended_by_gap": self.ended_by_gap}
         try:
-            recover(self.journal, self.out, self._counters() if extra_meta is None else extra_meta, allow_empty=True)
+            recover(self.journal, self.out, meta, allow_empty=True)
         except OSError as exc:
             return SinkResult(self._rows, self._lost, f"{self.out}: cannot write: {exc.strerror or exc}; the capture is kept in "
                                                       f"{self.journal}: tactiled recover {self.journal} -o {self.out}")
@@ -244,8 +270,10 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     """Record ``seconds`` of sensor time from ``config.sensor``'s port into ``out``; SIGINT, SIGTERM or SIGHUP stops early and saves.
 
     The bytes go through the daemon's ingest core (a :class:`~tactiled.run.stream.Stream` that decodes only): frames of
-    another channel count are counted and skipped, and a forward jump of the index beyond the ring's length is a board
-    restart, recorded as continuing, never as a long run of lost samples.
+    another channel count are counted and skipped, and a forward jump of the index (an unplug, however long, as long as the
+    board's counter can say how many) is a lost range of that length in the recording, never a splice: the rows after it
+    keep their sensor time (``--seconds`` counts sensor time, the gap included). Only a board restart (the index back,
+    not a repeated frame) continues the rows, and is counted in ``meta["restarts"]``.
 
     The port and the output path are checked first (:class:`~tactiled.errors.DeviceError`,
     :class:`~tactiled.errors.OutputError`); a write error during the capture stops it and is returned in
@@ -255,7 +283,7 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     s = config.sensor
     check_port(s.port)
     chunks: queue.Queue[bytes | None] = queue.Queue()
-    stream = Stream(config, analyse=False, max_gap=max_gap_for(config.ring.seconds, s.fs))
+    stream = Stream(config, analyse=False)
     source: SerialSource | None = None
 
     def counters() -> dict[str, int]:

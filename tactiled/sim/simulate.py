@@ -95,15 +95,20 @@ def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surface
     return paths
 
 
+def _seconds_list(option: str, text: str) -> list[float]:
+    """``text``, comma-separated seconds, as floats (:class:`TactiledError` naming ``option`` if it is not)."""
+    try:
+        return [float(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise TactiledError(f"{option}: not a list of seconds: {text!r}") from None
+
+
 def run_virtual_board(args: argparse.Namespace) -> int:
     """Run a virtual board until SIGINT/SIGTERM or ``--seconds``; prints the device path first."""
     _, params = scene_for(getattr(args, "scene", None), args.mode, args.fs, args.channels)
     if params.continuous:
         params = replace(params, rest_s=(0.0, 0.0))  # back-to-back slides: the stream never rests
-    try:
-        unplug_at = [float(t) for t in args.unplug_at.split(",") if t.strip()]
-    except ValueError:
-        raise TactiledError(f"--unplug-at: not a list of seconds: {args.unplug_at!r}") from None
+    unplug_at, reset_at = _seconds_list("--unplug-at", args.unplug_at), _seconds_list("--reset-at", getattr(args, "reset_at", ""))
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):  # before the link exists, so that no stop leaves it behind
         signal.signal(sig, lambda *_: stop.set())
@@ -113,7 +118,7 @@ def run_virtual_board(args: argparse.Namespace) -> int:
         try:
             board = VirtualBoard(SensorSimulator(params, args.seed), _surfaces(args.surfaces, params.family), link=args.link, speed=args.speed,
                                  corrupt=args.corrupt, drop=args.drop, garbage=args.garbage, unplug_at=unplug_at,
-                                 unplug_s=args.unplug_s, seed=args.seed, log=log)
+                                 unplug_s=args.unplug_s, seed=args.seed, log=log, reset_at=reset_at)
         except ValueError as exc:
             raise TactiledError(str(exc)) from None
         path = board.open()

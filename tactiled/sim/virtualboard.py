@@ -2,9 +2,11 @@
 
 It opens a pty, keeps an optional symlink pointing at it, and streams frames per
 docs/sensor-frames.md in real time (or ``speed`` times faster). It can corrupt,
-drop and garble frames, and unplug (close the pty, keep sampling, open a new pty behind
-the same symlink). With a log it writes one JSON line per event (slides scheduled,
-frames dropped or corrupted, garbage, unplugs) so tests can check what arrived; frames the pty would not take
+drop and garble frames, unplug (remove the symlink and close the pty, keep sampling, then open a new pty
+and point the symlink at it: the index goes on, so the samples of the unplug are a gap) and reset (the
+index starts again at ``reset_to``, as a board that restarted). With a log it writes one JSON
+line per event (slides scheduled, frames dropped or corrupted, garbage, unplugs with the bytes
+the reader had not taken yet, resets) so tests can check what arrived; frames the pty would not take
 (nothing reading the port) are summed up in one ``overrun`` line per second at most, so the log stays bounded
 (:func:`read_log` gives them back one event per frame).
 """
@@ -32,7 +34,8 @@ class VirtualBoard:
     def __init__(self, model: SensorSimulator, surfaces: Sequence[Surface], *, link: str | None = None,
                  speed: float = 1.0, corrupt: float = 0.0, drop: float = 0.0, garbage: float = 0.0,
                  unplug_at: Sequence[float] = (), unplug_s: float = 0.3, frame_count: int = 20,
-                 seed: int = 0, log: TextIO | None = None, first_index: int = 0) -> None:
+                 seed: int = 0, log: TextIO | None = None, first_index: int = 0, reset_at: Sequence[float] = (),
+                 reset_to: int = 0) -> None:
         if speed <= 0:
             raise ValueError("speed must be > 0")
         for name, value in (("corrupt", corrupt), ("drop", drop), ("garbage", garbage)):
@@ -47,6 +50,9 @@ class VirtualBoard:
         self.unplug_s = unplug_s
         self.frame_count = frame_count
         self.first_index = first_index
+        self.reset_at = sorted(reset_at)  # sensor times (s of samples sent) at which the board's index starts again at reset_to
+        self.reset_to = reset_to
+        self._shift = 0  # what resets moved the index by: the next frame's index is first_index + sent_samples + _shift
         self.rng = np.random.default_rng(seed + 0x5EED)
         self.log = log
         self.path = ""
@@ -101,11 +107,32 @@ class VirtualBoard:
                 os.unlink(tmp)
             os.symlink(self.path, tmp)
             os.replace(tmp, self.link)
-        self._event("open", path=self.path, index=self.first_index + self.sent_samples)
+        self._event("open", path=self.path, index=self.first_index + self.sent_samples + self._shift)
         return self.path
 
+    def _strand(self) -> int:
+        """At an unplug: the bytes written to the pty that its reader has not taken, read off the board's own end of it so that
+        they are gone, as a hung-up tty's are; returns how many (0 if the pty is closed).
+
+        Reading counts them exactly: FIONREAD sees only the line discipline's buffer, not what still waits in the tty's flip
+        buffers (up to 64 kB), while a read that finds nothing waits for those to be flushed first.
+        """
+        if self._slave < 0:
+            return 0
+        os.set_blocking(self._slave, False)  # the board's own open file: the reader's is another
+        n = 0
+        while True:
+            try:
+                chunk = os.read(self._slave, 1 << 16)
+            except OSError:  # EAGAIN: nothing left
+                break
+            if not chunk:
+                break
+            n += len(chunk)
+        return n
+
     def close(self) -> None:
-        """Close the pty (the link stays: an unplug reopens behind it)."""
+        """Close the pty (the link stays; an unplug removes it first, :meth:`run`)."""
         for fd in (self._master, self._slave):
             if fd >= 0:
                 os.close(fd)
@@ -139,6 +166,7 @@ class VirtualBoard:
         n = self.frame_count
         total = None if seconds is None else round(seconds * fs)
         unplugs = [round(t * fs) for t in self.unplug_at]
+        resets = [round(t * fs) for t in self.reset_at]
         if self._master < 0:
             self.open()
         self.ready.set()
@@ -155,12 +183,20 @@ class VirtualBoard:
                 self.model.schedule_random(self.surfaces, self.model.position + 10 * n)
                 self._log_slides()
                 block = self.model.read(n)
-                index = self.first_index + self.sent_samples
+                if resets and self.sent_samples >= resets[0]:
+                    resets.pop(0)
+                    self._flush_overruns(force=True)  # the overruns logged before a reset are of the old indices, those after of the new
+                    self._event("reset", index=self.first_index + self.sent_samples + self._shift, to=self.reset_to)
+                    self._shift = self.reset_to - self.first_index - self.sent_samples
+                index = self.first_index + self.sent_samples + self._shift
                 self.sent_samples += n
                 if unplugs and self.sent_samples >= unplugs[0]:
                     unplugs.pop(0)
                     self._flush_overruns(force=True)
-                    self._event("unplug", index=index)
+                    self._event("unplug", index=index, unread=self._strand())  # the frames still queued are lost with the pty
+                    # the link goes first, as udev removes /dev/serial/by-id/ links: once the pty is closed its number is free, and a
+                    # link left pointing at it names the next pty anyone opens (another board's), which the reader would then read
+                    self.remove_link()
                     self.close()
                     down_until = self.sent_samples + round(self.unplug_s * fs)
                 if down_until >= 0:
@@ -185,7 +221,7 @@ class VirtualBoard:
                 with self._progress:
                     self._progress.notify_all()
         self._flush_overruns(force=True)
-        self._event("end", index=self.first_index + self.sent_samples)
+        self._event("end", index=self.first_index + self.sent_samples + self._shift)
 
 
 def read_log(path: str | Path) -> list[dict[str, Any]]:

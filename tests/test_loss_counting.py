@@ -1,0 +1,154 @@
+"""Every lost sample counted (issue 22 item 5): a 25 s unplug and a board reset at a small index, streamed by the virtual
+board on a real pty to ``tactiled run``, against the board's own log; the detector's constant-time skip of a long gap."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from tactiled_client import BlockingSubscriber, Status
+
+from tactiled.board.frames import frame_size
+from tactiled.config import Config
+from tactiled.core.detect import SlideDetector
+from tactiled.sim.physics import SensorSimulator, SimParams, pick_surfaces
+from tactiled.sim.virtualboard import VirtualBoard, read_log
+from tests.conftest import daemon_process, lossy_recording, wait_for
+
+FS = 20_000
+FRAME = 100  # samples per frame: fewer frames a second for the board's Python loop at 10x real time
+
+
+def test_a_25_s_unplug_and_a_reset_at_a_small_index_are_counted_as_the_board_logged_them(tmp_path: Path) -> None:
+    """30 s of sensor time at 10x: the board resets at 1 s (index 20 000, under the 65 536 duplicate window) to index 0, and
+    is unplugged at 3 s for 25 s. The daemon must count one restart and no duplicate (it used to drop 20 000 real samples as
+    duplicates), and the unplug's 500 000 samples as lost (it used to count a restart with 0 lost)."""
+    seconds, speed = 30.0, 10.0
+    config = tmp_path / "c.toml"
+    # reopen at once, read often (at 10x the pty's 4 kB fill in 5 ms), status often
+    config.write_text("[serial]\nretry_max_s = 0.05\nread_interval_s = 0.002\n\n[publish]\nstatus_interval_s = 0.1\n")
+    link, endpoint, log_path = str(tmp_path / "tty"), f"ipc://{tmp_path}/pub", tmp_path / "board.jsonl"
+    with open(log_path, "w") as log:
+        board = VirtualBoard(SensorSimulator(SimParams(), seed=3), pick_surfaces(3), link=link, speed=speed, seed=3, log=log,
+                             frame_count=FRAME, reset_at=[1.0], reset_to=0, unplug_at=[3.0], unplug_s=25.0)
+        board.open()
+        with BlockingSubscriber(endpoint, topics=["status"], timeout=30) as sub, \
+                daemon_process(link, endpoint, "--no-model", "--config", str(config)) as proc:
+            wait_for(lambda: isinstance(m := sub.receive(), Status) and m.state == "connected", timeout=60,
+                     what="the daemon to hold the port")  # so that it reads every frame from the first
+            stop = threading.Event()
+            streaming = threading.Thread(target=board.run, args=(stop, seconds), daemon=True)
+            streaming.start()
+            try:
+                assert board.wait_sent(round(seconds * FS), timeout=120), "the board did not send its 30 s"
+                streaming.join(30)
+                events = read_log(log_path)
+                assert [e["event"] for e in events if e["event"] in ("reset", "unplug")] == ["reset", "unplug"]
+                end = next(e["index"] for e in events if e["event"] == "end")
+                tail = _trailing_overrun(events, end)  # frames at the very end the pty would not take: no later frame says so
+                hidden = _hidden_by_the_reset(events)  # frames next to the reset the pty would not take: a restart says nothing of them
+                last: list[Status] = []
+
+                def caught_up() -> bool:
+                    m = sub.receive()
+                    if isinstance(m, Status):
+                        last.append(m)
+                        return m.samples + m.samples_lost >= round(seconds * FS) - tail - hidden
+                    return False
+                try:
+                    wait_for(caught_up, timeout=60, what="the daemon to decode the board's last frame")
+                except AssertionError as exc:
+                    raise AssertionError(f"{exc}: last status {last[-1] if last else None}, board lost {_logged_loss(events)}, "
+                                         f"{tail} samples overrun at the end, {hidden} next to the reset") from None
+            finally:
+                stop.set()
+            assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+    st = last[-1]
+    logged, unread = _logged_loss(events)
+    logged -= hidden
+    print(f"board logged {logged} lost (+{unread} queued at the unplug, {hidden} overrun next to the reset not counted); "
+          f"daemon: {st.samples} samples, {st.samples_lost} lost, "
+          f"{st.restarts} restarts, {st.duplicate_frames} duplicate frames, {st.reconnects} reconnects")
+    assert logged >= 500_000
+    assert st.restarts == 1 and st.duplicate_frames == 0 and st.reconnects >= 1
+    # the frames still queued in the pty when it closed are lost too (the daemon may have taken some just before the close)
+    assert logged <= st.samples_lost <= logged + unread, (st.samples_lost, logged, unread)
+    assert st.samples + st.samples_lost == round(seconds * FS) - tail - hidden
+
+
+def _logged_loss(events: list[dict[str, object]]) -> tuple[int, int]:
+    """(samples the board logged as never sent: unplug gaps, drops, overruns; samples queued in the pty when it was unplugged)."""
+    lost = unread = 0
+    pending_unplug: int | None = None
+    for e in events:
+        kind = e["event"]
+        if kind in ("drop", "overrun"):
+            lost += int(e["count"])  # type: ignore[call-overload]
+        elif kind == "unplug":
+            pending_unplug = int(e["index"])  # type: ignore[call-overload]
+            unread += -(-int(e["unread"]) // frame_size(2, FRAME)) * FRAME  # type: ignore[call-overload]
+        elif kind == "open" and pending_unplug is not None:
+            lost += int(e["index"]) - pending_unplug  # type: ignore[call-overload]  # from the frame at the unplug to the first after
+            pending_unplug = None
+    return lost, unread
+
+
+def _hidden_by_the_reset(events: list[dict[str, object]]) -> int:
+    """Samples of the overrun frames just before the reset and just after it: the daemon sees the frame before them and the
+    one after them, a jump back, so a restart, across which nothing is known to have been lost (the board flushes its
+    overrun log at a reset, so overruns logged before it are of the old indices)."""
+    k = next(i for i, e in enumerate(events) if e["event"] == "reset")
+    before = {int(e["index"]) for e in events[:k] if e["event"] == "overrun"}  # type: ignore[call-overload]
+    after = {int(e["index"]) for e in events[k + 1:] if e["event"] == "overrun"}  # type: ignore[call-overload]
+    hidden = 0
+    i = int(events[k]["index"]) - FRAME  # type: ignore[call-overload]
+    while i in before:
+        hidden, i = hidden + FRAME, i - FRAME
+    i = int(events[k]["to"])  # type: ignore[call-overload]
+    while i in after:
+        hidden, i = hidden + FRAME, i + FRAME
+    return hidden
+
+
+def _trailing_overrun(events: list[dict[str, object]], end: int) -> int:
+    """Samples of the overrun frames that run up to the board's last index ``end`` (never followed by a frame that arrived)."""
+    frames = sorted(int(e["index"]) for e in events if e["event"] == "overrun")  # type: ignore[call-overload]
+    tail = 0
+    while frames and frames[-1] == end - tail - FRAME:
+        frames.pop()
+        tail += FRAME
+    return tail
+
+
+@pytest.mark.parametrize("cut", [30_000, 45_677, 80_001, 120_000])  # at rest and within slides
+@pytest.mark.parametrize("gap", [50_000, 123_457])
+def test_the_detector_skips_a_long_gap_with_the_events_of_feeding_it(cut: int, gap: int) -> None:
+    """A gap longer than the detector's quiet hold is skipped in constant time, with exactly the events (and settling) of
+    feeding every lost sample as invalid: a slide in progress ends where the quiet began."""
+    rec = lossy_recording(0, slides=4, lost=())
+    volts = rec.samples.astype(np.float64) * rec.volts_per_count
+
+    def events(skip: bool) -> list[object]:
+        d = SlideDetector(Config().detector, rec.fs, 2)
+        if not skip:
+            d._skip_after = 1 << 62  # feed the whole gap
+        return [*d.feed(0, volts[:cut]), *d.feed(cut + gap, volts[cut:]), *d.finish()]
+
+    assert events(True) == events(False)
+
+
+def test_a_gap_of_2_31_samples_is_skipped_in_constant_time_and_memory() -> None:
+    """The longest gap the board's counter can say costs the detector what a short one does."""
+    import tracemalloc
+
+    d = SlideDetector(Config().detector, FS, 2)
+    d.feed(0, np.zeros((FS, 2)))
+    tracemalloc.start()
+    try:
+        d.feed(FS + (1 << 31) - 1, np.ones((FS, 2)))
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 << 20, peak
