@@ -15,20 +15,12 @@ from pathlib import Path
 import numpy as np
 
 from tactiled.config import Config
-from tactiled.core.detect import SlideDetector
 from tactiled.core.events import Resume
 from tactiled.core.matching import match_slides
 from tactiled.files.recording import load_recording
-from tactiled.learn.dataset import detect_slides
+from tactiled.learn.dataset import detect_slides, detector_events
 from tactiled.sim.physics import SCENES
 from tactiled.sim.simulate import write_dataset
-
-
-def withdrawals(volts: np.ndarray, valid: np.ndarray, fs: float, config: Config) -> int:
-    """How many early ends the detector withdrew (:class:`Resume` events) in one recording's volts (n, C)."""
-    det = SlideDetector(config.detector, fs, volts.shape[1])
-    return sum(isinstance(e, Resume) for e in det.feed(0, volts, valid) + det.finish())
-
 
 DEFAULT = ",".join(SCENES) + ";continuous,one-channel;fluctuating,one-channel;robot,hot-gain"
 
@@ -60,10 +52,9 @@ def main() -> None:
         for p in paths:
             rec = load_recording(p)
             truth = [(a, b) for a, b, _ in rec.slides()]
-            det = detect_slides(rec, config)
-            volts, valid = rec.volts(), rec.valid_mask()
-            volts[~valid] = 0.0
-            withdrawn += withdrawals(volts, valid, rec.fs, config)
+            events = detector_events(rec, config)  # one pass: the slides, and the early ends withdrawn (Resume)
+            det = detect_slides(rec, config, events)
+            withdrawn += sum(isinstance(e, Resume) for e in events)
             pairs = match_slides(det, truth)
             n_true += len(truth)
             n_det += len(det)

@@ -51,6 +51,27 @@ class Classifier(Protocol):
 
 
 @dataclass
+class FinalCounts:
+    """Final results that stand: slides, those labelled, those withheld as unknown_surface, and ends withdrawn (``resumed``)."""
+
+    slides: int = 0
+    labels: int = 0
+    unknown: int = 0
+    resumed: int = 0
+
+    def add(self, result: SlideResult, sign: int = 1) -> None:
+        """Count a final result (``sign`` -1: take a withdrawn one back out)."""
+        self.slides += sign
+        self.labels += sign * (result.label is not None)
+        self.unknown += sign * (result.reason == "unknown_surface")
+
+    def withdraw(self, result: SlideResult) -> None:
+        """A final result withdrawn because its slide went on."""
+        self.add(result, -1)
+        self.resumed += 1
+
+
+@dataclass
 class _Window:
     span: tuple[int, int]
     result: WindowResult
@@ -71,7 +92,7 @@ class Pipeline:
         self.settings = model.settings if model is not None else (settings or AnalysisSettings.from_config(config, channels, fs))
         self.min_confidence = config.classifier.min_confidence
         self.provisional_confidence = config.classifier.provisional_confidence
-        self.unknown = 0  # final results withheld as unknown_surface
+        self.counts = FinalCounts()
         self._analyser_args = (fs, volts_per_count, integer, config.classifier.max_saturated, config.classifier.max_lost)
         self.analyser = Analyser(self.settings, *self._analyser_args)
         self.min_samples = self.analyser.plan.min_samples()
@@ -83,15 +104,32 @@ class Pipeline:
         self._detector_args = (config.detector, fs, channels)
         self._fresh_detector = False  # after shed(): the next samples fed start a new detector
         self.volts_per_count = volts_per_count if integer else 1.0
-        self.slides = 0
-        self.labels = 0
         self._slide_id = -1
         self._onset: int | None = None
         self._windows: list[_Window] = []
         self._next: tuple[int, int] | None = None  # the next window of the slide in progress
         self._provisional: str | None = None
         self._paused: SlideResult | None = None  # the final result published at a Pause, while the quiet lasts
-        self.resumed = 0  # ends withdrawn because the slide went on
+
+    @property
+    def slides(self) -> int:
+        """Slides with a final result that stands."""
+        return self.counts.slides
+
+    @property
+    def labels(self) -> int:
+        """... of them labelled."""
+        return self.counts.labels
+
+    @property
+    def unknown(self) -> int:
+        """... of them withheld as unknown_surface."""
+        return self.counts.unknown
+
+    @property
+    def resumed(self) -> int:
+        """Ends withdrawn because the slide went on."""
+        return self.counts.resumed
 
     @property
     def sliding(self) -> bool:
@@ -164,33 +202,29 @@ class Pipeline:
             elif isinstance(ev, Pause):
                 events.append(SlideEnded(self._slide_id, ev.start, ev.stop, "quiet"))
                 self._paused = self._final(ev.start, ev.stop)
+                self.counts.add(self._paused)
                 events.append(self._paused)
             elif isinstance(ev, Resume):
                 if self._paused is not None:
-                    self._withdraw(self._paused)
+                    self.counts.withdraw(self._paused)
                     events.append(SlideResumed(self._slide_id, ev.start, ev.stop))
                 self._paused = None
             elif isinstance(ev, Offset):
                 paused, self._paused = self._paused, None
                 if paused is None or paused.stop != ev.stop:  # else its end and label were published at the Pause
                     if paused is not None:
-                        self._withdraw(paused)
+                        self.counts.withdraw(paused)
                         events.append(SlideResumed(self._slide_id, ev.start, paused.stop))
                     events.append(SlideEnded(self._slide_id, ev.start, ev.stop, ev.reason))
                     if ev.reason != "too_short":
-                        events.append(self._final(ev.start, ev.stop))
+                        final = self._final(ev.start, ev.stop)
+                        self.counts.add(final)
+                        events.append(final)
                 self._onset = None
                 self._next = None
                 self._take_pending_model()
                 self._windows = []
         return events
-
-    def _withdraw(self, result: SlideResult) -> None:
-        """Take a withdrawn final result out of the counters."""
-        self.resumed += 1
-        self.slides -= 1
-        self.labels -= result.label is not None
-        self.unknown -= result.reason == "unknown_surface"
 
     def _analyse_ready(self, until: int | None = None) -> list[PipelineEvent]:
         """Analyse every window of the slide in progress that the ring holds (up to ``until``); provisional results."""
@@ -244,7 +278,6 @@ class Pipeline:
 
     def _final(self, start: int, stop: int) -> SlideResult:
         t0 = time.perf_counter()
-        self.slides += 1
         spans = self.settings.spans(start, stop, self.fs, self.min_samples)
         done = {w.span: w for w in self._windows}
         windows = [done[sp] if sp in done else self._window(sp) for sp in spans]
@@ -266,11 +299,8 @@ class Pipeline:
         reason = None
         if novelty is not None and novelty > 1.0:
             label, reason = None, "unknown_surface"
-            self.unknown += final
         elif confidence < self.min_confidence:
             label, reason = None, "low_confidence"
-        elif final:
-            self.labels += 1
         feats = used[-1].result.features
         return SlideResult(self._slide_id, start, stop, (used[0].span[0], used[-1].span[1]), label, reason, round(confidence, 4), top,
                            _quality(used), feats, (time.perf_counter() - t0) * 1e3, final, (used[-1].span[1] - start) / self.fs,

@@ -28,7 +28,7 @@ import numpy.typing as npt
 from tactiled.config import Config
 from tactiled.core.analysis import Analyser, AnalysisSettings
 from tactiled.core.detect import SlideDetector
-from tactiled.core.events import Offset
+from tactiled.core.events import DetectorEvent, Offset
 from tactiled.core.matching import match_slides
 from tactiled.errors import RecordingError
 from tactiled.files.recording import Recording, load_recording
@@ -49,13 +49,18 @@ def load_recordings(paths: Sequence[str | Path], report: Progress | None = None)
     return out
 
 
-def detect_slides(rec: Recording, config: Config) -> list[tuple[int, int]]:
-    """(start, stop) positions of the slides the daemon's detector finds in ``rec``, end of file included."""
+def detector_events(rec: Recording, config: Config) -> list[DetectorEvent]:
+    """Every event of the daemon's detector over the whole of ``rec`` (positions in the file), end of file included."""
     det = SlideDetector(config.detector, rec.fs, rec.channels)
     volts = rec.volts()
     valid = rec.valid_mask()
     volts[~valid] = 0.0
-    events = det.feed(0, volts, valid) + det.finish()
+    return det.feed(0, volts, valid) + det.finish()
+
+
+def detect_slides(rec: Recording, config: Config, events: list[DetectorEvent] | None = None) -> list[tuple[int, int]]:
+    """(start, stop) positions of the slides the daemon's detector finds in ``rec`` (from ``events`` if already run)."""
+    events = detector_events(rec, config) if events is None else events
     return [(e.start, e.stop) for e in events if isinstance(e, Offset) and e.reason != "too_short"]
 
 

@@ -24,6 +24,7 @@ from tactiled_client import schema
 from tactiled import __version__
 from tactiled.config import Config
 from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideResumed, SlideStarted
+from tactiled.core.pipeline import FinalCounts
 from tactiled.errors import RecordingError, WindowError
 from tactiled.files.capture import Capture
 from tactiled.files.formats import open_recording
@@ -86,15 +87,19 @@ def _size(path: str) -> int:
         return 0
 
 
+def _stream_of(source: Recording | Capture, config: Config) -> tuple[float, int]:
+    """(fs, channels) of a recording, or of a raw capture (the config's sensor: a capture states neither)."""
+    s = config.sensor
+    return (s.fs, s.channels) if isinstance(source, Capture) else (source.fs, source.channels)
+
+
 def _choose_once(path: str, config: Config, choice: ModelChoice) -> None:
     """Resolve the model for ``path``'s stream in this process (its one-line notes, its cost check), if it can be read."""
     try:
         source = open_recording(path)
     except RecordingError:
         return
-    s = config.sensor
-    fs, channels = (s.fs, s.channels) if isinstance(source, Capture) else (source.fs, source.channels)
-    choice.for_stream(fs, channels, path)
+    choice.for_stream(*_stream_of(source, config), path)
 
 
 def _replay_one(task: tuple[str, Config, ModelChoice, int]) -> Replayed:
@@ -112,7 +117,7 @@ def _replay_path(path: str, config: Config, choice: ModelChoice, block: int, spe
     except RecordingError as exc:
         return Replayed(path, None, [], error=str(exc))
     s = config.sensor
-    fs, channels = (s.fs, s.channels) if isinstance(source, Capture) else (source.fs, source.channels)
+    fs, channels = _stream_of(source, config)
     model = choice.for_stream(fs, channels, path)
     fingerprint = getattr(model, "fingerprint", "")
     pacer = Pacer(fs, speed)
@@ -157,7 +162,7 @@ class ReplayFeed:
         self.t0 = time.monotonic()
         self.chunk = max(1, round(fs / 25))
         self.sliding = False
-        self.slides = self.labels = self.unknown = 0
+        self.counts = FinalCounts()
         self._last_final: SlideResult | None = None
         self.count = self.lost = 0
         self.index: int | None = None  # the next sensor index expected
@@ -177,14 +182,10 @@ class ReplayFeed:
             self.sliding = False
         elif isinstance(ev, SlideResult) and ev.final:
             self._last_final = ev
-            self.slides += 1
-            self.labels += ev.label is not None
-            self.unknown += ev.reason == schema.REASON_UNKNOWN_SURFACE
+            self.counts.add(ev)
         elif isinstance(ev, SlideResumed) and self._last_final is not None:  # that end and label are withdrawn: the slide goes on
             self.sliding = True
-            self.slides -= 1
-            self.labels -= self._last_final.label is not None
-            self.unknown -= self._last_final.reason == schema.REASON_UNKNOWN_SURFACE
+            self.counts.withdraw(self._last_final)
             self._last_final = None
         model = ev.model if isinstance(ev, SlideResult) and ev.model else self.model
         self.publisher.publish_event(self.sensor, ev, self.fs, model, time.perf_counter(), self.pacer.to_host)
@@ -231,7 +232,7 @@ class ReplayFeed:
             clock = {"clock_index": self.index, "clock_mono": round(mono, 6), "clock_unix": round(unix, 6), "fs_clock": self._fs_clock}
         self.publisher.publish(schema.status(
             self.sensor, state=state or (schema.STATE_SLIDING if self.sliding else schema.STATE_IDLE), samples=self.count,
-            samples_lost=self.lost, slides=self.slides, labels=self.labels, unknown=self.unknown, fs_nominal=self.fs, model=self.model,
+            samples_lost=self.lost, slides=self.counts.slides, labels=self.counts.labels, unknown=self.counts.unknown, fs_nominal=self.fs, model=self.model,
             uptime_s=round(time.monotonic() - self.t0, 3), index=self.index or 0, level=level, version=__version__,
             dropped_messages=self.publisher.dropped, **clock))
         self._sumsq[:] = 0.0
