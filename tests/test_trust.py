@@ -11,7 +11,7 @@ import pytest
 
 from tactiled.core.analysis import Analyser, AnalysisSettings
 from tactiled.errors import ModelError
-from tactiled.learn.model import Model, fit_pipeline, knn_distance, load_model
+from tactiled.learn.model import Model, fit_pipeline, load_model, novelty_scores
 from tactiled.learn.score import calibration_scores
 from tactiled.learn.search import fit_calibration, fit_novelty
 from tests.conftest import run_cli
@@ -70,9 +70,38 @@ def test_novelty_threshold_rejects_five_percent_of_known_and_flags_a_far_surface
     files = np.repeat(np.arange(16), 10)  # four recordings per surface
     z = centres[labels] + 0.5 * rng.standard_normal((160, 2))
     threshold, info = fit_novelty(z, files, labels, 3)
-    assert math.isfinite(threshold) and info["known_rejected"] <= 0.05 + 1e-9 and info["unseen_flagged"] > 0.9
-    far = knn_distance(np.array([[20.0, 20.0], [0.1, 0.1]]), z, 3) / threshold
-    assert far[0] > 1.0 > far[1]
+    assert math.isfinite(threshold) and info["known_rejected"] <= 0.05 + 1e-9 and info["unseen_flagged"] > 0.9 and info["score"] == "ratio"
+    far = novelty_scores(np.array([[20.0, 20.0], [0.1, 0.1], [2.5, 2.5]]), z, labels, 3) / threshold  # far from all; taught; between all four
+    assert far[0] > 1.0 > far[1] and far[2] > 1.0
+
+
+def test_a_shifted_sensor_keeps_the_surfaces_it_can_tell_apart() -> None:
+    """The whole feature space moved by 3 within-surface spreads (another unit): known slides stay known, untaught ones are still flagged.
+
+    A threshold at the edge of the training spread (the 95 % quantile of known scores) would reject most shifted slides."""
+    rng = np.random.default_rng(2)
+    centres = 10.0 * np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    labels = np.repeat(np.arange(4), 40)
+    files = np.repeat(np.arange(16), 10)
+    z = centres[labels] + 0.5 * rng.standard_normal((160, 2))
+    shifted = z + np.array([1.5, 0.0])
+    threshold, info = fit_novelty(z, files, labels, 3)
+    scores = novelty_scores(shifted, z, labels, 3)
+    assert np.mean(scores > threshold) < 0.05 and info["known_rejected"] <= 0.05
+    edge = np.quantile([novelty_scores(z[i:i + 1], z[files != files[i]], labels[files != files[i]], 3)[0] for i in range(160)], 0.95)
+    assert np.mean(scores > edge) > 0.5
+    untaught = novelty_scores(np.array([[5.0, 5.0], [5.0, 0.0], [40.0, 40.0]]), z, labels, 3)  # between all four, between two, far from all
+    assert np.all(untaught > threshold)
+
+
+def test_the_threshold_never_rejects_more_than_asked_where_known_and_untaught_overlap() -> None:
+    rng = np.random.default_rng(3)
+    known, unseen = rng.uniform(0, 1, 500), rng.uniform(0, 1, 200)
+    from tactiled.learn.search import novelty_threshold
+
+    t = novelty_threshold(known, unseen, 0.05)
+    assert np.mean(known > t) <= 0.05
+    assert novelty_threshold(known, np.zeros(0), 0.05) == np.quantile(known, 0.95, method="higher")
 
 
 @pytest.mark.parametrize("case", ["one_recording", "identical_slides", "one_slide"])
@@ -136,6 +165,26 @@ def test_bad_trust_arrays_are_refused_in_one_line(change: dict, message: str, tm
     with pytest.raises(ModelError, match=message.replace("(", r"\(").replace(")", r"\)")) as info:
         load_model(tmp_path / "bad.npz")
     assert "\n" not in str(info.value)
+
+
+def _resaved(model: Model, path: Path, header_change: dict) -> Path:
+    from tactiled.files.recording import atomic_savez
+    from tactiled.learn.model import _fingerprint
+
+    arrays = {**model._arrays(), **model._trust_arrays()}
+    header = {**model._header(), **header_change}
+    header["fingerprint"] = _fingerprint(header, arrays)
+    atomic_savez(path, {"header": np.str_(json.dumps(header, sort_keys=True)), **arrays})
+    return path
+
+
+def test_a_format_4_model_keeps_the_distance_it_was_fitted_with_and_a_bad_score_is_refused(tmp_path: Path) -> None:
+    model = _model(tmp_path)
+    assert model.novelty_score == "ratio"
+    old = load_model(_resaved(model, tmp_path / "v4.npz", {"version": 4, "novelty": {"k": 3, "threshold": 0.8}}))
+    assert old.novelty_score == "distance"
+    with pytest.raises(ModelError, match=r"header\.novelty\.score: must be one of ratio, distance"):
+        load_model(_resaved(model, tmp_path / "bad.npz", {"novelty": {"k": 3, "threshold": 0.8, "score": "cosine"}}))
 
 
 def test_calibration_scores_of_a_perfect_and_an_overconfident_model() -> None:

@@ -88,6 +88,6 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     groups = np.concatenate([old.novelty_groups, slides.groups[labelled] + int(old.novelty_groups.max(initial=-1)) + 1])
     labels = np.concatenate([old.novelty_y, slides.y[labelled]]).astype(np.str_)
     new.novelty_x, new.novelty_y, new.novelty_groups, new.novelty_k = z, labels, groups, old.novelty_k
-    new.novelty_threshold, info = fit_novelty(z, groups, labels, old.novelty_k)
+    new.novelty_threshold, info = fit_novelty(z, groups, labels, old.novelty_k, score=new.novelty_score)
     new.summary["novelty"] = info
     return Enrolled(new, added, files, [k for k in added if k not in old.classes])

@@ -14,10 +14,13 @@ that a slide's confidence is calibrated.
 
 A slide's label comes with two numbers (:meth:`Model.assess`): ``confidence``, the probability that the label is
 right, a monotone map (``calibration``, fitted in training on grouped out-of-fold slides: isotonic regression
-with 200 or more slides, else Platt scaling) of the top softmax probability; and ``novelty``, the mean
-distance of the slide (the mean of its windows' features, standardised as the classifier sees them) to its
-``novelty_k`` nearest training slides, divided by the threshold that grouped cross-validation set so that at
-most 5 % of slides of known surfaces exceed it: above 1, the slide is unlike every surface the model was taught.
+with 200 or more slides, else Platt scaling) of the top softmax probability; and ``novelty``, a score of the slide
+(the mean of its windows' features, standardised as the classifier sees them) against the training slides
+(:func:`novelty_scores`), divided by the threshold that grouped cross-validation set so that at most 5 % of slides
+of known surfaces exceed it: above 1, the slide is unlike every surface the model was taught. From format 5 on the
+score is the nearest-neighbour distance *ratio* (the distance to the nearest surface over the distance to the next
+one), which a shift of the whole feature space (another unit of the sensor, a new sheet of the same grade) moves far
+less than it moves plain distances; format 3 and 4 files keep the plain distance they were fitted with.
 
 File arrays: ``header`` (0-d unicode, JSON), ``classes`` (K,) unicode, ``scaler_mean`` and
 ``scaler_scale`` (F,); per classifier: elm ``weights`` (F, L), ``biases`` (L,), ``beta``
@@ -35,7 +38,7 @@ must be refit at load has at most :data:`MAX_SVM_REFIT_ROWS` rows). Only the arr
 file's classifier are read, at most :data:`MAX_MODEL_BYTES` inflated. The header carries the
 format and its version, the method, the classifier and its parameters, the analysis
 settings (windows, spikes, feature names), fs, channels, temperature, ``novelty`` (``k`` and
-``threshold``; format 3), a training summary
+``threshold``; format 3; ``score``, format 5), a training summary
 (including the cross-validated accuracy), and ``fingerprint``: the SHA-256 (first 16 hex
 digits) of the header without it and of every array's bytes. Loading checks all of it (types,
 ranges, shapes, and that the stream's channels hold the features), runs a probe (one window of
@@ -66,8 +69,8 @@ from tactiled.learn.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, log_pr
 from tactiled.readable import MISSING
 
 FORMAT = "tactiled-model"
-FORMAT_VERSION = 4
-READ_VERSIONS = (2, 3, 4)  # format 2 (before calibration and novelty) still loads: confidence uncalibrated, novelty None; 3: no enrolment
+FORMAT_VERSION = 5
+READ_VERSIONS = (2, 3, 4, 5)  # format 2 (before calibration and novelty) still loads: confidence uncalibrated, novelty None; 3: no enrolment
 TRUST_ARRAYS = ("calibration", "novelty_x")
 ENROL_ARRAYS = ("train_x", "train_y", "novelty_y", "novelty_groups")  # format 4: what tactiled enrol refits on
 CLASSIFIERS = ("elm", "knn", "svm", "linear")
@@ -236,6 +239,7 @@ class Model:
     novelty_threshold: float = math.inf
     novelty_y: npt.NDArray[np.str_] | None = None  # (n,): the surface of each novelty_x row (format 4; enrol refits the threshold)
     novelty_groups: npt.NDArray[np.int64] | None = None  # (n,): the recording of each novelty_x row, numbered from 0
+    novelty_score: str = "ratio"  # how novelty_scores measures a slide against novelty_x (NOVELTY_SCORES); files before format 5: distance
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -277,13 +281,13 @@ class Model:
     def novelty(self, features: FloatArray) -> float | None:
         """How unlike the training slides a slide is, from its windows' raw features (w, F): > 1 is an unknown surface.
 
-        The mean Euclidean distance of the slide's standardised mean features to its ``novelty_k`` nearest
-        training slides, over the threshold set in training. None for a model without novelty data.
+        :func:`novelty_scores` of the slide's standardised mean features against the training slides, over the
+        threshold set in training. None for a model without novelty data.
         """
         if self.novelty_x is None or not len(self.novelty_x):
             return None
-        z = self.standardise(np.asarray(features, dtype=np.float64).reshape(-1, len(self.names)).mean(axis=0, keepdims=True))[0]
-        return float(knn_distance(z[None, :], self.novelty_x, self.novelty_k)[0] / self.novelty_threshold)
+        z = self.standardise(np.asarray(features, dtype=np.float64).reshape(-1, len(self.names)).mean(axis=0, keepdims=True))
+        return float(novelty_scores(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_score)[0] / self.novelty_threshold)
 
     def assess(self, features: FloatArray) -> tuple[FloatArray, float, float | None]:
         """(softmax probabilities (K,), confidence that the top class is right, novelty) of a slide's windows' raw features (w, F)."""
@@ -359,7 +363,8 @@ class Model:
         return {"format": FORMAT, "version": FORMAT_VERSION, "method": self.method, "classifier": self.kind, "params": self.params,
                 "seed": self.seed, "classes": self.classes, "settings": self.settings.to_dict(), "fs": self.fs, "channels": self.channels,
                 "temperature": self.temperature, "summary": self.summary,
-                "novelty": {"k": self.novelty_k, "threshold": self.novelty_threshold if math.isfinite(self.novelty_threshold) else None}}
+                "novelty": {"k": self.novelty_k, "threshold": self.novelty_threshold if math.isfinite(self.novelty_threshold) else None,
+                            "score": self.novelty_score}}
 
     def save(self, path: str | Path) -> str:
         """Write atomically; returns the fingerprint."""
@@ -433,7 +438,7 @@ def load_model(path: str | Path | None = None, lean: bool = True) -> Model:
             _need(kind in CLASSIFIERS, path, f"header.classifier: unknown {kind!r}")
             optional = [k for k in SVM_ARRAYS if k in reader] if kind == "svm" else []
             version = header.get("version")
-            trust = (*TRUST_ARRAYS, *ENROL_ARRAYS) if version == 4 else TRUST_ARRAYS if version == 3 else ()
+            trust = (*TRUST_ARRAYS, *ENROL_ARRAYS) if version in (4, 5) else TRUST_ARRAYS if version == 3 else ()
             keys = tuple(dict.fromkeys(("classes", "scaler_mean", "scaler_scale", *ARRAYS[kind], *optional, *trust)))
             missing, extra = [k for k in keys if k not in reader], sorted(set(reader.keys()) - {"header", *keys})
             _need(not missing, path, f"{', '.join(missing)}: missing")
@@ -592,16 +597,49 @@ def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[
         _need(ny.shape == (nx.shape[0],) and ny.dtype.kind == "U" and groups.shape == (nx.shape[0],) and groups.dtype.kind == "i", path,
               "novelty_y, novelty_groups: must be one unicode label and one integer per novelty_x row")
         model.novelty_y, model.novelty_groups = ny, groups
-    model.calibration, model.novelty_x, model.novelty_k = cal, nx, int(nov["k"])
+    score = nov.get("score", "distance") if header.get("version", 0) >= 5 else "distance"
+    _need(score in NOVELTY_SCORES, path, f"header.novelty.score: must be one of {', '.join(NOVELTY_SCORES)}")
+    model.calibration, model.novelty_x, model.novelty_k, model.novelty_score = cal, nx, int(nov["k"]), score
     model.novelty_threshold = float(threshold) if threshold is not None else math.inf
+
+
+def _distances(z: FloatArray, train: FloatArray) -> FloatArray:
+    """(q, n) Euclidean distances between the rows of ``z`` (q, F) and of ``train`` (n, F)."""
+    d2 = (z * z).sum(axis=1)[:, None] - 2.0 * z @ train.T + (train * train).sum(axis=1)[None, :]
+    return np.sqrt(np.maximum(d2, 0.0))
+
+
+def _nearest_mean(d: FloatArray, k: int) -> FloatArray:
+    """(q,) mean of the ``k`` smallest of each row of ``d`` (q, n) (k capped at n)."""
+    k = max(1, min(k, d.shape[1]))
+    out: FloatArray = np.partition(d, k - 1, axis=1)[:, :k].mean(axis=1)
+    return out
 
 
 def knn_distance(z: FloatArray, train: FloatArray, k: int) -> FloatArray:
     """(q,) mean Euclidean distance of each row of ``z`` (q, F) to its ``k`` nearest rows of ``train`` (n, F) (k capped at n)."""
-    k = max(1, min(k, train.shape[0]))
-    d2 = (z * z).sum(axis=1)[:, None] - 2.0 * z @ train.T + (train * train).sum(axis=1)[None, :]
-    d = np.sqrt(np.maximum(d2, 0.0))
-    out: FloatArray = np.partition(d, k - 1, axis=1)[:, :k].mean(axis=1)
+    return _nearest_mean(_distances(z, train), k)
+
+
+NOVELTY_SCORES = ("ratio", "distance")
+
+
+def novelty_scores(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | None, k: int, score: str = "ratio") -> FloatArray:
+    """(q,) how unlike the training rows ``train`` (n, F) (surfaces ``labels`` (n,)) each row of ``z`` (q, F) is.
+
+    ``distance``: the mean distance to the ``k`` nearest training rows. ``ratio``: the nearest-neighbour distance
+    ratio (Mendes Junior et al., "Nearest neighbors distance ratio open-set classifier", Machine Learning 2017): the
+    mean distance to the ``k`` nearest rows of the nearest surface over the same for the next nearest surface, in
+    [0, 1]. Near 0: clearly one taught surface; near 1: between two of them, or far from all (both distances large).
+    Unlike a distance, the ratio takes its scale from how far apart the surfaces are, not from how close recordings of
+    one surface were in training, so a sensor that is shifted as a whole (another unit, a new sheet of a grade) keeps
+    the slides it can still tell apart. With fewer than two surfaces in ``labels`` (or none given), the distance.
+    """
+    d = _distances(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64))
+    if labels is None or score != "ratio" or len(surfaces := np.unique(labels)) < 2:
+        return _nearest_mean(d, k)
+    per = np.sort(np.stack([_nearest_mean(d[:, labels == s], k) for s in surfaces], axis=1), axis=1)
+    out: FloatArray = per[:, 0] / np.maximum(per[:, 1], 1e-300)
     return out
 
 

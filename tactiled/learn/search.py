@@ -21,7 +21,7 @@ honestly by nested cross-validation: in each outer fold, the same rule on an inn
 CV of the training files alone picks a candidate, which is then scored on the held-out
 files. The winner is refitted on every recording; its temperature and its confidence
 calibration (:func:`fit_calibration`) are fitted on its out-of-fold slide scores, and its
-novelty threshold (:func:`fit_novelty`) on distances between slides of different recordings.
+novelty threshold (:func:`fit_novelty`) on the distance ratios of slides to other recordings' slides.
 
 Work is spread over every core with joblib; ``scheduler`` (a dask.distributed address)
 sends it to a cluster through joblib's Dask backend instead.
@@ -45,7 +45,7 @@ from tactiled.core.features import name_family
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, collect_windows, find_slides
-from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature, knn_distance, softmax
+from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature, novelty_scores, softmax
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -427,7 +427,7 @@ def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: C
     labelled = np.flatnonzero(slides.y != "")
     z = model.standardise(slides.x[labelled][:, cols])
     model.novelty_x, model.novelty_y, model.novelty_groups = z, slides.y[labelled], slides.groups[labelled]
-    model.novelty_threshold, nov_info = fit_novelty(z, slides.groups[labelled], slides.y[labelled], model.novelty_k)
+    model.novelty_threshold, nov_info = fit_novelty(z, slides.groups[labelled], slides.y[labelled], model.novelty_k, score=model.novelty_score)
     model.summary = {**summary, "calibration": cal_info, "novelty": nov_info}
     return model
 
@@ -471,13 +471,14 @@ def _logit(q: FloatArray) -> FloatArray:
     return out
 
 
-def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any], k: int, reject: float = 0.05) -> tuple[float, dict[str, Any]]:
+def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any], k: int, reject: float = 0.05,
+                score: str = "ratio") -> tuple[float, dict[str, Any]]:
     """The novelty threshold of training slides ``z`` (n, F') (standardised mean features), and what cross-validation says of it.
 
-    Each slide's distance (mean over its ``k`` nearest) to the slides of *other recordings* stands for a new
-    recording of a known surface: the threshold is the (1 - ``reject``) quantile of those, so that about
-    ``reject`` of known slides are called unknown. Leaving each surface out in turn (its distance to the slides
-    of other surfaces) estimates how many slides of an untaught surface the threshold flags. A threshold of
+    Each slide's :func:`~tactiled.learn.model.novelty_scores` against the slides of *other recordings* stands for a
+    new recording of a known surface: the threshold is the (1 - ``reject``) quantile of those, so that about
+    ``reject`` of known slides are called unknown. Leaving each surface out in turn (its score against the slides
+    of the other surfaces) estimates how many slides of an untaught surface the threshold flags. A threshold of
     inf (never unknown) when no slide has another recording to compare with.
     """
     n = len(z)
@@ -486,16 +487,35 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     for i in range(n):
         other_file, other_surface = files != files[i], labels != labels[i]
         if other_file.any():
-            known[i] = knn_distance(z[i:i + 1], z[other_file], k)[0]
+            known[i] = novelty_scores(z[i:i + 1], z[other_file], labels[other_file], k, score)[0]
         if other_surface.any():
-            unseen[i] = knn_distance(z[i:i + 1], z[other_surface], k)[0]
+            unseen[i] = novelty_scores(z[i:i + 1], z[other_surface], labels[other_surface], k, score)[0]
     have = known[np.isfinite(known)]
     if not len(have):
-        return math.inf, {"k": k, "threshold": None, "known_rejected": None, "unseen_flagged": None}
-    threshold = max(float(np.quantile(have, 1.0 - reject, method="higher")), 1e-9)
+        return math.inf, {"k": k, "score": score, "threshold": None, "known_rejected": None, "unseen_flagged": None}
     flagged = unseen[np.isfinite(unseen)]
-    return threshold, {"k": k, "threshold": threshold, "known_rejected": float(np.mean(have > threshold)),
+    threshold = max(novelty_threshold(have, flagged, reject), 1e-9)
+    return threshold, {"k": k, "score": score, "threshold": threshold, "known_rejected": float(np.mean(have > threshold)),
                        "unseen_flagged": float(np.mean(flagged > threshold)) if len(flagged) else None}
+
+
+def novelty_threshold(known: FloatArray, unseen: FloatArray, reject: float = 0.05) -> float:
+    """The threshold on novelty scores (a score above it: unknown) from known slides' scores (m,) and untaught ones' (u,).
+
+    Of the thresholds that call at most ``reject`` of the known slides unknown, the one that flags the most untaught
+    slides for the fewest known ones (the largest caught minus rejected share, Youden's J), placed in the middle of
+    the gap between the two scores around it: where the known and untaught scores are far apart (surfaces easy to
+    tell apart) a slide may move half the gap (another unit of the sensor) before it is called unknown, rather than
+    being rejected at the edge of the training spread. Without untaught scores, the (1 - ``reject``) quantile.
+    """
+    cap = float(np.quantile(known, 1.0 - reject, method="higher"))
+    if not len(unseen):
+        return cap
+    points = np.unique(np.concatenate([known, unseen]))
+    cuts = np.append((points[:-1] + points[1:]) / 2.0, points[-1])  # between consecutive scores, and at the highest (nothing seen flagged)
+    cuts = cuts[cuts >= cap] if np.any(cuts >= cap) else cuts[-1:]
+    j = (unseen[None, :] > cuts[:, None]).mean(axis=1) - (known[None, :] > cuts[:, None]).mean(axis=1)
+    return float(cuts[int(np.argmax(j))])
 
 
 def complexity(c: Candidate) -> tuple[int, int, int]:
