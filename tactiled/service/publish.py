@@ -97,13 +97,21 @@ class Publisher:
         self.authenticator: Any = None
         if config.curve_secret_key_file:
             self._curve(config)
+        # the connection events, watched from before the bind so that no peer is accepted unseen (limit_connections reads them)
+        monitor = f"inproc://tactiled-publisher-monitor-{id(self)}"
+        self.socket.monitor(monitor, zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_CLOSED)
+        self._events = zmq.asyncio.Context.shadow(self.context.underlying).socket(zmq.PAIR)
+        self._events.setsockopt(zmq.LINGER, 0)
+        self._events.connect(monitor)
         try:
             address = bind_address(config.endpoint, sensor)
             self.socket.bind(address)
         except zmq.ZMQError as exc:
+            self._events.close(0)
             self.socket.close()
             raise ConfigError(f"publish.endpoint: cannot bind {address}: {exc}") from None
         except ConfigError:
+            self._events.close(0)
             self.socket.close()
             raise
         self.endpoint = self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
@@ -119,13 +127,9 @@ class Publisher:
     async def limit_connections(self) -> None:
         """Until cancelled: keep at most ``max_connections`` subscriber connections, shutting down each one accepted beyond
         that (ZeroMQ then drops it like any peer that went away), so silent peers cannot take every file descriptor."""
-        addr = f"inproc://tactiled-publisher-monitor-{id(self)}"
-        self.socket.monitor(addr, zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_CLOSED)
-        events = zmq.asyncio.Context.shadow(self.context.underlying).socket(zmq.PAIR)
-        events.connect(addr)
         try:
             while True:
-                frames = await events.recv_multipart()
+                frames = await self._events.recv_multipart()
                 event, fd = int.from_bytes(frames[0][:2], "little"), int.from_bytes(frames[0][2:6], "little")
                 if event == zmq.EVENT_ACCEPTED:
                     if len(self.connections) >= self.max_connections:
@@ -137,7 +141,6 @@ class Publisher:
         finally:
             with contextlib.suppress(zmq.ZMQError):
                 self.socket.disable_monitor()
-            events.close(0)
 
     def _refuse(self, fd: int) -> None:
         """Shut down the connection on ``fd`` (libzmq sees it end and closes it)."""
@@ -197,6 +200,7 @@ class Publisher:
 
     def close(self) -> None:
         """Close the socket at once (unsent messages dropped) and stop the CURVE authenticator, if any."""
+        self._events.close(0)
         self.socket.close(linger=0)
         if self.authenticator is not None:
             self.authenticator.stop()
