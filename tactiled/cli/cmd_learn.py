@@ -50,7 +50,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     config = config_of(args)
     check_output(args.output, args.force, (".npz",))  # before minutes of search, not after
     result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
-                   scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by)
+                   scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by,
+                   novelty=args.novelty)
     print("leaderboard (slide accuracy, grouped by file: mean ± sd over folds; * the choice, the simplest within one standard error of the best):")
     width = max(len(row["candidate"]) for row in result.leaderboard)
     for row in result.leaderboard:
@@ -165,6 +166,11 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--scheduler", help="dask.distributed scheduler address (tcp://host:port) to run the cross-validation on a cluster "
                                         "(default: this machine, every core)")
     p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP + " (the same files, options and seed give the same model file)")
+    p.add_argument("--novelty", choices=("ratio", "distance"), default="ratio",
+                   help="how a slide is judged unlike every taught surface (label null, reason unknown_surface): ratio, its distance to "
+                        "the nearest surface over that to the next (keeps labelling on another unit of the sensor or a new sheet "
+                        "of a known grade); distance, its distance to the nearest training slides (flags more untaught surfaces "
+                        "between taught grades, but also most slides of another unit)")
 
     p = command(sub, "evaluate", "the papers' experiments by grouped cross-validation", cmd_evaluate,
                 "tactiled evaluate data/sim/*.npz --report report/")

@@ -24,7 +24,7 @@ from tactiled.config import Config
 from tactiled.errors import ModelError, TactiledError
 from tactiled.learn.dataset import Progress, collect_windows, find_slides, load_recordings
 from tactiled.learn.model import Model, fit_pipeline, load_model
-from tactiled.learn.search import PARAMS, fit_novelty
+from tactiled.learn.search import PARAMS, fit_model_novelty
 
 MIN_SLIDES = 5
 
@@ -87,7 +87,6 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     z = new.standardise(np.vstack([old.unstandardise(old.novelty_x), new_x]))
     groups = np.concatenate([old.novelty_groups, slides.groups[labelled] + int(old.novelty_groups.max(initial=-1)) + 1])
     labels = np.concatenate([old.novelty_y, slides.y[labelled]]).astype(np.str_)
-    new.novelty_x, new.novelty_y, new.novelty_groups, new.novelty_k = z, labels, groups, old.novelty_k
-    new.novelty_threshold, info = fit_novelty(z, groups, labels, old.novelty_k, score=new.novelty_score)
-    new.summary["novelty"] = info
+    new.novelty_k = old.novelty_k
+    fit_model_novelty(new, z, labels, groups, old.novelty_score)  # the score the model was trained with
     return Enrolled(new, added, files, [k for k in added if k not in old.classes])

@@ -425,11 +425,17 @@ def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: C
                   seed, summary, "", refit, calibration)
     slides = ws if c.fusion == "features" else ws.averaged()  # one row per slide: the mean of its windows' raw features
     labelled = np.flatnonzero(slides.y != "")
-    z = model.standardise(slides.x[labelled][:, cols])
-    model.novelty_x, model.novelty_y, model.novelty_groups = z, slides.y[labelled], slides.groups[labelled]
-    model.novelty_threshold, nov_info = fit_novelty(z, slides.groups[labelled], slides.y[labelled], model.novelty_k, score=model.novelty_score)
-    model.summary = {**summary, "calibration": cal_info, "novelty": nov_info}
+    model.summary = {**summary, "calibration": cal_info}
+    fit_model_novelty(model, model.standardise(slides.x[labelled][:, cols]), slides.y[labelled], slides.groups[labelled], model.novelty_score)
     return model
+
+
+def fit_model_novelty(model: Model, z: FloatArray, labels: npt.NDArray[Any], groups: npt.NDArray[Any], score: str) -> None:
+    """Give ``model`` its novelty data: the standardised slides ``z`` (n, F') of surfaces ``labels`` and recordings ``groups``
+    (n,), the score (:data:`~tactiled.learn.model.NOVELTY_SCORES`) and its threshold (:func:`fit_novelty`, in ``summary``)."""
+    model.novelty_x, model.novelty_y, model.novelty_groups, model.novelty_score = z, labels, groups, score
+    model.novelty_threshold, info = fit_novelty(z, groups, labels, model.novelty_k, score=score)
+    model.summary = {**model.summary, "novelty": info}
 
 
 def fit_calibration(oof: FloatArray, y_idx: npt.NDArray[np.intp], temperature: float) -> tuple[FloatArray, dict[str, Any]]:

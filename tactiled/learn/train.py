@@ -16,7 +16,8 @@ from tactiled.config import Config
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, find_slides, load_recordings
-from tactiled.learn.search import Candidate, SearchResult, paper, quick_candidates, search
+from tactiled.learn.model import NOVELTY_SCORES
+from tactiled.learn.search import Candidate, SearchResult, fit_model_novelty, paper, quick_candidates, search
 
 METHODS = ("auto", "quick", "paper")
 GROUP_BY = ("file", "slide")
@@ -50,12 +51,15 @@ def class_table(per_file: list[list[LabelledSlide]]) -> dict[str, tuple[int, int
 
 def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
           drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None,
-          candidates: Sequence[Candidate] | None = None, keep_models: bool = False, group_by: str = "file") -> SearchResult:
+          candidates: Sequence[Candidate] | None = None, keep_models: bool = False, group_by: str = "file",
+          novelty: str = "ratio") -> SearchResult:
     """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save).
 
     ``candidates`` narrows the default search (``method="auto"``) to the given ones; ``keep_models``: see :func:`search`.
     ``group_by``: ``file`` (folds never split a recording; every surface needs two) or ``slide`` (allowed with one
-    recording per surface, with a warning that the estimates are optimistic).
+    recording per surface, with a warning that the estimates are optimistic). ``novelty``: the unknown-surface score
+    (:data:`~tactiled.learn.model.NOVELTY_SCORES`; ``ratio`` tolerates another unit of the sensor, ``distance`` flags
+    more untaught surfaces between taught grades but also most slides of another unit or a new sheet of a known one).
     """
     say = progress or (lambda m: None)
     if method not in METHODS:
@@ -68,6 +72,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         raise TactiledError(f"--group-by: must be one of {', '.join(GROUP_BY)}, got {group_by!r}")
     if seed < 0:
         raise TactiledError(f"--seed: must be >= 0, got {seed}")
+    if novelty not in NOVELTY_SCORES:
+        raise TactiledError(f"--novelty: must be one of {', '.join(NOVELTY_SCORES)}, got {novelty!r}")
     recs = load_recordings(paths, say)
     check_recordings(recs, len(paths))
     per_file, counts = find_slides(recs, config)
@@ -106,6 +112,9 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
             candidates = quick_candidates()
         result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates,
                         keep_models=keep_models)
+    model = result.model
+    if novelty != model.novelty_score and model.novelty_x is not None and model.novelty_y is not None and model.novelty_groups is not None:
+        fit_model_novelty(model, model.novelty_x, model.novelty_y, model.novelty_groups, novelty)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
     result.model.summary["dropped"] = rare
     return result
