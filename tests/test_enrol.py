@@ -42,6 +42,7 @@ def test_enrol_adds_a_surface_from_six_slides_and_labels_it(trained: tuple[Path,
     record = m2.summary["enrolled"][-1]
     assert record == {"from": old.fingerprint, "slides": {"NEW": 6}, "files": [Path(p).name for p in new]}
     assert m2.novelty_y is not None and list(m2.novelty_y).count("NEW") == 6 and np.isfinite(m2.novelty_threshold)
+    assert old.summary["early_calibration"]["prefixes"] > 0 and m2.early_calibration == old.early_calibration  # fitted in training, kept
     relabelled = run_cli("replay", "--json", "--model", str(tmp_path / "m2.npz"), *new)
     finals = [json.loads(line) for line in relabelled.stdout.splitlines() if line.startswith("{") and '"final": true' in line]
     assert finals and sum(m.get("label") == "NEW" for m in finals) >= len(finals) - 1

@@ -187,6 +187,29 @@ def test_a_format_4_model_keeps_the_distance_it_was_fitted_with_and_a_bad_score_
         load_model(_resaved(model, tmp_path / "bad.npz", {"novelty": {"k": 3, "threshold": 0.8, "score": "cosine"}}))
 
 
+def test_provisional_confidence_comes_from_the_early_map_and_survives_the_file(tmp_path: Path) -> None:
+    model = _model(tmp_path)
+    x = np.abs(np.random.default_rng(5).standard_normal((2, 4))) + 3.0
+    assert model.early_calibration is None and model.assess(x, final=False)[1] == model.assess(x)[1]  # no early map: the slide's
+    model.early_calibration = (0.0, 0.0, math.log(0.3 / 0.7))
+    model.save(tmp_path / "e.npz")
+    loaded = load_model(tmp_path / "e.npz")
+    assert loaded.early_calibration == pytest.approx((0.0, 0.0, math.log(0.3 / 0.7)))
+    assert loaded.assess(x, final=False)[1] == pytest.approx(0.3) and loaded.assess(x)[1] == model.assess(x)[1]
+    with pytest.raises(ModelError, match=r"header\.early_calibration: must be three finite numbers or null"):
+        load_model(_resaved(model, tmp_path / "bad.npz", {"early_calibration": [1.0, "x", 0.0]}))
+
+
+@pytest.mark.parametrize("p_top", [0.0, 1.0, 1e-300, float("nan"), 0.5])
+@pytest.mark.parametrize("windows", [0, 1, 10**9])
+def test_early_probability_is_a_probability_short_of_certain(p_top: float, windows: int) -> None:
+    from tactiled.learn.model import early_probability
+
+    for coef in ((1.0, 0.5, 0.0), (1e300, 1e300, -1e300), (0.0, 0.0, 0.0)):
+        assert 0.01 <= early_probability(coef, p_top, windows) <= 0.99
+    assert early_probability((2.0, 0.0, 0.0), 0.9, 1) > early_probability((2.0, 0.0, 0.0), 0.6, 1)
+
+
 def test_calibration_scores_of_a_perfect_and_an_overconfident_model() -> None:
     right = np.array([True] * 8 + [False] * 2)
     assert calibration_scores(np.full(10, 0.8), right)["ece"] == pytest.approx(0.0)

@@ -44,8 +44,9 @@ class Classifier(Protocol):
     fingerprint: str
     settings: AnalysisSettings
 
-    def assess(self, features: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], float, float | None]:
-        """(probabilities (K,), calibrated confidence that the top class is right, novelty or None) of a slide's windows' raw features (w, F)."""
+    def assess(self, features: npt.NDArray[np.float64], final: bool = True) -> tuple[npt.NDArray[np.float64], float, float | None]:
+        """(probabilities (K,), calibrated confidence that the top class is right, novelty or None) of a slide's windows' raw features (w, F);
+        ``final``: the whole slide, else its first w windows (a provisional label)."""
 
 
 
@@ -249,9 +250,9 @@ class Pipeline:
     def _window(self, span: tuple[int, int]) -> _Window:
         return _Window(span, self._read(*span))
 
-    def _assess(self, used: list[_Window]) -> tuple[npt.NDArray[np.float64], float, float | None]:
+    def _assess(self, used: list[_Window], final: bool = True) -> tuple[npt.NDArray[np.float64], float, float | None]:
         assert self.model is not None
-        return self.model.assess(np.stack([w.result.features for w in used if w.result.features is not None]))
+        return self.model.assess(np.stack([w.result.features for w in used if w.result.features is not None]), final)
 
     def _read(self, lo: int, hi: int) -> WindowResult:
         if hi - lo < self.min_samples:
@@ -267,7 +268,7 @@ class Pipeline:
         if self.model is None or self._onset is None or self.provisional_confidence >= 1.0 or self._paused is not None:
             return None
         used = [w for w in self._windows if w.usable]
-        assessed = self._assess(used)
+        assessed = self._assess(used, final=False)
         proba, confidence, novelty = assessed
         label = self.model.classes[int(np.argmax(proba))]
         if (confidence < max(self.provisional_confidence, self.min_confidence) or label == self._provisional

@@ -87,6 +87,6 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     z = new.standardise(np.vstack([old.unstandardise(old.novelty_x), new_x]))
     groups = np.concatenate([old.novelty_groups, slides.groups[labelled] + int(old.novelty_groups.max(initial=-1)) + 1])
     labels = np.concatenate([old.novelty_y, slides.y[labelled]]).astype(np.str_)
-    new.novelty_k = old.novelty_k
+    new.novelty_k, new.early_calibration = old.novelty_k, old.early_calibration
     fit_model_novelty(new, z, labels, groups, old.novelty_score)  # the score the model was trained with
     return Enrolled(new, added, files, [k for k in added if k not in old.classes])

@@ -14,7 +14,9 @@ that a slide's confidence is calibrated.
 
 A slide's label comes with two numbers (:meth:`Model.assess`): ``confidence``, the probability that the label is
 right, a monotone map (``calibration``, fitted in training on grouped out-of-fold slides: isotonic regression
-with 200 or more slides, else Platt scaling) of the top softmax probability; and ``novelty``, a score of the slide
+with 200 or more slides, else Platt scaling) of the top softmax probability (for a provisional label, from the first
+windows of a slide, :func:`early_probability` of the top probability and the number of windows: ``early_calibration``,
+fitted on out-of-fold prefixes of slides, format 5); and ``novelty``, a score of the slide
 (the mean of its windows' features, standardised as the classifier sees them) against the training slides
 (:func:`novelty_scores`), divided by the threshold that grouped cross-validation set so that at most 5 % of slides
 of known surfaces exceed it: above 1, the slide is unlike every surface the model was taught. From format 5 on the
@@ -52,6 +54,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -234,6 +237,7 @@ class Model:
     fingerprint: str = ""
     refit: tuple[FloatArray, npt.NDArray[np.str_]] | None = None  # standardised training rows and labels (kNN/SVM refit on them; enrol)
     calibration: FloatArray | None = None  # (2, m): top softmax probability -> P(label right); None: uncalibrated (format 2)
+    early_calibration: tuple[float, float, float] | None = None  # (a, b, c) of early_probability, for provisional labels (format 5)
     novelty_x: FloatArray | None = None  # (n, F'): standardised mean features of the training slides; None: no novelty (format 2)
     novelty_k: int = 3
     novelty_threshold: float = math.inf
@@ -289,10 +293,22 @@ class Model:
         z = self.standardise(np.asarray(features, dtype=np.float64).reshape(-1, len(self.names)).mean(axis=0, keepdims=True))
         return float(novelty_scores(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_score)[0] / self.novelty_threshold)
 
-    def assess(self, features: FloatArray) -> tuple[FloatArray, float, float | None]:
-        """(softmax probabilities (K,), confidence that the top class is right, novelty) of a slide's windows' raw features (w, F)."""
+    def early_confidence(self, p_top: float, windows: int) -> float:
+        """The probability that a label from the first ``windows`` windows of a slide is right (a provisional label), from its top
+        softmax probability: :func:`early_probability` with ``early_calibration``; the whole-slide map when the model has none."""
+        if self.early_calibration is None:
+            return self.confidence(p_top)
+        return early_probability(self.early_calibration, p_top, windows)
+
+    def assess(self, features: FloatArray, final: bool = True) -> tuple[FloatArray, float, float | None]:
+        """(softmax probabilities (K,), confidence that the top class is right, novelty) of a slide's windows' raw features (w, F).
+
+        ``final``: the whole slide (the calibration map); else the first w windows of a slide that goes on (:meth:`early_confidence`).
+        """
         proba = self.slide_proba(features)
-        return proba, self.confidence(float(proba.max())), self.novelty(features)
+        p_top = float(proba.max())
+        confidence = self.confidence(p_top) if final else self.early_confidence(p_top, np.asarray(features).reshape(-1, len(self.names)).shape[0])
+        return proba, confidence, self.novelty(features)
 
     def standardise(self, x: FloatArray) -> FloatArray:
         """Classifier inputs (n, F') of raw features (n, F): log of scale features, standardised (the steps before the classifier)."""
@@ -364,7 +380,8 @@ class Model:
                 "seed": self.seed, "classes": self.classes, "settings": self.settings.to_dict(), "fs": self.fs, "channels": self.channels,
                 "temperature": self.temperature, "summary": self.summary,
                 "novelty": {"k": self.novelty_k, "threshold": self.novelty_threshold if math.isfinite(self.novelty_threshold) else None,
-                            "score": self.novelty_score}}
+                            "score": self.novelty_score},
+                "early_calibration": list(self.early_calibration) if self.early_calibration is not None else None}
 
     def save(self, path: str | Path) -> str:
         """Write atomically; returns the fingerprint."""
@@ -600,7 +617,22 @@ def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[
     score = nov.get("score", "distance") if header.get("version", 0) >= 5 else "distance"
     _need(score in NOVELTY_SCORES, path, f"header.novelty.score: must be one of {', '.join(NOVELTY_SCORES)}")
     model.calibration, model.novelty_x, model.novelty_k, model.novelty_score = cal, nx, int(nov["k"]), score
+    early = header.get("early_calibration")
+    _need(early is None or (isinstance(early, list) and len(early) == 3 and all(_is_number(v) for v in early)), path,
+          "header.early_calibration: must be three finite numbers or null")
+    model.early_calibration = (float(early[0]), float(early[1]), float(early[2])) if early is not None else None
     model.novelty_threshold = float(threshold) if threshold is not None else math.inf
+
+
+def early_probability(coef: Sequence[float], p_top: float, windows: int) -> float:
+    """P(label right) of a label from the first ``windows`` windows of a slide with top softmax probability ``p_top``:
+    sigmoid(a logit(p_top) + b log(windows) + c), ``coef`` = (a, b, c) (Platt scaling with the window count as a second
+    input, fitted in training on out-of-fold prefixes of slides), kept within [0.01, 0.99]: a few windows never make a
+    label certain."""
+    a, b, c = coef
+    q = min(max(p_top, 1e-6), 1 - 1e-6) if math.isfinite(p_top) else 0.5
+    z = a * math.log(q / (1 - q)) + b * math.log(max(windows, 1)) + c
+    return min(max(1.0 / (1.0 + math.exp(-min(max(z, -700.0), 700.0))), 0.01), 0.99)
 
 
 def _distances(z: FloatArray, train: FloatArray) -> FloatArray:

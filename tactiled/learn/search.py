@@ -322,6 +322,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     found = found or find_slides(recs, config)
     wanted = list(candidates if candidates is not None else default_candidates())
     sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]] = {}
+    windows_of: dict[tuple[Any, ...], WindowSet] = {}  # each candidate's windows, one row per window (a whole-slide one's before averaging)
     usable: list[Candidate] = []
     for c in wanted:
         key: tuple[Any, ...] = (*c.placement, c.families)
@@ -341,6 +342,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
                     sets[key] = (sets[full][0], sets[full][1].averaged())
             else:
                 sets[key] = sets[full]
+            windows_of[key] = sets[full][1]
             usable.append(c)
     if not usable:
         raise TactiledError(f"no candidate fits: windows too short for the feature families at {fs:g} Hz; record longer slides")
@@ -396,6 +398,11 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     say(f"winner {best.name}: {board[chosen]['mean']:.3f} ± {board[chosen]['sd']:.3f} (best mean {leaderboard[0]['mean']:.3f}); "
         f"nested CV {nested['mean']:.3f}; fitting on every slide")
     model = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary)
+    if best.max_windows != 1:  # provisional labels come from the first windows of a slide: their own calibration
+        say("calibrating provisional labels on out-of-fold slide prefixes")
+        model.early_calibration, early_info = fit_early_calibration(windows_of[_key(best)], best, outer, classes, model.temperature, seed,
+                                                                    inner_folds)
+        model.summary = {**model.summary, "early_calibration": early_info}
     ws = sets[_key(best)][1]
     result = SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
                           time.perf_counter() - t0, oof=(oof[best.name], y_idx, np.array([sl.file for sl in ws.slides])))
@@ -468,6 +475,60 @@ def fit_calibration(oof: FloatArray, y_idx: npt.NDArray[np.intp], temperature: f
         value = fit.predict_proba(_logit(grid)[:, None])[:, 1] if fit.coef_[0, 0] > 0 else np.full_like(grid, right.mean())
     value = np.clip(np.maximum.accumulate(np.nan_to_num(value, nan=float(right.mean()) if n else 0.5)), lo, hi)
     return np.vstack([grid, value]), {"method": method, "slides": n, "accuracy": float(right.mean()) if n else None}
+
+
+def fit_early_calibration(ws: WindowSet, c: Candidate, outer: Sequence[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]],
+                          classes: list[str], temperature: float, seed: int, inner_folds: int = 3
+                          ) -> tuple[tuple[float, float, float] | None, dict[str, Any]]:
+    """(a, b, c) of :func:`~tactiled.learn.model.early_probability` for candidate ``c``, and what it was fitted on.
+
+    In each outer fold (``outer``: train and test slide indices) ``c`` is fitted on the train slides, and every test slide
+    is classified from its first 1, 2, ... windows (``ws``: one row per window), as the pipeline does for provisional labels
+    (the mean of those windows' scores, or of their features for a whole-slide candidate). A logistic fit of right or wrong
+    on the logit of the top probability and the log of the window count gives the map. None when the folds give fewer
+    than 20 prefixes or only right (or only wrong) ones; a fit in which a higher probability is not more often right
+    keeps only the mean (a = b = 0).
+    """
+    from sklearn.linear_model import LogisticRegression
+
+    fit_on = ws.averaged() if c.fusion == "features" else ws
+    index = {k: i for i, k in enumerate(classes)}
+    tops: list[float] = []
+    counts: list[int] = []
+    right: list[bool] = []
+    for train, test in outer:
+        rows = _window_rows(fit_on, train)
+        if len(np.unique(fit_on.y[rows])) < 2:
+            continue
+        cols, pipe, _ = fit_candidate(fit_on, rows, c, seed, inner_folds)
+        known = [index[str(k)] for k in pipe[-1].classes_]
+        for sl in test:
+            label = ws.slides[sl].label
+            w = np.flatnonzero(ws.slide == sl)
+            if label not in index or not len(w):
+                continue
+            w = w[np.argsort(ws.spans[w, 0], kind="stable")]
+            k = np.arange(1, len(w) + 1, dtype=np.float64)[:, None]
+            x = ws.x[w][:, cols]
+            if c.fusion == "features":
+                raw = decision_scores(pipe[-1], pipe[:-1].transform(np.cumsum(x, axis=0) / k))
+            else:
+                raw = np.cumsum(decision_scores(pipe[-1], pipe[:-1].transform(x)), axis=0) / k
+            scores = np.full((len(w), len(classes)), -np.inf)
+            scores[:, known] = raw
+            p = softmax(scores, temperature)
+            tops += p.max(axis=1).tolist()
+            counts += list(range(1, len(w) + 1))
+            right += (np.argmax(p, axis=1) == index[label]).tolist()
+    hit = np.array(right, dtype=np.float64)
+    info: dict[str, Any] = {"prefixes": len(hit), "accuracy": float(hit.mean()) if len(hit) else None}
+    if len(hit) < 20 or hit.min() == hit.max():
+        return None, info
+    x = np.column_stack([_logit(np.array(tops)), np.log(np.array(counts, dtype=np.float64))])
+    fit = LogisticRegression(C=100.0).fit(x, hit)
+    a, b = float(fit.coef_[0, 0]), float(fit.coef_[0, 1])
+    coef = (a, b, float(fit.intercept_[0])) if a > 0 else (0.0, 0.0, float(_logit(np.array([hit.mean()]))[0]))
+    return coef, {**info, "coef": list(coef)}
 
 
 def _logit(q: FloatArray) -> FloatArray:
