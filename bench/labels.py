@@ -37,7 +37,7 @@ from scipy import signal, stats
 from tactiled.config import Config
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import load_recordings
-from tactiled.learn.score import score
+from tactiled.learn.score import calibration_scores, score
 from tactiled.learn.train import train
 from tactiled.run.replay import by_slide, pair_results, replay_recording
 from tactiled.sim.simulate import write_dataset
@@ -89,6 +89,7 @@ def end_to_end(recs: list[tuple[str, Recording]], config: Config, model: Any) ->
     results = [replay_recording(rec, config, model) for _, rec in recs]
     sc = score(recs, results, model.classes)
     first_right, provisional, wrong = [], 0, 0
+    conf, hit = [], []
     for (_, rec), res in zip(recs, results, strict=True):
         truth, paired, _ = pair_results(rec, res)
         early = {r.slide_id: ps for r, ps in by_slide(res)}
@@ -98,6 +99,8 @@ def end_to_end(recs: list[tuple[str, Recording]], config: Config, model: Any) ->
             ps = early.get(r.slide_id, [])
             provisional += len(ps)
             wrong += sum(p.label != t for p in ps)
+            conf += [p.confidence for p in ps]
+            hit += [p.label == t for p in ps]
             confirmed = [p.used_s for p in ps if r.label is not None and p.label == r.label]
             if confirmed:
                 first_right.append(confirmed[0])
@@ -105,7 +108,8 @@ def end_to_end(recs: list[tuple[str, Recording]], config: Config, model: Any) ->
             "unknown": sc["unknown"], "abstained": sc["abstained"], "reliability": sc["reliability"],
             "provisional": {"slides_with_confirmed": len(first_right), "median_s": float(np.median(first_right)) if first_right else None,
                             "p90_s": float(np.percentile(first_right, 90)) if first_right else None, "labels": provisional,
-                            "wrong": wrong / provisional if provisional else None}}
+                            "wrong": wrong / provisional if provisional else None,
+                            "ece": calibration_scores(np.array(conf, dtype=np.float64), np.array(hit, dtype=bool))["ece"]}}
 
 
 def leave_out(spec: str, tr: list[Path], test: list[tuple[str, Recording]], config: Config) -> dict[str, Any]:
@@ -140,7 +144,8 @@ def table_row(out: dict[str, Any], units: list[int]) -> str:
             + (f"{100 * pp['same']:.1f} / " + each(lambda u: f"{100 * pp[f'other{u}']:.1f}") + " % | " if pp else "- | ")
             + f"{s['ece']:.3f} / " + each(lambda u: f"{o[u]['ece']:.3f}") + f" | {s['brier']:.3f} | {100 * s['unknown'] / s['n']:.1f} / "
             + each(lambda u: f"{100 * o[u]['unknown'] / o[u]['n']:.1f}") + " % | "
-            + (f"{prov['median_s']:.2f} / {prov['p90_s']:.2f}, {100 * prov['wrong']:.0f} % |" if prov["median_s"] is not None else "none |")
+            + (f"{prov['median_s']:.2f} / {prov['p90_s']:.2f}, {100 * prov['wrong']:.0f} %, ECE {prov['ece']:.3f} |"
+               if prov["median_s"] is not None else "none |")
             + f" {out['train_s']:.0f} |")
 
 
@@ -165,7 +170,7 @@ def main() -> None:
     rows: list[dict[str, Any]] = []
     print("| scene | nested CV | default: same unit | other units (top class, unknowns included) | plain baseline: same / other units "
           "| papers' method: same / other units | ECE same / other units | Brier same | unknown on known (same / other units) "
-          "| provisional: median / p90 s, wrong | train s |")
+          "| provisional: median / p90 s, wrong, ECE | train s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|", flush=True)
     for spec in args.scenes.split(";"):
         name = spec.replace(",", "+")

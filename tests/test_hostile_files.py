@@ -136,6 +136,23 @@ def test_recover_into_a_full_disk_is_one_line_exit_1_and_leaves_no_temporary(tmp
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.npz.journal"]
 
 
+def test_a_full_disk_while_writing_features_is_one_line_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Any command that meets ENOSPC (injected) says so in one line, exit 1, and leaves no temporary file (was a traceback)."""
+    from tactiled.files.recording import save_recording
+    from tests.conftest import lossy_recording
+
+    save_recording(tmp_path / "r.npz", lossy_recording(0))
+
+    def full(*_: object, **__: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(np.lib.format, "write_array", full)
+    code, err = _cli(capsys, "features", str(tmp_path / "r.npz"), "-o", str(tmp_path / "f.npz"), "--jobs", "1")
+    assert code == 1 and len(err) == 1 and "No space left on device" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.npz"]
+
+
 def _not_a_file(kind: str, tmp_path: Path, suffix: str) -> str:
     if kind == "fifo":
         path = tmp_path / f"fifo{suffix}"

@@ -179,8 +179,8 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--force", action="store_true", help="write into a report folder that is not empty")
     p.add_argument("--config", help=c.CONFIG_HELP)
     p.add_argument("--experiments", type=experiments, default=EXPERIMENTS,
-                   help="a: classifiers, b: window grid, c: sampling rate, d: feature count, e: clustering, f: error against run time, "
-                        "g: the default method against decision time")
+                   help="which experiments, as letters (e.g. ag): a: classifiers, b: window grid, c: sampling rate, d: feature count, "
+                        "e: clustering, f: error against run time, g: the default method against decision time")
     p.add_argument("--folds", type=c.int_in(2, 1000), default=5, help="cross-validation folds, grouped by file")
     p.add_argument("--quick", action="store_true", help="small grids and fewer features (for tests)")
     p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP)

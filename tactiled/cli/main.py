@@ -53,6 +53,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     except (KeyboardInterrupt, BrokenPipeError):
         return EXIT_FAIL
+    except OSError as exc:  # the machine refused (a full disk, a folder gone): one line, what was already written stays
+        print(f"tactiled: error: {exc}", file=sys.stderr)
+        return EXIT_FAIL
 
 
 __all__ = ["build_parser", "main", "subcommands"]
