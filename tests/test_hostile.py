@@ -467,3 +467,11 @@ def test_config_files_that_are_not_regular_files_are_refused_by_check_config_and
         res = run_cli(*argv, timeout=60)
         assert res.returncode == 2 and res.stderr.strip().count("\n") == 0, res.stderr
         assert f"{section}.{key}: {path}" in res.stderr and ("not a regular file" in res.stderr or "does not exist" in res.stderr)
+
+
+def test_a_model_given_as_a_recording_is_named_as_such() -> None:
+    from tactiled.learn.model import default_model_path
+
+    res = run_cli("replay", str(default_model_path()), timeout=60)
+    assert res.returncode == 2 and "a model or features file (it has a header and no samples), not a recording" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1

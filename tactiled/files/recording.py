@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.errors import RecordingError
-from tactiled.files.npzio import NpzError, load_json_bounded, read_npz
+from tactiled.files.npzio import NpzError, NpzReader, load_json_bounded, read_npz
 
 KEYS = ("samples", "fs", "volts_per_count", "first_index", "label", "meta", "lost", "slide_start", "slide_stop", "surface", "ra_um")
 MIN_FS, MAX_FS, MAX_CHANNELS = 1.0, 1e7, 64
@@ -109,6 +109,10 @@ def load_recording(path: str | Path) -> Recording:
     """
     try:
         arrays = read_npz(path, KEYS, MAX_RECORDING_BYTES)
+        if "samples" not in arrays:
+            with NpzReader(path, MAX_RECORDING_BYTES) as reader:
+                if "header" in reader:  # tactiled's model and features files carry a JSON header, recordings do not
+                    raise RecordingError(f"{path}: a model or features file (it has a header and no samples), not a recording")
     except NpzError as exc:
         raise RecordingError(f"{path}: {exc.key}: {exc}" if exc.key else f"{path}: {exc}") from None
     return validate_arrays(path, arrays)
