@@ -59,7 +59,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         print(f"{mark} {row['candidate']:<{width}s} {100 * row['mean']:5.1f} ± {100 * row['sd']:4.1f} %")
     cal, nov = result.model.summary.get("calibration", {}), result.model.summary.get("novelty", {})
     if cal:
-        print(f"confidence: calibrated ({cal['method']}) on {cal['slides']} out-of-fold slides")
+        early = result.model.summary.get("early_calibration", {})
+        print(f"confidence: calibrated ({cal['method']}) on {cal['slides']} out-of-fold slides"
+              + (f"; provisional labels on {early['prefixes']} out-of-fold slide prefixes" if result.model.early_calibration else ""))
     if nov.get("threshold") is not None:
         print(f"unknown surfaces: by cross-validation, {100 * nov['known_rejected']:.1f} % of slides of known surfaces are called unknown, "
               + (f"{100 * nov['unseen_flagged']:.1f} % of slides of a surface left out of training" if nov.get("unseen_flagged") is not None
