@@ -145,7 +145,8 @@ class _FailingTee:
 
 
 def test_opening_the_port_keeps_what_the_board_sent_before() -> None:
-    """pyserial flushes a port's input when it opens it; bytes already in the tty (a replug, a recorder starting) are kept."""
+    """pyserial flushes a port's input when it opens it; bytes already in the tty (a replug) are kept (the source drops them
+    itself at its first open only: tests/test_loss_counting.py)."""
     from tactiled.board.serialsource import KeepInputSerial
 
     master, slave = os.openpty()

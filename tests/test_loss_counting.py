@@ -1,5 +1,6 @@
 """Every lost sample counted (issue 22 item 5): a 25 s unplug and a board reset at a small index, streamed by the virtual
-board on a real pty to ``tactiled run``, against the board's own log; the detector's constant-time skip of a long gap."""
+board on a real pty to ``tactiled run``, against the board's own log; stale bytes in the port at start discarded, not
+counted as lost (issue 25); the detector's constant-time skip of a long gap."""
 
 from __future__ import annotations
 
@@ -15,10 +16,12 @@ from tactiled.config import Config
 from tactiled.core.detect import SlideDetector
 from tactiled.sim.physics import SensorSimulator, SimParams, pick_surfaces
 from tactiled.sim.virtualboard import VirtualBoard, read_log
-from tests.conftest import daemon_process, lossy_recording, wait_for
+from tests.conftest import daemon_process, lossy_recording, running, wait_for
 
 FS = 20_000
 FRAME = 100  # samples per frame: fewer frames a second for the board's Python loop at 10x real time
+# reopen at once, read often (at 10x the pty's 4 kB fill in 5 ms), status often
+CONFIG = "[serial]\nretry_max_s = 0.05\nread_interval_s = 0.002\n\n[publish]\nstatus_interval_s = 0.1\n"
 
 
 def test_a_25_s_unplug_and_a_reset_at_a_small_index_are_counted_as_the_board_logged_them(tmp_path: Path) -> None:
@@ -27,8 +30,7 @@ def test_a_25_s_unplug_and_a_reset_at_a_small_index_are_counted_as_the_board_log
     duplicates), and the unplug's 500 000 samples as lost (it used to count a restart with 0 lost)."""
     seconds, speed = 30.0, 10.0
     config = tmp_path / "c.toml"
-    # reopen at once, read often (at 10x the pty's 4 kB fill in 5 ms), status often
-    config.write_text("[serial]\nretry_max_s = 0.05\nread_interval_s = 0.002\n\n[publish]\nstatus_interval_s = 0.1\n")
+    config.write_text(CONFIG)
     link, endpoint, log_path = str(tmp_path / "tty"), f"ipc://{tmp_path}/pub", tmp_path / "board.jsonl"
     with open(log_path, "w") as log:
         board = VirtualBoard(SensorSimulator(SimParams(), seed=3), pick_surfaces(3), link=link, speed=speed, seed=3, log=log,
@@ -76,6 +78,46 @@ def test_a_25_s_unplug_and_a_reset_at_a_small_index_are_counted_as_the_board_log
     # the frames still queued in the pty when it closed are lost too (the daemon may have taken some just before the close)
     assert logged <= st.samples_lost <= logged + unread, (st.samples_lost, logged, unread)
     assert st.samples + st.samples_lost == round(seconds * FS) - tail - hidden
+
+
+def test_stale_bytes_in_the_port_at_start_are_discarded_not_lost_and_a_replug_keeps_its_input(tmp_path: Path) -> None:
+    """The board streams 2 s with nobody reading: the pty fills, then frames overrun, so the pty holds stale frames and a
+    gap after them (a new user saw "lost 115 420 samples" at once). The daemon started then drops what the port holds at its
+    first open (``discarded_at_start``) and counts no lost sample; an unplug later still keeps what the new pty holds at
+    the reopen: nothing more discarded, and only the unplug's samples lost."""
+    config = tmp_path / "c.toml"
+    config.write_text(CONFIG)
+    link, endpoint, log_path = str(tmp_path / "tty"), f"ipc://{tmp_path}/pub", tmp_path / "board.jsonl"
+    unplug_at, unplug_s = 4.0, 0.3
+    with open(log_path, "w") as log:
+        board = VirtualBoard(SensorSimulator(SimParams(), seed=2), pick_surfaces(3), link=link, speed=3.0, seed=2, log=log,
+                             frame_count=FRAME, unplug_at=[unplug_at], unplug_s=unplug_s)
+        board.run(threading.Event(), 2.0)  # nobody reads: the first frames wait in the pty, the rest overrun
+        with BlockingSubscriber(endpoint, topics=["status"], timeout=30) as sub, \
+                daemon_process(link, endpoint, "--no-model", "--config", str(config)) as proc:
+            first = wait_for(lambda: isinstance(m := sub.receive(), Status) and m.state == "connected" and m, timeout=60,
+                             what="the daemon to open the port")
+            assert isinstance(first, Status) and first.discarded_at_start > 0 and first.samples == 0
+            statuses: list[Status] = []
+
+            def replugged() -> bool:  # and read well past the reopen
+                m = sub.receive()
+                if isinstance(m, Status):
+                    statuses.append(m)
+                    return m.reconnects >= 1 and m.index >= round((unplug_at + unplug_s) * FS) + 4000
+                return False
+            with running(board):
+                wait_for(replugged, timeout=60, what="the daemon to read on after the replug")
+            assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+    before = [m for m in statuses if m.reconnects == 0]
+    assert any(m.samples > 0 for m in before) and all(m.samples_lost == 0 for m in before), before[-1:]
+    st = statuses[-1]
+    events = read_log(log_path)
+    stale_end = next(k for k, e in enumerate(events) if e["event"] == "end")  # the end of the 2 s nobody read
+    assert any(e["event"] == "overrun" for e in events[:stale_end])  # there was a gap after the stale frames
+    logged, unread = _logged_loss([e for e in events[stale_end + 1:] if e.get("index", 0) < st.index])
+    assert st.reconnects == 1 and st.discarded_at_start == first.discarded_at_start  # nothing discarded at the reopen
+    assert logged >= round(unplug_s * FS) and logged <= st.samples_lost <= logged + unread, (st.samples_lost, logged, unread)
 
 
 def _logged_loss(events: list[dict[str, object]]) -> tuple[int, int]:

@@ -23,9 +23,10 @@ from typing import Any, ClassVar, Protocol, TypeVar
 
 import msgpack
 
-SCHEMA_VERSION = 6  # 3: roughness messages carry novelty; reason unknown_surface. 4: shadow messages, status.shadow.
+SCHEMA_VERSION = 7  # 3: roughness messages carry novelty; reason unknown_surface. 4: shadow messages, status.shadow.
 # 5: roughness.overloaded; status.overloaded, status.behind_s, status.input_shed_bytes (load shed when the daemon cannot keep up)
 # 6: slide event "resumed": an end published after a short quiet (detector.end_hold_s) is withdrawn with its final label
+# 7: status.discarded_at_start (stale bytes in the port when the daemon first opened it, dropped rather than counted as lost samples)
 ROUGHNESS, SLIDE, STATUS, SAMPLES, SHADOW = "roughness", "slide", "status", "samples", "shadow"
 TOPICS = (ROUGHNESS, SLIDE, STATUS, SAMPLES, SHADOW)
 
@@ -202,6 +203,7 @@ class Status(Message):
     overloaded: int = 0  # samples decoded (recorded, published, counted) whose analysis was skipped because the daemon fell behind
     behind_s: float = 0.0  # how long the oldest input read but not yet processed has waited, s (0: keeping up)
     input_shed_bytes: int = 0  # bytes read but dropped before decoding because the backlog was full (their samples count as lost)
+    discarded_at_start: int = 0  # bytes the port held when the daemon first opened it (sent before it started), read and dropped
 
     def host_mono(self, index: int) -> float | None:
         """Host monotonic time of sensor sample ``index`` by this status's clock mapping (None before samples)."""

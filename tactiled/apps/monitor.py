@@ -128,6 +128,11 @@ class MonitorState:
         return overlapping(self._truth, start, stop)
 
 
+def at_start(s: Status) -> str:
+    """The bytes the daemon dropped when it first opened the port, in one line for either screen (shown when not 0)."""
+    return f"discarded at start {s.discarded_at_start} bytes (stale: sent before the port was opened)"
+
+
 def render(model: MonitorState, endpoint: str, width: int = 140, height: int = 50) -> Any:
     """The whole screen, for a terminal of ``width`` columns and ``height`` lines, as one rich renderable.
 
@@ -155,6 +160,8 @@ def render(model: MonitorState, endpoint: str, width: int = 140, height: int = 5
     head.append(f"rate {s.fs_measured:.1f} Hz (clock {s.fs_clock:.1f} Hz, nominal {s.fs_nominal:g} Hz)  samples {s.samples}  index {s.index}\n")
     head.append(f"lost {s.samples_lost} samples  crc errors {s.crc_errors}  bytes discarded {s.bytes_discarded}  reconnects {s.reconnects}  "
                 f"missed msgs {model.missed}")
+    if s.discarded_at_start:
+        head.append(f"\n{at_start(s)}")
     if model.slide is not None:
         head.append(f"\nSLIDING: slide {model.slide.slide_id} since sample {model.slide.start}", style="bold green")
     levels = Table(title="film levels (RMS per 10 ms, mV)", expand=True, title_justify="left")
@@ -187,7 +194,7 @@ def render(model: MonitorState, endpoint: str, width: int = 140, height: int = 5
                       ("abstained: reason", "left")):
         labels.add_column(col, justify=just)  # type: ignore[arg-type]
     fs = s.fs_nominal or 1.0
-    for r in itertools.islice(model.labels, max(height - 35, 5)):
+    for r in itertools.islice(model.labels, max(height - 35 - bool(s.discarded_at_start), 5)):
         truth = model.truth_for(r.start, r.stop)
         style = "bold red" if r.label is None else ("dim" if not r.final else ("green" if truth in (None, r.label) else "yellow"))
         labels.add_row(str(r.slide_id), "final" if r.final else "provisional", r.label or "-",
@@ -215,8 +222,10 @@ def render_compact(model: MonitorState, endpoint: str, width: int, height: int) 
     sliding = f"  slide {model.slide.slide_id} since {model.slide.start}" if model.slide is not None else ""
     state = line(Text.assemble(f"{s.sensor} ", (f" {s.state.upper()} ", f"reverse {colour}"),
                                f"{sliding}  up {s.uptime_s:.0f} s  {s.fs_measured:.0f} Hz  model {s.model or '-'}"))
-    counters = line(Text(f"lost {s.samples_lost}  crc {s.crc_errors}  discarded {s.bytes_discarded}  reconnects {s.reconnects}  "
-                         f"missed msgs {model.missed}  samples {s.samples}"))
+    counters = [line(Text(f"lost {s.samples_lost}  crc {s.crc_errors}  discarded {s.bytes_discarded}  reconnects {s.reconnects}  "
+                          f"missed msgs {model.missed}  samples {s.samples}"))]
+    if s.discarded_at_start:
+        counters.append(line(Text(at_start(s))))
     levels = [line(Text("film levels, mV RMS per 10 ms (now, max, trace)", style="bold"))]
     if model.traces:
         for k, trace in enumerate(model.traces):
@@ -230,13 +239,13 @@ def render_compact(model: MonitorState, endpoint: str, width: int, height: int) 
                    title_justify="left", title_style="bold")
     for col, just in (("slide", "right"), ("kind", "left"), ("label", "left"), ("conf", "right"), ("truth", "left"), ("reason", "left")):
         labels.add_column(col, justify=just, no_wrap=True, overflow="ellipsis")  # type: ignore[arg-type]
-    rows = max(height - 4 - len(levels) - 4, 1)  # title, state, counters, levels, and the table's title, header, rule, a spare line
+    rows = max(height - 3 - len(counters) - len(levels) - 4, 1)  # title, state, counters, levels, the table's title, header, rule, a spare line
     for r in itertools.islice(model.labels, rows):
         truth = model.truth_for(r.start, r.stop)
         style = "bold red" if r.label is None else ("dim" if not r.final else ("green" if truth in (None, r.label) else "yellow"))
         labels.add_row(str(r.slide_id), "final" if r.final else "prov.", r.label or "-", "" if r.confidence is None else f"{r.confidence:.2f}",
                        truth or "", r.reason or "", style=style)
-    return Group(title, state, counters, *levels, labels)
+    return Group(title, state, *counters, *levels, labels)
 
 
 def run_monitor(endpoint: str, truth_log: str | None = None) -> int:

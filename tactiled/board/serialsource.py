@@ -11,8 +11,11 @@ it can never block it.
 The source survives everything: on unplug it reports the disconnection once, polls for the
 device path every ``PRESENCE_POLL_S`` (a stat costs nothing; a replug is opened before the new
 tty's ~44 ms of buffer overflows), backs off between failing opens, and resumes when the
-path comes back (possibly a new pty behind the same symlink). Any other exception in the
-reader is reported in one line, counted in :attr:`SerialSource.errors`, and the source
+path comes back (possibly a new pty behind the same symlink), keeping what the new tty holds.
+The first open in the source's life instead reads and drops what the port already holds
+(:attr:`SerialSource.discarded_at_start`, bytes): stale frames sent before anyone read the port,
+then a gap to the fresh ones, would count as thousands of lost samples at start. Any other
+exception in the reader is reported in one line, counted in :attr:`SerialSource.errors`, and the source
 reconnects; an exception in the consumer (``on_bytes``) is reported and counted too, and
 reading goes on. :attr:`SerialSource.alive_at` is the last time the reader loop ran (the
 daemon's watchdog heartbeat).
@@ -130,6 +133,7 @@ class SerialSource:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.shed_bytes = 0  # bytes read but dropped before the consumer saw them (the backlog was full)
+        self.discarded_at_start = 0  # bytes the port held when first opened, read and dropped (stale: sent before anyone read)
         self._max_backlog = max_backlog_bytes
         self._backlog = 0  # bytes handed to the loop and not yet consumed (run only)
         self._backlog_lock = threading.Lock()
@@ -269,11 +273,16 @@ class SerialSource:
                 self._stop.wait(delay)  # capped backoff between failing opens, not synchronisation
                 delay = min(delay * 2, self._retry[1])
                 continue
+            detail = self.path
             if self._ever_connected:
-                self.reconnects += 1
+                self.reconnects += 1  # a replug: what the new tty holds are intact frames, kept
+            else:
+                self.discarded_at_start = self._discard_waiting(port)
+                if self.discarded_at_start:
+                    detail += f", {self.discarded_at_start} stale bytes discarded (sent before the port was opened)"
             self._ever_connected = True
             self.connected = True
-            deliver((CONNECTED, self.path))
+            deliver((CONNECTED, detail))
             return port
         return None
 
@@ -283,6 +292,22 @@ class SerialSource:
         if self._url:  # pyserial URL handlers (loop://, socket://, ...)
             return serial.serial_for_url(self.path, baudrate=self._baudrate, timeout=0)
         return KeepInputSerial(self.path, baudrate=self._baudrate, timeout=0)
+
+    def _discard_waiting(self, port: serial.Serial) -> int:
+        """Read and drop what a tty holds now (pyserial's URL handlers hold nothing stale); returns how many bytes.
+
+        Reading counts them all, where ``in_waiting`` sees only the line discipline's 4 kB. At most ``MAX_BACKLOG_BYTES``, so a
+        device streaming faster than this reads cannot hold it; a failing read stops it (the read loop then meets it again).
+        """
+        if self._url:
+            return 0
+        fd = port.fileno()
+        os.set_blocking(fd, False)
+        n = 0
+        with contextlib.suppress(OSError):
+            while n < self._max_backlog and (chunk := _read_all(fd, self._read_size)):
+                n += len(chunk)
+        return n
 
     def _read_loop(self, port: serial.Serial, deliver: Callable[[bytes | tuple[str, str]], None], hand_over_s: float) -> None:
         fd = None if self._url else port.fileno()
@@ -343,6 +368,7 @@ class ByteSource(Protocol):
     arrival: float
     alive_at: float
     shed_bytes: int
+    discarded_at_start: int
 
     @property
     def behind(self) -> float:
@@ -366,6 +392,7 @@ class MemorySource:
         self.arrival = 0.0
         self.alive_at = time.monotonic()
         self.shed_bytes = 0
+        self.discarded_at_start = 0
         self.behind = 0.0  # a memory source hands over one chunk at a time: never behind
         self._chunks = chunks
         self._on_bytes = on_bytes

@@ -46,8 +46,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         finally:
             last = daemon.last_status
             if last is not None:  # Ctrl-C, SIGTERM, or the end of the source: what the run did, in one line
+                stale = f", {last.discarded_at_start} stale bytes discarded at start" if last.discarded_at_start else ""
                 print(f"tactiled: stopped after {last.uptime_s:.1f} s: {last.samples} samples, {last.samples_lost} lost, {last.slides} slides, "
-                      f"{last.labels} labels, {last.unknown} unknown surface", file=sys.stderr, flush=True)
+                      f"{last.labels} labels, {last.unknown} unknown surface{stale}", file=sys.stderr, flush=True)
         return EXIT_OK if daemon.recording_error is None else EXIT_FAIL  # the recording failed (a full disk): logged, exit 1
 
     return asyncio.run(main())

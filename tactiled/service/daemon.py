@@ -410,7 +410,8 @@ class Daemon:
                              clock_mono=clock_mono, clock_unix=clock_unix, fs_clock=round(self.clock.fs, 3),
                              shadow=self.shadow_stats.summary() if self.shadow_stats is not None else None,
                              overloaded=st.overloaded, behind_s=round(self.source.behind, 3) if self.source else 0.0,
-                             input_shed_bytes=self.source.shed_bytes if self.source else 0)
+                             input_shed_bytes=self.source.shed_bytes if self.source else 0,
+                             discarded_at_start=self.source.discarded_at_start if self.source else 0)
 
     def reader_alive(self, now: float) -> bool:
         """The reader task runs and its loop ticked recently (reading, or waiting for the device)."""

@@ -260,9 +260,10 @@ class RecordSummary:
 
 def link_counters(stats: DecoderStats, source: ByteSource | None) -> dict[str, int]:
     """What the serial link did, for a recording's ``meta``: CRC failures, bytes discarded, reconnects, foreign-channel frames,
-    duplicated frames dropped."""
+    duplicated frames dropped, stale bytes dropped at the first open."""
     return {"crc_errors": stats.crc_errors, "bytes_discarded": stats.bytes_discarded, "reconnects": source.reconnects if source else 0,
-            "channel_errors": stats.channel_errors, "duplicate_frames": stats.duplicates}
+            "channel_errors": stats.channel_errors, "duplicate_frames": stats.duplicates,
+            "discarded_at_start": source.discarded_at_start if source else 0}
 
 
 
