@@ -107,12 +107,10 @@ class Publisher:
             address = bind_address(config.endpoint, sensor)
             self.socket.bind(address)
         except zmq.ZMQError as exc:
-            self._events.close(0)
-            self.socket.close()
+            self._close_sockets()
             raise ConfigError(f"publish.endpoint: cannot bind {address}: {exc}") from None
         except ConfigError:
-            self._events.close(0)
-            self.socket.close()
+            self._close_sockets()
             raise
         self.endpoint = self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
         if self.endpoint.startswith("ipc://"):
@@ -200,10 +198,18 @@ class Publisher:
 
     def close(self) -> None:
         """Close the socket at once (unsent messages dropped) and stop the CURVE authenticator, if any."""
-        self._events.close(0)
-        self.socket.close(linger=0)
+        self._close_sockets()
         if self.authenticator is not None:
             self.authenticator.stop()
+
+    def _close_sockets(self) -> None:
+        """The monitor off, then the events socket and the publishing socket closed. limit_connections turns the monitor
+        off when it ends; a monitor left on with its reader closed stalls the shared context: a subscriber made on it later
+        in the process received nothing (a publisher closed without running, as tests/test_ingest.py's watchdog test does)."""
+        with contextlib.suppress(zmq.ZMQError):
+            self.socket.disable_monitor()
+        self._events.close(0)
+        self.socket.close(linger=0)
 
     def publish_event(self, sensor: str, ev: PipelineEvent, fs: float, model: str, detected_at: float | None = None,
                       to_host: schema.HostTime | None = None, overloaded: bool = False) -> None:
