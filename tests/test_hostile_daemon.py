@@ -218,3 +218,30 @@ def test_connections_over_the_cap_are_dropped_and_those_within_it_are_served(tmp
             monitor.close(0)
             third.close(0)
             ctx.term()
+
+
+def test_hundreds_of_silent_peers_do_not_stop_the_port_reopening_after_an_unplug(tmp_path: Path) -> None:
+    """600 local peers connect and never speak (the cap is 64): the daemon holds at most the cap, keeps its descriptors
+    bounded, and reopens the serial port after an unplug with status flowing."""
+    with board_and_daemon(tmp_path, surfaces=2, unplug_at=[30.0], unplug_s=1.5) as live, \
+            BlockingSubscriber(live.endpoint, topics=["status"], timeout=30) as sub:
+        first = sub.receive()
+        assert isinstance(first, Status) and first.reconnects == 0
+        peers: list[socket.socket] = []
+        try:
+            for _ in range(600):
+                peer = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+                peer.setblocking(False)
+                with contextlib.suppress(BlockingIOError, ConnectionRefusedError, OSError):
+                    peer.connect(live.endpoint[len("ipc://"):])
+                peers.append(peer)
+            replugged = wait_for(lambda: (m := sub.receive()) and isinstance(m, Status) and m.reconnects >= 1 and m.state != "disconnected" and m,
+                                 timeout=60, what="the port reopened after the unplug")
+            later = wait_for(lambda: (m := sub.receive()) and isinstance(m, Status) and m.samples > replugged.samples and m,
+                             timeout=30, what="samples after the reopen")
+            assert later.state != "disconnected"
+            descriptors = len(os.listdir(f"/proc/{live.proc.pid}/fd"))
+            assert descriptors < 64 + 100, descriptors  # the cap, plus the daemon's own (sockets, pty, pipes, libzmq's)
+        finally:
+            for peer in peers:
+                peer.close()
