@@ -259,7 +259,12 @@ class FrameDecoder:
                 # a repeat of a frame already placed: the frames that start before what was placed are duplicates,
                 # whole frames as if fed one by one
                 drop = -(-back // count)
-                stats.duplicates += min(drop, len(crcs))
+                same = 0  # the leading frames that repeat what was placed, each checked as it would be fed alone
+                while same < min(drop, len(crcs)) and self._placed.get((index32 + same * count) % _WRAP) == crcs[same]:
+                    same += 1
+                stats.duplicates += same
+                if same < min(drop, len(crcs)):  # then one that goes back with other samples: placed as a frame of its own would be
+                    return self._place((index32 + same * count) % _WRAP, samples[same * count:], count, crcs[same:])
                 if drop >= len(crcs):
                     return None
                 samples = samples[drop * count:]
