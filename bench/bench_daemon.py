@@ -153,7 +153,7 @@ def main() -> None:
         t.start()
     time.sleep(3.0)  # let the daemon start and import before measuring: benchmark warm-up, not synchronisation
     c0, t0 = cpu_seconds(daemon.pid), time.monotonic()
-    lost0 = statuses[-1].samples_lost if statuses else 0  # before: bytes the player wrote before the daemon opened the port
+    lost0 = statuses[-1].samples_lost if statuses else 0  # lost while the daemon started (stale bytes are discarded_at_start, not lost)
     load0 = round(os.getloadavg()[0], 2)
     rss = []
     while time.monotonic() - t0 < args.seconds:

@@ -231,7 +231,7 @@ def test_sighup_swaps_the_model_between_slides_and_refuses_a_bad_file(tmp_path: 
     finals = [m for m in got if isinstance(m, Roughness) and m.final]
     assert {m.slide_id for m in finals} >= set(ends[:-1]) and all(m.label is not None or m.reason for m in finals)
     assert [m.model for m in finals] == sorted((m.model for m in finals), key=lambda fp: fp == b)  # a, then b: never back
-    statuses = statuses_after_first_label(got)  # (the samples a late start finds stale are lost before it)
+    statuses = statuses_after_first_label(got)
     assert statuses and statuses[-1].model == b
     assert lost_across(statuses) <= running_daemon.overrun_samples(first_label(got).start)  # nothing lost but what the board could not send
 
