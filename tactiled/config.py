@@ -52,8 +52,8 @@ class SensorConfig:
 
         A bad value raises ConfigError naming the key (``p``: the section's name).
         """
-        _check(bool(self.id) and "/" not in self.id and len(self.id) <= 64 and self.id.isprintable(), f"{p}.id",
-               "must be 1..64 printable characters, without '/'")
+        _check(bool(self.id) and "/" not in self.id and len(self.id.encode("utf-8")) <= 64 and self.id.isprintable(), f"{p}.id",
+               "must be 1..64 printable characters (64 bytes in UTF-8), without '/'")
         _check(bool(self.port) and len(self.port) <= 4096 and "\0" not in self.port, f"{p}.port", "must be a non-empty path")
         _check(self.allow_url or "://" not in self.port, f"{p}.port",
                f"is a URL ({self.port.split('://')[0]}://), not a device path; set {p}.allow_url = true to read a pyserial URL")

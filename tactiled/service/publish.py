@@ -7,7 +7,10 @@ every subscriber count what it missed.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
+import ctypes
+import functools
 import logging
 import os
 import socket
@@ -28,13 +31,33 @@ from tactiled.files.outputs import check_folder, check_output
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=schema.Message)
-# a subscription is one inbound message: a flag byte and a topic prefix (the longest topic: "roughness/" and a
-# 64-character sensor id, 75 bytes). Each distinct subscription costs the publisher memory, growing with its length, and
-# glibc keeps most of it after the peer leaves, so a peer sending a message longer than this is disconnected. The cap
-# leaves room for the CURVE handshake's commands (HELLO 200 bytes, INITIATE about 300 with its metadata; 128 cut it).
-# Measured (bench/bench_subscriptions.py): 10 000 distinct 370-byte subscriptions from one peer add 20 MB (16 MB kept
-# after it leaves); at 1 024 they added 51 MB (45 MB kept); 1 000-byte ones now drop the peer and add nothing.
-MAX_INBOUND_BYTES = 384
+# a subscription is one inbound message: a flag byte and a topic prefix (the longest topic: "roughness/" and a sensor
+# id of at most 64 bytes, 75 bytes). Each distinct subscription costs the publisher memory, about 40 bytes per byte of
+# it that no other subscription shares (libzmq's subscription trie), so a peer sending a message longer than this is
+# disconnected. Measured (bench/bench_subscriptions.py, every subscription delivered): 10 000 distinct subscriptions
+# from one peer add 32 MB at 80 bytes, 55 MB at 128, 166 MB at 370. The CURVE handshake needs longer commands (HELLO
+# 200 bytes, INITIATE about 300 with its metadata), so with CURVE the cap is higher: those peers hold an authorised key.
+MAX_INBOUND_BYTES = 128
+MAX_INBOUND_CURVE_BYTES = 384
+
+
+TRIM_AFTER_S = (1.0, 5.0)  # after a subscriber leaves, when to give what its subscriptions held back to the system
+
+
+def release_freed_memory() -> None:
+    """Return the heap's free pages to the system (glibc's ``malloc_trim``; nothing where the C library has none): after
+    a peer with many subscriptions leaves, glibc would otherwise keep what libzmq freed (most of it, measured)."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+@functools.cache
+def _malloc_trim() -> Any:
+    try:
+        return ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):
+        return None
 
 
 SOCKET_MODE = 0o660  # an ipc socket: the daemon's user and group may connect (add subscribers' users to the group)
@@ -93,7 +116,7 @@ class Publisher:
         self.socket.setsockopt(zmq.SNDHWM, 10_000)
         # PUB and XPUB sockets receive their subscribers' SUBSCRIBE messages: a peer sending a longer one is disconnected,
         # so a 16 MB topic prefix can never grow the daemon (topics are "<type>/<sensor id>", under 100 bytes)
-        self.socket.setsockopt(zmq.MAXMSGSIZE, MAX_INBOUND_BYTES)
+        self.socket.setsockopt(zmq.MAXMSGSIZE, MAX_INBOUND_CURVE_BYTES if config.curve_secret_key_file else MAX_INBOUND_BYTES)
         self.authenticator: Any = None
         if config.curve_secret_key_file:
             self._curve(config)
@@ -134,8 +157,12 @@ class Publisher:
                         self._refuse(fd)
                     else:
                         self.connections.add(fd)
-                else:
+                elif fd in self.connections:
                     self.connections.discard(fd)
+                    # what the peer's subscriptions held is freed as its pipe ends (on libzmq's I/O thread, soon after this event);
+                    # glibc keeps freed heap pages unless asked: housekeeping a moment later, not synchronisation
+                    for delay in TRIM_AFTER_S:
+                        asyncio.get_running_loop().call_later(delay, release_freed_memory)
         finally:
             with contextlib.suppress(zmq.ZMQError):
                 self.socket.disable_monitor()
