@@ -451,6 +451,9 @@ def test_a_rate_too_low_for_the_features_is_one_line_naming_the_file(tmp_path: P
     errors = [line for line in res.stderr.splitlines() if "error" in line]
     assert len(errors) == 1 and "slow.npz" in errors[0] and "cannot be computed" in errors[0] and "40 Hz" in errors[0]
     assert "rec-good.npz:" in res.stdout  # the other file is still replayed
+    res = run_cli("features", str(tmp_path / "slow.npz"), "-o", str(tmp_path / "f.npz"), timeout=60)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1 and "slow.npz: " in lines[0] and "40 Hz" in lines[0], res.stderr
 
 
 @pytest.mark.parametrize("section, key, target", [("publish", "curve_secret_key_file", "/dev/zero"), ("publish", "curve_secret_key_file", "fifo"),

@@ -18,7 +18,7 @@ import numpy as np
 
 from tactiled.config import Config
 from tactiled.core.analysis import AnalysisSettings
-from tactiled.errors import RecordingError
+from tactiled.errors import RecordingError, WindowError
 from tactiled.files.npzio import NpzError, load_json_bounded, read_npz
 from tactiled.files.recording import Recording, atomic_savez
 from tactiled.learn.dataset import WindowSet, collect_windows
@@ -32,7 +32,10 @@ def write_features(path: str | Path, recs: Sequence[tuple[str, Recording]], conf
     """Analyse every slide of ``recs`` with the config's feature families and windows (on ``jobs`` processes, None: every
     core); write the file; return the windows."""
     fs, channels = recs[0][1].fs, min(r.channels for _, r in recs)
-    settings = AnalysisSettings.from_config(config, channels, fs)
+    try:
+        settings = AnalysisSettings.from_config(config, channels, fs)
+    except WindowError as exc:  # the rate is a property of the recordings: name the first
+        raise WindowError(exc.reason, f"{recs[0][0]}: {exc}") from None
     ws = collect_windows(recs, config, settings, require_labels=False, jobs=jobs)
     header = {"format": FORMAT, "version": VERSION, "settings": settings.to_dict(), "fs": fs, "channels": channels}
     atomic_savez(path, {"header": np.str_(json.dumps(header)), "x": ws.x, "names": np.array(ws.names, dtype=np.str_), "label": ws.y,
