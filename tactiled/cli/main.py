@@ -17,10 +17,12 @@ from tactiled.cli.common import EXIT_FAIL, EXIT_USAGE, Handler, Parser, subcomma
 from tactiled.errors import TactiledError
 
 OUTPUT_POLICY = """\
-Outputs: every command that writes checks, before any work, that the folder exists and is
-writable, that a file's name ends as it should (.npz, .mcap, .bin, .png), and that it replaces
-nothing: an existing file (a dataset's recordings of the same names, a certificate pair of the same
-name), or a report folder that is not empty, needs --force. Each failure is one line and exit 2."""
+Outputs: every command that writes checks, before any work, that a file's folder exists and is
+writable (an output folder, such as a dataset's or a report's, is made with its missing parents, as
+mkdir -p, where the nearest existing one is writable), that a file's name ends as it should (.npz,
+.mcap, .bin, .png), and that it replaces nothing: an existing file (a dataset's recordings of the
+same names, a certificate pair of the same name), or a report folder that is not empty, needs
+--force. Each failure is one line and exit 2."""
 
 
 def build_parser() -> argparse.ArgumentParser:
