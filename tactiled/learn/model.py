@@ -668,10 +668,26 @@ def novelty_scores(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | 
     the slides it can still tell apart. With fewer than two surfaces in ``labels`` (or none given), the distance.
     """
     d = _distances(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64))
-    if labels is None or score != "ratio" or len(surfaces := np.unique(labels)) < 2:
+    if labels is None or score != "ratio":
         return _nearest_mean(d, k)
-    per = np.sort(np.stack([_nearest_mean(d[:, labels == s], k) for s in surfaces], axis=1), axis=1)
+    surfaces, codes = np.unique(labels, return_inverse=True)
+    if len(surfaces) < 2:
+        return _nearest_mean(d, k)
+    per = np.sort(np.stack([_nearest_per_surface(row, codes, len(surfaces), k) for row in d]), axis=1)
     out: FloatArray = per[:, 0] / np.maximum(per[:, 1], 1e-300)
+    return out
+
+
+def _nearest_per_surface(d: FloatArray, codes: npt.NDArray[np.intp], surfaces: int, k: int) -> FloatArray:
+    """(surfaces,) the mean of the ``k`` smallest distances ``d`` (n,) of each surface (rows' surface ``codes`` (n,), 0..surfaces-1;
+    k capped at the surface's rows), in one sort rather than one pass per surface."""
+    order = np.lexsort((d, codes))
+    dist, code = d[order], codes[order]
+    counts = np.bincount(codes, minlength=surfaces)
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    take = np.minimum(k, counts)
+    keep = np.arange(len(code)) - first[code] < take[code]
+    out: FloatArray = np.bincount(code[keep], weights=dist[keep], minlength=surfaces) / np.maximum(take, 1)
     return out
 
 
