@@ -543,9 +543,9 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     """The novelty threshold of training slides ``z`` (n, F') (standardised mean features), and what cross-validation says of it.
 
     Each slide's :func:`~tactiled.learn.model.novelty_scores` against the slides of *other recordings* stands for a
-    new recording of a known surface: the threshold is the (1 - ``reject``) quantile of those, so that about
-    ``reject`` of known slides are called unknown. Leaving each surface out in turn (its score against the slides
-    of the other surfaces) estimates how many slides of an untaught surface the threshold flags. A threshold of
+    new recording of a known surface; leaving each surface out in turn (its score against the slides of the other
+    surfaces) stands for an untaught surface. The threshold (:func:`novelty_threshold`) calls at most ``reject`` of the
+    known slides unknown and flags as many untaught ones as it can; ``info`` says how many of each it does. A threshold of
     inf (never unknown) when no slide has another recording to compare with.
     """
     n = len(z)
