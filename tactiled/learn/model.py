@@ -305,10 +305,10 @@ class Model:
 
         ``final``: the whole slide (the calibration map); else the first w windows of a slide that goes on (:meth:`early_confidence`).
         """
-        proba = self.slide_proba(features)
+        x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
+        proba = self.slide_proba(x)
         p_top = float(proba.max())
-        confidence = self.confidence(p_top) if final else self.early_confidence(p_top, np.asarray(features).reshape(-1, len(self.names)).shape[0])
-        return proba, confidence, self.novelty(features)
+        return proba, self.confidence(p_top) if final else self.early_confidence(p_top, x.shape[0]), self.novelty(x)
 
     def standardise(self, x: FloatArray) -> FloatArray:
         """Classifier inputs (n, F') of raw features (n, F): log of scale features, standardised (the steps before the classifier)."""

@@ -311,10 +311,12 @@ def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, li
 
 def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
            candidates: Sequence[Candidate] | None = None, progress: Progress | None = None, scheduler: str | None = None,
-           found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False) -> SearchResult:
+           found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False,
+           novelty: str = "ratio") -> SearchResult:
     """Score every candidate, pick and refit the winner (see the module docstring).
 
     ``keep_models``: also refit every other candidate (``SearchResult.models``, by name), to compare them on held-out recordings.
+    ``novelty``: the models' unknown-surface score (:data:`~tactiled.learn.model.NOVELTY_SCORES`).
     """
     say = progress or (lambda m: None)
     t0 = time.perf_counter()
@@ -397,7 +399,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     summary = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs)}
     say(f"winner {best.name}: {board[chosen]['mean']:.3f} ± {board[chosen]['sd']:.3f} (best mean {leaderboard[0]['mean']:.3f}); "
         f"nested CV {nested['mean']:.3f}; fitting on every slide")
-    model = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary)
+    model = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty)
     if best.max_windows != 1:  # provisional labels come from the first windows of a slide: their own calibration
         say("calibrating provisional labels on out-of-fold slide prefixes")
         model.early_calibration, early_info = fit_early_calibration(windows_of[_key(best)], best, outer, classes, model.temperature, seed,
@@ -408,13 +410,13 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
                           time.perf_counter() - t0, oof=(oof[best.name], y_idx, np.array([sl.file for sl in ws.slides])))
     if keep_models:
         result.models = {c.name: model if c == best else _refit(sets, c, oof[c.name], y_idx, classes, config, fs, channels, seed,
-                                                                   inner_folds, method, summary) for c in usable}
+                                                                   inner_folds, method, summary, novelty) for c in usable}
     return result
 
 
 def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: Candidate, oof: FloatArray, y_idx: npt.NDArray[np.intp],
            classes: list[str], config: Config, fs: float, channels: int, seed: int, inner_folds: int, method: str,
-           summary: dict[str, Any]) -> Model:
+           summary: dict[str, Any], novelty: str = "ratio") -> Model:
     """Candidate ``c`` fitted on every labelled slide, its temperature fitted on its out-of-fold slide scores ``oof``."""
     st, ws = sets[_key(c)]
     temperature = fit_temperature(oof, y_idx)
@@ -433,7 +435,7 @@ def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: C
     slides = ws if c.fusion == "features" else ws.averaged()  # one row per slide: the mean of its windows' raw features
     labelled = np.flatnonzero(slides.y != "")
     model.summary = {**summary, "calibration": cal_info}
-    fit_model_novelty(model, model.standardise(slides.x[labelled][:, cols]), slides.y[labelled], slides.groups[labelled], model.novelty_score)
+    fit_model_novelty(model, model.standardise(slides.x[labelled][:, cols]), slides.y[labelled], slides.groups[labelled], novelty)
     return model
 
 
@@ -727,7 +729,7 @@ def window_oof(ws: WindowSet, cols: npt.NDArray[np.intp], kind: str, params: dic
 
 def paper(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
           progress: Progress | None = None, scheduler: str | None = None,
-          found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None) -> SearchResult:
+          found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, novelty: str = "ratio") -> SearchResult:
     """The papers' DWT + SFS + ELM (:data:`PAPER`), cross-validated the same way as :func:`search`, then fitted on everything."""
     return search(recs, config, folds=folds, inner_folds=inner_folds, seed=seed, candidates=[PAPER], progress=progress, scheduler=scheduler,
-                  found=found, method="paper")
+                  found=found, method="paper", novelty=novelty)

@@ -17,7 +17,7 @@ from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, find_slides, load_recordings
 from tactiled.learn.model import NOVELTY_SCORES
-from tactiled.learn.search import Candidate, SearchResult, fit_model_novelty, paper, quick_candidates, search
+from tactiled.learn.search import Candidate, SearchResult, paper, quick_candidates, search
 
 METHODS = ("auto", "quick", "paper")
 GROUP_BY = ("file", "slide")
@@ -106,15 +106,12 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         per_file = [[replace(s, file=next(serial)) for s in slides] for slides in per_file]
     found: tuple[list[list[LabelledSlide]], SlideCounts] = (per_file, counts)
     if method == "paper":
-        result = paper(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found)
+        result = paper(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, novelty=novelty)
     else:
         if method == "quick" and candidates is None:
             candidates = quick_candidates()
         result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates,
-                        keep_models=keep_models)
-    model = result.model
-    if novelty != model.novelty_score and model.novelty_x is not None and model.novelty_y is not None and model.novelty_groups is not None:
-        fit_model_novelty(model, model.novelty_x, model.novelty_y, model.novelty_groups, novelty)
+                        keep_models=keep_models, novelty=novelty)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
     result.model.summary["dropped"] = rare
     return result
