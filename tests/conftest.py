@@ -27,6 +27,9 @@ REPO = Path(__file__).resolve().parents[1]
 # daemons started without --publish bind ipc://$TACTILED_RUNTIME_DIR/<sensor id>.sock: one folder per test process,
 # so that parallel test processes never meet (tactiled_client.endpoints)
 os.environ["TACTILED_RUNTIME_DIR"] = tempfile.mkdtemp(prefix="tactiled-run-")
+# child processes (the CLI, the client's python -m tactiled_client) import the checkout's client library too, as this
+# process does (pytest's pythonpath, pyproject.toml), rather than the copy pip installed from ./clients
+os.environ["PYTHONPATH"] = os.pathsep.join([str(REPO / "clients"), *filter(None, [os.environ.get("PYTHONPATH")])])
 
 
 def wait_for(predicate: Callable[[], object], timeout: float = 20.0, what: str = "condition") -> object:
