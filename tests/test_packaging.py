@@ -1,4 +1,5 @@
-"""What a checkout's wheels hold: tactiled depends on tactiled-client, which alone owns tactiled_client.
+"""What a checkout's wheels hold: tactiled depends on tactiled-client, which alone owns tactiled_client, and the file the
+systemd unit names in Documentation= is one the tactiled wheel installs.
 
 The wheels are built as pip builds them (``pip wheel --no-deps``, offline: ``--no-build-isolation --no-index`` with the
 venv's setuptools from the dev extra) from a copy of the sources, so the checkout's build/ folders are left alone.
@@ -16,6 +17,8 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import REPO
+
+UNIT = REPO / "systemd" / "tactiled@.service"
 
 
 def _copy_sources(dest: Path, *, clients: bool) -> Path:
@@ -89,3 +92,16 @@ def test_the_client_wheel_owns_the_client_library(built: Built) -> None:
     assert sorted(p for p in record if p.startswith("tactiled_client/")) == sources
     assert [p for p in record if not p.startswith(("tactiled_client/", "tactiled_client-"))] == []
 
+
+def test_the_unit_documentation_is_a_file_the_wheel_installs(built: Built) -> None:
+    """Documentation=file://PREFIX/share/... where PREFIX is that of ExecStart's PREFIX/bin/tactiled: the wheel's
+    ``<name>.data/data/share/...`` is installed under the prefix (sys.prefix; /usr/local for sudo pip install)."""
+    keys = [line.split("=", 1) for line in UNIT.read_text().splitlines() if "=" in line and not line.startswith("#")]
+    (exec_start,) = [v for k, v in keys if k == "ExecStart"]
+    prefix = exec_start.split()[0].removesuffix("/bin/tactiled")
+    (doc,) = [v for k, v in keys if k == "Documentation"]
+    assert doc.startswith(f"file://{prefix}/"), (doc, prefix)
+    whl = built.wheels["tactiled"]
+    data = f"{_dist_info(whl).removesuffix('.dist-info')}.data/data/{doc.removeprefix(f'file://{prefix}/')}"
+    assert data in _record(whl)
+    assert whl.read(data) == (REPO / "README.md").read_bytes()
