@@ -191,6 +191,7 @@ def main() -> None:
         "latency_ms_p99": round(float(np.percentile(lat, 99)), 3) if lat.size else None,
         "latency_ms_max": round(float(lat.max()), 3) if lat.size else None,
         "sensor_latency_ms_p50_p99_max": [round(float(np.percentile(sensor_latencies, q)), 1) for q in (50, 99, 100)] if sensor_latencies else None,
+        "sensor_latencies_ms": [round(v[1], 1) for _, v in sorted(standing.items()) if v[1] is not None],
         "samples_lost_while_measured": None if last is None else last.samples_lost - lost0,
         "final_labels_standing": len(standing), "final_labels_withdrawn": withdrawn[0], "scene": args.scene,
         "config": args.config, "board": args.board, "load_avg_1min_start_end": [load0, round(os.getloadavg()[0], 2)],
