@@ -75,9 +75,12 @@ def test_every_intact_sample_once_at_its_index_and_every_lost_one_listed(tmp_pat
     later = [(m, t) for m, t in got if m.index_mono is not None and m.index - lo > 5 * 20_000]
     assert later and all(10_000 < m.fs_clock < 60_000 for m, _ in later)
     assert all(m.index_mono + (m.n - 1) / m.fs_clock <= t + 0.005 for m, t in later)  # type: ignore[operator]
+    # the status's mapping and the message's agree on the same index: they are two states of one clock map, up to half a second
+    # apart, which moves by ~10 ms on a loaded machine (measured: 10.5 and 14.6 ms); a plumbing fault (index, units, unix/mono)
+    # is off by far more than the 50 ms allowed
     s = statuses[-1]
     m = later[-1][0]
-    assert abs(s.host_mono(m.index) - m.index_mono) < 0.01  # type: ignore[operator]
+    assert abs(s.host_mono(m.index) - m.index_mono) < 0.05  # type: ignore[operator]
     assert abs((s.host_unix(m.index) - s.host_mono(m.index)) - (m.index_unix - m.index_mono)) < 0.01  # type: ignore[operator]
 
 
