@@ -9,15 +9,18 @@ sets (the daemon's pipeline, every true slide counted), with the calibration err
 bins) and Brier score of the confidence, the unknown-surface rate on known surfaces, and the provisional
 labels (time from slide start to the first one the final label confirmed; how often one was wrong). Every
 candidate of the default search is refitted and scored on the same-unit test, beside its cross-validated
-accuracy. Then three of the fifteen surfaces are left out of training: how many of their test slides come
-out unknown, and how many of the known ones.
+accuracy. The default model also meets the 15 gratings of the other surface family (``<scene>,grating``, same
+kinematics and fingertip, 1 file x 3 slides each, seed 400; far from every grade): how many of their 45 slides come
+out unknown (``--no-gratings`` skips it). Then three of the fifteen surfaces are left out of training: how many of
+their test slides come out unknown, and how many of the known ones.
 
 The plain baseline, outside tactiled's code: for each true slide, the Welch PSD of each channel over the
 whole slide (segments of 1024 samples at 20 kHz, scaled to the rate), the log energy in 24 log-spaced bands
 from 20 Hz to 0.45 fs, the log spectral centroid and the kurtosis; StandardScaler; RBF SVM (C=10).
 
 Usage: python bench/labels.py [--scenes "hand;robot;..."] [--files 3] [--test-files 2] [--slides 3] [--out DIR] [--json FILE]
-       [--other-units 1,2] [--no-paper] [--leave-out-scenes "hand;robot;one-channel"]
+       [--other-units 1,2] [--no-paper] [--leave-out-scenes "hand;robot;one-channel"] [--novelty ratio|distance|combined]
+       [--no-gratings]
 """
 
 from __future__ import annotations
@@ -112,12 +115,22 @@ def end_to_end(recs: list[tuple[str, Recording]], config: Config, model: Any) ->
                             "ece": calibration_scores(np.array(conf, dtype=np.float64), np.array(hit, dtype=bool))["ece"]}}
 
 
-def leave_out(spec: str, tr: list[Path], test: list[tuple[str, Recording]], config: Config) -> dict[str, Any]:
+def unknown_share(recs: list[tuple[str, Recording]], config: Config, model: Any) -> tuple[int, int]:
+    """(true slides of ``recs`` that come out unknown, true slides), end to end."""
+    flagged = total = 0
+    for _, rec in recs:
+        truth, paired, _ = pair_results(rec, replay_recording(rec, config, model))
+        flagged += sum(r is not None and r.reason == "unknown_surface" for r in paired)
+        total += len(truth)
+    return flagged, total
+
+
+def leave_out(spec: str, tr: list[Path], test: list[tuple[str, Recording]], config: Config, novelty: str | None = None) -> dict[str, Any]:
     """Train on 12 of 15 surfaces; the unknown rate on test slides of the 3 left out and of the 12 known."""
     surfaces = sorted({s for _, r in test for _, _, s in r.slides()}, key=lambda s: float("".join(c for c in s if c.isdigit() or c == ".")))
     gone = {surfaces[i] for i in LEAVE_OUT if i < len(surfaces)}
     keep = [p for p in tr if not any(f"_{g}_" in p.name for g in gone)]
-    res = train(keep, config, progress=lambda m: None)
+    res = train(keep, config, progress=lambda m: None, **({"novelty": novelty} if novelty else {}))
     flagged = {True: [0, 0], False: [0, 0]}
     for _, rec in test:
         results = replay_recording(rec, config, res.model)
@@ -163,7 +176,10 @@ def main() -> None:
     ap.add_argument("--other-units", default="1,2", help="the other units of the sensor to test on, each with its own new specimens")
     ap.add_argument("--no-paper", action="store_true", help="skip the papers' method (its forward selection takes minutes)")
     ap.add_argument("--leave-out-scenes", default="hand;robot;one-channel", help="scenes for the unknown-surface test ('' for none)")
+    ap.add_argument("--novelty", default=None, help="train --novelty for every model (default: train's)")
+    ap.add_argument("--no-gratings", action="store_true", help="skip the far-surface test (the default model on the 15 gratings)")
     args = ap.parse_args()
+    opts: dict[str, Any] = {"novelty": args.novelty} if args.novelty else {}
     config = Config()
     units = [int(u) for u in args.other_units.split(",") if u]
     root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-labels-"))
@@ -182,22 +198,29 @@ def main() -> None:
         train_recs = load_recordings(tr)
         out: dict[str, Any] = {"scene": spec, "plain": plain_baseline(train_recs, {"same": same, **{f"other{u}": r for u, r in others.items()}})}
         t0 = time.perf_counter()
-        res = train(tr, config, progress=lambda m: None, keep_models=True)
+        res = train(tr, config, progress=lambda m: None, keep_models=True, **opts)
         out["train_s"] = time.perf_counter() - t0
         out["winner"], out["nested_cv"] = res.winner, res.nested["mean"]
         out["same"], out["other"] = end_to_end(same, config, res.model), {u: end_to_end(r, config, res.model) for u, r in others.items()}
         out["candidates"] = [{"candidate": r["candidate"], "cv": r["mean"], "same": end_to_end(same, config, res.models[r["candidate"]])["accuracy"]}
                              for r in res.leaderboard]
         if not args.no_paper:
-            pres = train(tr, config, method="paper", progress=lambda m: None)
+            pres = train(tr, config, method="paper", progress=lambda m: None, **opts)
             out["paper"] = {"same": end_to_end(same, config, pres.model)["accuracy"], "nested_cv": pres.nested["mean"],
                             **{f"other{u}": end_to_end(r, config, pres.model)["accuracy"] for u, r in others.items()}}
+        if not args.no_gratings and "grating" not in spec:
+            far = load_recordings(write_dataset(root / name / "gratings", scene=f"{spec},grating", seed=400, files_per_surface=1,
+                                                slides_per_file=3))
+            out["gratings_unknown"], out["gratings_slides"] = unknown_share(far, config, res.model)
         rows.append(out)
         print(table_row(out, units), flush=True)
         if args.json:
             Path(args.json).write_text(json.dumps({"scenes": rows}, indent=1, default=float))
     gaps = [(r["scene"], c["candidate"], c["cv"] - c["same"]) for r in rows for c in r["candidates"]]
     worst = max(gaps, key=lambda g: abs(g[2])) if gaps else None
+    for r in rows:
+        if "gratings_unknown" in r:
+            print(f"gratings ({r['scene']}, far from every grade): {r['gratings_unknown']} of their {r['gratings_slides']} slides unknown", flush=True)
     print("\nlargest gap between a candidate's cross-validated and same-unit test accuracy: "
           + (f"{100 * worst[2]:+.1f} points ({worst[1]} on {worst[0]})" if worst else "-"), file=sys.stderr)
     leave = []
@@ -206,7 +229,7 @@ def main() -> None:
         tr = write_dataset(root / name / "train", scene=spec, seed=100, files_per_surface=args.files, slides_per_file=args.slides)
         test = load_recordings(write_dataset(root / name / "test", scene=spec, seed=200, files_per_surface=args.test_files,
                                              slides_per_file=args.slides))
-        leave.append(leave_out(spec, tr, test, config))
+        leave.append(leave_out(spec, tr, test, config, args.novelty))
         lo = leave[-1]
         print(f"leave out {', '.join(lo['left_out'])} ({spec}): {100 * lo['unseen_unknown']:.1f} % of their {lo['unseen_slides']} slides unknown, "
               f"{100 * lo['known_unknown']:.1f} % of {lo['known_slides']} known ones", flush=True)

@@ -187,6 +187,95 @@ def test_a_format_4_model_keeps_the_distance_it_was_fitted_with_and_a_bad_score_
         load_model(_resaved(model, tmp_path / "bad.npz", {"novelty": {"k": 3, "threshold": 0.8, "score": "cosine"}}))
 
 
+def _isolated_surface() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Slides (n, 2) of 20 surfaces on a grid 4 apart (10 slides in 2 recordings each) and one surface 40 beyond the grid (6 slides,
+    2 recordings), with their surfaces and recordings."""
+    rng = np.random.default_rng(5)
+    grid = np.array([[x, y] for x in range(0, 20, 4) for y in range(0, 16, 4)], dtype=np.float64)
+    centres = np.vstack([grid, [[60.0, 0.0]]])
+    labels = np.concatenate([np.repeat(np.arange(20), 10), np.full(6, 20)])
+    files = np.concatenate([np.repeat(np.arange(40), 5), [40, 40, 40, 41, 41, 41]])
+    return centres[labels] + 0.5 * rng.standard_normal((len(labels), 2)), labels, files
+
+
+def test_a_slide_far_from_every_taught_surface_is_flagged_even_where_the_ratio_is_small() -> None:
+    """Near only an isolated surface, much nearer it than the next one: the ratio is small, the distance is not."""
+    from tactiled.learn.model import combined_novelty
+
+    z, labels, files = _isolated_surface()
+    threshold, info = fit_novelty(z, files, labels, 3, score="combined")
+    far = info["distance_threshold"]
+    assert info["score"] == "combined" and info["known_rejected"] <= 0.05 and far is not None and 0 < far < 10  # a grid step, not the isolation
+    assert threshold == fit_novelty(z, files, labels, 3, score="ratio")[0]  # the ratio's threshold is the ratio score's
+    slides = np.array([[60.0, 15.0], [60.3, 0.2], [8.2, 4.1], [2.0, 2.0], [-40.0, 6.0]])  # far; taught (isolated); taught; between; far
+    ratio = novelty_scores(slides, z, labels, 3) / threshold
+    both = combined_novelty(slides, z, labels, 3, threshold, far)
+    assert ratio[0] < 1.0 < both[0]  # the case the ratio alone misses
+    assert both[1] < 1.0 and both[2] < 1.0 and both[3] > 1.0 and both[4] > 1.0
+    assert np.all(both >= ratio)
+
+
+def _combined_model(tmp_path: Path) -> Model:
+    from tactiled.learn.search import fit_model_novelty
+
+    rng = np.random.default_rng(0)
+    y = np.repeat(["a", "b", "c"], 20)
+    x = np.abs(rng.standard_normal((60, 4))) + np.repeat([1.0, 3.0, 9.0], 20)[:, None]
+    model = _model(tmp_path)
+    fit_model_novelty(model, model.standardise(x), y, np.arange(60) // 5, "combined")
+    model.save(tmp_path / "c.npz")
+    return load_model(tmp_path / "c.npz")
+
+
+def test_a_combined_model_keeps_both_thresholds_and_flags_a_far_slide_not_a_known_one(tmp_path: Path) -> None:
+    model = _combined_model(tmp_path)
+    assert model.novelty_score == "combined" and math.isfinite(model.novelty_distance_threshold) and model.novelty_distance_threshold > 0
+    assert model.summary["novelty"]["distance_threshold"] == model.novelty_distance_threshold
+    known, far = np.full((2, 4), 3.5), np.full((2, 4), 300.0)
+    known_nov, far_nov = model.assess(known)[2], model.assess(far)[2]
+    assert known_nov is not None and far_nov is not None and known_nov < 1.0 < far_nov
+
+
+def test_older_formats_keep_their_novelty_and_a_bad_distance_threshold_is_refused(tmp_path: Path) -> None:
+    model = _combined_model(tmp_path)
+    nov = {"k": 3, "threshold": model.novelty_threshold}
+    v5 = load_model(_resaved(model, tmp_path / "v5.npz", {"version": 5, "novelty": {**nov, "score": "ratio", "distance_threshold": 1e-6}}))
+    assert v5.novelty_score == "ratio" and v5.novelty_distance_threshold == math.inf  # format 5: no distance gate, whatever the header says
+    far = np.full((2, 4), 300.0)
+    assert v5.novelty(far) == pytest.approx(float(novelty_scores(v5.standardise(far.mean(axis=0, keepdims=True)), v5.novelty_x, v5.novelty_y,
+                                                                         3)[0] / v5.novelty_threshold))
+    v4 = load_model(_resaved(model, tmp_path / "v4.npz", {"version": 4, "novelty": nov}))
+    assert v4.novelty_score == "distance"
+    with pytest.raises(ModelError, match=r"header\.novelty\.score: must be one of ratio, distance$"):
+        load_model(_resaved(model, tmp_path / "v5c.npz", {"version": 5, "novelty": {**nov, "score": "combined"}}))
+    with pytest.raises(ModelError, match=r"header\.novelty\.distance_threshold: must be a number > 0 or null"):
+        load_model(_resaved(model, tmp_path / "bad.npz", {"novelty": {**nov, "score": "combined", "distance_threshold": -1.0}}))
+
+
+def test_combined_novelty_stays_finite_on_one_surface_and_on_extreme_windows(tmp_path: Path) -> None:
+    from tactiled.learn.search import fit_model_novelty
+
+    z = np.random.default_rng(1).standard_normal((12, 3))
+    threshold, info = fit_novelty(z, np.arange(12) % 4, np.zeros(12, dtype=int), 3, score="combined")
+    assert math.isfinite(threshold) and info["distance_threshold"] is None  # one surface: the distance, no second gate
+    model = _combined_model(tmp_path)
+    n = round(0.25 * 20000)
+    for x in (np.zeros((n, 1)), np.full((n, 1), 32767.0), np.full((n, 1), 3.0)):
+        window = Analyser(model.settings, 20000.0, 1.0, integer=False).analyse(x)
+        assert window.features is not None
+        novelty = model.assess(np.stack([window.features, window.features]))[2]
+        assert novelty is not None and math.isfinite(novelty)
+    one = _model(tmp_path)
+    x = one.unstandardise(one.novelty_x if one.novelty_x is not None else np.zeros((0, 4)))
+    fit_model_novelty(one, one.standardise(x), np.full(len(x), "a"), np.arange(len(x)) // 5, "combined")
+    one.save(tmp_path / "one.npz")
+    loaded = load_model(tmp_path / "one.npz")
+    assert loaded.novelty_distance_threshold == math.inf
+    for features in (np.full((2, 4), 3.5), np.full((2, 4), 1e30), np.zeros((2, 4))):
+        novelty = loaded.assess(features)[2]
+        assert novelty is not None and math.isfinite(novelty)
+
+
 def test_provisional_confidence_comes_from_the_early_map_and_survives_the_file(tmp_path: Path) -> None:
     model = _model(tmp_path)
     x = np.abs(np.random.default_rng(5).standard_normal((2, 4))) + 3.0

@@ -168,11 +168,13 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--scheduler", help="dask.distributed scheduler address (tcp://host:port) to run the cross-validation on a cluster "
                                         "(default: this machine, every core)")
     p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP + " (the same files, options and seed give the same model file)")
-    p.add_argument("--novelty", choices=("ratio", "distance"), default="ratio",
+    p.add_argument("--novelty", choices=("ratio", "distance", "combined"), default="combined",
                    help="how a slide is judged unlike every taught surface (label null, reason unknown_surface): ratio, its distance to "
                         "the nearest surface over that to the next (keeps labelling on another unit of the sensor or a new sheet "
                         "of a known grade); distance, its distance to the nearest training slides (flags more untaught surfaces "
-                        "between taught grades, but also most slides of another unit)")
+                        "between taught grades, but also most slides of another unit); combined (the default), the ratio, or a "
+                        "distance to the nearest surface beyond the step between taught surfaces (also flags a surface far from "
+                        "every taught one where one taught surface is much nearer than the next)")
 
     p = command(sub, "evaluate", "the papers' experiments by grouped cross-validation", cmd_evaluate,
                 "tactiled evaluate data/sim/*.npz --report report/")

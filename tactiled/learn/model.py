@@ -22,7 +22,11 @@ fitted on out-of-fold prefixes of slides, format 5); and ``novelty``, a score of
 of known surfaces exceed it: above 1, the slide is unlike every surface the model was taught. From format 5 on the
 score is the nearest-neighbour distance *ratio* (the distance to the nearest surface over the distance to the next
 one), which a shift of the whole feature space (another unit of the sensor, a new sheet of the same grade) moves far
-less than it moves plain distances; format 3 and 4 files keep the plain distance they were fitted with.
+less than it moves plain distances; format 3 and 4 files keep the plain distance they were fitted with. From format 6
+on, the score may be ``combined``: the ratio over its threshold or the distance to the nearest surface over a
+distance threshold (``novelty.distance_threshold``, the distance beyond which a slide is farther from every taught
+surface than taught surfaces are from one another), whichever is larger, so that a surface far from every taught
+one is flagged even where one taught surface is much nearer than the next (a small ratio).
 
 File arrays: ``header`` (0-d unicode, JSON), ``classes`` (K,) unicode, ``scaler_mean`` and
 ``scaler_scale`` (F,); per classifier: elm ``weights`` (F, L), ``biases`` (L,), ``beta``
@@ -40,7 +44,7 @@ must be refit at load has at most :data:`MAX_SVM_REFIT_ROWS` rows). Only the arr
 file's classifier are read, at most :data:`MAX_MODEL_BYTES` inflated. The header carries the
 format and its version, the method, the classifier and its parameters, the analysis
 settings (windows, spikes, feature names), fs, channels, temperature, ``novelty`` (``k`` and
-``threshold``; format 3; ``score``, format 5), a training summary
+``threshold``; format 3; ``score``, format 5; ``distance_threshold``, format 6), a training summary
 (including the cross-validated accuracy), and ``fingerprint``: the SHA-256 (first 16 hex
 digits) of the header without it and of every array's bytes. Loading checks all of it (types,
 ranges, shapes, and that the stream's channels hold the features), runs a probe (one window of
@@ -72,8 +76,8 @@ from tactiled.learn.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, log_pr
 from tactiled.readable import MISSING
 
 FORMAT = "tactiled-model"
-FORMAT_VERSION = 5
-READ_VERSIONS = (2, 3, 4, 5)  # format 2 (before calibration and novelty) still loads: confidence uncalibrated, novelty None; 3: no enrolment
+FORMAT_VERSION = 6
+READ_VERSIONS = (2, 3, 4, 5, 6)  # format 2 (before calibration and novelty) still loads: confidence uncalibrated, novelty None; 3: no enrolment
 TRUST_ARRAYS = ("calibration", "novelty_x")
 ENROL_ARRAYS = ("train_x", "train_y", "novelty_y", "novelty_groups")  # format 4: what tactiled enrol refits on
 CLASSIFIERS = ("elm", "knn", "svm", "linear")
@@ -244,6 +248,7 @@ class Model:
     novelty_y: npt.NDArray[np.str_] | None = None  # (n,): the surface of each novelty_x row (format 4; enrol refits the threshold)
     novelty_groups: npt.NDArray[np.int64] | None = None  # (n,): the recording of each novelty_x row, numbered from 0
     novelty_score: str = "ratio"  # how novelty_scores measures a slide against novelty_x (NOVELTY_SCORES); files before format 5: distance
+    novelty_distance_threshold: float = math.inf  # score "combined" (format 6): the nearest surface's distance above which a slide is unknown
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -286,11 +291,14 @@ class Model:
         """How unlike the training slides a slide is, from its windows' raw features (w, F): > 1 is an unknown surface.
 
         :func:`novelty_scores` of the slide's standardised mean features against the training slides, over the
-        threshold set in training. None for a model without novelty data.
+        threshold set in training (score ``combined``: :func:`combined_novelty`). None for a model without novelty data.
         """
         if self.novelty_x is None or not len(self.novelty_x):
             return None
         z = self.standardise(np.asarray(features, dtype=np.float64).reshape(-1, len(self.names)).mean(axis=0, keepdims=True))
+        if self.novelty_score == "combined":
+            return float(combined_novelty(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_threshold,
+                                          self.novelty_distance_threshold)[0])
         return float(novelty_scores(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_score)[0] / self.novelty_threshold)
 
     def early_confidence(self, p_top: float, windows: int) -> float:
@@ -380,7 +388,8 @@ class Model:
                 "seed": self.seed, "classes": self.classes, "settings": self.settings.to_dict(), "fs": self.fs, "channels": self.channels,
                 "temperature": self.temperature, "summary": self.summary,
                 "novelty": {"k": self.novelty_k, "threshold": self.novelty_threshold if math.isfinite(self.novelty_threshold) else None,
-                            "score": self.novelty_score},
+                            "score": self.novelty_score,
+                            "distance_threshold": self.novelty_distance_threshold if math.isfinite(self.novelty_distance_threshold) else None},
                 "early_calibration": list(self.early_calibration) if self.early_calibration is not None else None}
 
     def save(self, path: str | Path) -> str:
@@ -455,7 +464,7 @@ def load_model(path: str | Path | None = None, lean: bool = True) -> Model:
             _need(kind in CLASSIFIERS, path, f"header.classifier: unknown {kind!r}")
             optional = [k for k in SVM_ARRAYS if k in reader] if kind == "svm" else []
             version = header.get("version")
-            trust = (*TRUST_ARRAYS, *ENROL_ARRAYS) if version in (4, 5) else TRUST_ARRAYS if version == 3 else ()
+            trust = (*TRUST_ARRAYS, *ENROL_ARRAYS) if version in (4, 5, 6) else TRUST_ARRAYS if version == 3 else ()
             keys = tuple(dict.fromkeys(("classes", "scaler_mean", "scaler_scale", *ARRAYS[kind], *optional, *trust)))
             missing, extra = [k for k in keys if k not in reader], sorted(set(reader.keys()) - {"header", *keys})
             _need(not missing, path, f"{', '.join(missing)}: missing")
@@ -614,9 +623,15 @@ def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[
         _need(ny.shape == (nx.shape[0],) and ny.dtype.kind == "U" and groups.shape == (nx.shape[0],) and groups.dtype.kind == "i", path,
               "novelty_y, novelty_groups: must be one unicode label and one integer per novelty_x row")
         model.novelty_y, model.novelty_groups = ny, groups
-    score = nov.get("score", "distance") if header.get("version", 0) >= 5 else "distance"
-    _need(score in NOVELTY_SCORES, path, f"header.novelty.score: must be one of {', '.join(NOVELTY_SCORES)}")
+    version = header.get("version", 0)
+    score = nov.get("score", "distance") if version >= 5 else "distance"
+    scores = NOVELTY_SCORES if version >= 6 else ("ratio", "distance")  # combined: format 6
+    _need(score in scores, path, f"header.novelty.score: must be one of {', '.join(scores)}")
+    far = nov.get("distance_threshold") if version >= 6 else None
+    _need(far is None or (_is_number(far) and far > 0), path, "header.novelty.distance_threshold: must be a number > 0 or null")
+    _need(score != "combined" or model.novelty_y is not None, path, "novelty_y: a combined novelty score needs each slide's surface")
     model.calibration, model.novelty_x, model.novelty_k, model.novelty_score = cal, nx, int(nov["k"]), score
+    model.novelty_distance_threshold = float(far) if far is not None else math.inf
     early = header.get("early_calibration")
     _need(early is None or (isinstance(early, list) and len(early) == 3 and all(_is_number(v) for v in early)), path,
           "header.early_calibration: must be three finite numbers or null")
@@ -653,7 +668,7 @@ def knn_distance(z: FloatArray, train: FloatArray, k: int) -> FloatArray:
     return _nearest_mean(_distances(z, train), k)
 
 
-NOVELTY_SCORES = ("ratio", "distance")
+NOVELTY_SCORES = ("ratio", "distance", "combined")
 
 
 def novelty_scores(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | None, k: int, score: str = "ratio") -> FloatArray:
@@ -667,14 +682,38 @@ def novelty_scores(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | 
     one surface were in training, so a sensor that is shifted as a whole (another unit, a new sheet of a grade) keeps
     the slides it can still tell apart. With fewer than two surfaces in ``labels`` (or none given), the distance.
     """
-    d = _distances(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64))
-    if labels is None or score != "ratio":
-        return _nearest_mean(d, k)
-    surfaces, codes = np.unique(labels, return_inverse=True)
-    if len(surfaces) < 2:
-        return _nearest_mean(d, k)
-    per = np.sort(np.stack([_nearest_per_surface(row, codes, len(surfaces), k) for row in d]), axis=1)
+    if labels is None or score != "ratio" or len(np.unique(labels)) < 2:
+        return knn_distance(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64), k)
+    per = nearest_surface_distances(z, train, labels, k)
     out: FloatArray = per[:, 0] / np.maximum(per[:, 1], 1e-300)
+    return out
+
+
+def combined_novelty(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | None, k: int, threshold: float,
+                     distance_threshold: float) -> FloatArray:
+    """(q,) the ``combined`` novelty of each row of ``z`` (q, F), already over its thresholds (above 1: unknown).
+
+    The larger of the distance ratio over ``threshold`` and the distance to the nearest surface (the ratio's numerator)
+    over ``distance_threshold``: a slide is unknown when it lies between taught surfaces (ratio near 1) or farther from
+    every taught surface than they lie from one another (the ratio alone misses that when one surface is much nearer
+    than the next). With one surface (or no labels) the ratio is the distance, as in :func:`novelty_scores`. Finite for
+    finite rows: an infinite threshold contributes 0.
+    """
+    if labels is None or not len(labels):
+        return novelty_scores(z, train, None, k) / threshold
+    per = nearest_surface_distances(z, train, labels, k)
+    ratio = np.where(np.isfinite(per[:, 1]), per[:, 0] / np.maximum(per[:, 1], 1e-300), per[:, 0])
+    out: FloatArray = np.maximum(ratio / threshold, per[:, 0] / distance_threshold)
+    return out
+
+
+def nearest_surface_distances(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any], k: int) -> FloatArray:
+    """(q, 2) for each row of ``z`` (q, F): the mean distance to the ``k`` nearest training rows (``train`` (n, F)) of the
+    nearest surface (``labels`` (n,)), and the same for the next nearest surface (inf with a single surface)."""
+    d = _distances(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64))
+    surfaces, codes = np.unique(labels, return_inverse=True)
+    per = np.sort(np.array([_nearest_per_surface(row, codes, len(surfaces), k) for row in d]).reshape(len(d), len(surfaces)), axis=1)
+    out: FloatArray = np.column_stack([per[:, 0], per[:, 1] if len(surfaces) > 1 else np.full(len(d), np.inf)])
     return out
 
 

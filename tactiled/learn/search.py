@@ -21,7 +21,8 @@ honestly by nested cross-validation: in each outer fold, the same rule on an inn
 CV of the training files alone picks a candidate, which is then scored on the held-out
 files. The winner is refitted on every recording; its temperature and its confidence
 calibration (:func:`fit_calibration`) are fitted on its out-of-fold slide scores, and its
-novelty threshold (:func:`fit_novelty`) on the distance ratios of slides to other recordings' slides.
+novelty threshold (:func:`fit_novelty`) on the distance ratios of slides to other recordings' slides (and, for the
+``combined`` score, a distance threshold on their distances to the nearest other surface).
 
 Work is spread over every core with joblib; ``scheduler`` (a dask.distributed address)
 sends it to a cluster through joblib's Dask backend instead.
@@ -45,7 +46,7 @@ from tactiled.core.features import name_family
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, collect_windows, find_slides
-from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature, novelty_scores, softmax
+from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature, nearest_surface_distances, novelty_scores, softmax
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -312,7 +313,7 @@ def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, li
 def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
            candidates: Sequence[Candidate] | None = None, progress: Progress | None = None, scheduler: str | None = None,
            found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False,
-           novelty: str = "ratio") -> SearchResult:
+           novelty: str = "combined") -> SearchResult:
     """Score every candidate, pick and refit the winner (see the module docstring).
 
     ``keep_models``: also refit every other candidate (``SearchResult.models``, by name), to compare them on held-out recordings.
@@ -416,7 +417,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
 
 def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: Candidate, oof: FloatArray, y_idx: npt.NDArray[np.intp],
            classes: list[str], config: Config, fs: float, channels: int, seed: int, inner_folds: int, method: str,
-           summary: dict[str, Any], novelty: str = "ratio") -> Model:
+           summary: dict[str, Any], novelty: str = "combined") -> Model:
     """Candidate ``c`` fitted on every labelled slide, its temperature fitted on its out-of-fold slide scores ``oof``."""
     st, ws = sets[_key(c)]
     temperature = fit_temperature(oof, y_idx)
@@ -444,6 +445,8 @@ def fit_model_novelty(model: Model, z: FloatArray, labels: npt.NDArray[Any], gro
     (n,), the score (:data:`~tactiled.learn.model.NOVELTY_SCORES`) and its threshold (:func:`fit_novelty`, in ``summary``)."""
     model.novelty_x, model.novelty_y, model.novelty_groups, model.novelty_score = z, labels, groups, score
     model.novelty_threshold, info = fit_novelty(z, groups, labels, model.novelty_k, score=score)
+    far = info.get("distance_threshold")
+    model.novelty_distance_threshold = float(far) if far is not None else math.inf
     model.summary = {**model.summary, "novelty": info}
 
 
@@ -549,23 +552,44 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     surfaces) stands for an untaught surface. The threshold (:func:`novelty_threshold`) calls at most ``reject`` of the
     known slides unknown and flags as many untaught ones as it can; ``info`` says how many of each it does. A threshold of
     inf (never unknown) when no slide has another recording to compare with.
+
+    ``combined``: the threshold is the ratio's, and ``info["distance_threshold"]`` a second one on the distance to the
+    nearest surface (the ratio's numerator): the (1 - ``reject``) quantile of the left-out surfaces' distances, the
+    distance from a taught slide to the nearest *other* surface (a step between taught surfaces), and never below the
+    same quantile of the known slides' distances. A slide beyond it is farther from every taught surface than taught
+    surfaces are from each other; a slide of another unit of the sensor or a new sheet of a known grade, whose shift is
+    smaller than that step, is not. None (no distance gate) with fewer than two surfaces.
     """
     n = len(z)
-    known = np.full(n, np.nan)
-    unseen = np.full(n, np.nan)
+    known = np.full((n, 2), np.nan)  # (ratio or distance, distance to the nearest surface) per slide
+    unseen = np.full((n, 2), np.nan)
+    base = "ratio" if score == "combined" else score
     for i in range(n):
         other_file, other_surface = files != files[i], labels != labels[i]
-        if other_file.any():
-            known[i] = novelty_scores(z[i:i + 1], z[other_file], labels[other_file], k, score)[0]
-        if other_surface.any():
-            unseen[i] = novelty_scores(z[i:i + 1], z[other_surface], labels[other_surface], k, score)[0]
-    have = known[np.isfinite(known)]
+        for out, keep in ((known, other_file), (unseen, other_surface)):
+            if not keep.any():
+                continue
+            if score == "combined":
+                per = nearest_surface_distances(z[i:i + 1], z[keep], labels[keep], k)[0]
+                out[i] = (per[0] / max(per[1], 1e-300) if math.isfinite(per[1]) else per[0]), per[0]
+            else:
+                out[i, 0] = novelty_scores(z[i:i + 1], z[keep], labels[keep], k, base)[0]
+    have, flagged = known[np.isfinite(known[:, 0])], unseen[np.isfinite(unseen[:, 0])]
+    info: dict[str, Any] = {"k": k, "score": score, "threshold": None, "known_rejected": None, "unseen_flagged": None}
+    if score == "combined":
+        info["distance_threshold"] = None
     if not len(have):
-        return math.inf, {"k": k, "score": score, "threshold": None, "known_rejected": None, "unseen_flagged": None}
-    flagged = unseen[np.isfinite(unseen)]
-    threshold = max(novelty_threshold(have, flagged, reject), 1e-9)
-    return threshold, {"k": k, "score": score, "threshold": threshold, "known_rejected": float(np.mean(have > threshold)),
-                       "unseen_flagged": float(np.mean(flagged > threshold)) if len(flagged) else None}
+        return math.inf, info
+    threshold = max(novelty_threshold(have[:, 0], flagged[:, 0], reject), 1e-9)
+    known_nov, unseen_nov = have[:, 0] / threshold, flagged[:, 0] / threshold
+    if score == "combined" and len(flagged) and len(np.unique(labels)) >= 2:
+        q = 1.0 - reject
+        far = max(float(np.quantile(flagged[:, 1], q, method="higher")), float(np.quantile(have[:, 1], q, method="higher")), 1e-9)
+        info["distance_threshold"] = far
+        known_nov, unseen_nov = np.maximum(known_nov, have[:, 1] / far), np.maximum(unseen_nov, flagged[:, 1] / far)
+    info.update(threshold=threshold, known_rejected=float(np.mean(known_nov > 1.0)),
+                unseen_flagged=float(np.mean(unseen_nov > 1.0)) if len(flagged) else None)
+    return threshold, info
 
 
 def novelty_threshold(known: FloatArray, unseen: FloatArray, reject: float = 0.05) -> float:
@@ -729,7 +753,7 @@ def window_oof(ws: WindowSet, cols: npt.NDArray[np.intp], kind: str, params: dic
 
 def paper(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
           progress: Progress | None = None, scheduler: str | None = None,
-          found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, novelty: str = "ratio") -> SearchResult:
+          found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, novelty: str = "combined") -> SearchResult:
     """The papers' DWT + SFS + ELM (:data:`PAPER`), cross-validated the same way as :func:`search`, then fitted on everything."""
     return search(recs, config, folds=folds, inner_folds=inner_folds, seed=seed, candidates=[PAPER], progress=progress, scheduler=scheduler,
                   found=found, method="paper", novelty=novelty)

@@ -52,14 +52,16 @@ def class_table(per_file: list[list[LabelledSlide]]) -> dict[str, tuple[int, int
 def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
           drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None,
           candidates: Sequence[Candidate] | None = None, keep_models: bool = False, group_by: str = "file",
-          novelty: str = "ratio") -> SearchResult:
+          novelty: str = "combined") -> SearchResult:
     """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save).
 
     ``candidates`` narrows the default search (``method="auto"``) to the given ones; ``keep_models``: see :func:`search`.
     ``group_by``: ``file`` (folds never split a recording; every surface needs two) or ``slide`` (allowed with one
     recording per surface, with a warning that the estimates are optimistic). ``novelty``: the unknown-surface score
     (:data:`~tactiled.learn.model.NOVELTY_SCORES`; ``ratio`` tolerates another unit of the sensor, ``distance`` flags
-    more untaught surfaces between taught grades but also most slides of another unit or a new sheet of a known one).
+    more untaught surfaces between taught grades but also most slides of another unit or a new sheet of a known one;
+    ``combined``, the default, is the ratio or a distance beyond the step between taught surfaces, which also flags a
+    surface far from every taught one where the ratio is small).
     """
     say = progress or (lambda m: None)
     if method not in METHODS:
