@@ -307,6 +307,16 @@ def test_calibration_scores_of_a_perfect_and_an_overconfident_model() -> None:
     assert calibration_scores(np.array([]), np.array([], dtype=bool))["ece"] is None
 
 
+def test_the_ece_a_calibrated_model_would_show_is_large_on_few_mid_range_slides_and_nil_when_sure() -> None:
+    """90 slides at confidence 0.5: the ECE is |accuracy - 0.5| with accuracy ~ Binomial(90, 0.5) / 90 (sd 0.053), so its
+    median is 0.6745 sd = 0.036 and its 95th percentile 1.96 sd = 0.103; a model always right at confidence 1 shows 0."""
+    median, q95 = calibration_scores(np.full(90, 0.5), np.arange(90) % 2 == 0)["ece_calibrated"]
+    assert 0.025 <= median <= 0.05 and 0.085 <= q95 <= 0.12
+    assert calibration_scores(np.ones(90), np.ones(90, dtype=bool))["ece_calibrated"] == [0.0, 0.0]
+    assert calibration_scores(np.full(90, 0.5), np.ones(90, dtype=bool))["ece_calibrated"] == [median, q95]  # seeded: the same draws
+    assert calibration_scores(np.array([]), np.array([], dtype=bool))["ece_calibrated"] is None
+
+
 def test_train_refuses_a_surface_with_one_recording_and_allows_it_by_slide(tmp_path: Path) -> None:
     data = tmp_path / "data"
     res = run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "1", "--slides-per-file", "4",

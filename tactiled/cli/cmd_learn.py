@@ -112,7 +112,9 @@ def cmd_score(args: argparse.Namespace) -> int:
         print("no label: " + ", ".join(f"{k} {v}" for k, v in sorted(report["abstained"].items())))
     print(f"unknown surfaces: {report['unknown']} of {report['n']} true slides")
     if report["ece"] is not None:
-        print(f"confidence: expected calibration error {report['ece']:.3f} (10 bins), Brier score {report['brier']:.3f}")
+        null = report["ece_calibrated"]
+        print(f"confidence: expected calibration error {report['ece']:.3f} (10 bins; a perfectly calibrated model would show {null[0]:.3f}, "
+              f"up to {null[1]:.3f} in 95 % of draws, on as many slides), Brier score {report['brier']:.3f}")
     if report["unpaired_detections"]:
         print(f"detections outside any true slide: {report['unpaired_detections']}")
     for cls, r in report["recall"].items():

@@ -409,12 +409,18 @@ def markdown(res: dict[str, Any], figures: list[str]) -> str:
         cal = g.get("calibration", {})
         if cal.get("ece") is not None:
             out.append(f"\nConfidence (the probability that the label is right), cross-fitted on held-out recordings: expected calibration "
-                       f"error {cal['ece']:.3f} (10 equal-width bins), Brier score {cal['brier']:.3f}.\n\n"
+                       f"error {cal['ece']:.3f} (10 equal-width bins{_calibrated(cal)}), Brier score {cal['brier']:.3f}.\n\n"
                        "| confidence bin | slides | mean confidence | accuracy |\n|---|---|---|---|")
             out += [f"| {lo:.1f}–{lo + 0.1:.1f} | {n} | {c:.3f} | {a:.3f} |" for lo, n, c, a in cal["reliability"]]
         out.append("")
     out += [f"![{f}]({f})\n" for f in figures]
     return "\n".join(out) + "\n"
+
+
+def _calibrated(cal: dict[str, Any]) -> str:
+    """What a perfectly calibrated model's ECE would be on as many slides (tactiled.learn.score.calibrated_ece), for the report."""
+    null = cal.get("ece_calibrated")
+    return f"; a perfectly calibrated model would show {null[0]:.3f}, and up to {null[1]:.3f} in 95 % of draws, on these slides" if null else ""
 
 
 def write_figures(res: dict[str, Any], report: Path) -> list[str]:
