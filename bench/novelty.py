@@ -34,7 +34,7 @@ import numpy as np
 from tactiled.config import Config
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import collect_windows, find_slides, load_recordings
-from tactiled.learn.model import Model, nearest_surface_distances
+from tactiled.learn.model import Model, novelty_parts, over_thresholds
 from tactiled.learn.train import train
 from tactiled.sim.simulate import write_dataset
 
@@ -52,11 +52,11 @@ def scores(model: Model, z: np.ndarray, train_z: np.ndarray | None = None, train
     tz = model.novelty_x if train_z is None else train_z
     ty = model.novelty_y if train_y is None else train_y
     assert tz is not None and ty is not None
-    per = nearest_surface_distances(z, tz, ty, model.novelty_k)
+    parts = novelty_parts(z, tz, ty, model.novelty_k, "combined")
     surfaces, codes = np.unique(ty, return_inverse=True)
     d = np.sqrt(np.maximum(((z[:, None, :] - tz[None, :, :]) ** 2).sum(axis=2), 0.0))
     nearest = [str(surfaces[codes[np.argmin(row)]]) for row in d]  # the surface of the nearest slide
-    return {"d": per[:, 0].tolist(), "ratio": (per[:, 0] / np.maximum(per[:, 1], 1e-300)).tolist(), "nearest": nearest}
+    return {"d": parts[:, 1].tolist(), "ratio": parts[:, 0].tolist(), "nearest": nearest}
 
 
 def training_scores(model: Model) -> dict[str, dict[str, list[Any]]]:
@@ -137,11 +137,7 @@ def main() -> None:
 
 def flags(model: Model, s: dict[str, list[Any]]) -> str:
     """The share of slides whose novelty (the model's own gate) is above 1."""
-    d, r = np.asarray(s["d"]), np.asarray(s["ratio"])
-    nov = r / model.novelty_threshold
-    dt = model.novelty_distance_threshold
-    if dt is not None and np.isfinite(dt):
-        nov = np.maximum(nov, d / dt)
+    nov = over_thresholds(np.column_stack([s["ratio"], s["d"]]), model.novelty_threshold, model.novelty_distance_threshold)
     return f"{100 * float(np.mean(nov > 1)):.1f} %"
 
 

@@ -200,7 +200,7 @@ def _isolated_surface() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def test_a_slide_far_from_every_taught_surface_is_flagged_even_where_the_ratio_is_small() -> None:
     """Near only an isolated surface, much nearer it than the next one: the ratio is small, the distance is not."""
-    from tactiled.learn.model import combined_novelty
+    from tactiled.learn.model import novelty_parts, over_thresholds
 
     z, labels, files = _isolated_surface()
     threshold, info = fit_novelty(z, files, labels, 3, score="combined")
@@ -209,7 +209,7 @@ def test_a_slide_far_from_every_taught_surface_is_flagged_even_where_the_ratio_i
     assert threshold == fit_novelty(z, files, labels, 3, score="ratio")[0]  # the ratio's threshold is the ratio score's
     slides = np.array([[60.0, 15.0], [60.3, 0.2], [8.2, 4.1], [2.0, 2.0], [-40.0, 6.0]])  # far; taught (isolated); taught; between; far
     ratio = novelty_scores(slides, z, labels, 3) / threshold
-    both = combined_novelty(slides, z, labels, 3, threshold, far)
+    both = over_thresholds(novelty_parts(slides, z, labels, 3, "combined"), threshold, far)
     assert ratio[0] < 1.0 < both[0]  # the case the ratio alone misses
     assert both[1] < 1.0 and both[2] < 1.0 and both[3] > 1.0 and both[4] > 1.0
     assert np.all(both >= ratio)

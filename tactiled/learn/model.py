@@ -18,7 +18,7 @@ with 200 or more slides, else Platt scaling) of the top softmax probability (for
 windows of a slide, :func:`early_probability` of the top probability and the number of windows: ``early_calibration``,
 fitted on out-of-fold prefixes of slides, format 5); and ``novelty``, a score of the slide
 (the mean of its windows' features, standardised as the classifier sees them) against the training slides
-(:func:`novelty_scores`), divided by the threshold that grouped cross-validation set so that at most 5 % of slides
+(:func:`novelty_parts`), divided by the threshold that grouped cross-validation set so that at most 5 % of slides
 of known surfaces exceed it: above 1, the slide is unlike every surface the model was taught. From format 5 on the
 score is the nearest-neighbour distance *ratio* (the distance to the nearest surface over the distance to the next
 one), which a shift of the whole feature space (another unit of the sensor, a new sheet of the same grade) moves far
@@ -247,7 +247,7 @@ class Model:
     novelty_threshold: float = math.inf
     novelty_y: npt.NDArray[np.str_] | None = None  # (n,): the surface of each novelty_x row (format 4; enrol refits the threshold)
     novelty_groups: npt.NDArray[np.int64] | None = None  # (n,): the recording of each novelty_x row, numbered from 0
-    novelty_score: str = "ratio"  # how novelty_scores measures a slide against novelty_x (NOVELTY_SCORES); files before format 5: distance
+    novelty_score: str = "ratio"  # how novelty_parts measures a slide against novelty_x (NOVELTY_SCORES); files before format 5: distance
     novelty_distance_threshold: float = math.inf  # score "combined" (format 6): the nearest surface's distance above which a slide is unknown
 
     @property
@@ -290,16 +290,15 @@ class Model:
     def novelty(self, features: FloatArray) -> float | None:
         """How unlike the training slides a slide is, from its windows' raw features (w, F): > 1 is an unknown surface.
 
-        :func:`novelty_scores` of the slide's standardised mean features against the training slides, over the
-        threshold set in training (score ``combined``: :func:`combined_novelty`). None for a model without novelty data.
+        :func:`novelty_parts` of the slide's standardised mean features against the training slides, over the thresholds
+        set in training (:func:`over_thresholds`; the distance threshold is infinite unless the score is ``combined``).
+        None for a model without novelty data.
         """
         if self.novelty_x is None or not len(self.novelty_x):
             return None
         z = self.standardise(np.asarray(features, dtype=np.float64).reshape(-1, len(self.names)).mean(axis=0, keepdims=True))
-        if self.novelty_score == "combined":
-            return float(combined_novelty(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_threshold,
-                                          self.novelty_distance_threshold)[0])
-        return float(novelty_scores(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_score)[0] / self.novelty_threshold)
+        parts = novelty_parts(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_score)
+        return float(over_thresholds(parts, self.novelty_threshold, self.novelty_distance_threshold)[0])
 
     def early_confidence(self, p_top: float, windows: int) -> float:
         """The probability that a label from the first ``windows`` windows of a slide is right (a provisional label), from its top
@@ -671,39 +670,38 @@ def knn_distance(z: FloatArray, train: FloatArray, k: int) -> FloatArray:
 NOVELTY_SCORES = ("ratio", "distance", "combined")
 
 
-def novelty_scores(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | None, k: int, score: str = "ratio") -> FloatArray:
-    """(q,) how unlike the training rows ``train`` (n, F) (surfaces ``labels`` (n,)) each row of ``z`` (q, F) is.
+def novelty_parts(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | None, k: int, score: str = "ratio") -> FloatArray:
+    """(q, 2) how unlike the training rows ``train`` (n, F) (surfaces ``labels`` (n,)) each row of ``z`` (q, F) is: the
+    score, and the distance to the nearest taught surface (mean over its ``k`` nearest rows).
 
-    ``distance``: the mean distance to the ``k`` nearest training rows. ``ratio``: the nearest-neighbour distance
-    ratio (Mendes Junior et al., "Nearest neighbors distance ratio open-set classifier", Machine Learning 2017): the
-    mean distance to the ``k`` nearest rows of the nearest surface over the same for the next nearest surface, in
-    [0, 1]. Near 0: clearly one taught surface; near 1: between two of them, or far from all (both distances large).
+    ``distance``: the score is the mean distance to the ``k`` nearest training rows (both columns). ``ratio`` and
+    ``combined``: the nearest-neighbour distance ratio (Mendes Junior et al., "Nearest neighbors distance ratio open-set
+    classifier", Machine Learning 2017): the distance to the nearest surface over the same for the next nearest surface,
+    in [0, 1]. Near 0: clearly one taught surface; near 1: between two of them, or far from all (both distances large).
     Unlike a distance, the ratio takes its scale from how far apart the surfaces are, not from how close recordings of
     one surface were in training, so a sensor that is shifted as a whole (another unit, a new sheet of a grade) keeps
     the slides it can still tell apart. With fewer than two surfaces in ``labels`` (or none given), the distance.
     """
-    if labels is None or score != "ratio" or len(np.unique(labels)) < 2:
-        return knn_distance(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64), k)
+    if labels is None or score == "distance":
+        d = knn_distance(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64), k)
+        return np.column_stack([d, d])
     per = nearest_surface_distances(z, train, labels, k)
-    out: FloatArray = per[:, 0] / np.maximum(per[:, 1], 1e-300)
+    ratio = np.where(np.isfinite(per[:, 1]), per[:, 0] / np.maximum(per[:, 1], 1e-300), per[:, 0])
+    return np.column_stack([ratio, per[:, 0]])
+
+
+def novelty_scores(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | None, k: int, score: str = "ratio") -> FloatArray:
+    """(q,) the score column of :func:`novelty_parts`."""
+    out: FloatArray = novelty_parts(z, train, labels, k, score)[:, 0]
     return out
 
 
-def combined_novelty(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | None, k: int, threshold: float,
-                     distance_threshold: float) -> FloatArray:
-    """(q,) the ``combined`` novelty of each row of ``z`` (q, F), already over its thresholds (above 1: unknown).
-
-    The larger of the distance ratio over ``threshold`` and the distance to the nearest surface (the ratio's numerator)
-    over ``distance_threshold``: a slide is unknown when it lies between taught surfaces (ratio near 1) or farther from
-    every taught surface than they lie from one another (the ratio alone misses that when one surface is much nearer
-    than the next). With one surface (or no labels) the ratio is the distance, as in :func:`novelty_scores`. Finite for
-    finite rows: an infinite threshold contributes 0.
-    """
-    if labels is None or not len(labels):
-        return novelty_scores(z, train, None, k) / threshold
-    per = nearest_surface_distances(z, train, labels, k)
-    ratio = np.where(np.isfinite(per[:, 1]), per[:, 0] / np.maximum(per[:, 1], 1e-300), per[:, 0])
-    out: FloatArray = np.maximum(ratio / threshold, per[:, 0] / distance_threshold)
+def over_thresholds(parts: FloatArray, threshold: float, distance_threshold: float = math.inf) -> FloatArray:
+    """(q,) the novelty of :func:`novelty_parts` rows (q, 2), above 1: unknown. The larger of the score over ``threshold``
+    and the distance to the nearest surface over ``distance_threshold`` (``combined``): a slide is unknown when it lies
+    between taught surfaces (ratio near 1) or farther from every taught surface than they lie from one another (the ratio
+    alone misses that when one surface is much nearer than the next). An infinite threshold contributes 0."""
+    out: FloatArray = np.maximum(parts[:, 0] / threshold, parts[:, 1] / distance_threshold)
     return out
 
 

@@ -46,7 +46,7 @@ from tactiled.core.features import name_family
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, collect_windows, find_slides
-from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature, nearest_surface_distances, novelty_scores, softmax
+from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature, novelty_parts, over_thresholds, softmax
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -547,7 +547,7 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
                 score: str = "ratio") -> tuple[float, dict[str, Any]]:
     """The novelty threshold of training slides ``z`` (n, F') (standardised mean features), and what cross-validation says of it.
 
-    Each slide's :func:`~tactiled.learn.model.novelty_scores` against the slides of *other recordings* stands for a
+    Each slide's :func:`~tactiled.learn.model.novelty_parts` against the slides of *other recordings* stands for a
     new recording of a known surface; leaving each surface out in turn (its score against the slides of the other
     surfaces) stands for an untaught surface. The threshold (:func:`novelty_threshold`) calls at most ``reject`` of the
     known slides unknown and flags as many untaught ones as it can; ``info`` says how many of each it does. A threshold of
@@ -561,19 +561,13 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     smaller than that step, is not. None (no distance gate) with fewer than two surfaces.
     """
     n = len(z)
-    known = np.full((n, 2), np.nan)  # (ratio or distance, distance to the nearest surface) per slide
+    known = np.full((n, 2), np.nan)  # novelty_parts per slide: (score, distance to the nearest surface)
     unseen = np.full((n, 2), np.nan)
-    base = "ratio" if score == "combined" else score
     for i in range(n):
         other_file, other_surface = files != files[i], labels != labels[i]
         for out, keep in ((known, other_file), (unseen, other_surface)):
-            if not keep.any():
-                continue
-            if score == "combined":
-                per = nearest_surface_distances(z[i:i + 1], z[keep], labels[keep], k)[0]
-                out[i] = (per[0] / max(per[1], 1e-300) if math.isfinite(per[1]) else per[0]), per[0]
-            else:
-                out[i, 0] = novelty_scores(z[i:i + 1], z[keep], labels[keep], k, base)[0]
+            if keep.any():
+                out[i] = novelty_parts(z[i:i + 1], z[keep], labels[keep], k, score)[0]
     have, flagged = known[np.isfinite(known[:, 0])], unseen[np.isfinite(unseen[:, 0])]
     info: dict[str, Any] = {"k": k, "score": score, "threshold": None, "known_rejected": None, "unseen_flagged": None}
     if score == "combined":
@@ -581,14 +575,13 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     if not len(have):
         return math.inf, info
     threshold = max(novelty_threshold(have[:, 0], flagged[:, 0], reject), 1e-9)
-    known_nov, unseen_nov = have[:, 0] / threshold, flagged[:, 0] / threshold
+    far = math.inf
     if score == "combined" and len(flagged) and len(np.unique(labels)) >= 2:
         q = 1.0 - reject
         far = max(float(np.quantile(flagged[:, 1], q, method="higher")), float(np.quantile(have[:, 1], q, method="higher")), 1e-9)
         info["distance_threshold"] = far
-        known_nov, unseen_nov = np.maximum(known_nov, have[:, 1] / far), np.maximum(unseen_nov, flagged[:, 1] / far)
-    info.update(threshold=threshold, known_rejected=float(np.mean(known_nov > 1.0)),
-                unseen_flagged=float(np.mean(unseen_nov > 1.0)) if len(flagged) else None)
+    info.update(threshold=threshold, known_rejected=float(np.mean(over_thresholds(have, threshold, far) > 1.0)),
+                unseen_flagged=float(np.mean(over_thresholds(flagged, threshold, far) > 1.0)) if len(flagged) else None)
     return threshold, info
 
 
