@@ -228,41 +228,58 @@ class Pipeline:
         return events
 
     def _analyse_ready(self, until: int | None = None) -> list[PipelineEvent]:
-        """Analyse every window of the slide in progress that the ring holds (up to ``until``); provisional results."""
-        events: list[PipelineEvent] = []
+        """Analyse every window of the slide in progress that the ring holds (up to ``until``), all in one call (offline,
+        a block holds many); then, window by window, the provisional results."""
+        if self._onset is None or self._next is None:
+            return []
         s = self.settings
         limit = self.ring.end if until is None else min(until, self.ring.end)
-        while self._onset is not None and self._next is not None and limit >= self._next[1]:
-            if s.max_windows and len(self._windows) >= s.max_windows:
-                self._next = None
+        hop = max(1, round(s.hop() * self.fs))
+        spans: list[tuple[int, int]] = []
+        nxt: tuple[int, int] | None = self._next
+        while nxt is not None and limit >= nxt[1]:
+            if s.max_windows and len(self._windows) + len(spans) >= s.max_windows:
+                nxt = None
                 break
-            t0 = time.perf_counter()
-            w = self._window(self._next)
+            spans.append(nxt)
+            nxt = (nxt[0] + hop, nxt[1] + hop)
+        self._next = nxt
+        events: list[PipelineEvent] = []
+        if not spans:
+            return events
+        t0 = time.perf_counter()
+        for w in self._analyse(spans):
             self._windows.append(w)
-            hop = max(1, round(s.hop() * self.fs))
-            self._next = (self._next[0] + hop, self._next[1] + hop)
             if w.usable:
                 prov = self._provisional_result(t0)
                 if prov is not None:
                     events.append(prov)
         return events
 
-    def _window(self, span: tuple[int, int]) -> _Window:
-        return _Window(span, self._read(*span))
+    def _analyse(self, spans: list[tuple[int, int]]) -> list[_Window]:
+        """The windows ``spans`` of the ring, analysed: those of one length in one :meth:`Analyser.analyse_many` call."""
+        results: list[WindowResult | None] = [None] * len(spans)
+        groups: dict[int, list[tuple[int, npt.NDArray[Any], npt.NDArray[np.bool_]]]] = {}
+        for i, (lo, hi) in enumerate(spans):
+            if hi - lo < self.min_samples:
+                # a slide that ended before (or soon after) its window began: nothing to read, whatever the block timing
+                results[i] = WindowResult(None, "window_too_short", {"samples": max(hi - lo, 0), "lost": 0, "saturated": 0.0, "spikes": 0})
+                continue
+            try:
+                samples, valid = self.ring.read(lo, hi)
+            except OverwrittenError:
+                results[i] = WindowResult(None, "overwritten", {"samples": hi - lo, "lost": hi - lo, "saturated": 0.0, "spikes": 0})
+                continue
+            groups.setdefault(hi - lo, []).append((i, samples, valid))
+        for group in groups.values():
+            analysed = self.analyser.analyse_many(np.stack([g[1] for g in group]), np.stack([g[2] for g in group]))
+            for (i, _, _), result in zip(group, analysed, strict=True):
+                results[i] = result
+        return [_Window(span, r) for span, r in zip(spans, results, strict=True) if r is not None]
 
     def _assess(self, used: list[_Window], final: bool = True) -> tuple[npt.NDArray[np.float64], float, float | None]:
         assert self.model is not None
         return self.model.assess(np.stack([w.result.features for w in used if w.result.features is not None]), final)
-
-    def _read(self, lo: int, hi: int) -> WindowResult:
-        if hi - lo < self.min_samples:
-            # a slide that ended before (or soon after) its window began: nothing to read, whatever the block timing
-            return WindowResult(None, "window_too_short", {"samples": max(hi - lo, 0), "lost": 0, "saturated": 0.0, "spikes": 0})
-        try:
-            samples, valid = self.ring.read(lo, hi)
-        except OverwrittenError:
-            return WindowResult(None, "overwritten", {"samples": hi - lo, "lost": hi - lo, "saturated": 0.0, "spikes": 0})
-        return self.analyser.analyse(samples, valid)
 
     def _provisional_result(self, t0: float) -> SlideResult | None:
         if self.model is None or self._onset is None or self.provisional_confidence >= 1.0 or self._paused is not None:
@@ -281,7 +298,9 @@ class Pipeline:
         t0 = time.perf_counter()
         spans = self.settings.spans(start, stop, self.fs, self.min_samples)
         done = {w.span: w for w in self._windows}
-        windows = [done[sp] if sp in done else self._window(sp) for sp in spans]
+        missing = [sp for sp in spans if sp not in done]
+        done.update(zip(missing, self._analyse(missing), strict=True))
+        windows = [done[sp] for sp in spans]
         used = [w for w in windows if w.usable] if self.model is not None else []
         if not used:
             reasons = [w.result.reason for w in windows if w.result.reason] or ["window_too_short"]

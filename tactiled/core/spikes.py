@@ -20,28 +20,40 @@ def remove_spikes(x: npt.NDArray[np.float64], method: str = "mad", half_width: i
     x = np.asarray(x, dtype=np.float64)
     if x.ndim != 2:
         raise ValueError(f"x must have shape (n, C), got {x.shape}")
-    if method == "none" or x.shape[0] == 0:
-        return x.copy(), 0
+    clean, counts = remove_spikes_many(x[None], method, half_width, nsigma)
+    return clean[0], int(counts[0])
+
+
+def remove_spikes_many(x: npt.NDArray[np.float64], method: str = "mad", half_width: int = 5,
+                       nsigma: float = 4.0) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
+    """(cleaned copies of W windows x (W, n, C) V, samples replaced in each (W,)): each window as :func:`remove_spikes` alone.
+
+    The cleaned windows (W, n, C) are a view of (W, C, n) contiguous rows for ``mad`` and ``none``: each channel's samples
+    contiguous, as the features' transforms read them.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 3:
+        raise ValueError(f"x must have shape (W, n, C), got {x.shape}")
+    if method == "none" or x.shape[1] == 0:
+        return np.ascontiguousarray(x.transpose(0, 2, 1)).transpose(0, 2, 1), np.zeros(x.shape[0], dtype=np.int64)
     if method == "hampel":
         from scipy.ndimage import median_filter  # SciPy only for the method that needs it (it costs ~70 MB resident)
 
-        size = (2 * half_width + 1, 1)
+        size = (1, 2 * half_width + 1, 1)
         med = median_filter(x, size=size, mode="nearest")
         mad = median_filter(np.abs(x - med), size=size, mode="nearest")
-    elif method == "mad":
-        # medians per channel on contiguous rows: the same values as np.median(x, axis=0), without its overhead
-        xt = np.ascontiguousarray(x.T)
-        med_c = median_last(xt)[:, None]
-        dev = np.abs(xt - med_c)
-        outlier = _outliers(dev, med_c, median_last(dev)[:, None], nsigma)
-        count = int(np.count_nonzero(outlier))
-        if not count:
-            return x.copy(), 0
-        return np.where(outlier, med_c, xt).T.copy(), count
-    else:
+        outlier = _outliers(np.abs(x - med), med, mad, nsigma)
+        return np.where(outlier, med, x), np.count_nonzero(outlier, axis=(1, 2)).astype(np.int64)
+    if method != "mad":
         raise ValueError(f"method must be hampel, mad or none, got {method!r}")
-    outlier = _outliers(np.abs(x - med), med, mad, nsigma)
-    return np.where(outlier, med, x), int(np.count_nonzero(outlier))
+    # medians per window and channel on contiguous rows: the same values as np.median(x, axis=1), without its overhead
+    xt = np.ascontiguousarray(x.transpose(0, 2, 1))
+    med_c = median_last(xt)[..., None]
+    dev = np.abs(xt - med_c)
+    outlier = _outliers(dev, med_c, median_last(dev)[..., None], nsigma)
+    counts = np.count_nonzero(outlier, axis=(1, 2)).astype(np.int64)
+    clean = np.where(outlier, med_c, xt) if counts.any() else xt
+    return clean.transpose(0, 2, 1), counts
 
 
 def _outliers(dev: npt.NDArray[np.float64], med: npt.NDArray[np.float64], mad: npt.NDArray[np.float64], nsigma: float) -> npt.NDArray[np.bool_]:
