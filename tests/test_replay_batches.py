@@ -34,7 +34,7 @@ def extreme_recording() -> Recording:
     slides = [(t.start, t.stop) for t in sim.truth if t.stop <= n and t.stop - t.start > p.fs]
     assert len(slides) >= 5
     lost = []
-    (a, b), (c, d), (e, f), (g, h), (i, _) = slides[:5]
+    (a, _), (c, d), (e, _), (g, _), (i, _) = slides[:5]
     x[a + 6000: a + 8000: 2] = 32767  # clipped: held at the rail
     x[a + 6001: a + 8000: 2] = -32768
     x[c + 1000: d - 1000: 397, 0] = 32767  # single-sample spikes

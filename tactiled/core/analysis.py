@@ -228,9 +228,13 @@ class Analyser:
         w, n = samples.shape[:2]
         lost = np.zeros(w, dtype=np.int64) if valid is None else n - np.count_nonzero(valid, axis=1)
         saturated = clipped_fractions(samples)
-        volts = samples.astype(np.float64) * self.volts_per_count if self.integer else np.asarray(samples, dtype=np.float64)
-        if not self.integer and lost.any():
-            volts = volts.copy()  # lost rows are filled in place: not in the caller's samples
+        # volts in one pass, each channel's samples contiguous (W, C, n) as spike removal and the transforms read them
+        rows = np.empty((w, samples.shape[2], n))
+        if self.integer:
+            np.multiply(samples.transpose(0, 2, 1), self.volts_per_count, out=rows)
+        else:
+            rows[...] = samples.transpose(0, 2, 1)
+        volts = rows.transpose(0, 2, 1)
         results: list[WindowResult | None] = [None] * w
         todo: list[int] = []
         for i in range(w):
