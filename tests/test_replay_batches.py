@@ -1,5 +1,6 @@
-"""Replay's batched path gives the live path's events: windows analysed many at a time (large blocks) against one at a
-time (the daemon's 40 ms batches), on a recording with slides, provisional labels and extreme windows."""
+"""Replay's offline path gives the live path's events: the detector over the whole recording first, then the windows
+analysed many at a time, against the daemon's path (40 ms blocks, one window at a time), on a recording with slides,
+provisional labels, withdrawn ends and extreme windows (clipped, spiky, silent, lost samples)."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from tactiled.files.recording import Recording
 from tactiled.learn.model import load_model
 from tactiled.run.replay import replay_recording
 from tactiled.sim.physics import SensorSimulator, SimParams, default_surfaces
+from tests.conftest import live_events
 
 LIVE_BLOCK = 800  # 40 ms at 20 kHz: what the daemon hands the pipeline
 
@@ -42,6 +44,7 @@ def extreme_recording() -> Recording:
     x[max(0, a - 30000): a - 10000] = 0  # a second of digital silence at rest
     lost += [(g + 2000, 40), (g + 12000, 400)]  # 40 lost rows are filled in; 400 (> 2 % of a window) reject it
     x[i + 3000: i + 3001, 1] = -32768
+    x[i + 8000: i + 10400] = 0  # a 120 ms dip: the end published after 50 ms of quiet, then withdrawn
     for pos, count in lost:
         x[pos: pos + count] = 0
     return Recording(x, p.fs, p.volts_per_count, lost=np.array(lost, dtype=np.int64))
@@ -56,20 +59,21 @@ def _fields(ev: PipelineEvent) -> dict[str, Any]:
     return d
 
 
-def test_replay_in_large_blocks_gives_the_live_paths_events_bit_for_bit(extreme_recording: Recording) -> None:
+def test_replay_gives_the_live_paths_events_bit_for_bit(extreme_recording: Recording) -> None:
+    """replay_recording (the detector first, then every window its slides need in batches, then the events) in any block
+    size against the live path, every field of every event (features bit for bit)."""
     rec = extreme_recording
     model = load_model()
-    runs = []
-    for block in (LIVE_BLOCK, 65536, 200_000):  # up to 10 s at once (a block must fit the 20 s ring)
+    live = [_fields(ev) for ev in live_events(rec, Config(), model, LIVE_BLOCK)]
+    for block in (LIVE_BLOCK, 65536, rec.samples.shape[0]):
         events: list[PipelineEvent] = []
         replay_recording(rec, Config(), model, block=block, on_event=events.append)
-        runs.append([_fields(ev) for ev in events])
-    assert runs[0] == runs[1] == runs[2]
-    results = [e for e in runs[0] if e["type"] == "SlideResult"]
+        assert [_fields(ev) for ev in events] == live, block
+    results = [e for e in live if e["type"] == "SlideResult"]
     finals = [r for r in results if r["final"]]
     assert len(finals) >= 5 and any(not r["final"] and r["label"] for r in results)  # provisional labels too
     assert any(r["quality"]["saturated"] > 0 for r in finals) and any(r["quality"]["spikes"] > 0 for r in finals)
-    assert any(r["quality"]["lost"] > 0 for r in finals)
+    assert any(r["quality"]["lost"] > 0 for r in finals) and any(e["type"] == "SlideResumed" for e in live)
 
 
 def test_many_windows_at_once_are_each_window_alone() -> None:

@@ -64,7 +64,7 @@ from tactiled.config import DetectorConfig
 from tactiled.core.events import DetectorEvent, Offset, Onset, Pause, Resume
 from tactiled.core.spikes import median_last
 
-CHUNK = 4096  # samples per step of the envelope's front end
+CHUNK = 16384  # samples per step of the envelope's front end (its arrays stay in a core's cache)
 
 
 @dataclass(frozen=True)

@@ -65,36 +65,38 @@ def row_dots(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]) -> npt.NDAr
 
 
 def band_stats(c: npt.NDArray[np.float64], stats: Sequence[str]) -> dict[str, npt.NDArray[np.float64]]:
-    """The asked statistics (each (W,)) of the rows of the coefficient arrays ``c`` (W, m), float64, m >= 1; the same values,
-    row by row, as of each row alone."""
+    """The asked statistics (each (W,)) of the rows of the coefficient arrays ``c`` (W, m), float64, m >= 1: the sums
+    over each row in numpy for all rows at once, the few operations per row on Python floats (cheaper than numpy's
+    per-call cost on W values; the same values, row by row, as of each row alone)."""
     n = c.shape[1]
-    mean = c.sum(axis=1) / n  # as c.mean(axis=1), without its overhead
-    d = c - mean[:, None]
-    m2 = row_dots(d, d) / n
-    scale = np.maximum(np.maximum(np.abs(mean), c.max(axis=1)), np.maximum(-c.min(axis=1), 1e-300))  # max |c|
-    flat = m2 <= (1e-12 * scale) * (1e-12 * scale)  # a float product overflows to inf; ** would raise OverflowError
-    steep = ~flat
-    energy = row_dots(c, c) if "energy" in stats or "rms" in stats else m2
-    zeros = np.zeros_like(m2)
-    out: dict[str, npt.NDArray[np.float64]] = {}
-    for s in stats:
-        if s == "mean":
-            out[s] = mean
-        elif s == "sd":
-            out[s] = zeros if n < 2 else np.where(flat, 0.0, np.sqrt(m2 * n / (n - 1)))
-        elif s == "energy":
-            out[s] = energy
-        elif s == "rms":
-            out[s] = np.sqrt(energy / n)
-        elif s == "skew":
-            # Python's float power, not np.power (its SIMD pow differs from the C library's in the last bit)
-            den = np.array([v ** 1.5 if f else 1.0 for v, f in zip(m2.tolist(), steep.tolist(), strict=True)])
-            out[s] = np.divide((d * d * d).sum(axis=1) / n, den, out=zeros.copy(), where=steep)
-        elif s == "kurt":
-            out[s] = np.divide(((d * d) ** 2).sum(axis=1) / n, m2 * m2, out=zeros.copy(), where=steep)
-        else:
-            raise ValueError(f"unknown statistic {s!r}")
-    return out
+    means = [v / n for v in c.sum(axis=1).tolist()]  # as c.mean(axis=1), without its overhead
+    d = c - np.array(means)[:, None]
+    m2s = (row_dots(d, d) / n).tolist()
+    highs, lows = c.max(axis=1).tolist(), c.min(axis=1).tolist()
+    energies = row_dots(c, c).tolist() if "energy" in stats or "rms" in stats else m2s
+    cubes = ((d * d * d).sum(axis=1) / n).tolist() if "skew" in stats else m2s  # as np.mean(d * d * d) of each row
+    fourths = (((d * d) ** 2).sum(axis=1) / n).tolist() if "kurt" in stats else m2s
+    out: dict[str, list[float]] = {s: [] for s in stats}
+    for mean, m2, high, low, energy, cube, fourth in zip(means, m2s, highs, lows, energies, cubes, fourths, strict=True):
+        scale = max(abs(mean), high, -low, 1e-300)  # max |c|
+        flat = m2 <= (1e-12 * scale) * (1e-12 * scale)  # a float product overflows to inf; ** would raise OverflowError
+        for s in stats:
+            if s == "mean":
+                value = mean
+            elif s == "sd":
+                value = 0.0 if flat or n < 2 else math.sqrt(m2 * n / (n - 1))
+            elif s == "energy":
+                value = energy
+            elif s == "rms":
+                value = math.sqrt(energy / n)
+            elif s == "skew":
+                value = 0.0 if flat else cube / m2 ** 1.5
+            elif s == "kurt":
+                value = 0.0 if flat else fourth / (m2 * m2)
+            else:
+                raise ValueError(f"unknown statistic {s!r}")
+            out[s].append(value)
+    return {s: np.array(v, dtype=np.float64) for s, v in out.items()}
 
 
 FAMILIES = ("dwt", "psd", "tex")
@@ -420,8 +422,14 @@ class FeaturePlan:
             if domain == "freq":
                 sig = np.abs(np.fft.rfft(sig, axis=1))
             approx = sig
+            skipped = 0  # levels whose approximation is needed only for the next: taken with the next in one call
             for j in range(1, level + 1):
                 want = {kind: self._stats.get((channel, domain, f"{kind}{j}")) for kind in "AD"}
+                if not (want["A"] or want["D"]) and j < level:
+                    skipped += 1
+                    continue
+                if skipped and want["D"]:  # pywt.downcoef over several levels gives the levels' coefficients exactly
+                    approx, skipped = self._downcoef("a", approx, skipped), 0
                 # only the half of the transform the plan needs: pywt.downcoef gives dwt's coefficients exactly, at half the cost
                 if want["D"] and (want["A"] or j < level):
                     approx, detail = pywt.dwt(approx, self.wavelet, mode=self.mode, axis=1)
@@ -429,7 +437,7 @@ class FeaturePlan:
                 elif want["D"]:
                     coeffs = {"D": self._downcoef("d", approx)}
                 else:
-                    approx = self._downcoef("a", approx)
+                    approx, skipped = self._downcoef("a", approx, skipped + 1), 0
                     coeffs = {"A": approx}
                 for kind, band in coeffs.items():
                     stats = want[kind]
@@ -453,6 +461,8 @@ class FeaturePlan:
                 out = np.ldexp(out, k[:, None] * self._degrees[None, :])
         return out
 
-    def _downcoef(self, part: str, a: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        """One level of the ``part`` ("a" or "d") coefficients of each row of ``a`` (W, m): pywt.downcoef is one signal at a time."""
-        return np.stack([pywt.downcoef(part, row, self.wavelet, mode=self.mode, level=1) for row in a])
+    def _downcoef(self, part: str, a: npt.NDArray[np.float64], levels: int = 1) -> npt.NDArray[np.float64]:
+        """The ``part`` ("a" or "d") coefficients ``levels`` levels down of each row of ``a`` (W, m): pywt.downcoef is one
+        signal at a time."""
+        rows = [pywt.downcoef(part, row, self.wavelet, mode=self.mode, level=levels) for row in a]
+        return np.stack(rows) if len(rows) > 1 else rows[0][None]
