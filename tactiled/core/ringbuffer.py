@@ -120,14 +120,15 @@ class HeldSamples:
     views and nothing is ever overwritten. :attr:`end` (absolute index one past the samples counted as written) is set
     by the caller as the replay advances, so reads past it fail as a ring's would."""
 
-    def __init__(self, index: int, samples: npt.NDArray[np.generic], valid: npt.NDArray[np.bool_]) -> None:
-        """``samples`` (n, C) and ``valid`` (n,) whose first row has absolute ``index``."""
+    def __init__(self, index: int, samples: npt.NDArray[np.generic], valid: npt.NDArray[np.bool_] | None = None) -> None:
+        """``samples`` (n, C) and ``valid`` (n,) (None: all valid) whose first row has absolute ``index``."""
         self.first = index
         self.samples = samples
         self.valid = valid
         self.end = index
 
     def read(self, start: int, stop: int) -> tuple[npt.NDArray[np.generic], npt.NDArray[np.bool_]]:
-        """Samples [start, stop) as (n, C) and their validity (n,) bool: views, not copies."""
+        """Samples [start, stop) as (n, C) and their validity (n,) bool: views, not copies (but for all-valid samples)."""
         check_range(start, stop, self.first, self.end)
-        return self.samples[start - self.first: stop - self.first], self.valid[start - self.first: stop - self.first]
+        rows = slice(start - self.first, stop - self.first)
+        return self.samples[rows], np.ones(stop - start, dtype=bool) if self.valid is None else self.valid[rows]
