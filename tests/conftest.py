@@ -92,6 +92,19 @@ def lossy_recording(first_index: int, meta: dict[str, object] | None = None, *, 
                      first_index=first_index, lost=ranges, meta=meta or {})
 
 
+def live_events(rec: Recording, config: Any, model: Any, block: int = 800) -> list[Any]:
+    """The daemon's path, the reference for replay: a Stream fed ``rec`` in blocks of ``block`` samples (800: 40 ms at
+    20 kHz) as they come, then ended; every pipeline event (sensor indices)."""
+    from tactiled.run.stream import Stream
+
+    stream = Stream.for_recording(rec, config, model)
+    valid = rec.valid_mask()
+    events: list[Any] = []
+    for lo in range(0, rec.samples.shape[0], block):
+        events += stream.feed_samples(rec.first_index + lo, rec.samples[lo: lo + block], valid[lo: lo + block]).events
+    return events + stream.finish().events
+
+
 class BridgeSink:
     """What a bridge hands to its outlets, kept: every samples, roughness and status message in order (``got``);
     ``stopping`` is set at the daemon's last status, ``closed`` when the bridge closes its outlets."""

@@ -10,12 +10,14 @@ import pytest
 
 from tactiled.config import Config
 from tactiled.core.analysis import clipped_fraction
+from tactiled.core.events import SlideResult
 from tactiled.core.matching import detection_scores, match_slides
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording, load_recording
 from tactiled.learn.dataset import detect_slides
 from tactiled.run.replay import replay_recording
 from tactiled.sim.simulate import write_dataset
+from tests.conftest import live_events
 
 SCENES = ["hand", "robot", "continuous", "fluctuating", "hot-gain", "one-channel", "grating", "continuous,one-channel",
           "fluctuating,one-channel", "robot,hot-gain"]
@@ -120,7 +122,9 @@ def test_same_events_and_labels_in_any_block_size(scene: str, datasets: dict[str
     for block in (1, 7, 64, rec.samples.shape[0]):
         runs.append([(r.start, r.stop, r.window, r.label, r.reason, r.final, round(r.confidence or 0, 9)) for r in
                      replay_recording(rec, Config(), small_model, block=block)])
-    assert runs[0] == runs[1] == runs[2] == runs[3] and any(r[3] for r in runs[0])
+    live = [(r.start, r.stop, r.window, r.label, r.reason, r.final, round(r.confidence or 0, 9)) for r in
+            live_events(rec, Config(), small_model, 64) if isinstance(r, SlideResult)]  # the daemon's path, a window at a time
+    assert runs[0] == runs[1] == runs[2] == runs[3] == live and any(r[3] for r in runs[0])
     finals = [r for r in runs[0] if r[5]]
     truth = [(a, b) for a, b, _ in rec.slides()]
     assert all(j is not None for j in match_slides([(r[0], r[1]) for r in finals], truth))

@@ -7,14 +7,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.core.features import FeaturePlan, family_names, feature_names
-from tactiled.core.spikes import remove_spikes
+from tactiled.core.spikes import remove_spikes_many
 from tactiled.errors import WindowError
 
 
@@ -174,34 +174,39 @@ def clipped_fraction(samples: npt.NDArray[Any]) -> float:
     for integer samples such an extreme must be at least 1024 counts from zero, so the
     quantisation steps of a quiet signal are not mistaken for clipping.
     """
-    n = samples.shape[0]
-    if n < 3:
-        return 0.0
+    return float(clipped_fractions(np.asarray(samples)[None])[0])
+
+
+def clipped_fractions(samples: npt.NDArray[Any]) -> npt.NDArray[np.float64]:
+    """:func:`clipped_fraction` of each of W windows ``samples`` (W, n, C), int or float: (W,)."""
     x = np.asarray(samples)
+    w, n = x.shape[:2]
+    if n < 3:
+        return np.zeros(w)
+    xt = np.ascontiguousarray(x.transpose(0, 2, 1))  # (W, C, n): per channel, contiguous (numpy reduces strided columns ~15x slower)
     integer = np.issubdtype(x.dtype, np.integer)
-    rows: list[npt.NDArray[np.bool_]] = []  # per channel and rail: the rows where it sits at the rail
-    for c in range(x.shape[1]):
-        col = x[:, c]
-        high, low = col.max(), col.min()  # per column: numpy reduces (n, C) along axis 0 ~15x slower
-        if x.dtype == np.int16 and (high >= 32767 or low <= -32768):
-            rows.append((col >= 32767) | (col <= -32768))
-        if high == low:
-            continue
-        for rail in (high, low):
-            if integer and abs(int(rail)) < 1024:
-                continue
-            at = col == rail
-            # held for three samples in a row (a single extreme sample, the usual case, is not a rail)
-            if np.count_nonzero(at) >= 3 and bool(np.any(at[:-2] & at[1:-1] & at[2:])):
-                rows.append(at)
-    if not rows:
-        return 0.0
-    hits = rows[0] if len(rows) == 1 else np.logical_or.reduce(rows)
-    return np.count_nonzero(hits) / n
+    high, low = xt.max(axis=2), xt.min(axis=2)  # (W, C)
+    hits = np.zeros((w, n), dtype=bool)
+    if x.dtype == np.int16 and bool(((high >= 32767) | (low <= -32768)).any()):
+        hits |= ((xt >= 32767) | (xt <= -32768)).any(axis=1)
+    for rail in (high, low):
+        # held for three samples in a row (a single extreme sample, the usual case, is not a rail)
+        candidate = high != low
+        if integer:
+            candidate &= np.abs(rail.astype(np.int64)) >= 1024
+        at = xt == rail[..., None]
+        candidate &= np.count_nonzero(at, axis=2) >= 3
+        for i, c in zip(*np.nonzero(candidate), strict=True):
+            row = at[i, c]
+            if bool(np.any(row[:-2] & row[1:-1] & row[2:])):
+                hits[i] |= row
+    out: npt.NDArray[np.float64] = np.count_nonzero(hits, axis=1) / n
+    return out
 
 
 class Analyser:
-    """Turns one window of samples into a feature vector, or a reason it cannot."""
+    """Turns one window of samples into a feature vector, or a reason it cannot (:meth:`analyse`); offline, many windows at
+    once (:meth:`analyse_many`)."""
 
     def __init__(self, settings: AnalysisSettings, fs: float, volts_per_count: float, integer: bool, max_saturated: float = 1.0,
                  max_lost: float = 0.02) -> None:
@@ -215,24 +220,49 @@ class Analyser:
 
     def analyse(self, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None = None) -> WindowResult:
         """``samples`` (n, C): int16 counts (or float volts when not ``integer``); ``valid`` (n,)."""
-        n = samples.shape[0]
-        lost = 0 if valid is None else int(n - np.count_nonzero(valid))
-        saturated = clipped_fraction(samples)
-        volts = samples.astype(np.float64) * self.volts_per_count if self.integer else np.asarray(samples, dtype=np.float64)
-        quality: dict[str, Any] = {"samples": n, "lost": lost, "saturated": round(saturated, 6), "spikes": 0}
-        if lost > self.max_lost * n:
-            return WindowResult(None, "samples_lost", quality)
-        if lost:
-            assert valid is not None
-            volts = fill_lost(volts, valid)
-        if n < self.plan.min_samples():
-            return WindowResult(None, "window_too_short", quality)
-        if saturated > self.max_saturated:
-            return WindowResult(None, "saturated", quality)
-        s = self.settings
-        clean, spikes = remove_spikes(volts, s.spikes, s.half_width, s.nsigma)
-        quality["spikes"] = spikes
-        try:
-            return WindowResult(self.plan.compute(clean), None, quality)
-        except WindowError as exc:
-            return WindowResult(None, exc.reason, quality)
+        return self.analyse_many(np.asarray(samples)[None], None if valid is None else np.asarray(valid)[None])[0]
+
+    def analyse_many(self, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None = None) -> list[WindowResult]:
+        """W windows of the same length at once: ``samples`` (W, n, C) int16 counts (or float volts when not ``integer``),
+        ``valid`` (W, n); each result the same as :meth:`analyse` of the window alone (the transforms run once for all)."""
+        w, n = samples.shape[:2]
+        lost = np.zeros(w, dtype=np.int64) if valid is None else n - np.count_nonzero(valid, axis=1)
+        saturated = clipped_fractions(samples)
+        # volts in one pass, each channel's samples contiguous (W, C, n) as spike removal and the transforms read them
+        rows = np.empty((w, samples.shape[2], n))
+        if self.integer:
+            np.multiply(samples.transpose(0, 2, 1), self.volts_per_count, out=rows)
+        else:
+            rows[...] = samples.transpose(0, 2, 1)
+        volts = rows.transpose(0, 2, 1)
+        results: list[WindowResult | None] = [None] * w
+        todo: list[int] = []
+        for i in range(w):
+            quality: dict[str, Any] = {"samples": n, "lost": int(lost[i]), "saturated": round(float(saturated[i]), 6), "spikes": 0}
+            reason = None
+            if lost[i] > self.max_lost * n:
+                reason = "samples_lost"
+            elif n < self.plan.min_samples():
+                reason = "window_too_short"
+            elif saturated[i] > self.max_saturated:
+                reason = "saturated"
+            results[i] = WindowResult(None, reason, quality)
+            if reason is None:
+                todo.append(i)
+                if lost[i]:
+                    assert valid is not None
+                    volts[i] = fill_lost(volts[i], valid[i])
+        if todo:
+            s = self.settings
+            clean, spikes = remove_spikes_many(volts[todo] if len(todo) < w else volts, s.spikes, s.half_width, s.nsigma)
+            features = self.plan.compute_many(clean)
+            finite = cast(list[bool], np.isfinite(features).all(axis=1).tolist())
+            for j, i in enumerate(todo):
+                r = results[i]
+                assert r is not None
+                r.quality["spikes"] = int(spikes[j])
+                if finite[j]:
+                    r.features, r.reason = features[j], None
+                else:  # energies of samples near 1e307: beyond float64
+                    r.reason = "non_finite"
+        return [r for r in results if r is not None]

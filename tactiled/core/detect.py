@@ -64,7 +64,7 @@ from tactiled.config import DetectorConfig
 from tactiled.core.events import DetectorEvent, Offset, Onset, Pause, Resume
 from tactiled.core.spikes import median_last
 
-CHUNK = 4096  # samples per step of the envelope's front end
+CHUNK = 16384  # samples per step of the envelope's front end (its arrays stay in a core's cache)
 
 
 @dataclass(frozen=True)
@@ -182,16 +182,62 @@ class SlideDetector:
             used = hops * self.hop
             energy = self._envelope(buf, hops)
             hop_valid = cast(list[bool], np.asarray(vbuf[:used]).reshape(hops, self.hop).all(axis=1).tolist())
-            at = self._pending_index
-            unsettled = self._first + self.front.history  # type: ignore[operator]
-            for h in range(hops):
-                evs = self._step(at, energy[h], hop_valid[h] and at >= unsettled)
-                if evs:
-                    events += [replace(e, at=at + self.hop) for e in evs]
-                at += self.hop
+            events += self._hops(self._pending_index, energy, hop_valid)
         self._pending = buf[hops * self.hop:]
         self._pending_valid = vbuf[hops * self.hop:]
         self._pending_index += hops * self.hop
+        return events
+
+    def _hops(self, at: int, energy: list[float], hop_valid: list[bool]) -> list[DetectorEvent]:
+        """:meth:`_step` of each hop from absolute index ``at`` (envelopes, valid flags); the events with their ``at``.
+
+        The hops of the two states nearly every hop is in, at rest below the onset level and in a slide above the quiet
+        level, take a short path with the state in local variables (the same decisions and floor arithmetic as
+        :meth:`_idle` and :meth:`_in_slide`); every other hop goes through :meth:`_step`.
+        """
+        events: list[DetectorEvent] = []
+        hop, last, recent = self.hop, self._last3, self._recent
+        on, off, alpha = self.c.on_factor, self.c.off_factor, self._alpha
+        longest = self.c.max_slide_s * self.fs if self.c.max_slide_s > 0 else math.inf
+        exp, log = math.exp, math.log
+        unsettled = self._first + self.front.history  # type: ignore[operator]
+        floor, sliding, paused, settle, holdoff = self._floor, self.sliding, self._paused, self._settle_until, self._holdoff_until
+        shown, envelope = self.floor, self.envelope  # self.floor and self.envelope, written back before any other path
+        for env, ok in zip(energy, hop_valid, strict=True):
+            if floor is not None and ok and env > 0.0 and at >= unsettled and (sliding or at >= settle):
+                last.append(env)
+                if len(last) == 3:  # the median of three as _step takes it (min and max as the builtins order them)
+                    a, b, c = last
+                    lo, hi = (b if b < a else a), (b if b > a else a)
+                    mid = c if c < hi else hi
+                    smooth = mid if mid > lo else lo
+                else:
+                    smooth = _median3(last)
+                if not sliding and (smooth <= on * floor or at < holdoff):  # at rest: the floor follows (as _idle)
+                    shown = floor
+                    if smooth > 0:
+                        floor = exp(log(floor) + alpha * (log(smooth) - log(floor)))
+                    recent.append((at, smooth))
+                    envelope = env
+                    at += hop
+                    continue
+                if sliding and smooth >= off * floor and not paused and at + hop - self._start < longest:  # a slide goes on (as _in_slide)
+                    self._quiet_since = None
+                    recent.append((at, smooth))
+                    envelope = env
+                    at += hop
+                    continue
+                self._floor, self.floor, self.envelope = floor, shown, env
+                evs = self._idle(at, smooth) if not sliding else self._in_slide(at, smooth)
+            else:
+                self._floor, self.floor, self.envelope = floor, shown, envelope
+                evs = self._step(at, env, ok and at >= unsettled)
+            if evs:
+                events += [replace(e, at=at + hop) for e in evs]
+            floor, sliding, paused, settle, holdoff = self._floor, self.sliding, self._paused, self._settle_until, self._holdoff_until
+            shown, envelope = self.floor, self.envelope
+            at += hop
+        self._floor, self.floor, self.envelope = floor, shown, envelope
         return events
 
     def _skip(self, expected: int, index: int, channels: int) -> tuple[list[DetectorEvent], int]:

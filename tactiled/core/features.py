@@ -57,32 +57,46 @@ def feature_names(channels: int, level: int = 4, domains: Sequence[str] = DOMAIN
     return [f"film{c + 1}.{d}.{b}.{s}" for c in range(channels) for d in domains for b in bands for s in stats]
 
 
-def band_stats(c: npt.NDArray[np.float64], stats: Sequence[str]) -> dict[str, float]:
-    """The asked statistics of one coefficient array (float64, non-empty)."""
-    n = c.shape[0]
-    mean = float(c.sum()) / n  # as c.mean(), without its overhead
-    d = c - mean
-    m2 = float(np.dot(d, d)) / n
-    out: dict[str, float] = {}
-    scale = max(abs(mean), float(c.max()), -float(c.min()), 1e-300)  # max |c|
-    flat = m2 <= (1e-12 * scale) * (1e-12 * scale)  # a float product overflows to inf; ** would raise OverflowError
-    energy = float(np.dot(c, c)) if "energy" in stats or "rms" in stats else 0.0
-    for s in stats:
-        if s == "mean":
-            out[s] = mean
-        elif s == "sd":
-            out[s] = 0.0 if flat or n < 2 else math.sqrt(m2 * n / (n - 1))
-        elif s == "energy":
-            out[s] = energy
-        elif s == "rms":
-            out[s] = math.sqrt(energy / n)
-        elif s == "skew":
-            out[s] = 0.0 if flat else float(np.mean(d * d * d)) / m2 ** 1.5
-        elif s == "kurt":
-            out[s] = 0.0 if flat else float(np.mean((d * d) ** 2)) / (m2 * m2)
-        else:
-            raise ValueError(f"unknown statistic {s!r}")
+def row_dots(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """(W,) the dot product of each row of ``a`` and ``b`` (W, m): the same values as ``np.dot`` of each pair of rows (matmul
+    of vectors is BLAS ``ddot``, as ``np.dot`` is; ``einsum`` rounds differently)."""
+    out: npt.NDArray[np.float64] = np.matmul(a[:, None, :], b[:, :, None])[:, 0, 0]
     return out
+
+
+def band_stats(c: npt.NDArray[np.float64], stats: Sequence[str]) -> dict[str, npt.NDArray[np.float64]]:
+    """The asked statistics (each (W,)) of the rows of the coefficient arrays ``c`` (W, m), float64, m >= 1: the sums
+    over each row in numpy for all rows at once, the few operations per row on Python floats (cheaper than numpy's
+    per-call cost on W values; the same values, row by row, as of each row alone)."""
+    n = c.shape[1]
+    means = [v / n for v in c.sum(axis=1).tolist()]  # as c.mean(axis=1), without its overhead
+    d = c - np.array(means)[:, None]
+    m2s = (row_dots(d, d) / n).tolist()
+    highs, lows = c.max(axis=1).tolist(), c.min(axis=1).tolist()
+    energies = row_dots(c, c).tolist() if "energy" in stats or "rms" in stats else m2s
+    cubes = ((d * d * d).sum(axis=1) / n).tolist() if "skew" in stats else m2s  # as np.mean(d * d * d) of each row
+    fourths = (((d * d) ** 2).sum(axis=1) / n).tolist() if "kurt" in stats else m2s
+    out: dict[str, list[float]] = {s: [] for s in stats}
+    for mean, m2, high, low, energy, cube, fourth in zip(means, m2s, highs, lows, energies, cubes, fourths, strict=True):
+        scale = max(abs(mean), high, -low, 1e-300)  # max |c|
+        flat = m2 <= (1e-12 * scale) * (1e-12 * scale)  # a float product overflows to inf; ** would raise OverflowError
+        for s in stats:
+            if s == "mean":
+                value = mean
+            elif s == "sd":
+                value = 0.0 if flat or n < 2 else math.sqrt(m2 * n / (n - 1))
+            elif s == "energy":
+                value = energy
+            elif s == "rms":
+                value = math.sqrt(energy / n)
+            elif s == "skew":
+                value = 0.0 if flat else cube / m2 ** 1.5
+            elif s == "kurt":
+                value = 0.0 if flat else fourth / (m2 * m2)
+            else:
+                raise ValueError(f"unknown statistic {s!r}")
+            out[s].append(value)
+    return {s: np.array(v, dtype=np.float64) for s, v in out.items()}
 
 
 FAMILIES = ("dwt", "psd", "tex")
@@ -145,16 +159,18 @@ def family_names(family: str, channels: int, fs: float, settings: Any = None) ->
 HUGE_EXPONENT = 100  # a window with samples beyond 2**100 V is analysed scaled down by a power of two (squares stay finite)
 
 
-def pow2_normalised(x: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], int]:
-    """(``x`` · 2**-k, k): k is 0 (``x`` itself) unless some |x| exceeds 2**:data:`HUGE_EXPONENT`, then the power of two that
-    brings max |x| into [0.5, 1). Scaling by a power of two is exact, so sums, squares and FFTs of the scaled window,
-    scaled back, are the unscaled ones bit for bit wherever those are finite (what goes through a logarithm, to rounding);
-    sums of squares of samples near 1e307 no longer overflow."""
-    top = float(np.max(np.abs(x))) if x.size else 0.0
-    if not top > 2.0 ** HUGE_EXPONENT or not math.isfinite(top):
-        return x, 0
-    k = math.frexp(top)[1]
-    return np.ldexp(x, -k), k
+def pow2_normalised(x: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
+    """(``x`` (W, ...) with each window scaled by 2**-k, k (W,)): k is 0 (the window as it is) unless some |x| of the window
+    exceeds 2**:data:`HUGE_EXPONENT`, then the power of two that brings its max |x| into [0.5, 1). Scaling by a power of
+    two is exact, so sums, squares and FFTs of the scaled window, scaled back, are the unscaled ones bit for bit wherever
+    those are finite (what goes through a logarithm, to rounding); sums of squares of samples near 1e307 no longer overflow."""
+    axes = tuple(range(1, x.ndim))
+    top = np.maximum(x.max(axis=axes), -x.min(axis=axes)) if x.size else np.zeros(x.shape[0])
+    huge = (top > 2.0 ** HUGE_EXPONENT) & np.isfinite(top)
+    if not huge.any():
+        return x, np.zeros(x.shape[0], dtype=np.int64)
+    k = np.where(huge, np.frexp(top)[1], 0).astype(np.int64)
+    return np.ldexp(x, -k.reshape((-1,) + (1,) * (x.ndim - 1))), k
 
 
 def feature_degree(name: str) -> int:
@@ -256,17 +272,19 @@ def parse_psd(name: str, fs: float) -> tuple[int, float, float]:
 
 
 def psd_of(x: npt.NDArray[np.float64], fs: float) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """(f (m,) Hz, Welch PSD (m,) V²/Hz) of one channel ``x`` (n,): Hann segments of ~50 ms, half overlapping, mean removed.
+    """(f (m,) Hz, Welch PSD (..., m) V²/Hz) of signals ``x`` (..., n) (one channel of one window or of W windows): Hann
+    segments of ~50 ms, half overlapping, mean removed.
 
-    The same values as ``scipy.signal.welch(x, fs, "hann", nper, nper // 2, detrend="constant")`` (to rounding), in numpy.
+    The same values as ``scipy.signal.welch(x, fs, "hann", nper, nper // 2, detrend="constant")`` (to rounding), in numpy;
+    each signal's the same as alone.
     """
-    nper = welch_segment(fs, x.shape[0])
+    nper = welch_segment(fs, x.shape[-1])
     step = nper - nper // 2
-    segments = np.lib.stride_tricks.sliding_window_view(np.asarray(x, dtype=np.float64), nper)[::step]
+    segments = np.lib.stride_tricks.sliding_window_view(np.asarray(x, dtype=np.float64), nper, axis=-1)[..., ::step, :]
     window = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(nper) / nper)  # periodic Hann, as scipy.signal.welch's "hann"
-    spec = np.fft.rfft((segments - segments.mean(axis=1, keepdims=True)) * window, axis=1)
-    p = (spec.real**2 + spec.imag**2).mean(axis=0) / (fs * float(np.dot(window, window)))
-    p[1:-1 if nper % 2 == 0 else None] *= 2  # one-sided: every bin but DC (and Nyquist) holds both signs
+    spec = np.fft.rfft((segments - segments.mean(axis=-1, keepdims=True)) * window, axis=-1)
+    p = (spec.real**2 + spec.imag**2).mean(axis=-2) / (fs * float(np.dot(window, window)))
+    p[..., 1:-1 if nper % 2 == 0 else None] *= 2  # one-sided: every bin but DC (and Nyquist) holds both signs
     return np.asarray(np.fft.rfftfreq(nper, 1.0 / fs), dtype=np.float64), np.asarray(p, dtype=np.float64)
 
 
@@ -366,33 +384,60 @@ class FeaturePlan:
         return need
 
     def compute(self, x: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        """Feature vector (len(names),) of window ``x`` (n, C) in volts, float64.
+        """Feature vector (len(names),) of window ``x`` (n, C) in volts, float64 (:meth:`compute_many` of one window).
 
-        Raises :class:`WindowError` (reason ``window_too_short``) when n < :meth:`min_samples`,
-        and ValueError if x has fewer channels than the names need.
+        Raises :class:`WindowError` (reason ``window_too_short``) when n < :meth:`min_samples`, ``non_finite`` when a
+        feature is beyond float64, and ValueError if x has fewer channels than the names need.
         """
         x = np.asarray(x, dtype=np.float64)
         if x.ndim != 2 or x.shape[1] < self.channels_needed:
             raise ValueError(f"window must have shape (n, >= {self.channels_needed}), got {x.shape}")
-        if x.shape[0] < self.min_samples():
-            raise WindowError("window_too_short", f"window of {x.shape[0]} samples is shorter than the {self.min_samples()} the features need")
+        out: npt.NDArray[np.float64] = self.compute_many(x[None])[0]
+        # energies of a saturated window reach ~1e9; a non-finite one comes only from samples beyond any real sensor
+        if not np.all(np.isfinite(out)):
+            k = int(pow2_normalised(x[None])[1][0])
+            raise WindowError("non_finite", "features are not finite" + (f" (samples up to 2^{k} V: their energies are beyond float64)" if k else ""))
+        return out
+
+    def compute_many(self, x: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """Feature vectors (W, len(names)) of W windows ``x`` (W, n, C) in volts, float64, each row the same values as the
+        window alone (the transforms run on all windows at once: offline, a slide's windows cost one call).
+
+        A row with a feature beyond float64 (the energy of samples near 1e307) holds inf (:meth:`compute` raises ``non_finite``).
+        Raises :class:`WindowError` (reason ``window_too_short``) when n < :meth:`min_samples`, and ValueError if x has fewer
+        channels than the names need.
+        """
+        x = np.asarray(x, dtype=np.float64)
+        if x.ndim != 3 or x.shape[2] < self.channels_needed:
+            raise ValueError(f"windows must have shape (W, n, >= {self.channels_needed}), got {x.shape}")
+        if x.shape[1] < self.min_samples():
+            raise WindowError("window_too_short", f"window of {x.shape[1]} samples is shorter than the {self.min_samples()} the features need")
         x, k = pow2_normalised(x)
-        values: dict[str, float] = {}
+        xt = x.transpose(0, 2, 1)  # (W, C, n): each channel's samples contiguous (free after remove_spikes_many)
+        if not xt.flags.c_contiguous:
+            xt = np.ascontiguousarray(xt)
+        values: dict[str, npt.NDArray[np.float64]] = {}
         for (channel, domain), level in self._levels.items():
-            sig = x[:, channel]
+            sig = xt[:, channel]
             if domain == "freq":
-                sig = np.abs(np.fft.rfft(sig))
+                sig = np.abs(np.fft.rfft(sig, axis=1))
             approx = sig
+            skipped = 0  # levels whose approximation is needed only for the next: taken with the next in one call
             for j in range(1, level + 1):
                 want = {kind: self._stats.get((channel, domain, f"{kind}{j}")) for kind in "AD"}
+                if not (want["A"] or want["D"]) and j < level:
+                    skipped += 1
+                    continue
+                if skipped and want["D"]:  # pywt.downcoef over several levels gives the levels' coefficients exactly
+                    approx, skipped = self._downcoef("a", approx, skipped), 0
                 # only the half of the transform the plan needs: pywt.downcoef gives dwt's coefficients exactly, at half the cost
                 if want["D"] and (want["A"] or j < level):
-                    approx, detail = pywt.dwt(approx, self.wavelet, mode=self.mode)
+                    approx, detail = pywt.dwt(approx, self.wavelet, mode=self.mode, axis=1)
                     coeffs = {"A": approx, "D": detail}
                 elif want["D"]:
-                    coeffs = {"D": pywt.downcoef("d", approx, self.wavelet, mode=self.mode, level=1)}
+                    coeffs = {"D": self._downcoef("d", approx)}
                 else:
-                    approx = pywt.downcoef("a", approx, self.wavelet, mode=self.mode, level=1)
+                    approx, skipped = self._downcoef("a", approx, skipped + 1), 0
                     coeffs = {"A": approx}
                 for kind, band in coeffs.items():
                     stats = want[kind]
@@ -400,19 +445,24 @@ class FeaturePlan:
                         for stat, value in band_stats(band, stats).items():
                             values[f"film{channel + 1}.{domain}.{kind}{j}.{stat}"] = value
         for channel in sorted(set(self._psd) | set(self._tex)):
-            f, p = psd_of(x[:, channel], self.fs)
+            f, p = psd_of(xt[:, channel], self.fs)
             if channel in self._psd:
                 bands = self._psd[channel]
-                for (name, _, _), power in zip(bands, band_powers(f, p, [(lo, hi) for _, lo, hi in bands]), strict=True):
-                    values[name] = float(power)
+                powers = np.array([band_powers(f, row, [(lo, hi) for _, lo, hi in bands]) for row in p])
+                for i, (name, _, _) in enumerate(bands):
+                    values[name] = powers[:, i]
             if channel in self._tex:
-                for t, value in texture(x[:, channel], f, p, self.fs, self._tex[channel], self._slope_range).items():
-                    values[f"film{channel + 1}.tex.{t}"] = value
-        out = np.array([values[n] for n in self.names], dtype=np.float64)
-        if k:  # back to the window's own scale; a feature beyond float64 (energy of samples near 1e307) becomes inf
+                rows = [texture(xt[w, channel], f, p[w], self.fs, self._tex[channel], self._slope_range) for w in range(x.shape[0])]
+                for t in self._tex[channel]:
+                    values[f"film{channel + 1}.tex.{t}"] = np.array([r[t] for r in rows])
+        out = np.stack([values[n] for n in self.names], axis=1) if self.names else np.zeros((x.shape[0], 0))
+        if k.any():  # back to each window's own scale; a feature beyond float64 (energy of samples near 1e307) becomes inf
             with np.errstate(over="ignore"):
-                out = np.ldexp(out, k * self._degrees)
-        # energies of a saturated window reach ~1e9; a non-finite one comes only from samples beyond any real sensor
-        if not np.all(np.isfinite(out)):
-            raise WindowError("non_finite", "features are not finite" + (f" (samples up to 2^{k} V: their energies are beyond float64)" if k else ""))
+                out = np.ldexp(out, k[:, None] * self._degrees[None, :])
         return out
+
+    def _downcoef(self, part: str, a: npt.NDArray[np.float64], levels: int = 1) -> npt.NDArray[np.float64]:
+        """The ``part`` ("a" or "d") coefficients ``levels`` levels down of each row of ``a`` (W, m): pywt.downcoef is one
+        signal at a time."""
+        rows = [pywt.downcoef(part, row, self.wavelet, mode=self.mode, level=levels) for row in a]
+        return np.stack(rows) if len(rows) > 1 else rows[0][None]

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -33,8 +34,10 @@ from tactiled.config import Config
 from tactiled.core.analysis import Analyser, AnalysisSettings, WindowResult
 from tactiled.core.detect import SlideDetector
 from tactiled.core.events import DetectorEvent, Offset, Onset, Pause, PipelineEvent, Resume, SlideEnded, SlideResult, SlideResumed, SlideStarted
-from tactiled.core.ringbuffer import RingBuffer
+from tactiled.core.ringbuffer import HeldSamples, RingBuffer
 from tactiled.errors import OverwrittenError, WindowError
+
+AHEAD = 16  # windows analysed in one call when a replay analyses ahead: as fast as 32, half the temporaries (~1.3 MB each)
 
 
 class Classifier(Protocol):
@@ -43,6 +46,10 @@ class Classifier(Protocol):
     classes: list[str]
     fingerprint: str
     settings: AnalysisSettings
+
+    def scores(self, x: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """Window scores (n, K), columns in :attr:`classes` order, for raw features (n, F); :meth:`assess`'s probabilities are
+        a softmax of their fusion (``settings.fusion``), so their top class is the fused scores' top class."""
 
     def assess(self, features: npt.NDArray[np.float64], final: bool = True) -> tuple[npt.NDArray[np.float64], float, float | None]:
         """(probabilities (K,), calibrated confidence that the top class is right, novelty or None) of a slide's windows' raw features (w, F);
@@ -101,6 +108,8 @@ class Pipeline:
         window = round(self.settings.duration_s * fs)
         capacity = max(round(config.ring.seconds * fs), 2 * window + round(config.detector.off_hold_s * fs) + round(fs))
         self.ring = RingBuffer(capacity, channels, np.int16 if integer else np.float64)
+        self._reader: RingBuffer | HeldSamples = self.ring  # where windows are read: the ring, or a whole recording (replay)
+        self._ahead: dict[tuple[int, int], _Window] = {}  # windows analysed ahead of need (replay), by span
         self.detector = SlideDetector(config.detector, fs, channels)
         self._detector_args = (config.detector, fs, channels)
         self._fresh_detector = False  # after shed(): the next samples fed start a new detector
@@ -176,12 +185,66 @@ class Pipeline:
             self.detector = SlideDetector(*self._detector_args)
             self._fresh_detector = False
         self.ring.write(index, samples, valid)
-        volts = samples.astype(np.float64) * self.volts_per_count
-        if valid is not None:
-            volts[~valid] = 0.0
-        events = self._handle(self.detector.feed(index, volts, valid))  # the detector treats index gaps as lost itself
+        events = self._handle(self.detector.feed(index, self._volts(samples, valid), valid))  # the detector treats index gaps as lost itself
         events += self._analyse_ready()
         return events
+
+    def _volts(self, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None) -> npt.NDArray[np.float64]:
+        """The detector's input: ``samples`` (n, C) in volts, float64 (one pass), 0 where not ``valid`` (n,)."""
+        volts: npt.NDArray[np.float64] = np.multiply(samples, self.volts_per_count, dtype=np.float64)
+        if valid is not None:
+            volts[~valid] = 0.0
+        return volts
+
+    def replay(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None = None,
+               block: int = 65536) -> Iterator[tuple[int, list[PipelineEvent]]]:
+        """Offline: a whole recording held in memory, ``samples`` (n, C) (``valid`` (n,)) whose first row has absolute ``index``,
+        with the events of :meth:`feed` of its blocks of ``block`` rows and then of :meth:`finish`: yields (row of the block's
+        first sample, its events), then (n, the end's events). The same events as feeding those blocks, in less time.
+
+        Three passes: the detector over every block (its events do not depend on the analysis); every window those slides
+        need (:meth:`_spans_needed`), analysed in batches of ``AHEAD`` windows read straight from ``samples`` (no ring);
+        then the events, block by block, with those windows (any other is analysed when asked for, as in :meth:`feed`).
+        """
+        n = samples.shape[0]
+        steps: list[tuple[int, list[DetectorEvent]]] = []
+        for lo in range(0, n, block):
+            rows = slice(lo, min(n, lo + block))
+            ok = None if valid is None else valid[rows]
+            steps.append((lo, self.detector.feed(index + lo, self._volts(samples[rows], ok), ok)))
+        end_events = self.detector.finish()
+        self._reader = held = HeldSamples(index, samples, valid)
+        held.end = index + n
+        spans = sorted(self._spans_needed([ev for _, evs in steps for ev in evs] + end_events))
+        for i in range(0, len(spans), AHEAD):
+            self._ahead.update((w.span, w) for w in self._analyse(spans[i: i + AHEAD]))
+        for lo, evs in steps:
+            held.end = index + min(n, lo + block)
+            yield lo, self._handle(evs) + self._analyse_ready()
+        yield n, self._handle(end_events)
+        self._ahead.clear()
+
+    def _spans_needed(self, events: Iterable[DetectorEvent]) -> set[tuple[int, int]]:
+        """The windows the pipeline analyses for these detector events (all of a stream, in order): a slide's windows up to
+        its Offset's ``at`` (:meth:`_analyse_ready`), and those :meth:`_final` reads at each Pause and Offset."""
+        s, fs = self.settings, self.fs
+        hop = max(1, round(s.hop() * fs))
+        out: set[tuple[int, int]] = set()
+        onset: int | None = None
+        for ev in events:
+            if isinstance(ev, Onset):
+                onset = ev.start
+            elif isinstance(ev, Offset | Pause):
+                if isinstance(ev, Offset) and onset is not None:
+                    lo, hi = s.first_span(onset, fs)
+                    count = 0
+                    while hi <= ev.at and not (s.max_windows and count >= s.max_windows):
+                        out.add((lo, hi))
+                        lo, hi, count = lo + hop, hi + hop, count + 1
+                    onset = None
+                if not (isinstance(ev, Offset) and ev.reason == "too_short"):
+                    out.update(s.spans(ev.start, ev.stop, fs, self.min_samples))
+        return out
 
     def finish(self) -> list[PipelineEvent]:
         """End of stream: a slide in progress ends at the last sample fed and gets its final result."""
@@ -228,44 +291,106 @@ class Pipeline:
         return events
 
     def _analyse_ready(self, until: int | None = None) -> list[PipelineEvent]:
-        """Analyse every window of the slide in progress that the ring holds (up to ``until``); provisional results."""
-        events: list[PipelineEvent] = []
+        """Analyse every window of the slide in progress that the ring holds (up to ``until``), all in one call (offline,
+        a block holds many); then, window by window, the provisional results."""
+        if self._onset is None or self._next is None:
+            return []
         s = self.settings
-        limit = self.ring.end if until is None else min(until, self.ring.end)
-        while self._onset is not None and self._next is not None and limit >= self._next[1]:
-            if s.max_windows and len(self._windows) >= s.max_windows:
-                self._next = None
+        end = self._reader.end
+        limit = end if until is None else min(until, end)
+        hop = max(1, round(s.hop() * self.fs))
+        spans: list[tuple[int, int]] = []
+        nxt: tuple[int, int] | None = self._next
+        while nxt is not None and limit >= nxt[1]:
+            if s.max_windows and len(self._windows) + len(spans) >= s.max_windows:
+                nxt = None
                 break
-            t0 = time.perf_counter()
-            w = self._window(self._next)
+            spans.append(nxt)
+            nxt = (nxt[0] + hop, nxt[1] + hop)
+        self._next = nxt
+        events: list[PipelineEvent] = []
+        if not spans:
+            return events
+        t0 = time.perf_counter()
+        windows = self._analyse(spans)
+        leads = self._leads(windows) if len(windows) > 1 else [None] * len(windows)  # offline: many windows at once
+        for w, lead in zip(windows, leads, strict=True):
             self._windows.append(w)
-            hop = max(1, round(s.hop() * self.fs))
-            self._next = (self._next[0] + hop, self._next[1] + hop)
             if w.usable:
-                prov = self._provisional_result(t0)
+                prov = self._provisional_result(t0, lead)
                 if prov is not None:
                     events.append(prov)
         return events
 
-    def _window(self, span: tuple[int, int]) -> _Window:
-        return _Window(span, self._read(*span))
+    def _leads(self, new: list[_Window]) -> list[str | None]:
+        """For each of the windows ``new`` (about to join the slide's), the class the slide's fused prediction puts first
+        once it has joined: the top of the model's window scores fused as ``settings.fusion`` says (softmax keeps their
+        order), from one :meth:`Classifier.scores` call for all of them; None where the top two are within 1e-6 (rounding
+        of the fusion could swap them: :meth:`Classifier.assess` decides) or the window is not usable.
+
+        A provisional label is published only when the leading class changes, so a window whose lead is the provisional
+        label already published needs no :meth:`Classifier.assess` (replay: most windows of a slide)."""
+        if self.model is None:
+            return [None] * len(new)
+        rows = [w.result.features for w in self._windows + new if w.result.features is not None]
+        if not rows:
+            return [None] * len(new)
+        x = np.stack(rows)
+        counts = np.arange(1, len(rows) + 1)[:, None]
+        # fusion "features" classifies the mean of the windows' features; "scores" averages the windows' class scores
+        fused = self.model.scores(np.cumsum(x, axis=0) / counts) if self.settings.fusion == "features" else np.cumsum(self.model.scores(x), axis=0) / counts
+        if fused.shape[1] == 1:
+            tops: list[str | None] = [self.model.classes[0]] * len(rows)
+        else:
+            two = -np.partition(-fused, 1, axis=1)[:, :2]
+            clear = two[:, 0] - two[:, 1] > 1e-6 * np.maximum(1.0, np.abs(two[:, 0]))
+            first = np.argmax(fused, axis=1)
+            tops = [self.model.classes[int(i)] if ok else None for i, ok in zip(first, clear, strict=True)]
+        out: list[str | None] = []
+        k = len(rows) - sum(w.usable for w in new)  # the usable windows before these
+        for w in new:
+            out.append(tops[k] if w.usable else None)
+            k += w.usable
+        return out
+
+    def _analyse(self, spans: list[tuple[int, int]]) -> list[_Window]:
+        """The windows ``spans``, analysed ahead (:meth:`replay`) or now: those of one length in one
+        :meth:`Analyser.analyse_many` call."""
+        ahead = [self._ahead.get(sp) for sp in spans]
+        todo = [sp for sp, w in zip(spans, ahead, strict=True) if w is None]
+        done = iter(self._analyse_now(todo) if todo else [])
+        return [w if w is not None else next(done) for w in ahead]
+
+    def _analyse_now(self, spans: list[tuple[int, int]]) -> list[_Window]:
+        results: list[WindowResult | None] = [None] * len(spans)
+        groups: dict[int, list[tuple[int, npt.NDArray[Any], npt.NDArray[np.bool_]]]] = {}
+        for i, (lo, hi) in enumerate(spans):
+            if hi - lo < self.min_samples:
+                # a slide that ended before (or soon after) its window began: nothing to read, whatever the block timing
+                results[i] = WindowResult(None, "window_too_short", {"samples": max(hi - lo, 0), "lost": 0, "saturated": 0.0, "spikes": 0})
+                continue
+            try:
+                samples, valid = self._reader.read(lo, hi)
+            except OverwrittenError:
+                results[i] = WindowResult(None, "overwritten", {"samples": hi - lo, "lost": hi - lo, "saturated": 0.0, "spikes": 0})
+                continue
+            groups.setdefault(hi - lo, []).append((i, samples, valid))
+        for group in groups.values():
+            analysed = self.analyser.analyse_many(np.stack([g[1] for g in group]), np.stack([g[2] for g in group]))
+            for (i, _, _), result in zip(group, analysed, strict=True):
+                results[i] = result
+        return [_Window(span, r) for span, r in zip(spans, results, strict=True) if r is not None]
 
     def _assess(self, used: list[_Window], final: bool = True) -> tuple[npt.NDArray[np.float64], float, float | None]:
         assert self.model is not None
         return self.model.assess(np.stack([w.result.features for w in used if w.result.features is not None]), final)
 
-    def _read(self, lo: int, hi: int) -> WindowResult:
-        if hi - lo < self.min_samples:
-            # a slide that ended before (or soon after) its window began: nothing to read, whatever the block timing
-            return WindowResult(None, "window_too_short", {"samples": max(hi - lo, 0), "lost": 0, "saturated": 0.0, "spikes": 0})
-        try:
-            samples, valid = self.ring.read(lo, hi)
-        except OverwrittenError:
-            return WindowResult(None, "overwritten", {"samples": hi - lo, "lost": hi - lo, "saturated": 0.0, "spikes": 0})
-        return self.analyser.analyse(samples, valid)
-
-    def _provisional_result(self, t0: float) -> SlideResult | None:
+    def _provisional_result(self, t0: float, lead: str | None = None) -> SlideResult | None:
+        """The provisional result after the slide's latest window, if it is one to publish; ``lead``: the class the fused
+        prediction puts first, when known (:meth:`_leads`)."""
         if self.model is None or self._onset is None or self.provisional_confidence >= 1.0 or self._paused is not None:
+            return None
+        if lead is not None and lead == self._provisional:  # the label published already: nothing new to say
             return None
         used = [w for w in self._windows if w.usable]
         assessed = self._assess(used, final=False)
@@ -281,7 +406,9 @@ class Pipeline:
         t0 = time.perf_counter()
         spans = self.settings.spans(start, stop, self.fs, self.min_samples)
         done = {w.span: w for w in self._windows}
-        windows = [done[sp] if sp in done else self._window(sp) for sp in spans]
+        missing = [sp for sp in spans if sp not in done]
+        done.update(zip(missing, self._analyse(missing), strict=True))
+        windows = [done[sp] for sp in spans]
         used = [w for w in windows if w.usable] if self.model is not None else []
         if not used:
             reasons = [w.result.reason for w in windows if w.result.reason] or ["window_too_short"]

@@ -13,6 +13,17 @@ import numpy.typing as npt
 from tactiled.errors import NotYetWrittenError, OverwrittenError
 
 
+def check_range(start: int, stop: int, oldest: int, end: int) -> None:
+    """Raise unless samples [start, stop) (absolute indices) are held, i.e. within [oldest, end): ValueError if the range
+    is reversed, :class:`NotYetWrittenError` past ``end``, :class:`OverwrittenError` before ``oldest``."""
+    if stop < start:
+        raise ValueError(f"range [{start}, {stop}) is reversed")
+    if stop > end:
+        raise NotYetWrittenError(f"samples [{start}, {stop}) not yet written (newest is {end - 1})")
+    if start < oldest:
+        raise OverwrittenError(f"samples [{start}, {stop}) already overwritten (oldest held is {oldest})")
+
+
 class RingBuffer:
     """``capacity`` samples of ``channels`` channels of ``dtype``, plus a validity mask."""
 
@@ -85,12 +96,7 @@ class RingBuffer:
                 self._valid[sl] = valid
 
     def _check(self, start: int, stop: int) -> None:
-        if stop < start:
-            raise ValueError(f"range [{start}, {stop}) is reversed")
-        if stop > self._end:
-            raise NotYetWrittenError(f"samples [{start}, {stop}) not yet written (newest is {self._end - 1})")
-        if start < self.oldest:
-            raise OverwrittenError(f"samples [{start}, {stop}) already overwritten (oldest held is {self.oldest})")
+        check_range(start, stop, self.oldest, self._end)
 
     def _take(self, arr: npt.NDArray[np.generic], start: int, stop: int) -> npt.NDArray[np.generic]:
         lo, n = start % self.capacity, stop - start  # n <= capacity (checked): at most two slices, no index array
@@ -107,3 +113,22 @@ class RingBuffer:
         """How many samples in [start, stop) carry no data."""
         self._check(start, stop)
         return int(stop - start - np.count_nonzero(self._take(self._valid, start, stop)))
+
+
+class HeldSamples:
+    """The read side of a :class:`RingBuffer` over samples held whole in memory (offline replay of a recording): reads are
+    views and nothing is ever overwritten. :attr:`end` (absolute index one past the samples counted as written) is set
+    by the caller as the replay advances, so reads past it fail as a ring's would."""
+
+    def __init__(self, index: int, samples: npt.NDArray[np.generic], valid: npt.NDArray[np.bool_] | None = None) -> None:
+        """``samples`` (n, C) and ``valid`` (n,) (None: all valid) whose first row has absolute ``index``."""
+        self.first = index
+        self.samples = samples
+        self.valid = valid
+        self.end = index
+
+    def read(self, start: int, stop: int) -> tuple[npt.NDArray[np.generic], npt.NDArray[np.bool_]]:
+        """Samples [start, stop) as (n, C) and their validity (n,) bool: views, not copies (but for all-valid samples)."""
+        check_range(start, stop, self.first, self.end)
+        rows = slice(start - self.first, stop - self.first)
+        return self.samples[rows], np.ones(stop - start, dtype=bool) if self.valid is None else self.valid[rows]

@@ -20,46 +20,77 @@ def remove_spikes(x: npt.NDArray[np.float64], method: str = "mad", half_width: i
     x = np.asarray(x, dtype=np.float64)
     if x.ndim != 2:
         raise ValueError(f"x must have shape (n, C), got {x.shape}")
-    if method == "none" or x.shape[0] == 0:
-        return x.copy(), 0
+    clean, counts = remove_spikes_many(x[None], method, half_width, nsigma)
+    return clean[0], int(counts[0])
+
+
+def remove_spikes_many(x: npt.NDArray[np.float64], method: str = "mad", half_width: int = 5,
+                       nsigma: float = 4.0) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
+    """(cleaned copies of W windows x (W, n, C) V, samples replaced in each (W,)): each window as :func:`remove_spikes` alone.
+
+    The cleaned windows (W, n, C) are a view of (W, C, n) contiguous rows for ``mad`` and ``none``: each channel's samples
+    contiguous, as the features' transforms read them.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 3:
+        raise ValueError(f"x must have shape (W, n, C), got {x.shape}")
+    if method == "none" or x.shape[1] == 0:
+        return np.ascontiguousarray(x.transpose(0, 2, 1)).transpose(0, 2, 1), np.zeros(x.shape[0], dtype=np.int64)
     if method == "hampel":
         from scipy.ndimage import median_filter  # SciPy only for the method that needs it (it costs ~70 MB resident)
 
-        size = (2 * half_width + 1, 1)
+        size = (1, 2 * half_width + 1, 1)
         med = median_filter(x, size=size, mode="nearest")
         mad = median_filter(np.abs(x - med), size=size, mode="nearest")
-    elif method == "mad":
-        # medians per channel on contiguous rows: the same values as np.median(x, axis=0), without its overhead
-        xt = np.ascontiguousarray(x.T)
-        med_c = median_last(xt)[:, None]
-        dev = np.abs(xt - med_c)
-        outlier = _outliers(dev, med_c, median_last(dev)[:, None], nsigma)
-        count = int(np.count_nonzero(outlier))
-        if not count:
-            return x.copy(), 0
-        return np.where(outlier, med_c, xt).T.copy(), count
-    else:
+        outlier = _outliers(np.abs(x - med), med, mad, nsigma)
+        return np.where(outlier, med, x), np.count_nonzero(outlier, axis=(1, 2)).astype(np.int64)
+    if method != "mad":
         raise ValueError(f"method must be hampel, mad or none, got {method!r}")
-    outlier = _outliers(np.abs(x - med), med, mad, nsigma)
-    return np.where(outlier, med, x), int(np.count_nonzero(outlier))
+    # medians per window and channel on contiguous rows: the same values as np.median(x, axis=1), without its overhead
+    xt = np.ascontiguousarray(x.transpose(0, 2, 1))
+    med_c = median_last(xt)[..., None]
+    dev = np.subtract(xt, med_c)
+    np.abs(dev, out=dev)
+    k = dev.shape[-1] // 2
+    mad = median_last(dev, in_place=True)[..., None]  # dev is reordered: only its largest values are needed below
+    # a row has an outlier when its largest deviation (after the partition, among the upper half; NaN left out) is one
+    suspect = np.nonzero(np.fmax.reduce(dev[..., k:], axis=-1) > _threshold(med_c, mad, nsigma)[..., 0])
+    counts = np.zeros(x.shape[0], dtype=np.int64)
+    if not suspect[0].size:
+        return xt.transpose(0, 2, 1), counts
+    rows = xt[suspect]  # (m, n): the rows with an outlier, their deviations recomputed in order
+    outlier = _outliers(np.abs(rows - med_c[suspect]), med_c[suspect], mad[suspect], nsigma)
+    np.add.at(counts, suspect[0], np.count_nonzero(outlier, axis=-1))
+    clean = xt.copy() if np.may_share_memory(xt, x) else xt  # never the caller's samples
+    clean[suspect] = np.where(outlier, med_c[suspect], rows)
+    return clean.transpose(0, 2, 1), counts
 
 
-def _outliers(dev: npt.NDArray[np.float64], med: npt.NDArray[np.float64], mad: npt.NDArray[np.float64], nsigma: float) -> npt.NDArray[np.bool_]:
-    """Where the deviation ``dev`` from the median ``med`` exceeds ``nsigma`` scaled MADs (arrays broadcast together).
-
-    A flat neighbourhood (MAD = 0) flags any deviation; only a large one counts as a spike.
-    """
-    out: npt.NDArray[np.bool_] = (dev > (nsigma * MAD_SCALE) * mad) & (dev > 1e-12 * (1.0 + np.abs(med)))
+def _threshold(med: npt.NDArray[np.float64], mad: npt.NDArray[np.float64], nsigma: float) -> npt.NDArray[np.float64]:
+    """The deviation from the median ``med`` above which a sample is an outlier: ``nsigma`` scaled MADs, and (a flat
+    neighbourhood, MAD = 0, would flag any deviation) more than 1e-12 (1 + |med|): only a large one counts as a spike."""
+    out: npt.NDArray[np.float64] = np.maximum((nsigma * MAD_SCALE) * mad, 1e-12 * (1.0 + np.abs(med)))
     return out
 
 
-def median_last(a: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """The median along the last axis, by ``np.partition`` (the same values as ``np.median``, less overhead)."""
+def _outliers(dev: npt.NDArray[np.float64], med: npt.NDArray[np.float64], mad: npt.NDArray[np.float64], nsigma: float) -> npt.NDArray[np.bool_]:
+    """Where the deviation ``dev`` from the median ``med`` exceeds :func:`_threshold` (arrays broadcast together)."""
+    out: npt.NDArray[np.bool_] = dev > _threshold(med, mad, nsigma)
+    return out
+
+
+def median_last(a: npt.NDArray[np.float64], in_place: bool = False) -> npt.NDArray[np.float64]:
+    """The median along the last axis, by partitioning (the same values as ``np.median``, less overhead); ``in_place``:
+    partition ``a`` itself (its order is lost) rather than a copy."""
     n = a.shape[-1]
     k = n // 2
+    if in_place:
+        a.partition(k, axis=-1)
+        p = a
+    else:
+        p = np.partition(a, k, axis=-1)  # one selection; the (k-1)-th is the largest below it (faster than kth=(k-1, k))
     if n % 2:
-        odd: npt.NDArray[np.float64] = np.partition(a, k, axis=-1)[..., k]
-        return odd
-    p = np.partition(a, k, axis=-1)  # one selection; the (k-1)-th is the largest below it (faster than kth=(k-1, k))
+        odd: npt.NDArray[np.float64] = p[..., k]
+        return odd.copy() if in_place else odd
     out: npt.NDArray[np.float64] = p[..., :k].max(axis=-1) / 2 + p[..., k] / 2  # halves first: no overflow, the same rounding
     return out

@@ -132,14 +132,21 @@ def replay_recording(rec: Recording, config: Config, model: Any | None, *, block
                 on_event(ev)
             collect(results, ev, base)
 
-    for lo in range(0, rec.samples.shape[0], block):
-        hi = min(lo + block, rec.samples.shape[0])
-        if pacer is not None:
+    n = rec.samples.shape[0]
+    if pacer is not None and pacer.paced:  # block by block, as they come: the first events at once
+        for lo in range(0, n, block):
+            hi = min(lo + block, n)
             pacer.wait(base + lo)
-        if on_block:
-            on_block(base + lo, rec.samples[lo:hi], valid[lo:hi])
-        handle(stream.feed_samples(base + lo, rec.samples[lo:hi], None if all_valid else valid[lo:hi]).events)
-    handle(stream.finish().events)  # a slide still in progress at the end of the file ends there
+            if on_block:
+                on_block(base + lo, rec.samples[lo:hi], valid[lo:hi])
+            handle(stream.feed_samples(base + lo, rec.samples[lo:hi], None if all_valid else valid[lo:hi]).events)
+        handle(stream.finish().events)  # a slide still in progress at the end of the file ends there
+        return results
+    # as fast as possible: the whole file at once (the same events, each block's after on_block saw it)
+    for lo, step in stream.replay_samples(base, rec.samples, None if all_valid else valid, block):
+        if on_block and lo < n:
+            on_block(base + lo, rec.samples[lo: lo + block], valid[lo: lo + block])
+        handle(step.events)
     return results
 
 

@@ -19,6 +19,7 @@ port or a clock.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -142,6 +143,18 @@ class Stream:
         """A block of ``samples`` (n, C) whose first sample has absolute ``index``; ``valid`` (n,) marks the rows that carry
         data (an index gap from the previous block counts as lost samples)."""
         return self._feed(index, samples, valid)
+
+    def replay_samples(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None = None,
+                       block: int = 65536) -> Iterator[tuple[int, Step]]:
+        """Offline: a whole recording held in memory, ``samples`` (n, C) (``valid`` (n,)) whose first row has absolute
+        ``index``: the steps :meth:`feed_samples` of its blocks of ``block`` rows and then :meth:`finish` would give, in
+        less time (:meth:`tactiled.core.pipeline.Pipeline.replay`). Yields (row of each block's first sample, its step),
+        then (n, the end's step). The stream is used up."""
+        if self.pipeline is None:
+            return
+        shadow = self.shadow.replay(index, samples, valid, block) if self.shadow is not None else None
+        for lo, events in self.pipeline.replay(index, samples, valid, block):
+            yield lo, Step(events=events, shadow=next(shadow)[1] if shadow is not None else [])
 
     def finish(self) -> Step:
         """The explicit end of the stream: what the decoder still held, then a slide in progress ends at the last sample."""
