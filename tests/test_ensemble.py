@@ -187,3 +187,28 @@ def test_a_corrupt_member_is_refused_in_one_line_naming_the_file(arrays: dict, h
         load_model(bad)
     text = str(info.value)
     assert "\n" not in text and str(bad) in text and message in text, text
+
+
+def test_train_prints_the_ensemble_beside_the_choice(trained: tuple[Path, Path, list[str]], tmp_path: Path) -> None:
+    _, data, surfaces = trained
+    known = [str(p) for p in sorted(data.glob("*.npz")) if f"_{surfaces[4]}_" not in p.name]
+    res = run_cli("train", *known, "-o", str(tmp_path / "m.npz"), "--ensemble", "always", "--folds", "2")
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    chosen = next(i for i, line in enumerate(lines) if line.startswith("* "))
+    assert lines[chosen + 1].lstrip().startswith("+ spectrum / svm / 0.25 s / slide mean") and "as an ensemble: the model" in lines[chosen + 1]
+    assert "with spectrum / svm / 0.25 s / slide mean (ensemble)" in res.stderr  # the winner line
+    model = load_model(tmp_path / "m.npz")
+    assert model.partner is not None and f"{model.describe()}; fingerprint {model.fingerprint}" in lines[-1]
+
+
+def test_the_winner_kept_beside_an_ensemble_is_the_model_without_one(trained: tuple[Path, Path, list[str]]) -> None:
+    _, data, surfaces = trained
+    known = [p for p in sorted(data.glob("*.npz")) if f"_{surfaces[4]}_" not in p.name]
+    both = train(known, Config(), folds=2, candidates=CANDIDATES, ensemble="always", keep_models=True)
+    off = train(known, Config(), folds=2, candidates=CANDIDATES, ensemble="off").model
+    alone = both.models[both.winner]
+    assert both.model.partner is not None and alone.partner is None and off.partner is None and "ensemble" not in off.summary
+    assert alone.early_calibration == off.early_calibration is not None and alone.temperature == off.temperature
+    x = _windows(off, data)
+    np.testing.assert_array_equal(alone.slide_proba(x), off.slide_proba(x))

@@ -60,7 +60,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         ens = row.get("ensemble")
         if ens:  # the chosen candidate with the spectral one (train --ensemble)
             what = "the model" if ens["used"] else "not used: more than one standard error below the chosen one"
-            print(f"  {'  with ' + ens['partner']:<{width}s} {100 * ens['mean']:5.1f} ± {100 * ens['sd']:4.1f} % (ensemble: {what})")
+            print(f"  {'+ ' + ens['partner']:<{width}s} {100 * ens['mean']:5.1f} ± {100 * ens['sd']:4.1f} % (the choice and it as an ensemble: {what})")
     cal, nov = result.model.summary.get("calibration", {}), result.model.summary.get("novelty", {})
     if cal:
         early = result.model.summary.get("early_calibration", {})

@@ -438,11 +438,13 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     ens_cv = f"; ensemble CV {board[chosen]['ensemble']['mean']:.3f}" if "ensemble" in board[chosen] else ""
     say(f"winner {best.name}{said}: {board[chosen]['mean']:.3f} ± {board[chosen]['sd']:.3f} (best mean {leaderboard[0]['mean']:.3f}){ens_cv}; "
         f"nested CV {nested['mean']:.3f}; fitted on every slide")
-    if best.max_windows != 1:  # provisional labels come from the first windows of a slide: their own calibration
-        say("calibrating provisional labels on out-of-fold slide prefixes")
-        model.early_calibration, early_info = fit_early_calibration(windows_of[_key(best)], members, outer, classes, model.temperature,
-                                                                    seed, inner_folds)
-        model.summary = {**model.summary, "early_calibration": early_info}
+    # provisional labels come from the first windows of a slide: their own calibration (the winner alone's too, when it is
+    # kept beside the ensemble, so that it is the model train --ensemble off makes)
+    for m, of in [(model, members), *([(alone, members[:1])] if keep_models and model is not alone else [])]:
+        if best.max_windows != 1:
+            say("calibrating provisional labels on out-of-fold slide prefixes")
+            m.early_calibration, early_info = fit_early_calibration(windows_of[_key(best)], of, outer, classes, m.temperature, seed, inner_folds)
+            m.summary = {**m.summary, "early_calibration": early_info}
     ws = sets[_key(best)][1]
     result = SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
                           time.perf_counter() - t0, oof=(scores, y_idx, np.array([sl.file for sl in ws.slides])))
