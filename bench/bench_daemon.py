@@ -41,6 +41,21 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def thread_seconds(pid: int) -> dict[str, float]:
+    """CPU seconds per thread of ``pid`` (``/proc/PID/task/TID/schedstat``, ns), keyed ``TID:comm`` (the main thread's TID is the PID)."""
+    out = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/schedstat") as fh:
+                ns = int(fh.read().split()[0])
+            with open(f"/proc/{pid}/task/{tid}/comm") as fh:
+                comm = fh.read().strip()
+        except OSError:  # the thread ended meanwhile
+            continue
+        out[f"{tid}:{comm}"] = ns / 1e9
+    return out
+
+
 def rss_mb(pid: int) -> float:
     with open(f"/proc/{pid}/status") as fh:
         for line in fh:
@@ -50,6 +65,11 @@ def rss_mb(pid: int) -> float:
 
 
 FS = 20_000
+
+
+def pct(values: list[float], qs: tuple[float, ...]) -> list[float] | None:
+    """Percentiles ``qs`` of ``values``, rounded to 0.1 (None if empty)."""
+    return [round(float(np.percentile(values, q)), 1) for q in qs] if values else None
 
 
 def make_stream(seconds: float, seed: int = 11, corrupt: float = 0.0, drop: float = 0.0, garbage: float = 0.0, scene: str = "hand") -> bytes:
@@ -125,6 +145,8 @@ def main() -> None:
     daemon = subprocess.Popen(run, stderr=open(f"{tmp}/daemon.log", "w"))  # noqa: SIM115
     standing: dict[int, tuple[float, float | None]] = {}  # slide id -> (daemon latency, sensor-side latency) of its last final label
     withdrawn = [0]
+    started: dict[int, float] = {}  # slide id -> sensor-side latency of its start message (from the slide's first sample)
+    first_provisional: dict[int, float] = {}  # slide id -> from the slide's first sample to its first provisional label in hand
     statuses: list[Status] = []
     labels = [0] * args.subscribers
     missed = [0] * args.subscribers
@@ -140,9 +162,13 @@ def main() -> None:
                 missed[k] += msg.missed
                 if isinstance(msg, Roughness):
                     labels[k] += 1
+                    if k == 0 and not msg.final and msg.start_mono is not None:
+                        first_provisional.setdefault(msg.slide_id, (time.monotonic() - msg.start_mono) * 1e3)
                     if k == 0 and msg.final:
                         sensor = None if msg.stop_mono is None else (time.monotonic() - msg.stop_mono) * 1e3 + 1e3 / 20_000
                         standing[msg.slide_id] = (msg.latency_ms, sensor)
+                elif isinstance(msg, Slide) and k == 0 and msg.event == "start" and msg.start_mono is not None:
+                    started[msg.slide_id] = (time.monotonic() - msg.start_mono) * 1e3
                 elif isinstance(msg, Slide) and k == 0 and msg.event == "resumed":  # that final label was withdrawn: the slide went on
                     withdrawn[0] += standing.pop(msg.slide_id, None) is not None
                 elif isinstance(msg, Status) and k == 0:
@@ -152,14 +178,16 @@ def main() -> None:
     for t in threads:
         t.start()
     time.sleep(3.0)  # let the daemon start and import before measuring: benchmark warm-up, not synchronisation
-    c0, t0 = cpu_seconds(daemon.pid), time.monotonic()
+    c0, t0, th0 = cpu_seconds(daemon.pid), time.monotonic(), thread_seconds(daemon.pid)
     lost0 = statuses[-1].samples_lost if statuses else 0  # lost while the daemon started (stale bytes are discarded_at_start, not lost)
     load0 = round(os.getloadavg()[0], 2)
     rss = []
     while time.monotonic() - t0 < args.seconds:
         time.sleep(min(10.0, args.seconds / 20))  # sampling period of the memory curve
         rss.append((round(time.monotonic() - t0, 1), round(rss_mb(daemon.pid), 1)))
-    cpu = (cpu_seconds(daemon.pid) - c0) / (time.monotonic() - t0)
+    th1, elapsed = thread_seconds(daemon.pid), time.monotonic() - t0
+    cpu = (cpu_seconds(daemon.pid) - c0) / elapsed
+    threads_pct = {k: round(100 * (v - th0.get(k, 0.0)) / elapsed, 3) for k, v in sorted(th1.items(), key=lambda kv: -kv[1] + th0.get(kv[0], 0.0))}
     t_term = time.monotonic()
     daemon.send_signal(2) if args.profile else daemon.terminate()  # SIGINT lets cProfile write its stats
     daemon.wait(30)
@@ -186,12 +214,14 @@ def main() -> None:
                       "unplug_down_samples": down, "daemon_samples_lost": last.samples_lost,
                       "lost_beyond_injected": last.samples_lost - faulty - down}
     out = {
-        "seconds": args.seconds, "cpu_share": round(cpu, 4), "labels": labels, "missed_messages": missed,
+        "seconds": args.seconds, "cpu_share": round(cpu, 4), "threads_cpu_pct": threads_pct, "labels": labels, "missed_messages": missed,
         "latency_ms_p50": round(float(np.percentile(lat, 50)), 3) if lat.size else None,
         "latency_ms_p99": round(float(np.percentile(lat, 99)), 3) if lat.size else None,
         "latency_ms_max": round(float(lat.max()), 3) if lat.size else None,
         "sensor_latency_ms_p50_p99_max": [round(float(np.percentile(sensor_latencies, q)), 1) for q in (50, 99, 100)] if sensor_latencies else None,
         "sensor_latencies_ms": [round(v[1], 1) for _, v in sorted(standing.items()) if v[1] is not None],
+        "start_latency_ms_p50_p90_max": pct(list(started.values()), (50, 90, 100)),
+        "first_provisional_ms_p50_p90_max": pct(list(first_provisional.values()), (50, 90, 100)),
         "samples_lost_while_measured": None if last is None else last.samples_lost - lost0,
         "final_labels_standing": len(standing), "final_labels_withdrawn": withdrawn[0], "scene": args.scene,
         "config": args.config, "board": args.board, "load_avg_1min_start_end": [load0, round(os.getloadavg()[0], 2)],

@@ -71,14 +71,16 @@ class SerialConfig:
     retry_max_s: float = 2.0
     read_interval_s: float = 0.01
     batch_s: float = 0.04  # the pipeline runs on batches of at least this much sensor time (CPU against latency)
+    rest_batch_s: float = 0.2  # ... and of this much (at least batch_s) while no slide can be in progress (the daemon's loop wakes less)
 
     def validate(self, p: str) -> None:
-        """Check read_interval_s, batch_s, retry_initial_s and retry_max_s (s, retry_max_s >= retry_initial_s) are in range.
+        """Check read_interval_s, batch_s, rest_batch_s, retry_initial_s and retry_max_s (s, retry_max_s >= retry_initial_s) are in range.
 
         A bad value raises ConfigError naming the key (``p``: the section's name).
         """
         _check(0.001 <= self.read_interval_s <= 0.5, f"{p}.read_interval_s", "must be in [0.001, 0.5] s")
         _check(0.0 <= self.batch_s <= 1.0, f"{p}.batch_s", "must be in [0, 1] s")
+        _check(0.0 <= self.rest_batch_s <= 1.0, f"{p}.rest_batch_s", "must be in [0, 1] s (below batch_s: batch_s)")
         _check(0.001 <= self.retry_initial_s <= 60, f"{p}.retry_initial_s", "must be in [0.001, 60] s")
         _check(self.retry_initial_s <= self.retry_max_s <= 600, f"{p}.retry_max_s", f"must be in [{p}.retry_initial_s, 600] s")
 

@@ -23,6 +23,7 @@ def test_shipped_config_is_valid_and_matches_defaults() -> None:
         ("[sensor]\nfs = inf\n", "sensor.fs: must be a finite number"),
         ("[sensor]\nfs = nan\n", "sensor.fs: must be a finite number"),
         ("[serial]\nretry_max_s = inf\n", "serial.retry_max_s: must be a finite number"),
+        ("[serial]\nrest_batch_s = 2\n", "serial.rest_batch_s: must be in [0, 1] s"),
         ("[detector]\nhop_ms = -inf\n", "detector.hop_ms: must be a finite number"),
         ("[publish]\nstatus_interval_s = nan\n", "publish.status_interval_s: must be a finite number"),
         ("[ring]\nseconds = 1e9\n", "ring.seconds: must be in [1, 3600] s"),

@@ -301,3 +301,36 @@ def test_monitor_shows_live_labels_in_a_terminal(tmp_path: Path) -> None:
     assert b"tactiled monitor" in screen and b"last labels" in screen
     assert b"final" in screen and b"Ra" in screen  # 100x30: the compact screen, a final label on it
     assert proc.returncode == 0
+
+
+@pytest.mark.parametrize("per_surface, slides", [(3, 1), (3, 3), (2, 1), (7, 2)])
+def test_folds_spread_each_surface_over_the_folds(per_surface: int, slides: int) -> None:
+    """Every test fold holds at most one recording of a surface (while the surface with fewest recordings sets the
+    number of folds), so every surface it tests keeps its other recordings for training; no fold splits a recording."""
+    from tactiled.learn.search import grouped_splits
+
+    surfaces = 15
+    y = np.repeat(np.arange(surfaces), per_surface * slides)
+    groups = np.repeat(np.arange(surfaces * per_surface), slides)
+    folds = grouped_splits(y, groups, 5, seed=0)
+    assert len(folds) == min(5, per_surface)
+    tested = np.zeros(len(y), dtype=int)
+    for train, test in folds:
+        assert not set(groups[train]) & set(groups[test])
+        recordings = {(int(y[i]), int(groups[i])) for i in test}
+        per = np.bincount([s for s, _ in recordings], minlength=surfaces)
+        assert per.max() <= -(-per_surface // len(folds))  # as even as the counts allow
+        assert set(y[test]) <= set(y[train])  # nothing tested that training never saw
+        tested[test] += 1
+    assert (tested == 1).all()
+
+
+def test_folds_with_unlabelled_slides_and_single_recordings() -> None:
+    """Unlabelled slides (-1) do not set the number of folds; a surface with a single recording leaves grouped folds only."""
+    from tactiled.learn.search import grouped_splits
+
+    y = np.array([0, 0, 0, 1, 1, 1, -1])
+    groups = np.array([0, 1, 2, 3, 4, 5, 6])
+    assert len(grouped_splits(y, groups, 5, seed=0)) == 3
+    one = grouped_splits(np.array([0, 0, 1]), np.array([0, 1, 2]), 5, seed=0)
+    assert len(one) == 3 and all(len(te) == 1 for _, te in one)

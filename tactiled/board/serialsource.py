@@ -2,8 +2,11 @@
 
 pyserial only opens and configures the port; the thread then reads the file descriptor with
 non-blocking ``os.read`` once per ``read_interval_s`` (taking everything the kernel holds) and
-hands the bytes to the asyncio event loop at most once per ``hand_over_s`` (the daemon's
-batch), so the loop wakes per batch, not per read. Measured on the loaded 2-core machine: a
+hands the bytes to the asyncio event loop at most once per :attr:`SerialSource.hand_over_s` (the daemon's
+batch), so the loop wakes per batch, not per read. The consumer may change ``hand_over_s`` at any
+time from the loop (a plain float the reader reads once per read: no lock); the daemon lengthens it
+while no slide can be in progress (``serial.rest_batch_s``), which spares the loop most of its
+wake-ups at rest, and shortens it again as soon as one may be. Measured on the loaded 2-core machine: a
 wake-up costs 190 µs of CPU through ``asyncio.sleep``, 120 µs through ``call_later`` and 65 µs
 in a plain thread (see docs/benchmarks.md). Nothing on the serial side runs on the loop, so
 it can never block it.
@@ -56,6 +59,8 @@ from tactiled.errors import DeviceError
 log = logging.getLogger(__name__)
 
 PRESENCE_POLL_S = 0.01
+READ_CHUNK = 1 << 16  # bytes asked of one os.read: a tty hands out at most ~4 kB per call, and a 1 MiB request cost 18 us of
+# allocation per read against 3.5 us (measured, bench_ingest's pty), 100 times a second
 MAX_BACKLOG_BYTES = 4 << 20  # bytes read but not yet consumed: beyond this, new reads are dropped (counted) until the loop catches up
 CONNECTED = "connected"
 DISCONNECTED = "disconnected"
@@ -128,7 +133,7 @@ class SerialSource:
         self._read_size = read_size
         self._read_interval = read_interval_s
         self._tee = tee
-        self._hand_over = hand_over_s
+        self.hand_over_s = hand_over_s  # run(): bytes go to the loop at most this often, s (the loop may change it at any time)
         self._url = "://" in path
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -154,7 +159,7 @@ class SerialSource:
             else:
                 self._consume(item)
 
-        self._thread = threading.Thread(target=self._reader, args=(deliver, 0.0), name=f"serial:{self.path}", daemon=True)
+        self._thread = threading.Thread(target=self._reader, args=(deliver, False), name=f"serial:{self.path}", daemon=True)
         self._thread.start()
 
     def stop(self, timeout: float = 2.0) -> None:
@@ -177,7 +182,7 @@ class SerialSource:
     # ---- asyncio users: bytes handed over to the loop -----------------------------------------
 
     async def run(self) -> None:
-        """Read until cancelled, handing bytes to the loop at most once per ``hand_over_s``; never returns otherwise.
+        """Read until cancelled, handing bytes to the loop at most once per :attr:`hand_over_s`; never returns otherwise.
 
         Yields to the loop after each item, whatever the queue holds, so no backlog can starve the loop's other tasks.
         """
@@ -199,7 +204,7 @@ class SerialSource:
                     self._backlog += len(item)
             loop.call_soon_threadsafe(arrive, time.monotonic(), item)
 
-        self._thread = threading.Thread(target=self._reader, args=(hand, self._hand_over), name=f"serial:{self.path}", daemon=True)
+        self._thread = threading.Thread(target=self._reader, args=(hand, True), name=f"serial:{self.path}", daemon=True)
         self._thread.start()
         try:
             while True:
@@ -218,14 +223,15 @@ class SerialSource:
                     self._waiting.popleft()
                     with self._backlog_lock:
                         self._backlog -= len(item)
-                await asyncio.sleep(0)  # the loop turns between items, however many are queued
+                if not queue.empty():  # (an empty queue's get() waits: the loop turns there, without an extra turn here)
+                    await asyncio.sleep(0)  # the loop turns between items, however many are queued
         finally:
             self._stop.set()
             await asyncio.to_thread(self._thread.join, 5.0)
 
     # ---- the reader thread ----------------------------------------------------------------------
 
-    def _reader(self, deliver: Callable[[bytes | tuple[str, str]], None], hand_over_s: float) -> None:
+    def _reader(self, deliver: Callable[[bytes | tuple[str, str]], None], batched: bool) -> None:
         down_reported = False
         while not self._stop.is_set():
             port: serial.Serial | None = None
@@ -234,7 +240,7 @@ class SerialSource:
                 if port is None:
                     return
                 down_reported = False
-                self._read_loop(port, deliver, hand_over_s)
+                self._read_loop(port, deliver, batched)
             except (serial.SerialException, OSError) as exc:
                 self.connected = False
                 deliver((DISCONNECTED, f"disconnected: {exc}"))
@@ -309,7 +315,8 @@ class SerialSource:
                 n += len(chunk)
         return n
 
-    def _read_loop(self, port: serial.Serial, deliver: Callable[[bytes | tuple[str, str]], None], hand_over_s: float) -> None:
+    def _read_loop(self, port: serial.Serial, deliver: Callable[[bytes | tuple[str, str]], None], batched: bool) -> None:
+        """Read once per read period; hand what was read on every read (``batched`` False) or once per :attr:`hand_over_s`."""
         fd = None if self._url else port.fileno()
         if fd is not None:
             os.set_blocking(fd, False)
@@ -328,7 +335,7 @@ class SerialSource:
                     if tee is not None:
                         tee.write(data)
                     held.append(data)
-                if held and now - handed >= hand_over_s:
+                if held and (not batched or now - handed >= self.hand_over_s):
                     deliver(held[0] if len(held) == 1 else b"".join(held))
                     held, handed = [], now
         finally:
@@ -342,14 +349,14 @@ def _read_all(fd: int, limit: int) -> bytes:
     total = 0
     while total < limit:
         try:
-            chunk = os.read(fd, limit - total)
+            chunk = os.read(fd, min(READ_CHUNK, limit - total))
         except BlockingIOError:
             break
         if not chunk:
             # a tty with VMIN = VTIME = 0 reads nothing when it has nothing; after a hangup it polls readable yet reads nothing
             if parts or not select.select([fd], [], [], 0)[0]:
                 break
-            chunk = os.read(fd, limit - total)  # readable: data that just came, or the hangup
+            chunk = os.read(fd, min(READ_CHUNK, limit - total))  # readable: data that just came, or the hangup
             if not chunk:
                 raise Disconnected("device reports readiness to read but returned no data (unplugged?)")
         parts.append(chunk)
@@ -369,6 +376,7 @@ class ByteSource(Protocol):
     alive_at: float
     shed_bytes: int
     discarded_at_start: int
+    hand_over_s: float  # how often the source hands bytes to the loop, s (the consumer may change it; a memory source ignores it)
 
     @property
     def behind(self) -> float:
@@ -394,6 +402,7 @@ class MemorySource:
         self.shed_bytes = 0
         self.discarded_at_start = 0
         self.behind = 0.0  # a memory source hands over one chunk at a time: never behind
+        self.hand_over_s = 0.0  # ignored: one chunk per step
         self._chunks = chunks
         self._on_bytes = on_bytes
         self._on_state = on_state or (lambda state, detail: None)

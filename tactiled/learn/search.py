@@ -10,7 +10,8 @@ RBF SVM): by cross-validation the choice is never below it by more than one stan
 papers' method (:data:`PAPER`: DWT statistics of one 0.5 s window 0.3 s after the start,
 sequential forward selection, ELM) is ``--method paper``: its forward selection alone takes minutes.
 
-Every candidate is scored by grouped cross-validation (folds never split a recording) at
+Every candidate is scored by grouped cross-validation (folds never split a recording, and spread each surface's
+recordings over the folds: :func:`grouped_splits`) at
 the level that matters: the label of each whole slide, from its windows' fused scores,
 over every slide (a slide with no usable window counts as wrong); selection and scaling
 are fitted inside each training fold only. The leaderboard lists mean ± sd over outer
@@ -33,6 +34,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -188,16 +190,31 @@ class SearchResult:
 
 
 def grouped_splits(y: npt.NDArray[Any], groups: npt.NDArray[Any], n_splits: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
-    """Folds that never split a group (a recording), stratified by ``y`` when every class has enough members, else grouped only."""
+    """Folds that never split a group (a recording), each class's recordings spread over the folds.
+
+    The number of folds is ``n_splits`` or, when a class has fewer recordings, that class's count (at least 2), and the
+    folds are stratified by recording: a test fold then holds at most about one recording per surface, and every surface
+    it tests keeps all its other recordings for training. Folds that ignored the classes put two or three recordings of
+    one surface in a single test fold, leaving one or none to train on; with one slide per recording that scored
+    whole-slide candidates 50 points below their test accuracy. When a class has a single recording (``train
+    --group-by slide`` makes each slide a group), the folds are grouped only.
+    """
     from sklearn.model_selection import GroupKFold, StratifiedGroupKFold
 
+    y, groups = np.asarray(y), np.asarray(groups)
     n_groups = len(np.unique(groups))
     if n_groups < 2:
         raise TactiledError("cross-validation needs at least two recordings")
-    k = max(2, min(n_splits, n_groups))
-    if np.unique(y, return_counts=True)[1].min() < k:  # a class with fewer members than folds: grouped, not stratified
+    labelled = (y != "") if y.dtype.kind in "US" else (y >= 0)  # unlabelled slides: "" (surface names) or -1 (class indices)
+    pairs = {(str(a), str(b)) for a, b in zip(y[labelled], groups[labelled], strict=True)}
+    fewest = min(np.unique([a for a, _ in pairs], return_counts=True)[1], default=0)  # recordings of the class with fewest
+    if fewest < 2:
+        k = max(2, min(n_splits, n_groups))
         return list(GroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, groups))
-    return list(StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, groups))
+    k = max(2, min(n_splits, int(fewest)))
+    with warnings.catch_warnings():  # unlabelled slides (a "class" of a few members) do not set k: no warning for them
+        warnings.filterwarnings("ignore", "The least populated class", UserWarning)
+        return list(StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, groups))
 
 
 def slide_folds(ws: WindowSet, n_splits: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
@@ -741,14 +758,11 @@ def _counts(ws: WindowSet) -> dict[str, Any]:
 
 
 def _inner_folds(ws: WindowSet, train: npt.NDArray[np.intp], n: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
-    """Grouped folds of the slides ``train`` (indices into ws.slides), as indices into ws.slides; [] if fewer than 2 files."""
-    from sklearn.model_selection import GroupKFold
-
+    """:func:`grouped_splits` of the slides ``train`` (indices into ws.slides), as indices into ws.slides; [] if fewer than 2 files."""
     files = np.array([ws.slides[i].file for i in train])
-    k = min(n, len(np.unique(files)))
-    if k < 2:
+    if len(np.unique(files)) < 2:
         return []
-    return [(train[a], train[b]) for a, b in GroupKFold(n_splits=k).split(train, groups=files)]
+    return [(train[a], train[b]) for a, b in grouped_splits(ws.slide_labels()[train], files, n, seed)]
 
 
 def _run_with_progress(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]], say: Progress, scheduler: str | None,

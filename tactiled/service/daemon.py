@@ -1,11 +1,15 @@
 """``tactiled run``: one asyncio daemon per sensor.
 
 Tasks in one TaskGroup: ``reader`` (tactiled.board.serialsource: a thread reads the port once per
-``serial.read_interval_s`` and hands the loop its bytes once per ``serial.batch_s``; it
+``serial.read_interval_s`` and hands the loop its bytes once per ``serial.batch_s``, or once per
+``serial.rest_batch_s`` while no slide can be in progress: no slide under way in the live or shadow
+pipeline, their detectors past the stream's undecided start, and no load being shed; it
 survives unplugs and any exception), whose bytes go through the ingest core (tactiled.run.ingest: decoder, channel and gap policies,
 batches of ``serial.batch_s``) into the pipeline and the publisher: batches that complete an
-analysis window run in a worker thread so feature extraction never stalls the loop,
-detection-only batches run inline, cheaper than a thread hop; ``status`` (at least once a
+analysis window run inline while the model's analysis is cheap (the last one took at most
+:data:`INLINE_ANALYSIS_S`; a thread hop costs two wake-ups), in a worker thread otherwise (the first
+one, and after a slow one), so a costly model's feature extraction never stalls the loop;
+detection-only batches run inline; ``status`` (at least once a
 second, and the systemd watchdog, fed only while the reader is alive and the daemon keeps up); ``stop`` (SIGTERM,
 SIGINT). A finite source (tests) ends the stream explicitly and the daemon stops. SIGHUP
 (``systemctl reload``) loads the model file again: validated as at start-up (a bad file is refused
@@ -62,6 +66,7 @@ TURN_S = 0.02  # the most work, s, done between two turns of the event loop (bey
 SHED_AFTER_S = 0.5  # input waiting longer than this: analysis is skipped (load shed) ...
 RESUME_BELOW_S = 0.1  # ... until the oldest input waiting is younger than this
 KEEPING_UP = 0.5  # the watchdog is fed only while samples are handled at no less than this fraction of real time
+INLINE_ANALYSIS_S = 0.005  # a batch that completes a window is analysed on the loop if the last such batch took at most this, s
 
 
 @dataclass
@@ -121,6 +126,7 @@ class Daemon:
         self._raw_next: int | None = None  # next index of the samples topic
         self._reader: asyncio.Task[None] | None = None
         self._turned = time.monotonic()  # when the loop last turned (work is bounded between turns)
+        self._analysis_s = float("inf")  # how long the last batch that completed a window took to process (inf: none yet), s
         self.control = control_socket(config, self.publisher.context) if config.control.endpoint else None
 
     @property
@@ -268,6 +274,19 @@ class Daemon:
             if batches:
                 await self._process(batches)
             await self._turn()
+        if self.source is not None:
+            self.source.hand_over_s = self._hand_over_s()
+
+    def _hand_over_s(self) -> float:
+        """How often the source should hand bytes over now: ``serial.rest_batch_s`` (at least ``batch_s``) while no slide can be
+        in progress (live and shadow detectors decided and at rest, no load shed), else ``serial.batch_s``."""
+        c = self.config.serial
+        if self.state.shedding:
+            return c.batch_s
+        for p in (self.stream.pipeline, self.stream.shadow):
+            if p is not None and (p.sliding or p.detector.undecided):
+                return c.batch_s
+        return max(c.batch_s, c.rest_batch_s)
 
     async def _turn(self) -> None:
         """Let the loop turn (status, watchdog, signals) if :data:`TURN_S` of work has passed since it last did."""
@@ -295,8 +314,8 @@ class Daemon:
         return st.shedding
 
     async def _process(self, batches: list[Batch]) -> None:
-        """Decoded batches: recorded, published on the samples topic, then through the pipeline one at a time (analysis
-        off the loop) unless the daemon is shedding load."""
+        """Decoded batches: recorded, published on the samples topic, then through the pipeline one at a time (a costly
+        analysis off the loop) unless the daemon is shedding load."""
         if not batches:
             return
         self._take(batches)
@@ -308,8 +327,13 @@ class Daemon:
                 self.state.overloaded += b.samples.shape[0]
                 continue
             if self.stream.will_analyse(b.end) or b.restart:
-                step = await asyncio.to_thread(self.stream.process, [b])  # feature extraction: off the event loop
-                self._turned = time.monotonic()
+                t0 = time.perf_counter()
+                if self._analysis_s <= INLINE_ANALYSIS_S:  # cheap: a thread hop would cost more than it spares the loop
+                    step = self.stream.process([b])
+                else:  # feature extraction that may be costly: off the event loop
+                    step = await asyncio.to_thread(self.stream.process, [b])
+                    self._turned = time.monotonic()
+                self._analysis_s = time.perf_counter() - t0
             else:  # detection only: cheaper than a thread hop
                 step = self.stream.process([b])
             self._publish(step.events, detected_at)
@@ -322,7 +346,8 @@ class Daemon:
         for b in batches:
             if self.recorder is not None:
                 self.recorder.add(b)
-            sq = np.einsum("ij,ij->j", b.samples, b.samples, dtype=np.float64)
+            x = b.samples.astype(np.float64)
+            sq = np.einsum("ij,ij->j", x, x)  # a third of the time of einsum's own cast (dtype=), same sums (exact below 2**53)
             st.sumsq = sq if st.sumsq is None else st.sumsq + sq
             st.samples_window += b.samples.shape[0]
             st.last_index = b.end

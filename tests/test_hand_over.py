@@ -1,0 +1,128 @@
+"""How often the daemon's loop is handed bytes: the serial source's hand-over period can change while it reads, the daemon
+lengthens it while no slide can be in progress, and analyses a window on the loop while the model's analysis is cheap."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+import tty
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import pytest
+
+import tactiled.service.daemon as daemon_module
+from tactiled.board.serialsource import MemorySource, SerialSource
+from tactiled.config import Config
+from tactiled.learn.model import load_model
+from tactiled.run.stream import Stream
+from tactiled.service.daemon import Daemon
+from tests.test_ingest import _stream
+
+
+def test_the_hand_over_period_changes_while_the_source_reads() -> None:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    got: list[bytes] = []
+
+    async def main() -> None:
+        arrived = asyncio.Event()
+
+        def on_bytes(data: bytes) -> None:
+            got.append(data)
+            arrived.set()
+
+        source = SerialSource(os.ttyname(slave), on_bytes, read_interval_s=0.005, hand_over_s=3600.0)
+        task = asyncio.create_task(source.run())
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + 20
+        while not source.connected:  # the reader opens the port (the daemon's status polls the same flag)
+            assert loop.time() < deadline, "the source never opened the pty"
+            await asyncio.sleep(0.005)  # polling a flag the reader thread sets, not synchronisation
+        os.write(master, b"x" * 100)
+        written = time.monotonic()
+        while source.arrival < written or source.alive_at < source.arrival + 0.05:  # read, and ten read periods since
+            assert loop.time() < deadline, "the reader never read the bytes"
+            await asyncio.sleep(0.005)  # polling the reader's heartbeat, not synchronisation
+        assert not got  # read, but held: the hour-long hand-over period has not passed
+        source.hand_over_s = 0.0  # the consumer shortens it: what is held goes at the next read
+        await asyncio.wait_for(arrived.wait(), 20)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    try:
+        asyncio.run(main())
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert b"".join(got) == b"x" * 100
+
+
+def _run_daemon(config: Config, chunk: int, probe: Callable[[Daemon], None]) -> Daemon:
+    """The daemon on a memory source of a few seconds of slides, ``probe(daemon)`` called after each chunk it consumed."""
+    data, _ = _stream(seed=6)
+    box: list[Daemon] = []
+
+    def factory(on_bytes: Callable[[bytes], Awaitable[None]], on_state: Callable[[str, str], None]) -> MemorySource:
+        async def consume(b: bytes) -> None:
+            await on_bytes(b)
+            probe(box[0])
+
+        return MemorySource((data[i:i + chunk] for i in range(0, len(data), chunk)), consume, on_state)
+
+    daemon = Daemon(config, load_model(), source_factory=factory)
+    box.append(daemon)
+    asyncio.run(daemon.run())
+    return daemon
+
+
+def test_the_daemon_is_handed_bytes_less_often_while_no_slide_can_be_in_progress(tmp_path: Any) -> None:
+    config = Config().override({"publish.endpoint": f"ipc://{tmp_path}/pub", "serial.batch_s": 0.04, "serial.rest_batch_s": 0.25})
+    seen: list[tuple[bool, bool, float]] = []
+
+    def probe(d: Daemon) -> None:
+        assert d.source is not None
+        seen.append((d.pipeline.sliding, d.pipeline.detector.undecided, d.source.hand_over_s))
+
+    daemon = _run_daemon(config, 920, probe)
+    assert daemon.pipeline.slides >= 1
+    assert {h for sliding, undecided, h in seen if sliding or undecided} == {0.04}  # a slide may be under way: the batch
+    assert {h for sliding, undecided, h in seen if not (sliding or undecided)} == {0.25}  # at rest: the longer period
+    assert any(s for s, _, _ in seen) and any(not (s or u) for s, u, _ in seen)
+    # never shorter than the batch: a rest period below it means the batch
+    short = Config().override({"publish.endpoint": f"ipc://{tmp_path}/pub2", "serial.batch_s": 0.04, "serial.rest_batch_s": 0.0})
+    periods: set[float] = set()
+    _run_daemon(short, 920, lambda d: periods.add(d.source.hand_over_s) if d.source is not None else None)
+    assert periods == {0.04}
+
+
+@pytest.mark.parametrize("inline_below_s", [3600.0, 0.0])
+def test_a_window_is_analysed_on_the_loop_only_while_analysis_is_cheap(tmp_path: Any, monkeypatch: pytest.MonkeyPatch,
+                                                                        inline_below_s: float) -> None:
+    """The first window goes to a worker thread (its cost is unknown); the next ones run on the loop while the last took at
+    most INLINE_ANALYSIS_S, in the thread otherwise; the events are the same either way (the memory-source test checks them)."""
+    monkeypatch.setattr(daemon_module, "INLINE_ANALYSIS_S", inline_below_s)
+    hops = 0
+    to_thread = asyncio.to_thread
+
+    async def counting(fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
+        nonlocal hops
+        hops += getattr(fn, "__name__", "") == "process"
+        return await to_thread(fn, *args, **kwargs)
+
+    monkeypatch.setattr(daemon_module.asyncio, "to_thread", counting)
+    windows = 0
+    will_analyse = Stream.will_analyse
+
+    def counting_windows(self: Stream, end: int) -> bool:
+        nonlocal windows
+        ahead = will_analyse(self, end)
+        windows += ahead
+        return ahead
+
+    monkeypatch.setattr(Stream, "will_analyse", counting_windows)
+    daemon = _run_daemon(Config().override({"publish.endpoint": f"ipc://{tmp_path}/pub"}), 920, lambda d: None)
+    assert daemon.pipeline.slides >= 1 and windows >= 3
+    assert hops == (1 if inline_below_s else windows)  # cheap: the first in the thread, then on the loop; else all in the thread
