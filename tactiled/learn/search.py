@@ -25,6 +25,12 @@ calibration (:func:`fit_calibration`) are fitted on its out-of-fold slide scores
 novelty threshold (:func:`fit_novelty`) on the distance ratios of slides to other recordings' slides (and, for the
 ``combined`` score, a distance threshold on their distances to the nearest other surface).
 
+``ensemble`` (``train --ensemble``, off by default: docs/evaluation.md measured it on every scene and it cost some
+scenes 6 of 90 slides): when the winner shares :data:`SPECTRUM`'s windows, the model multiplies the winner's
+probabilities by SPECTRUM's (:func:`ensemble_of`; its temperature and calibration fitted on the two candidates'
+out-of-fold scores combined, its provisional-label calibration on their combined prefixes, its novelty the winner's),
+always or only when that combination's out-of-fold accuracy is within one standard error of the winner's.
+
 Work is spread over every core with joblib; ``scheduler`` (a dask.distributed address)
 sends it to a cluster through joblib's Dask backend instead.
 """
