@@ -23,7 +23,9 @@ specimens too; docs/simulator.md); one recording of 5 slides per surface made wi
 recordings' own labels, and the model is replayed on other recordings of that unit (2 files × 3 slides per surface),
 beside the plain whole-slide spectral baseline of bench/labels.py trained on unit 0.
 
-Usage: python bench/enrol.py [--scenes robot,hand] [--new Ra1.40|Ra4.43|G0.32mm] [--out DIR] [--units]
+``--ensemble always`` trains every model with ``train --ensemble always`` (enrolment then refits both members).
+
+Usage: python bench/enrol.py [--scenes robot,hand] [--new Ra1.40|Ra4.43|G0.32mm] [--out DIR] [--units] [--ensemble off|always|guarded]
 """
 
 from __future__ import annotations
@@ -72,10 +74,12 @@ def main() -> None:
     ap.add_argument("--new", default="Ra1.40", help="the surface left out of training and enrolled")
     ap.add_argument("--out", default=None)
     ap.add_argument("--units", action="store_true", help="the fingertip-swap table instead")
+    ap.add_argument("--ensemble", default="off", help="train --ensemble for every model (off, always, guarded)")
     args = ap.parse_args()
     config, root = Config(), Path(args.out or tempfile.mkdtemp(prefix="tactiled-enrol-"))
+    opts: dict[str, Any] = {"ensemble": args.ensemble}
     if args.units:
-        unit_swap(args.scenes.split(","), root, config)
+        unit_swap(args.scenes.split(","), root, config, opts)
         return
     grades = [g.name for g in default_surfaces()]
     other_family = args.new not in grades
@@ -98,7 +102,7 @@ def main() -> None:
         test = load_recordings(test_paths)
         rows: list[tuple[str, Any, float]] = []
         t0 = time.perf_counter()
-        base = train(tr_known, config).model
+        base = train(tr_known, config, **opts).model
         rows.append((f"trained on {known} (before enrolment)", base, time.perf_counter() - t0))
         base_path = root / scene / "base.npz"
         base.save(base_path)
@@ -110,7 +114,7 @@ def main() -> None:
         done = enrol(base_path, [p for p in tr if f"_{args.new}_" in p.name], config, label="NEW", min_slides=1)
         rows.append((f"enrolled from the retrain's {sum(done.added.values())} training slides", done.model, time.perf_counter() - t0))
         t0 = time.perf_counter()
-        rows.append((f"full retrain on {known + 1}", train(tr, config).model, time.perf_counter() - t0))
+        rows.append((f"full retrain on {known + 1}", train(tr, config, **opts).model, time.perf_counter() - t0))
         for name, model, seconds in rows:
             label = args.new if name.startswith("full") else "NEW"
             new_acc, known_acc, new_unknown, known_unknown = accuracy(test, config, model, args.new, label)
@@ -118,7 +122,7 @@ def main() -> None:
                   f"{100 * new_unknown:.0f} / {100 * known_unknown:.1f} % | {seconds:.1f} |", flush=True)
 
 
-def unit_swap(scenes: list[str], root: Path, config: Config) -> None:
+def unit_swap(scenes: list[str], root: Path, config: Config, opts: dict[str, Any]) -> None:
     """The fingertip-swap table (see the module docstring)."""
     from labels import plain_baseline
 
@@ -126,7 +130,7 @@ def unit_swap(scenes: list[str], root: Path, config: Config) -> None:
     print("|---|---|---|---|---|")
     for scene in scenes:
         tr = write_dataset(root / scene / "train", scene=scene, seed=100, files_per_surface=3, slides_per_file=3)
-        model = train(tr, config).model
+        model = train(tr, config, **opts).model
         model.save(root / scene / "m.npz")
         for u in (1, 2):
             new = write_dataset(root / scene / f"enrol{u}", scene=scene, seed=500 + u, files_per_surface=1, slides_per_file=5, unit=u, specimen=u)

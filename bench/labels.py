@@ -20,7 +20,11 @@ from 20 Hz to 0.45 fs, the log spectral centroid and the kurtosis; StandardScale
 
 Usage: python bench/labels.py [--scenes "hand;robot;..."] [--files 3] [--test-files 2] [--slides 3] [--out DIR] [--json FILE]
        [--other-units 1,2] [--no-paper] [--leave-out-scenes "hand;robot;one-channel"] [--novelty ratio|distance|combined]
-       [--no-gratings]
+       [--no-gratings] [--ensemble off|always|guarded]
+
+``--ensemble`` trains every default model with ``train --ensemble``; where the model is an ensemble, the winner alone (the
+candidate ``train`` chose, with its own calibration) is scored on the same test sets beside it, and a second table gives
+both, gated (unknowns wrong) and top class, with the ensemble's and the winner's cross-validated accuracy.
 """
 
 from __future__ import annotations
@@ -164,6 +168,19 @@ def table_row(out: dict[str, Any], units: list[int]) -> str:
             + f" {out['train_s']:.0f} |")
 
 
+def ensemble_row(out: dict[str, Any], units: list[int]) -> str:
+    """One scene's row of the ensemble table: CV of the ensemble and the winner, then each model's gated and top-class accuracy."""
+    e = out["ensemble"]
+
+    def accs(res: dict[str, Any]) -> str:
+        return " / ".join(f"{100 * res[k]['accuracy']:.1f} ({100 * res[k]['top_accuracy']:.1f})" for k in ["same", *[f"other{u}" for u in units]])
+
+    cv = f"{100 * e['mean']:.1f} / {100 * e['chosen_cv']:.1f} %" + ("" if e.get("within_one_se", True) else " (beyond 1 SE)") if "mean" in e else "-"
+    mine = {"same": out["same"], **{f"other{u}": out["other"][u] for u in units}}
+    return (f"| {out['scene']} | {out['winner']} | {cv} | {accs(mine) if out['ensemble']['is_ensemble'] else '(not an ensemble)'} % | "
+            + (f"{accs(out['alone'])} % |" if "alone" in out else f"{accs(mine)} % |"))
+
+
 def main() -> None:
     from threadpoolctl import threadpool_limits
 
@@ -180,8 +197,10 @@ def main() -> None:
     ap.add_argument("--leave-out-scenes", default="hand;robot;one-channel", help="scenes for the unknown-surface test ('' for none)")
     ap.add_argument("--novelty", default=None, help="train --novelty for every model (default: train's)")
     ap.add_argument("--no-gratings", action="store_true", help="skip the far-surface test (the default model on the 15 gratings)")
+    ap.add_argument("--ensemble", default=None, help="train --ensemble for the default models (default: train's)")
     args = ap.parse_args()
     opts: dict[str, Any] = {"novelty": args.novelty} if args.novelty else {}
+    ens_opts: dict[str, Any] = {"ensemble": args.ensemble} if args.ensemble else {}
     config = Config()
     units = [int(u) for u in args.other_units.split(",") if u]
     root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-labels-"))
@@ -200,10 +219,16 @@ def main() -> None:
         train_recs = load_recordings(tr)
         out: dict[str, Any] = {"scene": spec, "plain": plain_baseline(train_recs, {"same": same, **{f"other{u}": r for u, r in others.items()}})}
         t0 = time.perf_counter()
-        res = train(tr, config, progress=lambda m: None, keep_models=True, **opts)
+        res = train(tr, config, progress=lambda m: None, keep_models=True, **opts, **ens_opts)
         out["train_s"] = time.perf_counter() - t0
         out["winner"], out["nested_cv"] = res.winner, res.nested["mean"]
         out["same"], out["other"] = end_to_end(same, config, res.model), {u: end_to_end(r, config, res.model) for u, r in others.items()}
+        chosen = next(r for r in res.leaderboard if r["candidate"] == res.winner)
+        out["ensemble"] = {**chosen.get("ensemble", {}), "chosen_cv": chosen["mean"], "chosen_sd": chosen["sd"],
+                           "is_ensemble": res.model.partner is not None}
+        if res.model.partner is not None:  # the winner alone, as train --ensemble off would have made it
+            alone = res.models[res.winner]
+            out["alone"] = {"same": end_to_end(same, config, alone), **{f"other{u}": end_to_end(r, config, alone) for u, r in others.items()}}
         out["candidates"] = [{"candidate": r["candidate"], "cv": r["mean"], "same": end_to_end(same, config, res.models[r["candidate"]])["accuracy"]}
                              for r in res.leaderboard]
         if not args.no_paper:
@@ -218,6 +243,12 @@ def main() -> None:
         print(table_row(out, units), flush=True)
         if args.json:
             Path(args.json).write_text(json.dumps({"scenes": rows}, indent=1, default=float))
+    if any("alone" in r for r in rows):
+        print("\n| scene | winner | CV: ensemble / winner alone | ensemble: same / " + " / ".join(f"unit {u}" for u in units)
+              + " (top class) | winner alone: same / " + " / ".join(f"unit {u}" for u in units) + " (top class) |")
+        print("|---|---|---|---|---|")
+        for r in rows:
+            print(ensemble_row(r, units))
     gaps = [(r["scene"], c["candidate"], c["cv"] - c["same"]) for r in rows for c in r["candidates"]]
     worst = max(gaps, key=lambda g: abs(g[2])) if gaps else None
     for r in rows:

@@ -44,7 +44,7 @@ LEAVE_OUT = (2, 7, 12)
 def slide_rows(recs: list[tuple[str, Recording]], config: Config, model: Model) -> tuple[np.ndarray, np.ndarray]:
     """(standardised mean features (s, F'), labels (s,)) of every slide of ``recs`` with a usable window."""
     ws = collect_windows(recs, config, model.settings, found=find_slides(recs, config)).averaged()
-    return model.standardise(ws.x), ws.y
+    return model.standardise(model.own(ws.x)), ws.y  # an ensemble: its first member's columns, as its novelty gate
 
 
 def scores(model: Model, z: np.ndarray, train_z: np.ndarray | None = None, train_y: np.ndarray | None = None) -> dict[str, list[Any]]:

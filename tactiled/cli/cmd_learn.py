@@ -51,12 +51,16 @@ def cmd_train(args: argparse.Namespace) -> int:
     check_output(args.output, args.force, (".npz",))  # before minutes of search, not after
     result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
                    scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by,
-                   novelty=args.novelty)
+                   novelty=args.novelty, ensemble=args.ensemble)
     print("leaderboard (slide accuracy, grouped by file: mean ± sd over folds; * the choice, the simplest within one standard error of the best):")
     width = max(len(row["candidate"]) for row in result.leaderboard)
     for row in result.leaderboard:
         mark = "*" if row.get("chosen") else " "
         print(f"{mark} {row['candidate']:<{width}s} {100 * row['mean']:5.1f} ± {100 * row['sd']:4.1f} %")
+        ens = row.get("ensemble")
+        if ens:  # the chosen candidate with the spectral one (train --ensemble)
+            what = "the model" if ens["used"] else "not used: more than one standard error below the chosen one"
+            print(f"  {'+ ' + ens['partner']:<{width}s} {100 * ens['mean']:5.1f} ± {100 * ens['sd']:4.1f} % (the choice and it as an ensemble: {what})")
     cal, nov = result.model.summary.get("calibration", {}), result.model.summary.get("novelty", {})
     if cal:
         early = result.model.summary.get("early_calibration", {})
@@ -177,6 +181,11 @@ def add_commands(sub: Sub) -> None:
                         "between taught grades, but also most slides of another unit); combined (the default), the ratio, or a "
                         "distance to the nearest surface beyond the step between taught surfaces (also flags a surface far from "
                         "every taught one where one taught surface is much nearer than the next)")
+    p.add_argument("--ensemble", choices=("off", "always", "guarded"), default="off",
+                   help="whether the chosen candidate and the plain spectral one (spectrum / svm / 0.25 s / slide mean) make one model, "
+                        "the normalised product of their probabilities, when the chosen one's windows are the spectral one's "
+                        "(0.25 s from the start): off, always, or guarded (only when its cross-validated accuracy is within one "
+                        "standard error of the chosen one's); default off; never with --method quick or paper")
 
     p = command(sub, "evaluate", "the papers' experiments by grouped cross-validation", cmd_evaluate,
                 "tactiled evaluate data/sim/*.npz --report report/")

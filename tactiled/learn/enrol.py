@@ -5,6 +5,8 @@ standardised rows its classifier was fitted on (format 4), so enrolment maps the
 new slides' rows (analysed exactly as the daemon analyses them), and fits the same classifier on the union; the
 novelty data gets the new slides and its threshold is fitted again by the same grouped rule as in training. The
 confidence keeps the original model's calibration (fitted on its out-of-fold scores; enrolment has none of its own).
+An ensemble (format 7) refits both members on the new slides, each on its own columns of the one analysis and with
+its own fusion; the members' and the ensemble's temperatures are kept with the calibration.
 
 A surface needs at least :data:`MIN_SLIDES` usable slides. Without a ``label`` the recordings' own labels are used:
 that is how recordings of known surfaces made with *another unit* of the sensor are added, after a fingertip swap.
@@ -19,11 +21,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.errors import ModelError, TactiledError
-from tactiled.learn.dataset import Progress, collect_windows, find_slides, load_recordings
-from tactiled.learn.model import Model, fit_pipeline, load_model
+from tactiled.learn.dataset import Progress, WindowSet, collect_windows, find_slides, load_recordings
+from tactiled.learn.model import FloatArray, Model, fit_pipeline, load_model, take_columns
 from tactiled.learn.search import PARAMS, fit_model_novelty
 
 MIN_SLIDES = 5
@@ -68,25 +71,38 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     short = [f"{k} ({n})" for k, n in added.items() if n < min_slides]
     if short:
         raise TactiledError(f"too few usable slides for {', '.join(short)}: enrolment needs at least {min_slides} per surface; record more")
-    rows = slides if old.settings.fusion == "features" else ws
-    keep = rows.y != ""
-    x = np.vstack([old.unstandardise(old.refit[0]), rows.x[keep]])
-    y = np.concatenate([np.asarray(old.refit[1], dtype=np.str_), rows.y[keep]])
-    params = dict(old.params)
-    if old.kind == "knn":  # as many neighbours as the search asks for, unless the rarest surface has fewer rows (fit_pipeline)
-        params["n_neighbors"] = max(int(params.get("n_neighbors", 1)), int(PARAMS["knn"]["n_neighbors"]))
-    pipe, refit = fit_pipeline(x, y, old.names, old.kind, params, old.seed)
-    if old.kind == "knn":
-        params["n_neighbors"] = int(pipe[-1].n_neighbors)
+    pipe, refit, params = _grown(old, slides if old.settings.fusion == "features" else ws, old.names)
     files = [Path(n).name for n, _ in recs]
     record = {"from": old.fingerprint, "slides": added, "files": files}
     summary: dict[str, Any] = {**old.summary, "enrolled": [*old.summary.get("enrolled", []), record]}
-    new = Model(old.method, old.kind, params, [str(k) for k in pipe[-1].classes_], old.settings, old.fs, old.channels, pipe,
-                old.temperature, old.seed, summary, "", refit, old.calibration)
-    new_x = slides.x[labelled]
+    new = replace(old, params=params, classes=[str(k) for k in pipe[-1].classes_], pipeline=pipe, summary=summary, fingerprint="", refit=refit)
+    if old.partner is not None:  # an ensemble: its second member learns the same slides (its own columns and fusion)
+        p = old.partner
+        p_pipe, p_refit, p_params = _grown(p, slides if p.settings.fusion == "features" else ws, old.names)
+        new.partner = replace(p, params=p_params, classes=new.classes, pipeline=p_pipe, refit=p_refit)
+    new_x = new.own(slides.x[labelled])
     z = new.standardise(np.vstack([old.unstandardise(old.novelty_x), new_x]))
     groups = np.concatenate([old.novelty_groups, slides.groups[labelled] + int(old.novelty_groups.max(initial=-1)) + 1])
     labels = np.concatenate([old.novelty_y, slides.y[labelled]]).astype(np.str_)
     new.novelty_k, new.early_calibration = old.novelty_k, old.early_calibration
     fit_model_novelty(new, z, labels, groups, old.novelty_score)  # the score the model was trained with
     return Enrolled(new, added, files, [k for k in added if k not in old.classes])
+
+
+def _grown(member: Model, rows: WindowSet, names: tuple[str, ...]) -> tuple[Any, tuple[FloatArray, npt.NDArray[np.str_]], dict[str, Any]]:
+    """(pipeline, standardised training rows, parameters) of ``member``'s classifier fitted again, with the same classifier and
+    parameters, on its training rows and the labelled rows of ``rows`` (one per window, or per slide for a whole-slide member;
+    raw features of the analysis, columns ``names``, of which it reads its own); a kNN keeps as many neighbours as the search
+    asks for, unless the rarest surface has fewer rows."""
+    if member.refit is None:
+        raise ModelError("a model member keeps no training rows; retrain it with this tactiled to enrol into it")
+    keep = rows.y != ""
+    x = np.vstack([member.unstandardise(member.refit[0]), take_columns(rows.x[keep], names, member.inputs)])
+    y = np.concatenate([np.asarray(member.refit[1], dtype=np.str_), rows.y[keep]])
+    params = dict(member.params)
+    if member.kind == "knn":
+        params["n_neighbors"] = max(int(params.get("n_neighbors", 1)), int(PARAMS["knn"]["n_neighbors"]))
+    pipe, refit = fit_pipeline(x, y, member.inputs, member.kind, params, member.seed)
+    if member.kind == "knn":
+        params["n_neighbors"] = int(pipe[-1].n_neighbors)
+    return pipe, refit, params

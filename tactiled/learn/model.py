@@ -5,6 +5,18 @@ A model classifies windows of a slide and combines them (:meth:`Model.fuse`):
     raw features (n, F) ─▶ log10 of scale features ─▶ StandardScaler ─▶ classifier ─▶ scores (n, K)
     slide: mean of its windows' scores (or the scores of the mean of their features) ─▶ softmax(· / temperature) ─▶ probabilities (K,)
 
+An *ensemble* (format 7; ``tactiled train --ensemble``) has a second member, :attr:`Model.partner`, the plain spectral
+classifier (whole-slide mean of log band energies, log centroid and kurtosis; RBF SVM), beside the candidate the search
+chose. One analysis computes both members' features (``settings.names`` is their union); each member takes its own
+columns (``Model.member_names``, ``partner.names``) and fuses them its own way, and the slide's probabilities are
+
+    softmax((log softmax(first's slide scores / T1) + log softmax(partner's slide scores / T2)) / T)
+
+(:func:`ensemble_scores`): the normalised product of the members' probabilities, each softened by its own temperature
+(``Model.member_temperature``, ``partner.temperature``), over the ensemble's temperature ``temperature``. T, the
+confidence calibration and the provisional labels' calibration are fitted on the ensemble's out-of-fold scores; the
+novelty data are the first member's (its standardised slide-mean features).
+
 ``pipeline`` is a real :class:`sklearn.pipeline.Pipeline` (steps ``log``, ``scale``,
 ``clf``), so scikit-learn's tools work on it. The classifier is one of ``elm`` (the
 papers' extreme learning machine), ``knn``, ``svm`` (RBF) or ``linear`` (L2-regularised
@@ -51,6 +63,14 @@ ranges, shapes, and that the stream's channels hold the features), runs a probe 
 synthetic noise through the whole analysis and the classifier, which must give a finite
 probability), and refuses anything wrong with one line naming file and part: a model that
 loads cannot crash the daemon at the first slide.
+
+Format 7 (an ensemble; a model of one classifier is still written as format 6, byte for byte as before): the header's
+``settings.names`` are both members' features and ``ensemble`` holds ``member`` (``names``: the first classifier's
+columns, whose F' sizes ``scaler_*``, ``train_x`` and ``novelty_x``; ``temperature``: T1) and ``partner`` (``method``,
+``classifier``, ``params``, ``names``, ``fusion``, ``temperature``: T2); the partner's arrays are those of a model of its
+classifier (``classes``, ``scaler_mean``, ``scaler_scale``, the classifier's, ``train_x``, ``train_y``) under the prefix
+``partner_`` (:data:`PARTNER`), checked as the first member's are and named with the prefix in errors. Formats 2 to 6
+load as they did.
 """
 
 from __future__ import annotations
@@ -59,7 +79,7 @@ import hashlib
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -76,8 +96,9 @@ from tactiled.learn.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, log_pr
 from tactiled.readable import MISSING
 
 FORMAT = "tactiled-model"
-FORMAT_VERSION = 6
-READ_VERSIONS = (2, 3, 4, 5, 6)  # format 2 (before calibration and novelty) still loads: confidence uncalibrated, novelty None; 3: no enrolment
+FORMAT_VERSION = 7  # written for an ensemble (a second member, :attr:`Model.partner`); a single-member model is written as format 6
+SINGLE_VERSION = 6
+READ_VERSIONS = (2, 3, 4, 5, 6, 7)  # format 2 (before calibration and novelty) still loads: confidence uncalibrated, novelty None; 3: no enrolment
 TRUST_ARRAYS = ("calibration", "novelty_x")
 ENROL_ARRAYS = ("train_x", "train_y", "novelty_y", "novelty_groups")  # format 4: what tactiled enrol refits on
 CLASSIFIERS = ("elm", "knn", "svm", "linear")
@@ -88,6 +109,7 @@ MAX_MODEL_BYTES = 256 << 20  # all arrays of a model file, inflated
 MAX_WINDOW_SAMPLES = 1 << 20  # an analysis window: 52 s at 20 kHz
 ARRAYS = {"elm": ("weights", "biases", "beta", "elm_temperature"), "linear": ("coef", "intercept"), "knn": ("train_x", "train_y"),
           "svm": ("train_x", "train_y")}
+PARTNER = "partner_"  # format 7: the prefix of the second member's arrays (its classes, scaler, classifier and training rows)
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -194,6 +216,40 @@ def softmax(z: FloatArray, temperature: float = 1.0) -> FloatArray:
     return out
 
 
+def log_softmax(z: FloatArray, temperature: float = 1.0) -> FloatArray:
+    """Row-wise log of :func:`softmax` of ``z / temperature`` (..., K), computed in log space so that it stays finite.
+
+    A score of -inf (a class the fold's model never saw, a slide with no window) stays -inf, and a row of -inf
+    stays -inf throughout (no class is more likely than another); NaN counts as -inf, +inf as 1e300, and a
+    temperature that is not finite and > 0 is taken as 1, as in :func:`softmax`.
+    """
+    if not (math.isfinite(temperature) and temperature > 0):
+        temperature = 1.0
+    z = np.asarray(z, dtype=np.float64)
+    finite = ~(np.isnan(z) | (z == -np.inf))  # +inf counts as 1e300; a finite score that overflows below stays finite
+    with np.errstate(over="ignore", invalid="ignore"):
+        z = np.where(finite, np.clip(np.nan_to_num(z, posinf=1e300) / temperature, -1e300, 1e300), -np.inf)
+    top = np.where(finite, z, -1e300).max(axis=-1, keepdims=True)
+    shifted = np.where(finite, z - top, -np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm = np.log(np.exp(shifted).sum(axis=-1, keepdims=True))  # >= 0 where the row has a finite score; -inf where it has none
+        out: FloatArray = np.where(np.isfinite(norm), shifted - norm, -np.inf)
+    return out
+
+
+def ensemble_scores(first: FloatArray, first_temperature: float, second: FloatArray, second_temperature: float) -> FloatArray:
+    """Slide scores (..., K) of a two-member ensemble: the sum of each member's log softmax probabilities.
+
+    ``first`` and ``second`` are the members' fused slide scores (..., K) (columns in the same class order),
+    each softened by its own temperature. ``softmax`` of the sum is the normalised product of the members'
+    probabilities; :class:`Model` divides it by the ensemble's own temperature (fitted on out-of-fold sums, since two
+    members that see one slide are not independent and their product is over-confident). -inf where either member
+    has -inf (a class it never saw).
+    """
+    out: FloatArray = log_softmax(first, first_temperature) + log_softmax(second, second_temperature)
+    return out
+
+
 def fit_temperature(scores: FloatArray, y_idx: npt.NDArray[np.intp], smoothing: float = 0.02) -> float:
     """Temperature T minimising the log loss of softmax(scores / T) against ``y_idx`` (rows = slides).
 
@@ -225,7 +281,17 @@ def fit_temperature(scores: FloatArray, y_idx: npt.NDArray[np.intp], smoothing: 
 
 @dataclass
 class Model:
-    """A trained window classifier with everything needed to use it on a stream."""
+    """A trained window classifier with everything needed to use it on a stream.
+
+    An *ensemble* (format 7) has a second member, :attr:`partner` (a :class:`Model` of its own: classifier, its
+    feature names, fusion and temperature; no calibration or novelty). Both read columns of one analysis:
+    ``settings.names`` is the union of the members' features, :attr:`member_names` this model's own classifier's
+    columns and ``partner.names`` the partner's. A slide's probabilities are then ``softmax`` of
+    :func:`ensemble_scores` (each member's fused slide scores softened by its own temperature, :attr:`member_temperature`
+    and ``partner.temperature``) over :attr:`temperature`; the calibration maps and the novelty data (this member's
+    standardised slide-mean features) are the ensemble model's. Without a partner, ``temperature`` softens this
+    classifier's fused scores, as before.
+    """
 
     method: str
     kind: str
@@ -249,15 +315,28 @@ class Model:
     novelty_groups: npt.NDArray[np.int64] | None = None  # (n,): the recording of each novelty_x row, numbered from 0
     novelty_score: str = "ratio"  # how novelty_parts measures a slide against novelty_x (NOVELTY_SCORES); files before format 5: distance
     novelty_distance_threshold: float = math.inf  # score "combined" (format 6): the nearest surface's distance above which a slide is unknown
+    partner: Model | None = None  # an ensemble's second member (format 7); None: a single classifier
+    member_names: tuple[str, ...] | None = None  # an ensemble: this classifier's columns (a subset of settings.names); None: all of them
+    member_temperature: float = 1.0  # an ensemble: the temperature of this classifier's own probabilities (``temperature`` is the ensemble's)
 
     @property
     def names(self) -> tuple[str, ...]:
-        """The F raw feature names the model takes, in column order (its settings')."""
+        """The F raw feature names the model takes, in column order (its settings'; an ensemble's: both members')."""
         return self.settings.names
 
-    def scores(self, x: npt.ArrayLike) -> FloatArray:
-        """Window scores (n, K), columns in :attr:`classes` order, for raw features x (n, F)."""
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """The F' raw feature names this model's own classifier reads (:attr:`member_names`, else all of :attr:`names`)."""
+        return self.member_names if self.member_names is not None else self.settings.names
+
+    def own(self, x: npt.ArrayLike) -> FloatArray:
+        """This classifier's columns (n, F') of raw features x (n, F) (the columns of :attr:`inputs`; all of them without a partner)."""
         x = np.asarray(x, dtype=np.float64).reshape(-1, len(self.names))
+        return x if self.member_names is None else take_columns(x, self.names, self.member_names)
+
+    def scores(self, x: npt.ArrayLike) -> FloatArray:
+        """Window scores (n, K) of this model's own classifier, columns in :attr:`classes` order, for raw features x (n, F)."""
+        x = self.own(x)
         if isinstance(self.pipeline, LeanPipeline):
             raw, order = self.pipeline.scores(x), self.pipeline.classes_
         else:
@@ -271,15 +350,31 @@ class Model:
         return full
 
     def fuse(self, scores: FloatArray) -> FloatArray:
-        """Probabilities (K,) of a slide from the scores (w, K) of its windows (w >= 1)."""
+        """Probabilities (K,) of a slide from the scores (w, K) of its windows (w >= 1) (a single classifier's)."""
         return softmax(np.asarray(scores, dtype=np.float64).mean(axis=0), self.temperature)
 
-    def slide_proba(self, features: FloatArray) -> FloatArray:
-        """Probabilities (K,) of a slide from the raw features (w, F) of its windows (w >= 1), by the settings' ``fusion``."""
+    def fused_scores(self, features: FloatArray) -> FloatArray:
+        """This classifier's slide scores (K,) from the raw features (w, F) of a slide's windows (w >= 1), by the settings'
+        ``fusion``: the mean of the windows' scores, or the scores of the windows' mean features."""
         x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
         if self.settings.fusion == "features":
-            return softmax(self.scores(x.mean(axis=0, keepdims=True))[0], self.temperature)
-        return self.fuse(self.scores(x))
+            return self.scores(x.mean(axis=0, keepdims=True))[0]
+        out: FloatArray = self.scores(x).mean(axis=0)
+        return out
+
+    def slide_proba(self, features: FloatArray) -> FloatArray:
+        """Probabilities (K,) of a slide from the raw features (w, F) of its windows (w >= 1): this classifier's fused
+        scores softened by ``temperature``; an ensemble's, :func:`ensemble_scores` of both members over ``temperature``."""
+        x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
+        return softmax(self._slide_scores(x), self.temperature)
+
+    def _slide_scores(self, x: FloatArray) -> FloatArray:
+        """The slide scores (K,) that ``temperature`` softens: this classifier's fused scores, or the ensemble's."""
+        own = self.fused_scores(x)
+        if self.partner is None:
+            return own
+        return ensemble_scores(own, self.member_temperature, self.partner.fused_scores(take_columns(x, self.names, self.partner.names)),
+                               self.partner.temperature)
 
     def confidence(self, p_top: float) -> float:
         """The probability that the label is right, from the top softmax probability of a slide (the calibration map)."""
@@ -290,13 +385,14 @@ class Model:
     def novelty(self, features: FloatArray) -> float | None:
         """How unlike the training slides a slide is, from its windows' raw features (w, F): > 1 is an unknown surface.
 
-        :func:`novelty_parts` of the slide's standardised mean features against the training slides, over the thresholds
+        :func:`novelty_parts` of the slide's standardised mean features (this classifier's, :attr:`inputs`; an ensemble's
+        first member's) against the training slides, over the thresholds
         set in training (:func:`over_thresholds`; the distance threshold is infinite unless the score is ``combined``).
         None for a model without novelty data.
         """
         if self.novelty_x is None or not len(self.novelty_x):
             return None
-        z = self.standardise(np.asarray(features, dtype=np.float64).reshape(-1, len(self.names)).mean(axis=0, keepdims=True))
+        z = self.standardise(self.own(features).mean(axis=0, keepdims=True))
         parts = novelty_parts(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_score)
         return float(over_thresholds(parts, self.novelty_threshold, self.novelty_distance_threshold)[0])
 
@@ -318,26 +414,32 @@ class Model:
         return proba, self.confidence(p_top) if final else self.early_confidence(p_top, x.shape[0]), self.novelty(x)
 
     def standardise(self, x: FloatArray) -> FloatArray:
-        """Classifier inputs (n, F') of raw features (n, F): log of scale features, standardised (the steps before the classifier)."""
+        """Classifier inputs (n, F') of raw features (n, F') of :attr:`inputs` (:meth:`own` of the full columns): log of
+        scale features, standardised (the steps before this model's own classifier)."""
         if isinstance(self.pipeline, LeanPipeline):
             return self.pipeline.transform(x)
         return np.asarray(self.pipeline[:-1].transform(x), dtype=np.float64)
 
     def unstandardise(self, z: FloatArray) -> FloatArray:
-        """Raw features (n, F) whose classifier inputs are ``z`` (n, F): the inverse of :meth:`standardise`."""
+        """Raw features (n, F') of :attr:`inputs` whose classifier inputs are ``z`` (n, F'): the inverse of :meth:`standardise`."""
         if isinstance(self.pipeline, LeanPipeline):
             mean, scale = self.pipeline.mean, self.pipeline.scale
         else:
             mean, scale = self.pipeline.named_steps["scale"].mean_, self.pipeline.named_steps["scale"].scale_
-        return raw_features(np.asarray(z, dtype=np.float64) * scale + mean, self.names)
+        return raw_features(np.asarray(z, dtype=np.float64) * scale + mean, self.inputs)
 
     def predict_proba(self, x: npt.ArrayLike) -> FloatArray:
-        """(n, K) probabilities of single windows."""
-        return softmax(self.scores(x), self.temperature)
+        """(n, K) probabilities of single windows (raw features x (n, F)), each as a slide of one window."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, len(self.names))
+        own = self.scores(x)
+        if self.partner is not None:
+            own = ensemble_scores(own, self.member_temperature, self.partner.scores(take_columns(x, self.names, self.partner.names)),
+                                  self.partner.temperature)
+        return softmax(own, self.temperature)
 
     def predict(self, x: npt.ArrayLike) -> npt.NDArray[np.str_]:
-        """Labels (n,) of single windows from raw features x (n, F): the class with the largest score."""
-        return np.asarray(self.classes)[np.argmax(self.scores(x), axis=1)]
+        """Labels (n,) of single windows from raw features x (n, F): the class with the largest probability."""
+        return np.asarray(self.classes)[np.argmax(self.predict_proba(x), axis=1)]
 
     def check_stream(self, fs: float, channels: int, where: str = "stream") -> None:
         """Refuse a stream of another rate or channel count (one line)."""
@@ -347,16 +449,29 @@ class Model:
             raise ModelError(f"model needs {self.channels} channels, {where} has {channels}")
 
     def describe(self) -> str:
-        """One line: method, classifier, features, windows, cross-validated accuracy."""
+        """One line: method, classifier(s), features, windows, cross-validated accuracy."""
         cv = self.summary.get("cv_accuracy")
         acc = f", nested CV accuracy {100 * cv['mean']:.1f} ± {100 * cv['sd']:.1f} %" if isinstance(cv, dict) else ""
         s = self.settings
-        return (f"{self.method}: {self.kind} on {len(self.names)} features, windows {s.duration_s:g} s every {s.hop():g} s from "
+        what = f"{self.kind} on {len(self.names)} features"
+        if self.partner is not None:
+            ens = self.summary.get("ensemble")
+            cv_ens = f" (CV accuracy {100 * ens['mean']:.1f} %)" if isinstance(ens, dict) and _is_number(ens.get("mean")) else ""
+            what = (f"ensemble{cv_ens} of {self.kind} on {len(self.inputs)} features ({self.settings.fusion} fusion) and {self.partner.kind} "
+                    f"on {len(self.partner.names)} ({self.partner.settings.fusion} fusion), {len(self.names)} features in all")
+        return (f"{self.method}: {what}, windows {s.duration_s:g} s every {s.hop():g} s from "
                 f"{s.start_s:g} s{' (at most ' + str(s.max_windows) + ')' if s.max_windows else ''}, {len(self.classes)} classes{acc}")
 
     # ---- persistence -------------------------------------------------------------------------
 
     def _arrays(self) -> dict[str, Any]:
+        """This classifier's arrays, and an ensemble's partner's under :data:`PARTNER` (format 7)."""
+        arrays = self._member_arrays()
+        if self.partner is not None:
+            arrays.update({PARTNER + k: v for k, v in self.partner._member_arrays().items()})
+        return arrays
+
+    def _member_arrays(self) -> dict[str, Any]:
         if isinstance(self.pipeline, LeanPipeline):
             return dict(self.pipeline.arrays)
         scaler, clf = self.pipeline.named_steps["scale"], self.pipeline.named_steps["clf"]
@@ -375,7 +490,7 @@ class Model:
 
     def _trust_arrays(self) -> dict[str, Any]:
         calibration = self.calibration if self.calibration is not None else np.array([[0.0, 1.0], [0.0, 1.0]])
-        novelty_x = self.novelty_x if self.novelty_x is not None else np.zeros((0, len(self.names)))
+        novelty_x = self.novelty_x if self.novelty_x is not None else np.zeros((0, len(self.inputs)))
         n = novelty_x.shape[0]
         novelty_y = self.novelty_y if self.novelty_y is not None and len(self.novelty_y) == n else np.full(n, "", dtype=np.str_)
         groups = self.novelty_groups if self.novelty_groups is not None and len(self.novelty_groups) == n else np.arange(n)
@@ -383,7 +498,17 @@ class Model:
                 "novelty_y": np.asarray(novelty_y, dtype=np.str_), "novelty_groups": np.asarray(groups, dtype=np.int64)}
 
     def _header(self) -> dict[str, Any]:
-        return {"format": FORMAT, "version": FORMAT_VERSION, "method": self.method, "classifier": self.kind, "params": self.params,
+        header = self._single_header()
+        if self.partner is not None:
+            p = self.partner
+            header.update(version=FORMAT_VERSION, ensemble={
+                "member": {"names": list(self.inputs), "temperature": self.member_temperature},
+                "partner": {"method": p.method, "classifier": p.kind, "params": p.params, "names": list(p.names), "fusion": p.settings.fusion,
+                            "temperature": p.temperature}})
+        return header
+
+    def _single_header(self) -> dict[str, Any]:
+        return {"format": FORMAT, "version": SINGLE_VERSION, "method": self.method, "classifier": self.kind, "params": self.params,
                 "seed": self.seed, "classes": self.classes, "settings": self.settings.to_dict(), "fs": self.fs, "channels": self.channels,
                 "temperature": self.temperature, "summary": self.summary,
                 "novelty": {"k": self.novelty_k, "threshold": self.novelty_threshold if math.isfinite(self.novelty_threshold) else None,
@@ -425,6 +550,13 @@ def fit_pipeline(x: FloatArray, y: npt.NDArray[Any], names: list[str] | tuple[st
     return pipe, (pipe[:-1].transform(x), np.asarray(y, dtype=np.str_))
 
 
+def take_columns(x: FloatArray, names: Sequence[str], wanted: Sequence[str]) -> FloatArray:
+    """The columns (n, len(wanted)) of raw features ``x`` (n, len(names)) named ``wanted`` (each one of ``names``), in that order."""
+    index = {n: i for i, n in enumerate(names)}
+    out: FloatArray = np.asarray(x, dtype=np.float64)[:, [index[n] for n in wanted]]
+    return out
+
+
 def _fingerprint(header: dict[str, Any], arrays: dict[str, Any]) -> str:
     h = hashlib.sha256(json.dumps(header, sort_keys=True).encode())
     for key in sorted(arrays):
@@ -461,13 +593,16 @@ def load_model(path: str | Path | None = None, lean: bool = True) -> Model:
                   f"header.version: {header.get('version')!r} is not one of the supported {READ_VERSIONS} (retrain with this tactiled)")
             kind = header.get("classifier")
             _need(kind in CLASSIFIERS, path, f"header.classifier: unknown {kind!r}")
-            optional = [k for k in SVM_ARRAYS if k in reader] if kind == "svm" else []
             version = header.get("version")
-            trust = (*TRUST_ARRAYS, *ENROL_ARRAYS) if version in (4, 5, 6) else TRUST_ARRAYS if version == 3 else ()
-            keys = tuple(dict.fromkeys(("classes", "scaler_mean", "scaler_scale", *ARRAYS[kind], *optional, *trust)))
+            trust = (*TRUST_ARRAYS, *ENROL_ARRAYS) if version in (4, 5, 6, 7) else TRUST_ARRAYS if version == 3 else ()
+            keys = _member_keys(kind, set(reader.keys()), "", trust)
+            partner = _partner_kind(path, header)
+            if partner is not None:  # format 7: the second member's arrays, each under the prefix, and its training rows
+                keys += _member_keys(partner, set(reader.keys()), PARTNER, ENROL_ARRAYS[:2])
             missing, extra = [k for k in keys if k not in reader], sorted(set(reader.keys()) - {"header", *keys})
             _need(not missing, path, f"{', '.join(missing)}: missing")
-            _need(not extra, path, f"{', '.join(extra)}: not an array of a {kind} model (the fingerprint covers every array)")
+            what = f"{kind} model" + (f" with a {partner} partner" if partner else "")
+            _need(not extra, path, f"{', '.join(extra)}: not an array of a {what} (the fingerprint covers every array)")
             arrays = {k: reader.read(k) for k in keys}
     except NpzError as exc:
         what = "no such model file" if str(exc) == MISSING else str(exc)
@@ -478,6 +613,25 @@ def load_model(path: str | Path | None = None, lean: bool = True) -> Model:
         raise
     except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
         raise ModelError(f"{path}: header or arrays inconsistent: {exc}") from None
+
+
+def _member_keys(kind: str, present: set[str], prefix: str, extra: Sequence[str]) -> tuple[str, ...]:
+    """The array names of one member of classifier ``kind`` (``prefix``: :data:`PARTNER` for an ensemble's second), with the
+    fitted SVM's arrays where the file has them (``present``) and the ``extra`` ones (calibration, novelty, training rows)."""
+    optional = [k for k in SVM_ARRAYS if prefix + k in present] if kind == "svm" else []
+    return tuple(prefix + k for k in dict.fromkeys(("classes", "scaler_mean", "scaler_scale", *ARRAYS[kind], *optional, *extra)))
+
+
+def _partner_kind(path: Path, header: dict[str, Any]) -> str | None:
+    """The classifier of a format-7 file's second member (``header.ensemble.partner.classifier``), None without one."""
+    ens = header.get("ensemble") if header.get("version") == FORMAT_VERSION else None
+    if ens is None:
+        return None
+    _need(isinstance(ens, dict) and isinstance(ens.get("member"), dict) and isinstance(ens.get("partner"), dict), path,
+          "header.ensemble: must be null or an object with member and partner objects")
+    kind = ens["partner"].get("classifier")
+    _need(kind in CLASSIFIERS, path, f"header.ensemble.partner.classifier: unknown {kind!r}")
+    return str(kind)
 
 
 def _finite(a: Any) -> bool:
@@ -513,12 +667,12 @@ def _check_settings(path: Path, s: AnalysisSettings, fs: float, channels: int) -
           f"settings.duration_s: {s.duration_s:g} s is shorter than the {plan.min_samples()} samples the features need")
 
 
-def _check_params(path: Path, kind: str, params: dict[str, Any]) -> None:
+def _check_params(path: Path, kind: str, params: dict[str, Any], where: str = "params") -> None:
     def num(key: str, lo: float, hi: float, integer: bool = False) -> None:
         if key in params:
             v = params[key]
             _need(_is_number(v) and lo <= v <= hi and (not integer or isinstance(v, int)), path,
-                  f"params.{key}: must be {'an integer' if integer else 'a number'} in [{lo:g}, {hi:g}]")
+                  f"{where}.{key}: must be {'an integer' if integer else 'a number'} in [{lo:g}, {hi:g}]")
 
     num("n_hidden", 1, 100_000, integer=True)
     num("alpha", 0, 1e6)
@@ -529,10 +683,10 @@ def _check_params(path: Path, kind: str, params: dict[str, Any]) -> None:
     if kind == "svm":
         gamma = params.get("gamma", "scale")
         _need(params.get("kernel", "rbf") in ("rbf", "linear") and (gamma in ("scale", "auto") or (_is_number(gamma) and 0 < gamma <= 1e6)),
-              path, "params: svm kernel must be rbf or linear, gamma scale, auto or a number in (0, 1e6]")
+              path, f"{where}: svm kernel must be rbf or linear, gamma scale, auto or a number in (0, 1e6]")
     if kind == "elm":
         _need(str(params.get("init", "hpelm")) in ("hpelm", "huang") and isinstance(params.get("calibrate", False), bool), path,
-              "params: elm init must be hpelm or huang, calibrate true or false")
+              f"{where}: elm init must be hpelm or huang, calibrate true or false")
 
 
 def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: bool = True) -> Model:
@@ -545,62 +699,106 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
     fs = float(fs)
     settings = AnalysisSettings.from_dict(header["settings"])
     _check_settings(path, settings, fs, channels)
-    f = len(settings.names)
     classes = [str(c) for c in header["classes"]]
     _need(1 <= len(classes) <= 10_000 and len(set(classes)) == len(classes), path, "header.classes: 1..10000 distinct classes")
-    _need(list(arrays["classes"]) == classes, path, "classes: differ from the header's")
     _need(isinstance(header["params"], dict), path, "header.params: must be an object")
     params, seed = dict(header["params"]), header["seed"]
     _check_params(path, kind, params)
-    temperature = header.get("temperature", 1.0)
-    _need(_is_number(temperature) and 1e-6 <= temperature <= 1e6, path, "header.temperature: must be a finite number in [1e-6, 1e6]")
-    temperature = float(temperature)
+    temperature = _temperature(path, header.get("temperature", 1.0), "header.temperature")
     _need(isinstance(seed, int) and 0 <= seed < 2**32, path, "header.seed: must be an integer in [0, 2**32)")
     summary = header.get("summary", {})
     cv = summary.get("cv_accuracy") if isinstance(summary, dict) else None
     _need(isinstance(summary, dict) and (cv is None or (isinstance(cv, dict) and _is_number(cv.get("mean")) and _is_number(cv.get("sd")))),
           path, "header.summary: must be an object, its cv_accuracy mean and sd numbers")
-    mean, scale = arrays["scaler_mean"], arrays["scaler_scale"]
-    for key, a in (("scaler_mean", mean), ("scaler_scale", scale)):
-        _need(a.shape == (f,) and _finite(a), path, f"{key}: must be ({f},) finite floats")
-    _need(bool(np.all(scale > 0)), path, "scaler_scale: must be > 0")
-    if kind == "elm":
-        w, b, beta = arrays["weights"], arrays["biases"], arrays["beta"]
-        hidden = int(params.get("n_hidden", 200))
-        _need(w.shape == (f, hidden) and b.shape == (hidden,) and beta.shape == (hidden, max(len(classes), 2)), path,
-              "weights, biases, beta: shapes do not match the header")
-        _need(all(_finite(a) for a in (w, b, beta)), path, "weights, biases, beta: must be finite floats")
-        elm_t = arrays["elm_temperature"]
-        t = float(elm_t) if elm_t.size == 1 and elm_t.dtype.kind in "fiu" else math.nan
-        _need(elm_t.shape == () and _finite(elm_t) and 1e-6 <= t <= 1e6, path, "elm_temperature: must be a finite float in [1e-6, 1e6]")
-    elif kind == "linear":
-        coef, intercept = arrays["coef"], arrays["intercept"]
-        rows = 1 if len(classes) == 2 else len(classes)
-        _need(coef.shape == (rows, f) and intercept.shape == (rows,) and _finite(coef) and _finite(intercept), path,
-              "coef, intercept: shapes do not match the header or not finite")
-    refit = None
-    if "train_x" in arrays:
-        train_x, train_y = arrays["train_x"], arrays["train_y"]
-        _need(train_x.ndim == 2 and train_x.shape[1] == f and 1 <= train_x.shape[0] <= MAX_REFIT_ROWS and train_y.shape == (train_x.shape[0],),
-              path, f"train_x, train_y: shapes do not match the header (at most {MAX_REFIT_ROWS} rows)")
-        _need(train_y.dtype.kind == "U", path, "train_y: must be unicode")
-        _need(_finite(train_x), path, "train_x: must be finite floats")
-        _need(set(map(str, train_y)) == set(classes), path, "train_y: classes differ from the header's")
-        if kind == "knn":
-            _need(int(params.get("n_neighbors", 9)) <= train_x.shape[0], path, "params.n_neighbors: more than the training rows")
-        refit = (train_x, train_y)
-    pipe = lean_pipeline(kind, settings.names, classes, params, arrays) if lean else None
-    if pipe is None:
-        if kind == "svm":
-            _need(train_x.shape[0] <= MAX_SVM_REFIT_ROWS, path, f"train_x: {train_x.shape[0]} rows, more than the {MAX_SVM_REFIT_ROWS} "
-                  "an svm is refit on at load (save it with this tactiled to store the fitted SVM)")
-        pipe = _sklearn_pipeline(settings, kind, params, seed, classes, arrays)
+    ensemble = header["ensemble"] if _partner_kind(path, header) is not None else None
+    names = _subset(path, ensemble["member"].get("names"), settings.names, "header.ensemble.member.names") if ensemble else settings.names
+    own = {k: v for k, v in arrays.items() if not k.startswith(PARTNER)}
+    pipe, refit = _member(path, "", kind, params, seed, names, classes, own, lean)
     model = Model(str(header.get("method", kind)), kind, params, classes, settings, fs, channels, pipe, temperature, seed,
                   dict(summary), fingerprint or "", refit)
+    if ensemble is not None:
+        model.member_names = names
+        _attach_partner(path, model, ensemble, {k[len(PARTNER):]: v for k, v in arrays.items() if k.startswith(PARTNER)}, lean)
     if "calibration" in arrays:
         _check_trust(path, model, header, arrays)
     _probe(path, model)
     return model
+
+
+def _temperature(path: Path, value: Any, where: str) -> float:
+    """A temperature from a header: a finite number in [1e-6, 1e6]."""
+    _need(_is_number(value) and 1e-6 <= value <= 1e6, path, f"{where}: must be a finite number in [1e-6, 1e6]")
+    return float(value)
+
+
+def _subset(path: Path, names: Any, union: tuple[str, ...], where: str) -> tuple[str, ...]:
+    """An ensemble member's feature names: a non-empty list of distinct names, each one of the analysis's ``union``."""
+    _need(isinstance(names, list) and 0 < len(names) <= len(union) and all(isinstance(n, str) for n in names) and len(set(names)) == len(names)
+          and set(names) <= set(union), path, f"{where}: must be distinct feature names of settings.names")
+    return tuple(names)
+
+
+def _attach_partner(path: Path, model: Model, ensemble: dict[str, Any], arrays: dict[str, Any], lean: bool) -> None:
+    """Check a format-7 file's second member (``header.ensemble``; its arrays without the :data:`PARTNER` prefix) and attach it."""
+    head, where = ensemble["partner"], "header.ensemble.partner"
+    names = _subset(path, head.get("names"), model.names, f"{where}.names")
+    _need(set(names) | set(model.inputs) == set(model.names), path, "settings.names: must be the union of the members' names")
+    _need(head.get("fusion") in ("scores", "features"), path, f"{where}.fusion: must be scores or features")
+    _need(isinstance(head.get("params"), dict) and isinstance(head.get("method", ""), str), path, f"{where}: params must be an object, method a string")
+    kind, params = str(head["classifier"]), dict(head["params"])
+    _check_params(path, kind, params, f"{where}.params")
+    temperature = _temperature(path, head.get("temperature"), f"{where}.temperature")
+    model.member_temperature = _temperature(path, ensemble["member"].get("temperature"), "header.ensemble.member.temperature")
+    pipe, refit = _member(path, PARTNER, kind, params, model.seed, names, model.classes, arrays, lean)
+    model.partner = Model(str(head.get("method", kind)), kind, params, model.classes, replace(model.settings, names=names, fusion=head["fusion"]),
+                          model.fs, model.channels, pipe, temperature, model.seed, {}, "", refit)
+
+
+def _member(path: Path, prefix: str, kind: str, params: dict[str, Any], seed: int, names: tuple[str, ...], classes: list[str],
+            arrays: dict[str, Any], lean: bool) -> tuple[Any, tuple[FloatArray, npt.NDArray[np.str_]] | None]:
+    """The pipeline and training rows of one member (its ``arrays``, named without ``prefix``; errors name them with it), checked
+    against its feature ``names`` (F) and the header's ``classes``: lean (numpy) when ``lean`` and the arrays allow it."""
+    f = len(names)
+    _need(list(arrays["classes"]) == classes, path, f"{prefix}classes: differ from the header's")
+    mean, scale = arrays["scaler_mean"], arrays["scaler_scale"]
+    for key, a in (("scaler_mean", mean), ("scaler_scale", scale)):
+        _need(a.shape == (f,) and _finite(a), path, f"{prefix}{key}: must be ({f},) finite floats")
+    _need(bool(np.all(scale > 0)), path, f"{prefix}scaler_scale: must be > 0")
+    if kind == "elm":
+        w, b, beta = arrays["weights"], arrays["biases"], arrays["beta"]
+        hidden = int(params.get("n_hidden", 200))
+        _need(w.shape == (f, hidden) and b.shape == (hidden,) and beta.shape == (hidden, max(len(classes), 2)), path,
+              f"{prefix}weights, {prefix}biases, {prefix}beta: shapes do not match the header")
+        _need(all(_finite(a) for a in (w, b, beta)), path, f"{prefix}weights, {prefix}biases, {prefix}beta: must be finite floats")
+        elm_t = arrays["elm_temperature"]
+        t = float(elm_t) if elm_t.size == 1 and elm_t.dtype.kind in "fiu" else math.nan
+        _need(elm_t.shape == () and _finite(elm_t) and 1e-6 <= t <= 1e6, path, f"{prefix}elm_temperature: must be a finite float in [1e-6, 1e6]")
+    elif kind == "linear":
+        coef, intercept = arrays["coef"], arrays["intercept"]
+        rows = 1 if len(classes) == 2 else len(classes)
+        _need(coef.shape == (rows, f) and intercept.shape == (rows,) and _finite(coef) and _finite(intercept), path,
+              f"{prefix}coef, {prefix}intercept: shapes do not match the header or not finite")
+    refit = None
+    if "train_x" in arrays:
+        train_x, train_y = arrays["train_x"], arrays["train_y"]
+        _need(train_x.ndim == 2 and train_x.shape[1] == f and 1 <= train_x.shape[0] <= MAX_REFIT_ROWS and train_y.shape == (train_x.shape[0],),
+              path, f"{prefix}train_x, {prefix}train_y: shapes do not match the header (at most {MAX_REFIT_ROWS} rows)")
+        _need(train_y.dtype.kind == "U", path, f"{prefix}train_y: must be unicode")
+        _need(_finite(train_x), path, f"{prefix}train_x: must be finite floats")
+        _need(set(map(str, train_y)) == set(classes), path, f"{prefix}train_y: classes differ from the header's")
+        if kind == "knn":
+            _need(int(params.get("n_neighbors", 9)) <= train_x.shape[0], path, f"{prefix}params.n_neighbors: more than the training rows")
+        refit = (train_x, train_y)
+    try:
+        pipe = lean_pipeline(kind, names, classes, params, arrays) if lean else None
+    except ValueError as exc:
+        raise ModelError(f"{path}: {prefix}{exc}") from None
+    if pipe is None:
+        if kind == "svm":
+            _need(arrays["train_x"].shape[0] <= MAX_SVM_REFIT_ROWS, path, f"{prefix}train_x: {arrays['train_x'].shape[0]} rows, more than the "
+                  f"{MAX_SVM_REFIT_ROWS} an svm is refit on at load (save it with this tactiled to store the fitted SVM)")
+        pipe = _sklearn_pipeline(names, kind, params, seed, classes, arrays)
+    return pipe, refit
 
 
 def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[str, Any]) -> None:
@@ -609,7 +807,7 @@ def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[
     _need(cal.ndim == 2 and cal.shape[0] == 2 and 2 <= cal.shape[1] <= 10_000 and _finite(cal), path,
           "calibration: must be (2, m) finite floats, 2 <= m <= 10000")
     _need(bool(np.all((cal >= 0) & (cal <= 1)) and np.all(np.diff(cal, axis=1) >= 0)), path, "calibration: knots must be nondecreasing in [0, 1]")
-    width = model.standardise(np.zeros((1, len(model.names)))).shape[1]
+    width = model.standardise(np.zeros((1, len(model.inputs)))).shape[1]
     _need(nx.ndim == 2 and nx.shape[1] == width and nx.shape[0] <= MAX_REFIT_ROWS and (nx.size == 0 or _finite(nx)), path,
           f"novelty_x: must be (n, {width}) finite floats, at most {MAX_REFIT_ROWS} rows")
     nov: Any = header.get("novelty")
@@ -738,18 +936,21 @@ def _probe(path: Path, model: Model) -> None:
         assert window.features is not None
         two = np.stack([window.features, window.features * 1.5])
         scores = model.scores(two)
+        partner = model.partner.scores(take_columns(two, model.names, model.partner.names)) if model.partner is not None else scores
         p, confidence, novelty = model.assess(two)
     except (ValueError, FloatingPointError, ArithmeticError, IndexError, TypeError) as exc:
         raise ModelError(f"{path}: probe prediction failed: {exc}") from None
-    _need(scores.shape == (2, len(model.classes)) and bool(np.all(np.isfinite(scores))), path, "probe prediction: scores are not finite")
+    _need(scores.shape == partner.shape == (2, len(model.classes)) and bool(np.all(np.isfinite(scores)) and np.all(np.isfinite(partner))), path,
+          "probe prediction: scores are not finite" + (" (the partner's or the first member's)" if model.partner is not None else ""))
     _need(bool(np.all(np.isfinite(p))) and abs(float(p.sum()) - 1.0) < 1e-6, path, "probe prediction is not a finite probability")
     _need(0.0 <= confidence <= 1.0 and (novelty is None or math.isfinite(novelty)), path, "probe prediction: confidence or novelty not finite")
 
 
-def _sklearn_pipeline(settings: AnalysisSettings, kind: str, params: dict[str, Any], seed: int, classes: list[str], arrays: dict[str, Any]) -> Any:
-    """The scikit-learn pipeline of a model file's (already checked) arrays; kNN and SVM are refitted on the stored training set."""
-    f = len(settings.names)
-    pipe = make_pipeline(settings.names, kind, params, seed)
+def _sklearn_pipeline(names: tuple[str, ...], kind: str, params: dict[str, Any], seed: int, classes: list[str], arrays: dict[str, Any]) -> Any:
+    """The scikit-learn pipeline of one member's (already checked) arrays over its features ``names``; kNN and SVM are refitted on
+    the stored training set."""
+    f = len(names)
+    pipe = make_pipeline(names, kind, params, seed)
     scaler, clf = pipe.named_steps["scale"], pipe.named_steps["clf"]
     mean, scale = arrays["scaler_mean"], arrays["scaler_scale"]
     scaler.mean_, scaler.scale_, scaler.var_ = mean, scale, scale**2

@@ -25,6 +25,12 @@ calibration (:func:`fit_calibration`) are fitted on its out-of-fold slide scores
 novelty threshold (:func:`fit_novelty`) on the distance ratios of slides to other recordings' slides (and, for the
 ``combined`` score, a distance threshold on their distances to the nearest other surface).
 
+``ensemble`` (``train --ensemble``, off by default: docs/evaluation.md measured it on every scene and it cost some
+scenes 6 of 90 slides): when the winner shares :data:`SPECTRUM`'s windows, the model multiplies the winner's
+probabilities by SPECTRUM's (:func:`ensemble_of`; its temperature and calibration fitted on the two candidates'
+out-of-fold scores combined, its provisional-label calibration on their combined prefixes, its novelty the winner's),
+always or only when that combination's out-of-fold accuracy is within one standard error of the winner's.
+
 Work is spread over every core with joblib; ``scheduler`` (a dask.distributed address)
 sends it to a cluster through joblib's Dask backend instead.
 """
@@ -48,7 +54,17 @@ from tactiled.core.features import name_family
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, collect_windows, find_slides
-from tactiled.learn.model import Model, decision_scores, fit_pipeline, fit_temperature, novelty_parts, over_thresholds, softmax
+from tactiled.learn.model import (
+    Model,
+    decision_scores,
+    ensemble_scores,
+    fit_pipeline,
+    fit_temperature,
+    novelty_parts,
+    over_thresholds,
+    softmax,
+    take_columns,
+)
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -60,6 +76,10 @@ PARAMS: dict[str, dict[str, Any]] = {
 }
 KIND_RANK: dict[str, int] = {"linear": 0, "svm": 1, "knn": 2, "elm": 3}
 PAPER_PARAMS: dict[str, Any] = {"n_hidden": 200, "alpha": 1e-6}
+# train --ensemble: off, always (when the winner may have SPECTRUM as a partner: can_partner), guarded (then only within one
+# standard error of the winner's out-of-fold accuracy)
+ENSEMBLE_MODES = ("off", "always", "guarded")
+ENSEMBLE_DEFAULT = "off"
 # named feature sets: "spectrum" is the plain whole-slide spectral classifier's input (log band energies of the
 # Welch PSD, log spectral centroid, kurtosis of each channel); "tex.<name>" is one texture descriptor
 ALIASES: dict[str, tuple[str, ...]] = {"spectrum": ("psd", "tex.centroid", "tex.kurtosis")}
@@ -330,12 +350,18 @@ def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, li
 def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
            candidates: Sequence[Candidate] | None = None, progress: Progress | None = None, scheduler: str | None = None,
            found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False,
-           novelty: str = "combined") -> SearchResult:
+           novelty: str = "combined", ensemble: str = ENSEMBLE_DEFAULT) -> SearchResult:
     """Score every candidate, pick and refit the winner (see the module docstring).
 
-    ``keep_models``: also refit every other candidate (``SearchResult.models``, by name), to compare them on held-out recordings.
+    ``keep_models``: also refit every other candidate (``SearchResult.models``, by name; the winner alone under its name
+    when the model is an ensemble), to compare them on held-out recordings.
     ``novelty``: the models' unknown-surface score (:data:`~tactiled.learn.model.NOVELTY_SCORES`).
+    ``ensemble`` (:data:`ENSEMBLE_MODES`): whether the winner and :data:`SPECTRUM` make one model (:func:`ensemble_of`) when the
+    winner may have a partner (:func:`can_partner`): ``off`` never, ``always``, or ``guarded``, only when the ensemble's
+    out-of-fold accuracy is within one standard error of the winner's (:func:`within_one_se` on the same outer folds).
     """
+    if ensemble not in ENSEMBLE_MODES:
+        raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
     say = progress or (lambda m: None)
     t0 = time.perf_counter()
     fs, channels = recs[0][1].fs, recs[0][1].channels
@@ -414,47 +440,101 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         nested_accs.append(float(board[pick]["folds"][o]))
     nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
-    summary = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs)}
-    say(f"winner {best.name}: {board[chosen]['mean']:.3f} ± {board[chosen]['sd']:.3f} (best mean {leaderboard[0]['mean']:.3f}); "
-        f"nested CV {nested['mean']:.3f}; fitting on every slide")
-    model = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty)
-    if best.max_windows != 1:  # provisional labels come from the first windows of a slide: their own calibration
-        say("calibrating provisional labels on out-of-fold slide prefixes")
-        model.early_calibration, early_info = fit_early_calibration(windows_of[_key(best)], best, outer, classes, model.temperature, seed,
-                                                                    inner_folds)
-        model.summary = {**model.summary, "early_calibration": early_info}
+    summary: dict[str, Any] = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs)}
+    alone = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty)
+    model, members, scores = alone, [(best, alone.temperature)], oof[best.name]
+    if ensemble != "off" and can_partner(best, usable):
+        partner = _fit_member(sets, SPECTRUM, oof[SPECTRUM.name], y_idx, classes, config, fs, channels, seed, inner_folds, method)
+        both = ensemble_scores(oof[best.name], alone.temperature, oof[SPECTRUM.name], partner.temperature)
+        folds_both = [accuracy_of(both[te], y_idx[te]) for _, te in outer]
+        within = 1 in within_one_se([board[chosen]["folds"], folds_both])
+        info = {"partner": SPECTRUM.name, "mean": float(np.mean(folds_both)), "sd": float(np.std(folds_both)), "folds": folds_both,
+                "within_one_se": within, "mode": ensemble, "used": ensemble == "always" or within}
+        board[chosen]["ensemble"] = info
+        if info["used"]:
+            model = ensemble_of(alone, partner, both, y_idx, sets[_key(best)][1].names)
+            model.summary = {**model.summary, "ensemble": info}
+            members, scores = [(best, alone.temperature), (SPECTRUM, partner.temperature)], both
+        else:
+            alone.summary = {**alone.summary, "ensemble": info}
+    said = f" with {SPECTRUM.name} (ensemble)" if model.partner is not None else ""
+    ens_cv = f"; ensemble CV {board[chosen]['ensemble']['mean']:.3f}" if "ensemble" in board[chosen] else ""
+    say(f"winner {best.name}{said}: {board[chosen]['mean']:.3f} ± {board[chosen]['sd']:.3f} (best mean {leaderboard[0]['mean']:.3f}){ens_cv}; "
+        f"nested CV {nested['mean']:.3f}; fitted on every slide")
+    # provisional labels come from the first windows of a slide: their own calibration (the winner alone's too, when it is
+    # kept beside the ensemble, so that it is the model train --ensemble off makes)
+    for m, of in [(model, members), *([(alone, members[:1])] if keep_models and model is not alone else [])]:
+        if best.max_windows != 1:
+            say("calibrating provisional labels on out-of-fold slide prefixes")
+            m.early_calibration, early_info = fit_early_calibration(windows_of[_key(best)], of, outer, classes, m.temperature, seed, inner_folds)
+            m.summary = {**m.summary, "early_calibration": early_info}
     ws = sets[_key(best)][1]
     result = SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
-                          time.perf_counter() - t0, oof=(oof[best.name], y_idx, np.array([sl.file for sl in ws.slides])))
+                          time.perf_counter() - t0, oof=(scores, y_idx, np.array([sl.file for sl in ws.slides])))
     if keep_models:
-        result.models = {c.name: model if c == best else _refit(sets, c, oof[c.name], y_idx, classes, config, fs, channels, seed,
+        result.models = {c.name: alone if c == best else _refit(sets, c, oof[c.name], y_idx, classes, config, fs, channels, seed,
                                                                    inner_folds, method, summary, novelty) for c in usable}
     return result
+
+
+def can_partner(best: Candidate, usable: Sequence[Candidate]) -> bool:
+    """Whether the winner ``best`` may make an ensemble with :data:`SPECTRUM`: it is not SPECTRUM, SPECTRUM was scored
+    (one of ``usable``), and both place their windows alike (0.25 s from the start, all of them), so that one analysis
+    computes both members' features."""
+    return best != SPECTRUM and SPECTRUM in usable and best.placement == SPECTRUM.placement
+
+
+def ensemble_of(first: Model, partner: Model, oof: FloatArray, y_idx: npt.NDArray[np.intp], order: Sequence[str]) -> Model:
+    """The ensemble of two members fitted alone (``first``: the winner, with its calibration and novelty; ``partner``: from
+    :func:`_fit_member`), both over one analysis.
+
+    Its features are the union of the members' (in ``order``, the window set's columns), its temperature and calibration
+    map are fitted on the ensemble's out-of-fold slide scores ``oof`` (slides, K) (:func:`~tactiled.learn.model.ensemble_scores`
+    of the members' out-of-fold scores, each softened by its own temperature) against ``y_idx``. Novelty stays the first
+    member's (its standardised slide-mean features, its thresholds): a slide unlike the training slides in the winner's
+    features is what it was before the partner was added.
+    """
+    names = tuple(n for n in order if n in set(first.names) | set(partner.names))
+    temperature = fit_temperature(oof, y_idx)
+    calibration, cal_info = fit_calibration(oof, y_idx, temperature)
+    return replace(first, settings=replace(first.settings, names=names), member_names=first.names, member_temperature=first.temperature,
+                   partner=partner, temperature=temperature, calibration=calibration, fingerprint="",
+                   summary={**first.summary, "calibration": cal_info})
 
 
 def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: Candidate, oof: FloatArray, y_idx: npt.NDArray[np.intp],
            classes: list[str], config: Config, fs: float, channels: int, seed: int, inner_folds: int, method: str,
            summary: dict[str, Any], novelty: str = "combined") -> Model:
-    """Candidate ``c`` fitted on every labelled slide, its temperature fitted on its out-of-fold slide scores ``oof``."""
+    """Candidate ``c`` fitted on every labelled slide (:func:`_fit_member`), its calibration fitted on its out-of-fold slide scores
+    ``oof``, its novelty on its standardised slide-mean features."""
+    model = _fit_member(sets, c, oof, y_idx, classes, config, fs, channels, seed, inner_folds, method)
+    ws = sets[_key(c)][1]
+    calibration, cal_info = fit_calibration(oof, y_idx, model.temperature)
+    model.calibration = calibration
+    model.summary = {**summary, "slides": len(ws.slides), "windows": int(np.sum(ws.y != "")), "classes": classes,
+                     "per_class": {k: list(v) for k, v in ws.per_class().items()}, "skipped": ws.skipped, "detector": _counts(ws),
+                     "calibration": cal_info}
+    slides = ws if c.fusion == "features" else ws.averaged()  # one row per slide: the mean of its windows' raw features
+    labelled = np.flatnonzero(slides.y != "")
+    fit_model_novelty(model, model.standardise(take_columns(slides.x[labelled], slides.names, model.names)), slides.y[labelled],
+                      slides.groups[labelled], novelty)
+    return model
+
+
+def _fit_member(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: Candidate, oof: FloatArray, y_idx: npt.NDArray[np.intp],
+                classes: list[str], config: Config, fs: float, channels: int, seed: int, inner_folds: int, method: str) -> Model:
+    """Candidate ``c`` fitted on every labelled slide, its temperature fitted on its out-of-fold slide scores ``oof`` (slides, K):
+    a model without calibration, novelty or summary (an ensemble's partner as it is, the winner after :func:`_refit`)."""
     st, ws = sets[_key(c)]
-    temperature = fit_temperature(oof, y_idx)
-    calibration, cal_info = fit_calibration(oof, y_idx, temperature)
     rows = np.flatnonzero(ws.y != "")
     cols, pipe, refit = fit_candidate(ws, rows, c, seed, inner_folds)
-    names = [ws.names[j] for j in cols]
-    settings = replace(st, names=tuple(names), level=st.level if "dwt" in c.families else config.features.level, fusion=c.fusion)
-    summary = {**summary, "slides": len(ws.slides), "windows": len(rows), "classes": classes,
-               "per_class": {k: list(v) for k, v in ws.per_class().items()}, "skipped": ws.skipped, "detector": _counts(ws)}
+    settings = replace(st, names=tuple(ws.names[j] for j in cols), level=st.level if "dwt" in c.families else config.features.level,
+                       fusion=c.fusion)
     params = {k: v for k, v in c.params.items() if k != "kbest"}
     if c.kind == "knn":
         params["n_neighbors"] = int(pipe[-1].n_neighbors)
-    model = Model(method, c.kind, params, [str(k) for k in pipe[-1].classes_], settings, fs, channels, pipe, temperature,
-                  seed, summary, "", refit, calibration)
-    slides = ws if c.fusion == "features" else ws.averaged()  # one row per slide: the mean of its windows' raw features
-    labelled = np.flatnonzero(slides.y != "")
-    model.summary = {**summary, "calibration": cal_info}
-    fit_model_novelty(model, model.standardise(slides.x[labelled][:, cols]), slides.y[labelled], slides.groups[labelled], novelty)
-    return model
+    return Model(method, c.kind, params, [str(k) for k in pipe[-1].classes_], settings, fs, channels, pipe, fit_temperature(oof, y_idx), seed,
+                 {}, "", refit)
 
 
 def fit_model_novelty(model: Model, z: FloatArray, labels: npt.NDArray[Any], groups: npt.NDArray[Any], score: str) -> None:
@@ -499,45 +579,38 @@ def fit_calibration(oof: FloatArray, y_idx: npt.NDArray[np.intp], temperature: f
     return np.vstack([grid, value]), {"method": method, "slides": n, "accuracy": float(right.mean()) if n else None}
 
 
-def fit_early_calibration(ws: WindowSet, c: Candidate, outer: Sequence[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]],
+def fit_early_calibration(ws: WindowSet, members: Sequence[tuple[Candidate, float]], outer: Sequence[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]],
                           classes: list[str], temperature: float, seed: int, inner_folds: int = 3
                           ) -> tuple[tuple[float, float, float] | None, dict[str, Any]]:
-    """(a, b, c) of :func:`~tactiled.learn.model.early_probability` for candidate ``c``, and what it was fitted on.
+    """(a, b, c) of :func:`~tactiled.learn.model.early_probability` for a model of ``members``, and what it was fitted on.
 
-    In each outer fold (``outer``: train and test slide indices) ``c`` is fitted on the train slides, and every test slide
-    is classified from its first 1, 2, ... windows (``ws``: one row per window), as the pipeline does for provisional labels
-    (the mean of those windows' scores, or of their features for a whole-slide candidate). A logistic fit of right or wrong
-    on the logit of the top probability and the log of the window count gives the map. None when the folds give fewer
-    than 20 prefixes or only right (or only wrong) ones; a fit in which a higher probability is not more often right
-    keeps only the mean (a = b = 0).
+    ``members``: (candidate, its own temperature) of a single model, or of both members of an ensemble (their slide-prefix
+    scores combined by :func:`~tactiled.learn.model.ensemble_scores`, as :class:`~tactiled.learn.model.Model` combines them);
+    ``temperature`` softens the (combined) scores. In each outer fold (``outer``: train and test slide indices) every member is
+    fitted on the train slides, and every test slide is classified from its first 1, 2, ... windows (``ws``: one row per
+    window, every member's columns), as the pipeline does for provisional labels (the mean of those windows' scores, or of
+    their features for a whole-slide member). A logistic fit of right or wrong on the logit of the top probability and the
+    log of the window count gives the map. None when the folds give fewer than 20 prefixes or only right (or only wrong)
+    ones; a fit in which a higher probability is not more often right keeps only the mean (a = b = 0).
     """
     from sklearn.linear_model import LogisticRegression
 
-    fit_on = ws.averaged() if c.fusion == "features" else ws
     index = {k: i for i, k in enumerate(classes)}
     tops: list[float] = []
     counts: list[int] = []
     right: list[bool] = []
     for train, test in outer:
-        rows = _window_rows(fit_on, train)
-        if len(np.unique(fit_on.y[rows])) < 2:
+        fitted = [_prefix_scorer(ws, c, train, index, seed, inner_folds) for c, _ in members]
+        if any(f is None for f in fitted):
             continue
-        cols, pipe, _ = fit_candidate(fit_on, rows, c, seed, inner_folds)
-        known = [index[str(k)] for k in pipe[-1].classes_]
         for sl in test:
             label = ws.slides[sl].label
             w = np.flatnonzero(ws.slide == sl)
             if label not in index or not len(w):
                 continue
             w = w[np.argsort(ws.spans[w, 0], kind="stable")]
-            k = np.arange(1, len(w) + 1, dtype=np.float64)[:, None]
-            x = ws.x[w][:, cols]
-            if c.fusion == "features":
-                raw = decision_scores(pipe[-1], pipe[:-1].transform(np.cumsum(x, axis=0) / k))
-            else:
-                raw = np.cumsum(decision_scores(pipe[-1], pipe[:-1].transform(x)), axis=0) / k
-            scores = np.full((len(w), len(classes)), -np.inf)
-            scores[:, known] = raw
+            per = [f(ws.x[w]) for f in fitted if f is not None]
+            scores = per[0] if len(per) == 1 else ensemble_scores(per[0], members[0][1], per[1], members[1][1])
             p = softmax(scores, temperature)
             tops += p.max(axis=1).tolist()
             counts += list(range(1, len(w) + 1))
@@ -551,6 +624,32 @@ def fit_early_calibration(ws: WindowSet, c: Candidate, outer: Sequence[tuple[npt
     a, b = float(fit.coef_[0, 0]), float(fit.coef_[0, 1])
     coef = (a, b, float(fit.intercept_[0])) if a > 0 else (0.0, 0.0, float(_logit(np.array([hit.mean()]))[0]))
     return coef, {**info, "coef": list(coef)}
+
+
+def _prefix_scorer(ws: WindowSet, c: Candidate, train: npt.NDArray[np.intp], index: dict[str, int], seed: int,
+                   inner_folds: int) -> Callable[[FloatArray], FloatArray] | None:
+    """Candidate ``c`` fitted on the slides ``train`` of ``ws`` (their mean features for a whole-slide candidate), as a function
+    of one slide's windows' raw features (w, F) in time order to the scores (w, K) of its first 1, 2, ..., w windows (columns
+    by ``index``; -inf for a class the fit never saw). None when the train slides hold fewer than two classes."""
+    fit_on = ws.averaged() if c.fusion == "features" else ws
+    rows = _window_rows(fit_on, train)
+    if len(np.unique(fit_on.y[rows])) < 2:
+        return None
+    cols, pipe, _ = fit_candidate(fit_on, rows, c, seed, inner_folds)
+    known = [index[str(k)] for k in pipe[-1].classes_]
+
+    def prefixes(x: FloatArray) -> FloatArray:
+        k = np.arange(1, len(x) + 1, dtype=np.float64)[:, None]
+        x = x[:, cols]
+        if c.fusion == "features":
+            raw = decision_scores(pipe[-1], pipe[:-1].transform(np.cumsum(x, axis=0) / k))
+        else:
+            raw = np.cumsum(decision_scores(pipe[-1], pipe[:-1].transform(x)), axis=0) / k
+        scores = np.full((len(x), len(index)), -np.inf)
+        scores[:, known] = raw
+        return scores
+
+    return prefixes
 
 
 def _logit(q: FloatArray) -> FloatArray:

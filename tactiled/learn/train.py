@@ -17,7 +17,7 @@ from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, find_slides, load_recordings
 from tactiled.learn.model import NOVELTY_SCORES
-from tactiled.learn.search import Candidate, SearchResult, paper, quick_candidates, search
+from tactiled.learn.search import ENSEMBLE_DEFAULT, ENSEMBLE_MODES, Candidate, SearchResult, paper, quick_candidates, search
 
 METHODS = ("auto", "quick", "paper")
 GROUP_BY = ("file", "slide")
@@ -52,7 +52,7 @@ def class_table(per_file: list[list[LabelledSlide]]) -> dict[str, tuple[int, int
 def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
           drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None,
           candidates: Sequence[Candidate] | None = None, keep_models: bool = False, group_by: str = "file",
-          novelty: str = "combined") -> SearchResult:
+          novelty: str = "combined", ensemble: str = ENSEMBLE_DEFAULT) -> SearchResult:
     """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save).
 
     ``candidates`` narrows the default search (``method="auto"``) to the given ones; ``keep_models``: see :func:`search`.
@@ -61,7 +61,9 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     (:data:`~tactiled.learn.model.NOVELTY_SCORES`; ``ratio`` tolerates another unit of the sensor, ``distance`` flags
     more untaught surfaces between taught grades but also most slides of another unit or a new sheet of a known one;
     ``combined``, the default, is the ratio or a distance beyond the step between taught surfaces, which also flags a
-    surface far from every taught one where the ratio is small).
+    surface far from every taught one where the ratio is small). ``ensemble`` (:data:`~tactiled.learn.search.ENSEMBLE_MODES`):
+    whether the winner of the search and the plain spectral candidate make one model (:func:`~tactiled.learn.search.search`);
+    ``quick`` and ``paper`` never do (their search has no spectral candidate).
     """
     say = progress or (lambda m: None)
     if method not in METHODS:
@@ -76,6 +78,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         raise TactiledError(f"--seed: must be >= 0, got {seed}")
     if novelty not in NOVELTY_SCORES:
         raise TactiledError(f"--novelty: must be one of {', '.join(NOVELTY_SCORES)}, got {novelty!r}")
+    if ensemble not in ENSEMBLE_MODES:
+        raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
     recs = load_recordings(paths, say)
     check_recordings(recs, len(paths))
     per_file, counts = find_slides(recs, config)
@@ -113,7 +117,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         if method == "quick" and candidates is None:
             candidates = quick_candidates()
         result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates,
-                        keep_models=keep_models, novelty=novelty)
+                        keep_models=keep_models, novelty=novelty, ensemble=ensemble)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
     result.model.summary["dropped"] = rare
     return result
