@@ -165,7 +165,8 @@ def add_commands(sub: Sub) -> None:
                    help="auto: score features, classifiers and windows by grouped CV and keep the simplest within one standard error of "
                         "the best; quick: a small search for a first model in "
                         "seconds (band energies and texture, linear and kNN); paper: the papers' DWT + SFS + ELM")
-    p.add_argument("--folds", type=c.int_in(2, 1000), default=5, help="outer cross-validation folds, grouped by file")
+    p.add_argument("--folds", type=c.int_in(2, 1000), default=5,
+                   help="outer cross-validation folds, grouped by file (at most the files of the surface with fewest)")
     p.add_argument("--min-slides", type=c.count, default=2, help="fewest slides a surface needs")
     p.add_argument("--drop-rare", action="store_true", help="train without surfaces that have too few slides instead of stopping")
     p.add_argument("--group-by", choices=("file", "slide"), default="file",
@@ -196,7 +197,7 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--experiments", type=experiments, default=EXPERIMENTS,
                    help="which experiments, as letters (e.g. ag): a: classifiers, b: window grid, c: sampling rate, d: feature count, "
                         "e: clustering, f: error against run time, g: the default method against decision time")
-    p.add_argument("--folds", type=c.int_in(2, 1000), default=5, help="cross-validation folds, grouped by file")
+    p.add_argument("--folds", type=c.int_in(2, 1000), default=5, help="cross-validation folds, grouped by file (at most the files of the surface with fewest)")
     p.add_argument("--quick", action="store_true", help="small grids and fewer features (for tests)")
     p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP)
 
