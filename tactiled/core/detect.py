@@ -244,7 +244,7 @@ class SlideDetector:
         """A gap of lost samples from ``expected`` to ``index``, longer than :attr:`_skip_after`, in time independent of its length.
 
         Feeding the gap as invalid samples would end a slide in progress after ``off_hold_s`` of quiet (those hops are fed,
-        a bounded number) and then only repeat what an invalid hop does at rest (no event, the recent envelopes forgotten,
+        a bounded number) and then only repeat what an invalid hop does at rest (no event, the recent envelopes forgotten once decided,
         settling after the gap); so the detector jumps to the last hop boundary before ``index`` in that state, with zeros
         (the gap) as the comb's history. The events are those of feeding the whole gap. Returns them and the new expected index.
         """
@@ -258,7 +258,8 @@ class SlideDetector:
         assert self._pending_index is not None
         last = self._pending_index + (index - self._pending_index) // self.hop * self.hop  # the hop boundary at or before index
         self._settle_until = last + self._settle  # the last invalid hop starts at last - hop
-        self._recent.clear()
+        if self._floor is not None:  # as an invalid hop does (_step): at rest the recent envelopes are forgotten, undecided kept
+            self._recent.clear()
         self.envelope = 0.0
         self._history = np.zeros((self.front.history, channels))
         self._pending = np.zeros((index - last, channels))
@@ -303,7 +304,10 @@ class SlideDetector:
             # quiet for a slide in progress; the filters settle for a while after a gap
             self._settle_until = at + self.hop + self._settle
             if not self.sliding:
-                self._recent.clear()
+                if self._floor is not None:  # at rest: the onset's lookback runs over contiguous hops only
+                    self._recent.clear()
+                # undecided: the hops around a gap still tell the stream's level; clearing them here would let a
+                # link that loses a frame every few tenths of a second keep the detector undecided (no slide) for good
                 return []
             env = 0.0
         elif at < self._settle_until and not self.sliding:
