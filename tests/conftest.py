@@ -67,6 +67,16 @@ def run_cli(*args: str, timeout: float = 120.0, **kw: object) -> subprocess.Comp
     return subprocess.run(tactiled_cmd(*args), capture_output=True, text=True, timeout=timeout, cwd=REPO, **kw)  # type: ignore[call-overload, no-any-return]
 
 
+def surfaces_but_one(root: Path, surfaces: int, seed: int) -> tuple[Path, list[Path], list[str]]:
+    """A robot-scene dataset of ``surfaces`` surfaces (2 files x 3 slides each) simulated into ``root``/d: the folder, the files
+    of every surface but the last (to train on), and the surface names in order (the last one left out)."""
+    data = root / "d"
+    assert run_cli("simulate", "dataset", "--out", str(data), "--surfaces", str(surfaces), "--files-per-surface", "2", "--slides-per-file", "3",
+                   "--scene", "robot", "--seed", str(seed)).returncode == 0
+    names = sorted({p.name.split("_")[1] for p in data.glob("*.npz")})
+    return data, [p for p in sorted(data.glob("*.npz")) if f"_{names[-1]}_" not in p.name], names
+
+
 @pytest.fixture
 def env() -> dict[str, str]:
     e = dict(os.environ)

@@ -12,19 +12,15 @@ from tactiled.config import Config
 from tactiled.errors import TactiledError
 from tactiled.learn.enrol import enrol
 from tactiled.learn.model import load_model
-from tests.conftest import run_cli
+from tests.conftest import run_cli, surfaces_but_one
 
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[str]]:
     """A model trained on two of three surfaces (robot scene), and the folder holding the recordings of all three."""
     root = tmp_path_factory.mktemp("enrol")
-    data = root / "d"
-    assert run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "2", "--slides-per-file", "3",
-                   "--scene", "robot", "--seed", "4").returncode == 0
-    surfaces = sorted({p.name.split("_")[1] for p in data.glob("*.npz")})
-    known = [str(p) for p in sorted(data.glob("*.npz")) if f"_{surfaces[2]}_" not in p.name]
-    res = run_cli("train", *known, "-o", str(root / "m.npz"), "--method", "quick", "--folds", "2")
+    data, known, surfaces = surfaces_but_one(root, 3, seed=4)
+    res = run_cli("train", *map(str, known), "-o", str(root / "m.npz"), "--method", "quick", "--folds", "2")
     assert res.returncode == 0, res.stderr
     return root / "m.npz", data, surfaces
 

@@ -29,7 +29,7 @@ from tactiled.learn.model import (
 )
 from tactiled.learn.search import SPECTRUM, Candidate, accuracy_of
 from tactiled.learn.train import train
-from tests.conftest import run_cli
+from tests.conftest import run_cli, surfaces_but_one
 
 CANDIDATES = [SPECTRUM, Candidate(("psd",), "linear", 0.25)]  # the linear one is the simpler: it wins within one standard error
 
@@ -38,11 +38,7 @@ CANDIDATES = [SPECTRUM, Candidate(("psd",), "linear", 0.25)]  # the linear one i
 def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[str]]:
     """An ensemble trained on four of five surfaces (robot scene), its file, and the recordings of all five."""
     root = tmp_path_factory.mktemp("ensemble")
-    data = root / "d"
-    assert run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "5", "--files-per-surface", "2", "--slides-per-file", "3",
-                   "--scene", "robot", "--seed", "1").returncode == 0
-    surfaces = sorted({p.name.split("_")[1] for p in data.glob("*.npz")})
-    known = [p for p in sorted(data.glob("*.npz")) if f"_{surfaces[4]}_" not in p.name]
+    data, known, surfaces = surfaces_but_one(root, 5, seed=1)
     res = train(known, Config(), folds=2, candidates=CANDIDATES, ensemble="always")
     assert res.model.partner is not None and res.winner == CANDIDATES[1].name
     res.model.save(root / "m.npz")
