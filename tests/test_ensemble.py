@@ -208,3 +208,16 @@ def test_the_winner_kept_beside_an_ensemble_is_the_model_without_one(trained: tu
     assert alone.early_calibration == off.early_calibration is not None and alone.temperature == off.temperature
     x = _windows(off, data)
     np.testing.assert_array_equal(alone.slide_proba(x), off.slide_proba(x))
+
+
+def test_prefix_scores_lead_with_the_ensembles_class(trained: tuple[Path, Path, list[str]]) -> None:
+    """The pipeline skips a provisional assessment when the prefix scores' top class is the label already published, so
+    that top class must be the ensemble's (the product of both members), not its first member's, after every window."""
+    path, data, _ = trained
+    model = load_model(path)
+    x = _windows(model, data, n=6)
+    tops = np.argmax(model.prefix_scores(x), axis=1)
+    assert list(tops) == [int(np.argmax(model.assess(x[:i + 1], final=False)[0])) for i in range(len(x))]
+    assert model.partner is not None
+    partner = model.partner._prefix_fused(take_columns(x, model.names, model.partner.names))
+    assert np.allclose(model.prefix_scores(x), ensemble_scores(model._prefix_fused(x), model.member_temperature, partner, model.partner.temperature))

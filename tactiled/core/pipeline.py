@@ -47,9 +47,9 @@ class Classifier(Protocol):
     fingerprint: str
     settings: AnalysisSettings
 
-    def scores(self, x: npt.ArrayLike) -> npt.NDArray[np.float64]:
-        """Window scores (n, K), columns in :attr:`classes` order, for raw features (n, F); :meth:`assess`'s probabilities are
-        a softmax of their fusion (``settings.fusion``), so their top class is the fused scores' top class."""
+    def prefix_scores(self, features: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """Slide scores (w, K), columns in :attr:`classes` order, of the first 1..w windows of a slide (raw features (w, F)):
+        row i's top class is the top class of :meth:`assess` of the first i + 1 windows (up to rounding)."""
 
     def assess(self, features: npt.NDArray[np.float64], final: bool = True) -> tuple[npt.NDArray[np.float64], float, float | None]:
         """(probabilities (K,), calibrated confidence that the top class is right, novelty or None) of a slide's windows' raw features (w, F);
@@ -324,9 +324,9 @@ class Pipeline:
 
     def _leads(self, new: list[_Window]) -> list[str | None]:
         """For each of the windows ``new`` (about to join the slide's), the class the slide's fused prediction puts first
-        once it has joined: the top of the model's window scores fused as ``settings.fusion`` says (softmax keeps their
-        order), from one :meth:`Classifier.scores` call for all of them; None where the top two are within 1e-6 (rounding
-        of the fusion could swap them: :meth:`Classifier.assess` decides) or the window is not usable.
+        once it has joined: the top of the model's prefix scores (:meth:`Classifier.prefix_scores`, one call for all of them;
+        an ensemble's, not its first member's); None where the top two are within 1e-6 (rounding of the fusion could swap
+        them: :meth:`Classifier.assess` decides) or the window is not usable.
 
         A provisional label is published only when the leading class changes, so a window whose lead is the provisional
         label already published needs no :meth:`Classifier.assess` (replay: most windows of a slide)."""
@@ -335,10 +335,7 @@ class Pipeline:
         rows = [w.result.features for w in self._windows + new if w.result.features is not None]
         if not rows:
             return [None] * len(new)
-        x = np.stack(rows)
-        counts = np.arange(1, len(rows) + 1)[:, None]
-        # fusion "features" classifies the mean of the windows' features; "scores" averages the windows' class scores
-        fused = self.model.scores(np.cumsum(x, axis=0) / counts) if self.settings.fusion == "features" else np.cumsum(self.model.scores(x), axis=0) / counts
+        fused = self.model.prefix_scores(np.stack(rows))
         if fused.shape[1] == 1:
             tops: list[str | None] = [self.model.classes[0]] * len(rows)
         else:

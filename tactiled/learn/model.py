@@ -362,6 +362,26 @@ class Model:
         out: FloatArray = self.scores(x).mean(axis=0)
         return out
 
+    def prefix_scores(self, features: FloatArray) -> FloatArray:
+        """Slide scores (w, K) of the first 1, 2, ..., w windows of a slide (raw features (w, F)), all at once: row i's top
+        class is that of :meth:`slide_proba` of ``features[:i + 1]`` (a softmax keeps the order), up to the rounding of a
+        cumulative mean. An ensemble's rows are :func:`ensemble_scores` of both members' prefixes, so their top is the
+        ensemble's, not the first member's."""
+        x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
+        own = self._prefix_fused(x)
+        if self.partner is None:
+            return own
+        return ensemble_scores(own, self.member_temperature, self.partner._prefix_fused(take_columns(x, self.names, self.partner.names)),
+                               self.partner.temperature)
+
+    def _prefix_fused(self, x: FloatArray) -> FloatArray:
+        """This classifier's fused scores (w, K) of each prefix of the windows x (w, F) (cumulative means, by ``fusion``)."""
+        counts = np.arange(1, x.shape[0] + 1, dtype=np.float64)[:, None]
+        if self.settings.fusion == "features":
+            return self.scores(np.cumsum(x, axis=0) / counts)
+        out: FloatArray = np.cumsum(self.scores(x), axis=0) / counts
+        return out
+
     def slide_proba(self, features: FloatArray) -> FloatArray:
         """Probabilities (K,) of a slide from the raw features (w, F) of its windows (w >= 1): this classifier's fused
         scores softened by ``temperature``; an ensemble's, :func:`ensemble_scores` of both members over ``temperature``."""
