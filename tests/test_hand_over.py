@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import os
-import time
+import threading
 import tty
 from collections.abc import Awaitable, Callable
 from typing import Any
@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 import tactiled.service.daemon as daemon_module
-from tactiled.board.serialsource import MemorySource, SerialSource
+from tactiled.board.serialsource import CONNECTED, MemorySource, SerialSource
 from tactiled.config import Config
 from tactiled.learn.model import load_model
 from tactiled.run.stream import Stream
@@ -27,24 +27,34 @@ def test_the_hand_over_period_changes_while_the_source_reads() -> None:
     got: list[bytes] = []
 
     async def main() -> None:
-        arrived = asyncio.Event()
+        arrived, opened = asyncio.Event(), asyncio.Event()
+        reads = [threading.Event(), threading.Event()]  # set by the reader thread as it reads the first and second write
+
+        class Tee:  # the raw-capture hook: called in the reader thread for every read, before the hand-over check
+            def write(self, data: bytes) -> None:
+                for r in reads:
+                    if not r.is_set():
+                        r.set()
+                        return
+
+            def flush(self) -> None:
+                pass
 
         def on_bytes(data: bytes) -> None:
             got.append(data)
             arrived.set()
 
-        source = SerialSource(os.ttyname(slave), on_bytes, read_interval_s=0.005, hand_over_s=3600.0)
+        def on_state(state: str, detail: str) -> None:
+            if state == CONNECTED:
+                opened.set()
+
+        source = SerialSource(os.ttyname(slave), on_bytes, on_state, read_interval_s=0.005, hand_over_s=3600.0, tee=Tee())  # type: ignore[arg-type]
         task = asyncio.create_task(source.run())
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + 20
-        while not source.connected:  # the reader opens the port (the daemon's status polls the same flag)
-            assert loop.time() < deadline, "the source never opened the pty"
-            await asyncio.sleep(0.005)  # polling a flag the reader thread sets, not synchronisation
-        os.write(master, b"x" * 100)
-        written = time.monotonic()
-        while source.arrival < written or source.alive_at < source.arrival + 0.05:  # read, and ten read periods since
-            assert loop.time() < deadline, "the reader never read the bytes"
-            await asyncio.sleep(0.005)  # polling the reader's heartbeat, not synchronisation
+        await asyncio.wait_for(opened.wait(), 20)  # bytes written before the port is open would be discarded as stale
+        for i, read in enumerate(reads):
+            os.write(master, b"x" * 50)
+            assert await asyncio.to_thread(read.wait, 20), f"the reader never read write {i + 1}"
+        # the first read's hand-over check has passed; a hand-over would have reached the loop before this wake-up
         assert not got  # read, but held: the hour-long hand-over period has not passed
         source.hand_over_s = 0.0  # the consumer shortens it: what is held goes at the next read
         await asyncio.wait_for(arrived.wait(), 20)

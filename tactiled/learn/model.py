@@ -78,7 +78,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
@@ -367,34 +367,26 @@ class Model:
         class is that of :meth:`slide_proba` of ``features[:i + 1]`` (a softmax keeps the order), up to the rounding of a
         cumulative mean. An ensemble's rows are :func:`ensemble_scores` of both members' prefixes, so their top is the
         ensemble's, not the first member's."""
-        x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
-        own = self._prefix_fused(x)
+        return self._combined(np.asarray(features, dtype=np.float64).reshape(-1, len(self.names)), Model._prefix_fused)
+
+    def _combined(self, x: FloatArray, score: Callable[[Model, FloatArray], FloatArray]) -> FloatArray:
+        """``score`` (a Model method: window, slide or prefix scores) of this classifier on raw features x (n, F), or, for an
+        ensemble, :func:`ensemble_scores` of both members' (each on its own columns, softened by its own temperature)."""
+        own = score(self, x)
         if self.partner is None:
             return own
-        return ensemble_scores(own, self.member_temperature, self.partner._prefix_fused(take_columns(x, self.names, self.partner.names)),
+        return ensemble_scores(own, self.member_temperature, score(self.partner, take_columns(x, self.names, self.partner.names)),
                                self.partner.temperature)
 
     def _prefix_fused(self, x: FloatArray) -> FloatArray:
-        """This classifier's fused scores (w, K) of each prefix of the windows x (w, F) (cumulative means, by ``fusion``)."""
-        counts = np.arange(1, x.shape[0] + 1, dtype=np.float64)[:, None]
-        if self.settings.fusion == "features":
-            return self.scores(np.cumsum(x, axis=0) / counts)
-        out: FloatArray = np.cumsum(self.scores(x), axis=0) / counts
-        return out
+        """This classifier's fused scores (w, K) of each prefix of the windows x (w, F) (:func:`prefix_fused`)."""
+        return prefix_fused(x, self.scores, self.settings.fusion)
 
     def slide_proba(self, features: FloatArray) -> FloatArray:
         """Probabilities (K,) of a slide from the raw features (w, F) of its windows (w >= 1): this classifier's fused
         scores softened by ``temperature``; an ensemble's, :func:`ensemble_scores` of both members over ``temperature``."""
         x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
-        return softmax(self._slide_scores(x), self.temperature)
-
-    def _slide_scores(self, x: FloatArray) -> FloatArray:
-        """The slide scores (K,) that ``temperature`` softens: this classifier's fused scores, or the ensemble's."""
-        own = self.fused_scores(x)
-        if self.partner is None:
-            return own
-        return ensemble_scores(own, self.member_temperature, self.partner.fused_scores(take_columns(x, self.names, self.partner.names)),
-                               self.partner.temperature)
+        return softmax(self._combined(x, Model.fused_scores), self.temperature)
 
     def confidence(self, p_top: float) -> float:
         """The probability that the label is right, from the top softmax probability of a slide (the calibration map)."""
@@ -450,12 +442,7 @@ class Model:
 
     def predict_proba(self, x: npt.ArrayLike) -> FloatArray:
         """(n, K) probabilities of single windows (raw features x (n, F)), each as a slide of one window."""
-        x = np.asarray(x, dtype=np.float64).reshape(-1, len(self.names))
-        own = self.scores(x)
-        if self.partner is not None:
-            own = ensemble_scores(own, self.member_temperature, self.partner.scores(take_columns(x, self.names, self.partner.names)),
-                                  self.partner.temperature)
-        return softmax(own, self.temperature)
+        return softmax(self._combined(np.asarray(x, dtype=np.float64).reshape(-1, len(self.names)), Model.scores), self.temperature)
 
     def predict(self, x: npt.ArrayLike) -> npt.NDArray[np.str_]:
         """Labels (n,) of single windows from raw features x (n, F): the class with the largest probability."""
@@ -568,6 +555,16 @@ def fit_pipeline(x: FloatArray, y: npt.NDArray[Any], names: list[str] | tuple[st
         keep = np.sort(np.random.default_rng(seed).choice(x.shape[0], MAX_REFIT_ROWS, replace=False))
         x, y = x[keep], y[keep]
     return pipe, (pipe[:-1].transform(x), np.asarray(y, dtype=np.str_))
+
+
+def prefix_fused(x: FloatArray, score: Callable[[FloatArray], FloatArray], fusion: str) -> FloatArray:
+    """Fused slide scores (w, K) of the first 1, 2, ..., w windows x (w, F) (time order) from a window scorer ``score``
+    ((n, F) -> (n, K)): the scores of the prefixes' mean features (``fusion`` "features") or the prefixes' mean scores."""
+    counts = np.arange(1, x.shape[0] + 1, dtype=np.float64)[:, None]
+    if fusion == "features":
+        return score(np.cumsum(x, axis=0) / counts)
+    out: FloatArray = np.cumsum(score(x), axis=0) / counts
+    return out
 
 
 def take_columns(x: FloatArray, names: Sequence[str], wanted: Sequence[str]) -> FloatArray:

@@ -62,6 +62,7 @@ from tactiled.learn.model import (
     fit_temperature,
     novelty_parts,
     over_thresholds,
+    prefix_fused,
     softmax,
     take_columns,
 )
@@ -639,12 +640,7 @@ def _prefix_scorer(ws: WindowSet, c: Candidate, train: npt.NDArray[np.intp], ind
     known = [index[str(k)] for k in pipe[-1].classes_]
 
     def prefixes(x: FloatArray) -> FloatArray:
-        k = np.arange(1, len(x) + 1, dtype=np.float64)[:, None]
-        x = x[:, cols]
-        if c.fusion == "features":
-            raw = decision_scores(pipe[-1], pipe[:-1].transform(np.cumsum(x, axis=0) / k))
-        else:
-            raw = np.cumsum(decision_scores(pipe[-1], pipe[:-1].transform(x)), axis=0) / k
+        raw = prefix_fused(x[:, cols], lambda z: decision_scores(pipe[-1], pipe[:-1].transform(z)), c.fusion)
         scores = np.full((len(x), len(index)), -np.inf)
         scores[:, known] = raw
         return scores
