@@ -12,6 +12,11 @@ time by the daemon's ClockMap, ``stop_mono``) to the moment the subscriber holds
 it includes the detector's off-hold, the read period and the batching (see docs/benchmarks.md).
 ``--profile OUT``: run the daemon under cProfile (the CPU figure then includes the profiler).
 
+The floor, in the same run: the player streams the same byte rate into a second pty, which a bare Python thread reads
+at the daemon's read period (``serial.read_interval_s``: sleep, then read what the kernel holds, like the daemon's reader)
+and throws away; its CPU share over the same seconds is ``floor_cpu_share``, and ``cpu_over_floor`` the daemon's as a
+multiple of it (what a run on a busier or quieter minute changes least). ``--no-floor`` leaves it out.
+
 ``--board player`` (default): the simulator's samples are made and encoded once (faults
 injected per frame: --corrupt, --drop, --garbage) and one cheap player process writes them into
 the pty at the line rate (bench/bench_load.py --play), so a loaded machine cannot slow the
@@ -22,6 +27,7 @@ unplug, and whose log the loss accounting reconciles.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -54,6 +60,31 @@ def thread_seconds(pid: int) -> dict[str, float]:
             continue
         out[f"{tid}:{comm}"] = ns / 1e9
     return out
+
+
+def bare_reader(path: str, interval: float) -> None:
+    """The floor: a thread that reads ``path`` (a pty) every ``interval`` s and keeps nothing, until stdin closes."""
+    import termios
+    import tty
+
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY)
+    tty.setraw(fd, termios.TCSANOW)
+    stop = threading.Event()
+
+    def loop() -> None:
+        while not stop.is_set():
+            time.sleep(interval)  # the read period, as the daemon's reader
+            with contextlib.suppress(BlockingIOError):
+                while os.read(fd, 65536):
+                    pass
+
+    thread = threading.Thread(target=loop, daemon=True)
+    thread.start()
+    print("ready", flush=True)
+    sys.stdin.read()  # until the bench closes stdin
+    stop.set()
+    thread.join(5)
+    os.close(fd)
 
 
 def rss_mb(pid: int) -> float:
@@ -119,7 +150,13 @@ def main() -> None:
     ap.add_argument("--profile", help="write the daemon's cProfile stats here")
     ap.add_argument("--board", choices=("player", "sim"), default="player")
     ap.add_argument("--scene", default="hand", help="the player's simulator scene (2 channels at 20 kHz: hand, robot, fluctuating, hot-gain, grating)")
+    ap.add_argument("--no-floor", action="store_true", help="leave out the bare reader of a second pty (the floor)")
+    ap.add_argument("--bare-reader", help=argparse.SUPPRESS)  # the floor's own process: the pty to read
+    ap.add_argument("--interval", type=float, default=0.01, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.bare_reader:
+        return bare_reader(args.bare_reader, args.interval)
+    floor = args.board == "player" and not args.no_floor
     tmp = tempfile.mkdtemp(prefix="tactiled-bench-")
     link, endpoint, log = f"{tmp}/tty", f"ipc://{tmp}/pub", f"{tmp}/board.jsonl"
     exe = [sys.executable, "-m", "tactiled"]
@@ -132,10 +169,19 @@ def main() -> None:
         stream = f"{tmp}/stream.bin"
         with open(stream, "wb") as fh:
             fh.write(make_stream(args.seconds + 10, corrupt=args.corrupt, drop=args.drop, garbage=args.garbage, scene=args.scene))
-        board = subprocess.Popen([sys.executable, os.path.join(os.path.dirname(__file__), "bench_load.py"), "--play", link, "--stream", stream],
-                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        board = subprocess.Popen([sys.executable, os.path.join(os.path.dirname(__file__), "bench_load.py"), "--play",
+                                  link + (f",{tmp}/floor" if floor else ""), "--stream", stream], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert board.stdout is not None
     board.stdout.readline()
+    bare = None
+    if floor:
+        from tactiled.config import load_config
+
+        interval = load_config(args.config).serial.read_interval_s
+        bare = subprocess.Popen([sys.executable, __file__, "--bare-reader", f"{tmp}/floor", "--interval", str(interval)],
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        assert bare.stdout is not None
+        bare.stdout.readline()
     lazy = zmq.Context.instance().socket(zmq.SUB)
     lazy.setsockopt(zmq.SUBSCRIBE, b"")
     lazy.connect(endpoint)
@@ -179,6 +225,7 @@ def main() -> None:
         t.start()
     time.sleep(3.0)  # let the daemon start and import before measuring: benchmark warm-up, not synchronisation
     c0, t0, th0 = cpu_seconds(daemon.pid), time.monotonic(), thread_seconds(daemon.pid)
+    f0 = sum(thread_seconds(bare.pid).values()) if bare else 0.0
     lost0 = statuses[-1].samples_lost if statuses else 0  # lost while the daemon started (stale bytes are discarded_at_start, not lost)
     load0 = round(os.getloadavg()[0], 2)
     rss = []
@@ -187,6 +234,11 @@ def main() -> None:
         rss.append((round(time.monotonic() - t0, 1), round(rss_mb(daemon.pid), 1)))
     th1, elapsed = thread_seconds(daemon.pid), time.monotonic() - t0
     cpu = (cpu_seconds(daemon.pid) - c0) / elapsed
+    floor_cpu = (sum(thread_seconds(bare.pid).values()) - f0) / elapsed if bare else None
+    if bare:
+        assert bare.stdin is not None
+        bare.stdin.close()
+        bare.wait(10)
     threads_pct = {k: round(100 * (v - th0.get(k, 0.0)) / elapsed, 3) for k, v in sorted(th1.items(), key=lambda kv: -kv[1] + th0.get(kv[0], 0.0))}
     t_term = time.monotonic()
     daemon.send_signal(2) if args.profile else daemon.terminate()  # SIGINT lets cProfile write its stats
@@ -214,7 +266,9 @@ def main() -> None:
                       "unplug_down_samples": down, "daemon_samples_lost": last.samples_lost,
                       "lost_beyond_injected": last.samples_lost - faulty - down}
     out = {
-        "seconds": args.seconds, "cpu_share": round(cpu, 4), "threads_cpu_pct": threads_pct, "labels": labels, "missed_messages": missed,
+        "seconds": args.seconds, "cpu_share": round(cpu, 4),
+        "floor_cpu_share": None if floor_cpu is None else round(floor_cpu, 4),
+        "cpu_over_floor": round(cpu / floor_cpu, 2) if floor_cpu else None, "threads_cpu_pct": threads_pct, "labels": labels, "missed_messages": missed,
         "latency_ms_p50": round(float(np.percentile(lat, 50)), 3) if lat.size else None,
         "latency_ms_p99": round(float(np.percentile(lat, 99)), 3) if lat.size else None,
         "latency_ms_max": round(float(lat.max()), 3) if lat.size else None,
