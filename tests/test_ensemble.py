@@ -210,14 +210,19 @@ def test_the_winner_kept_beside_an_ensemble_is_the_model_without_one(trained: tu
     np.testing.assert_array_equal(alone.slide_proba(x), off.slide_proba(x))
 
 
-def test_prefix_scores_lead_with_the_ensembles_class(trained: tuple[Path, Path, list[str]]) -> None:
-    """The pipeline skips a provisional assessment when the prefix scores' top class is the label already published, so
-    that top class must be the ensemble's (the product of both members), not its first member's, after every window."""
+def test_assess_many_is_assess_of_each_slide_bit_for_bit(trained: tuple[Path, Path, list[str]]) -> None:
+    """Replay assesses every prefix of every slide in one call (Model.assess_many): each row must be assess's of those
+    windows alone, bit for bit (the ensemble's, not its first member's), for both fusions, lean and scikit-learn."""
     path, data, _ = trained
-    model = load_model(path)
-    x = _windows(model, data, n=6)
-    tops = np.argmax(model.prefix_scores(x), axis=1)
-    assert list(tops) == [int(np.argmax(model.assess(x[:i + 1], final=False)[0])) for i in range(len(x))]
-    assert model.partner is not None
-    partner = model.partner._prefix_fused(take_columns(x, model.names, model.partner.names))
-    assert np.allclose(model.prefix_scores(x), ensemble_scores(model._prefix_fused(x), model.member_temperature, partner, model.partner.temperature))
+    x = _windows(load_model(path), data, n=6)
+    rows = [(0, i) for i in range(1, 7)] + [(2, 5), (5, 6), (0, 6)]
+    for model in (load_model(path), load_model(path, lean=False)):
+        assert model.partner is not None
+        for fusion in ("features", "scores"):
+            fused = replace(model, settings=replace(model.settings, fusion=fusion),
+                            partner=replace(model.partner, settings=replace(model.partner.settings, fusion=fusion)))
+            for final in (True, False):
+                proba, confidence, novelty = fused.assess_many(x, rows, final)
+                for i, (lo, hi) in enumerate(rows):
+                    p, c, n = fused.assess(x[lo:hi], final)
+                    assert np.array_equal(proba[i], p) and confidence[i] == c and novelty[i] == n, (fusion, final, lo, hi)

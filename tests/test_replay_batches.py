@@ -107,3 +107,28 @@ def test_many_windows_at_once_are_each_window_alone() -> None:
     assert [r.reason for r in floats] == [None, "non_finite", None]
     plan = FeaturePlan(names)
     assert np.array_equal(plan.compute_many(huge[[0, 2]]), np.stack([plan.compute(huge[0]), plan.compute(huge[2])]))
+
+
+def test_assessments_of_many_slides_at_once_are_each_alone() -> None:
+    """Model.assess_many (replay assesses every prefix of every slide of a recording in one call) against Model.assess of
+    each: silent, saturated, constant, spiky and noisy windows, one slide's prefixes and slides of their own, final and
+    provisional, the shipped model's lean and scikit-learn pipelines: bit for bit, and finite."""
+    rng = np.random.default_rng(7)
+    n = 5000
+    noise = (rng.standard_normal((n, 2)) * 3000).astype(np.int16)
+    spiky = noise.copy()
+    spiky[::301, 0] = 32767
+    saturated = np.where(np.arange(n) % 40 < 20, 32767, -32768)[:, None].repeat(2, axis=1).astype(np.int16)
+    windows = np.stack([noise, np.zeros((n, 2), np.int16), saturated, np.full((n, 2), 700, np.int16), spiky,
+                        (rng.standard_normal((n, 2)) * 300).astype(np.int16)])
+    for model in (load_model(), load_model(lean=False)):
+        analysed = Analyser(model.settings, model.fs, 5 / 32768, True).analyse_many(windows)
+        x = np.stack([r.features for r in analysed if r.features is not None])
+        assert x.shape[0] == len(windows)
+        rows = [(0, i) for i in range(1, len(x) + 1)] + [(i, i + 1) for i in range(len(x))] + [(1, 3), (2, 5)]
+        for final in (True, False):
+            proba, confidence, novelty = model.assess_many(x, rows, final)
+            assert np.all(np.isfinite(proba)) and all(np.isfinite(confidence)) and all(v is not None and np.isfinite(v) for v in novelty)
+            for i, (lo, hi) in enumerate(rows):
+                p, c, v = model.assess(x[lo:hi], final)
+                assert np.array_equal(proba[i], p) and confidence[i] == c and novelty[i] == v, (final, lo, hi)

@@ -64,6 +64,16 @@ def row_dots(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]) -> npt.NDAr
     return out
 
 
+def rowwise_matmul(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """``a @ b`` (n, p) of ``a`` (n, m) and ``b`` (m, p), each row computed as that row alone: one BLAS matrix-vector product
+    per row, as ``a[i:i + 1] @ b`` is (a matrix product of several rows rounds differently), so a row's values do not
+    depend on the rows computed with it."""
+    if a.shape[0] == 1:
+        return np.matmul(a, b)  # type: ignore[no-any-return]
+    out: npt.NDArray[np.float64] = np.matmul(a[:, None, :], b)[:, 0, :]
+    return out
+
+
 def band_stats(c: npt.NDArray[np.float64], stats: Sequence[str]) -> dict[str, npt.NDArray[np.float64]]:
     """The asked statistics (each (W,)) of the rows of the coefficient arrays ``c`` (W, m), float64, m >= 1: the sums
     over each row in numpy for all rows at once, the few operations per row on Python floats (cheaper than numpy's

@@ -23,9 +23,9 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -47,13 +47,15 @@ class Classifier(Protocol):
     fingerprint: str
     settings: AnalysisSettings
 
-    def prefix_scores(self, features: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        """Slide scores (w, K), columns in :attr:`classes` order, of the first 1..w windows of a slide (raw features (w, F)):
-        row i's top class is the top class of :meth:`assess` of the first i + 1 windows (up to rounding)."""
-
     def assess(self, features: npt.NDArray[np.float64], final: bool = True) -> tuple[npt.NDArray[np.float64], float, float | None]:
         """(probabilities (K,), calibrated confidence that the top class is right, novelty or None) of a slide's windows' raw features (w, F);
         ``final``: the whole slide, else its first w windows (a provisional label)."""
+
+    def assess_many(self, features: npt.NDArray[np.float64], rows: Sequence[tuple[int, int]],
+                    final: bool = True) -> tuple[npt.NDArray[np.float64], list[float], list[float | None]]:
+        """:meth:`assess` of q slides in one call, slide i the windows ``features[lo:hi]`` ((lo, hi) = ``rows[i]``) of raw
+        features (n, F): (probabilities (q, K), confidences (q,), novelties (q,)), row i bit for bit
+        ``assess(features[lo:hi], final)``."""
 
 
 
@@ -89,6 +91,9 @@ class _Window:
         return self.result.features is not None
 
 
+Assessed = tuple[npt.NDArray[np.float64], float, float | None]  # Classifier.assess: probabilities (K,), confidence, novelty
+
+
 class Pipeline:
     """Feed blocks in order with :meth:`feed`, end with :meth:`finish`; both return the events completed."""
 
@@ -110,6 +115,7 @@ class Pipeline:
         self.ring = RingBuffer(capacity, channels, np.int16 if integer else np.float64)
         self._reader: RingBuffer | HeldSamples = self.ring  # where windows are read: the ring, or a whole recording (replay)
         self._ahead: dict[tuple[int, int], _Window] = {}  # windows analysed ahead of need (replay), by span
+        self._assessed: dict[tuple[tuple[tuple[int, int], ...], bool], Assessed] = {}  # replay: assessed ahead, by (windows' spans, final)
         self.detector = SlideDetector(config.detector, fs, channels)
         self._detector_args = (config.detector, fs, channels)
         self._fresh_detector = False  # after shed(): the next samples fed start a new detector
@@ -203,8 +209,9 @@ class Pipeline:
         first sample, its events), then (n, the end's events). The same events as feeding those blocks, in less time.
 
         Three passes: the detector over every block (its events do not depend on the analysis); every window those slides
-        need (:meth:`_spans_needed`), analysed in batches of ``AHEAD`` windows read straight from ``samples`` (no ring);
-        then the events, block by block, with those windows (any other is analysed when asked for, as in :meth:`feed`).
+        need (:meth:`_needs`), analysed in batches of ``AHEAD`` windows read straight from ``samples`` (no ring), and every
+        assessment of them the events will ask for in one call (:meth:`_assess_ahead`); then the events, block by block,
+        with those windows and assessments (any other is analysed or assessed when asked for, as in :meth:`feed`).
         """
         n = samples.shape[0]
         steps: list[tuple[int, list[DetectorEvent]]] = []
@@ -215,21 +222,25 @@ class Pipeline:
         end_events = self.detector.finish()
         self._reader = held = HeldSamples(index, samples, valid)
         held.end = index + n
-        spans = sorted(self._spans_needed([ev for _, evs in steps for ev in evs] + end_events))
+        needs = self._needs([ev for _, evs in steps for ev in evs] + end_events)
+        spans = sorted({sp for group, _ in needs for sp in group})
         for i in range(0, len(spans), AHEAD):
             self._ahead.update((w.span, w) for w in self._analyse(spans[i: i + AHEAD]))
+        self._assess_ahead(needs)
         for lo, evs in steps:
             held.end = index + min(n, lo + block)
             yield lo, self._handle(evs) + self._analyse_ready()
         yield n, self._handle(end_events)
         self._ahead.clear()
+        self._assessed.clear()
 
-    def _spans_needed(self, events: Iterable[DetectorEvent]) -> set[tuple[int, int]]:
-        """The windows the pipeline analyses for these detector events (all of a stream, in order): a slide's windows up to
-        its Offset's ``at`` (:meth:`_analyse_ready`), and those :meth:`_final` reads at each Pause and Offset."""
+    def _needs(self, events: Iterable[DetectorEvent]) -> list[tuple[list[tuple[int, int]], bool]]:
+        """What the pipeline reads for these detector events (all of a stream, in order), as (window spans, whole): a slide's
+        windows up to its Offset's ``at`` (:meth:`_analyse_ready`; whole False: each prefix is assessed for a provisional
+        label), and those :meth:`_final` reads at each Pause and Offset (whole True: assessed together)."""
         s, fs = self.settings, self.fs
         hop = max(1, round(s.hop() * fs))
-        out: set[tuple[int, int]] = set()
+        out: list[tuple[list[tuple[int, int]], bool]] = []
         onset: int | None = None
         for ev in events:
             if isinstance(ev, Onset):
@@ -237,14 +248,36 @@ class Pipeline:
             elif isinstance(ev, Offset | Pause):
                 if isinstance(ev, Offset) and onset is not None:
                     lo, hi = s.first_span(onset, fs)
-                    count = 0
-                    while hi <= ev.at and not (s.max_windows and count >= s.max_windows):
-                        out.add((lo, hi))
-                        lo, hi, count = lo + hop, hi + hop, count + 1
+                    group: list[tuple[int, int]] = []
+                    while hi <= ev.at and not (s.max_windows and len(group) >= s.max_windows):
+                        group.append((lo, hi))
+                        lo, hi = lo + hop, hi + hop
+                    out.append((group, False))
                     onset = None
                 if not (isinstance(ev, Offset) and ev.reason == "too_short"):
-                    out.update(s.spans(ev.start, ev.stop, fs, self.min_samples))
+                    out.append((s.spans(ev.start, ev.stop, fs, self.min_samples), True))
         return out
+
+    def _assess_ahead(self, needs: list[tuple[list[tuple[int, int]], bool]]) -> None:
+        """Every assessment of the windows analysed ahead that :meth:`_provisional_results` (each prefix of a slide's usable
+        windows) and :meth:`_final` (all of them) can ask for these ``needs`` (:meth:`_needs`), in one
+        :meth:`Classifier.assess_many` call for each kind, kept by (the windows' spans, final)."""
+        if self.model is None:
+            return
+        for final in (False, True):
+            features: list[npt.NDArray[np.float64]] = []
+            rows: list[tuple[int, int]] = []
+            keys: list[tuple[tuple[tuple[int, int], ...], bool]] = []
+            for group, whole in needs:
+                used = [self._ahead[sp] for sp in group if self._ahead[sp].usable] if whole == final else []
+                lo = len(features)
+                for end in ([len(used)] if final else range(1, len(used) + 1)) if used else []:
+                    rows.append((lo, lo + end))
+                    keys.append((tuple(w.span for w in used[:end]), final))
+                features += [w.result.features for w in used if w.result.features is not None]
+            if rows:
+                proba, confidence, novelty = self.model.assess_many(np.stack(features), rows, final)
+                self._assessed.update((key, (proba[i], confidence[i], novelty[i])) for i, key in enumerate(keys))
 
     def finish(self) -> list[PipelineEvent]:
         """End of stream: a slide in progress ends at the last sample fed and gets its final result."""
@@ -308,47 +341,12 @@ class Pipeline:
             spans.append(nxt)
             nxt = (nxt[0] + hop, nxt[1] + hop)
         self._next = nxt
-        events: list[PipelineEvent] = []
         if not spans:
-            return events
+            return []
         t0 = time.perf_counter()
-        windows = self._analyse(spans)
-        leads = self._leads(windows) if len(windows) > 1 else [None] * len(windows)  # offline: many windows at once
-        for w, lead in zip(windows, leads, strict=True):
-            self._windows.append(w)
-            if w.usable:
-                prov = self._provisional_result(t0, lead)
-                if prov is not None:
-                    events.append(prov)
-        return events
-
-    def _leads(self, new: list[_Window]) -> list[str | None]:
-        """For each of the windows ``new`` (about to join the slide's), the class the slide's fused prediction puts first
-        once it has joined: the top of the model's prefix scores (:meth:`Classifier.prefix_scores`, one call for all of them;
-        an ensemble's, not its first member's); None where the top two are within 1e-6 (rounding of the fusion could swap
-        them: :meth:`Classifier.assess` decides) or the window is not usable.
-
-        A provisional label is published only when the leading class changes, so a window whose lead is the provisional
-        label already published needs no :meth:`Classifier.assess` (replay: most windows of a slide)."""
-        if self.model is None:
-            return [None] * len(new)
-        rows = [w.result.features for w in self._windows + new if w.result.features is not None]
-        if not rows:
-            return [None] * len(new)
-        fused = self.model.prefix_scores(np.stack(rows))
-        if fused.shape[1] == 1:
-            tops: list[str | None] = [self.model.classes[0]] * len(rows)
-        else:
-            two = -np.partition(-fused, 1, axis=1)[:, :2]
-            clear = two[:, 0] - two[:, 1] > 1e-6 * np.maximum(1.0, np.abs(two[:, 0]))
-            first = np.argmax(fused, axis=1)
-            tops = [self.model.classes[int(i)] if ok else None for i, ok in zip(first, clear, strict=True)]
-        out: list[str | None] = []
-        k = len(rows) - sum(w.usable for w in new)  # the usable windows before these
-        for w in new:
-            out.append(tops[k] if w.usable else None)
-            k += w.usable
-        return out
+        new = self._analyse(spans)
+        self._windows += new
+        return self._provisional_results(t0, sum(w.usable for w in new))
 
     def _analyse(self, spans: list[tuple[int, int]]) -> list[_Window]:
         """The windows ``spans``, analysed ahead (:meth:`replay`) or now: those of one length in one
@@ -378,26 +376,36 @@ class Pipeline:
                 results[i] = result
         return [_Window(span, r) for span, r in zip(spans, results, strict=True) if r is not None]
 
-    def _assess(self, used: list[_Window], final: bool = True) -> tuple[npt.NDArray[np.float64], float, float | None]:
+    def _assessments(self, used: list[_Window], ends: Sequence[int], final: bool) -> list[Assessed]:
+        """:meth:`Classifier.assess` of the first ``ends[i]`` of a slide's usable windows ``used``, for each i: as replay
+        assessed them ahead (:meth:`_assess_ahead`), else in one :meth:`Classifier.assess_many` call."""
         assert self.model is not None
-        return self.model.assess(np.stack([w.result.features for w in used if w.result.features is not None]), final)
+        if self._assessed:
+            known = [self._assessed.get((tuple(w.span for w in used[:end]), final)) for end in ends]
+            if all(a is not None for a in known):
+                return cast(list[Assessed], known)
+        features = np.stack([w.result.features for w in used if w.result.features is not None])
+        proba, confidence, novelty = self.model.assess_many(features, [(0, end) for end in ends], final)
+        return [(proba[i], confidence[i], novelty[i]) for i in range(len(ends))]
 
-    def _provisional_result(self, t0: float, lead: str | None = None) -> SlideResult | None:
-        """The provisional result after the slide's latest window, if it is one to publish; ``lead``: the class the fused
-        prediction puts first, when known (:meth:`_leads`)."""
-        if self.model is None or self._onset is None or self.provisional_confidence >= 1.0 or self._paused is not None:
-            return None
-        if lead is not None and lead == self._provisional:  # the label published already: nothing new to say
-            return None
+    def _provisional_results(self, t0: float, fresh: int) -> list[PipelineEvent]:
+        """The provisional results to publish after each of the slide's last ``fresh`` usable windows (all of them just
+        analysed), in order: the slide's windows up to each assessed in one call (offline, a block holds many; the daemon, one)."""
+        if (self.model is None or self._onset is None or self.provisional_confidence >= 1.0 or self._paused is not None
+                or not fresh):
+            return []
         used = [w for w in self._windows if w.usable]
-        assessed = self._assess(used, final=False)
-        proba, confidence, novelty = assessed
-        label = self.model.classes[int(np.argmax(proba))]
-        if (confidence < max(self.provisional_confidence, self.min_confidence) or label == self._provisional
-                or (novelty is not None and novelty > 1.0)):
-            return None
-        self._provisional = label
-        return self._result(self._onset, used[-1].span[1], used, assessed, t0, final=False)
+        ends = range(len(used) - fresh + 1, len(used) + 1)
+        events: list[PipelineEvent] = []
+        for end, assessed in zip(ends, self._assessments(used, ends, final=False), strict=True):
+            proba, confidence, novelty = assessed
+            label = self.model.classes[int(np.argmax(proba))]
+            if (confidence < max(self.provisional_confidence, self.min_confidence) or label == self._provisional
+                    or (novelty is not None and novelty > 1.0)):
+                continue
+            self._provisional = label
+            events.append(self._result(self._onset, used[end - 1].span[1], used[:end], assessed, t0, final=False))
+        return events
 
     def _final(self, start: int, stop: int) -> SlideResult:
         t0 = time.perf_counter()
@@ -412,9 +420,9 @@ class Pipeline:
             reason = "no_model" if self.model is None and any(w.result.features is not None for w in windows) else Counter(reasons).most_common(1)[0][0]
             return SlideResult(self._slide_id, start, stop, (spans[0][0], spans[-1][1]) if spans else (start, start), None, reason, None, [],
                                _quality(windows), None, (time.perf_counter() - t0) * 1e3, True, (stop - start) / self.fs)
-        return self._result(start, stop, used, self._assess(used), t0, final=True)
+        return self._result(start, stop, used, self._assessments(used, [len(used)], final=True)[0], t0, final=True)
 
-    def _result(self, start: int, stop: int, used: list[_Window], assessed: tuple[npt.NDArray[np.float64], float, float | None], t0: float,
+    def _result(self, start: int, stop: int, used: list[_Window], assessed: Assessed, t0: float,
                 final: bool) -> SlideResult:
         assert self.model is not None
         proba, confidence, novelty = assessed

@@ -24,12 +24,13 @@ scikit-learn.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from tactiled.core.features import classifier_inputs
+from tactiled.core.features import classifier_inputs, rowwise_matmul
 
 FloatArray = npt.NDArray[np.float64]
 SVM_ARRAYS = ("svm_support", "svm_dual_coef", "svm_intercept", "svm_n_support", "svm_gamma")
@@ -89,43 +90,47 @@ class LeanPipeline:
         z: FloatArray = (classifier_inputs(np.asarray(x, dtype=np.float64), self.names) - self.mean) / self.scale
         return z
 
-    def scores(self, x: npt.ArrayLike) -> FloatArray:
-        """Scores (n, K') of raw features ``x`` (n, F), columns in :attr:`classes_` order, higher is likelier."""
+    def scores(self, x: npt.ArrayLike, alone: bool = False) -> FloatArray:
+        """Scores (n, K') of raw features ``x`` (n, F), columns in :attr:`classes_` order, higher is likelier.
+
+        ``alone``: each row's scores bit for bit those of the row alone (``scores(x[i:i + 1])``; :func:`rowwise_matmul`),
+        whatever the other rows; else one matrix product for all rows (the same to rounding)."""
         z = self.transform(x)
         a = self.arrays
         k = len(self.classes_)
+        mm = rowwise_matmul if alone else np.matmul
         if self.kind == "elm":
-            s = sigmoid(z @ a["weights"] + a["biases"]) @ a["beta"]
+            s = mm(sigmoid(mm(z, a["weights"]) + a["biases"]), a["beta"])
             if k == 1:
                 return np.zeros((z.shape[0], 1))
             return pm_half((s[:, 1] - s[:, 0]) / 2) if k == 2 else np.asarray(s[:, :k], dtype=np.float64)
         if self.kind == "linear":
-            d = z @ np.asarray(a["coef"], dtype=np.float64).T + a["intercept"]
+            d = mm(z, np.asarray(a["coef"], dtype=np.float64).T) + a["intercept"]
             return pm_half(d[:, 0]) if k == 2 else np.asarray(d, dtype=np.float64)
         if self.kind == "knn":
-            return self._knn(z)
-        return self._svm(z)
+            return self._knn(z, mm)
+        return self._svm(z, mm)
 
-    def _knn(self, z: FloatArray) -> FloatArray:
+    def _knn(self, z: FloatArray, mm: Callable[[FloatArray, FloatArray], FloatArray]) -> FloatArray:
         train_x = self.arrays["train_x"]
         n = int(self.params.get("n_neighbors", 9))
-        d = (z * z).sum(axis=1)[:, None] - 2.0 * z @ train_x.T + self._train_sq[None, :]
+        d = (z * z).sum(axis=1)[:, None] - mm(2.0 * z, train_x.T) + self._train_sq[None, :]
         nearest = np.argpartition(d, n - 1, axis=1)[:, :n] if n < train_x.shape[0] else np.broadcast_to(np.arange(train_x.shape[0]), d.shape)
         label = self._train_label[nearest]  # (q, n) class indices
         p = np.stack([(label == c).sum(axis=1) for c in range(len(self.classes_))], axis=1) / n
         return log_proba(p)
 
-    def _svm(self, z: FloatArray) -> FloatArray:
+    def _svm(self, z: FloatArray, mm: Callable[[FloatArray, FloatArray], FloatArray]) -> FloatArray:
         gamma = float(self.arrays["svm_gamma"])
         if self.params.get("kernel", "rbf") == "linear":
-            kern = z @ self._sv.T
+            kern = mm(z, self._sv.T)
         else:
-            sq = (z * z).sum(axis=1)[:, None] - 2.0 * z @ self._sv.T + self._sv_sq[None, :]
+            sq = (z * z).sum(axis=1)[:, None] - mm(2.0 * z, self._sv.T) + self._sv_sq[None, :]
             kern = np.exp(-gamma * np.maximum(sq, 0.0))
-        dec = kern @ self._pair_coef + self.arrays["svm_intercept"]
+        dec = mm(kern, self._pair_coef) + self.arrays["svm_intercept"]
         if len(self.classes_) == 2:
             return pm_half(dec[:, 0])
-        return pairwise_scores(dec, self._first, self._second)
+        return pairwise_scores(dec, self._first, self._second, mm)
 
 
 def pair_matrices(k: int) -> tuple[FloatArray, FloatArray]:
@@ -138,17 +143,19 @@ def pair_matrices(k: int) -> tuple[FloatArray, FloatArray]:
     return first, second
 
 
-def pairwise_scores(dec: FloatArray, first: FloatArray, second: FloatArray) -> FloatArray:
+def pairwise_scores(dec: FloatArray, first: FloatArray, second: FloatArray,
+                    mm: Callable[[FloatArray, FloatArray], FloatArray] = np.matmul) -> FloatArray:
     """Class scores (n, k) of one-vs-one decision values ``dec`` (n, pairs) (> 0: the pair's first class): each class's
     mean log-sigmoid of its margins against the others, log σ(2 d), a soft count of the duels it wins.
 
     Vote counts carry no confidence (the top class of 15 nearly always has 14 votes); a plain sum of margins lets
     the duels against far-away classes outweigh the close one that decides. The log-sigmoid saturates for a duel
     won by far and penalises one lost: its argmax agrees with the vote, and it grades how clearly the slide won.
+    ``mm``: the matrix product (:func:`rowwise_matmul`: each row as alone).
     """
     k = first.shape[1]
     win, lose = -np.logaddexp(0.0, -2.0 * dec), -np.logaddexp(0.0, 2.0 * dec)  # log σ(2d), log σ(-2d)
-    out: FloatArray = (win @ first + lose @ second) / max(k - 1, 1)
+    out: FloatArray = (mm(win, first) + mm(lose, second)) / max(k - 1, 1)
     return out
 
 

@@ -82,13 +82,13 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
 
 from tactiled.core.analysis import Analyser, AnalysisSettings
-from tactiled.core.features import FeaturePlan, classifier_inputs, raw_features
+from tactiled.core.features import FeaturePlan, classifier_inputs, raw_features, rowwise_matmul
 from tactiled.errors import ModelError
 from tactiled.files.npzio import NpzError, NpzReader, load_json_bounded
 from tactiled.files.recording import atomic_savez
@@ -111,6 +111,7 @@ ARRAYS = {"elm": ("weights", "biases", "beta", "elm_temperature"), "linear": ("c
           "svm": ("train_x", "train_y")}
 PARTNER = "partner_"  # format 7: the prefix of the second member's arrays (its classes, scaler, classifier and training rows)
 FloatArray = npt.NDArray[np.float64]
+SurfaceGroups = tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]  # surface_groups: (columns (S, m), counts (S,))
 
 
 def default_model_path() -> Path:
@@ -318,6 +319,7 @@ class Model:
     partner: Model | None = None  # an ensemble's second member (format 7); None: a single classifier
     member_names: tuple[str, ...] | None = None  # an ensemble: this classifier's columns (a subset of settings.names); None: all of them
     member_temperature: float = 1.0  # an ensemble: the temperature of this classifier's own probabilities (``temperature`` is the ensemble's)
+    _groups: tuple[npt.NDArray[np.str_], SurfaceGroups] | None = field(default=None, init=False, repr=False, compare=False)  # novelty_y's
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -334,11 +336,16 @@ class Model:
         x = np.asarray(x, dtype=np.float64).reshape(-1, len(self.names))
         return x if self.member_names is None else take_columns(x, self.names, self.member_names)
 
-    def scores(self, x: npt.ArrayLike) -> FloatArray:
-        """Window scores (n, K) of this model's own classifier, columns in :attr:`classes` order, for raw features x (n, F)."""
+    def scores(self, x: npt.ArrayLike, alone: bool = False) -> FloatArray:
+        """Window scores (n, K) of this model's own classifier, columns in :attr:`classes` order, for raw features x (n, F).
+
+        ``alone``: each row's scores bit for bit those of the row alone (``scores(x[i:i + 1])``), whatever the other rows."""
         x = self.own(x)
         if isinstance(self.pipeline, LeanPipeline):
-            raw, order = self.pipeline.scores(x), self.pipeline.classes_
+            raw, order = self.pipeline.scores(x, alone), self.pipeline.classes_
+        elif alone and x.shape[0] > 1:  # scikit-learn's estimators: one row at a time
+            raw = np.concatenate([decision_scores(self.pipeline[-1], self.pipeline[:-1].transform(row[None])) for row in x])
+            order = self.pipeline[-1].classes_
         else:
             raw, order = decision_scores(self.pipeline[-1], self.pipeline[:-1].transform(x)), self.pipeline[-1].classes_
         if len(order) == len(self.classes) and all(str(c) == k for c, k in zip(order, self.classes, strict=True)):
@@ -357,17 +364,15 @@ class Model:
         """This classifier's slide scores (K,) from the raw features (w, F) of a slide's windows (w >= 1), by the settings'
         ``fusion``: the mean of the windows' scores, or the scores of the windows' mean features."""
         x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
-        if self.settings.fusion == "features":
-            return self.scores(x.mean(axis=0, keepdims=True))[0]
-        out: FloatArray = self.scores(x).mean(axis=0)
-        return out
+        return self.fused_many(x, [(0, x.shape[0])])[0]
 
-    def prefix_scores(self, features: FloatArray) -> FloatArray:
-        """Slide scores (w, K) of the first 1, 2, ..., w windows of a slide (raw features (w, F)), all at once: row i's top
-        class is that of :meth:`slide_proba` of ``features[:i + 1]`` (a softmax keeps the order), up to the rounding of a
-        cumulative mean. An ensemble's rows are :func:`ensemble_scores` of both members' prefixes, so their top is the
-        ensemble's, not the first member's."""
-        return self._combined(np.asarray(features, dtype=np.float64).reshape(-1, len(self.names)), Model._prefix_fused)
+    def fused_many(self, x: FloatArray, rows: Sequence[tuple[int, int]]) -> FloatArray:
+        """This classifier's slide scores (q, K) of q slides, slide i the windows ``x[lo:hi]`` ((lo, hi) = ``rows[i]``, hi > lo)
+        of raw features x (n, F), row i bit for bit :meth:`fused_scores` of ``x[lo:hi]`` (each slide's mean features scored
+        as a row alone, or each slide's windows scored together and averaged)."""
+        if self.settings.fusion == "features":
+            return self.scores(slice_means(x, rows), alone=True)
+        return np.stack([self.scores(x[lo:hi]).mean(axis=0) for lo, hi in rows])
 
     def _combined(self, x: FloatArray, score: Callable[[Model, FloatArray], FloatArray]) -> FloatArray:
         """``score`` (a Model method: window, slide or prefix scores) of this classifier on raw features x (n, F), or, for an
@@ -377,10 +382,6 @@ class Model:
             return own
         return ensemble_scores(own, self.member_temperature, score(self.partner, take_columns(x, self.names, self.partner.names)),
                                self.partner.temperature)
-
-    def _prefix_fused(self, x: FloatArray) -> FloatArray:
-        """This classifier's fused scores (w, K) of each prefix of the windows x (w, F) (:func:`prefix_fused`)."""
-        return prefix_fused(x, self.scores, self.settings.fusion)
 
     def slide_proba(self, features: FloatArray) -> FloatArray:
         """Probabilities (K,) of a slide from the raw features (w, F) of its windows (w >= 1): this classifier's fused
@@ -402,11 +403,20 @@ class Model:
         set in training (:func:`over_thresholds`; the distance threshold is infinite unless the score is ``combined``).
         None for a model without novelty data.
         """
+        x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
+        return self.novelty_many(x, [(0, x.shape[0])])[0]
+
+    def novelty_many(self, x: FloatArray, rows: Sequence[tuple[int, int]]) -> list[float | None]:
+        """:meth:`novelty` of q slides, slide i the windows ``x[lo:hi]`` ((lo, hi) = ``rows[i]``) of raw features x (n, F),
+        each bit for bit (each slide's mean a row alone), in one pass over the training slides."""
         if self.novelty_x is None or not len(self.novelty_x):
-            return None
-        z = self.standardise(self.own(features).mean(axis=0, keepdims=True))
-        parts = novelty_parts(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_score)
-        return float(over_thresholds(parts, self.novelty_threshold, self.novelty_distance_threshold)[0])
+            return [None] * len(rows)
+        z = self.standardise(slice_means(self.own(x), rows))
+        if self.novelty_y is not None and (self._groups is None or self._groups[0] is not self.novelty_y):
+            self._groups = (self.novelty_y, surface_groups(self.novelty_y))
+        parts = novelty_parts(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_score, alone=True,
+                              groups=None if self._groups is None else self._groups[1])
+        return [float(v) for v in over_thresholds(parts, self.novelty_threshold, self.novelty_distance_threshold)]
 
     def early_confidence(self, p_top: float, windows: int) -> float:
         """The probability that a label from the first ``windows`` windows of a slide is right (a provisional label), from its top
@@ -421,9 +431,19 @@ class Model:
         ``final``: the whole slide (the calibration map); else the first w windows of a slide that goes on (:meth:`early_confidence`).
         """
         x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
-        proba = self.slide_proba(x)
-        p_top = float(proba.max())
-        return proba, self.confidence(p_top) if final else self.early_confidence(p_top, x.shape[0]), self.novelty(x)
+        proba, confidence, novelty = self.assess_many(x, [(0, x.shape[0])], final)
+        return proba[0], confidence[0], novelty[0]
+
+    def assess_many(self, features: FloatArray, rows: Sequence[tuple[int, int]],
+                    final: bool = True) -> tuple[FloatArray, list[float], list[float | None]]:
+        """:meth:`assess` of q slides (or slides so far) at once, slide i the windows ``features[lo:hi]`` ((lo, hi) = ``rows[i]``,
+        hi > lo) of raw features (n, F): (probabilities (q, K), confidences (q,), novelties (q,)), row i bit for bit
+        ``assess(features[lo:hi], final)`` (offline: every assessment of a recording in one call)."""
+        x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
+        proba = softmax(self._combined(x, lambda m, cols: m.fused_many(cols, rows)), self.temperature)
+        tops = cast(list[float], proba.max(axis=1).tolist())
+        confidence = [self.confidence(p) if final else self.early_confidence(p, hi - lo) for p, (lo, hi) in zip(tops, rows, strict=True)]
+        return proba, confidence, self.novelty_many(x, rows)
 
     def standardise(self, x: FloatArray) -> FloatArray:
         """Classifier inputs (n, F') of raw features (n, F') of :attr:`inputs` (:meth:`own` of the full columns): log of
@@ -555,6 +575,16 @@ def fit_pipeline(x: FloatArray, y: npt.NDArray[Any], names: list[str] | tuple[st
         keep = np.sort(np.random.default_rng(seed).choice(x.shape[0], MAX_REFIT_ROWS, replace=False))
         x, y = x[keep], y[keep]
     return pipe, (pipe[:-1].transform(x), np.asarray(y, dtype=np.str_))
+
+
+def slice_means(x: FloatArray, rows: Sequence[tuple[int, int]]) -> FloatArray:
+    """(q, F) the mean of the rows ``x[lo:hi]`` of x (n, F) for each (lo, hi) of ``rows`` (hi > lo), each bit for bit
+    ``x[lo:hi].mean(axis=0)`` (the same sum and division, without its per-call overhead)."""
+    if len(rows) == 1:
+        lo, hi = rows[0]
+        out: FloatArray = np.add.reduce(x[lo:hi], axis=0, keepdims=True) / (hi - lo)
+        return out
+    return np.stack([np.add.reduce(x[lo:hi], axis=0) / (hi - lo) for lo, hi in rows])
 
 
 def prefix_fused(x: FloatArray, score: Callable[[FloatArray], FloatArray], fusion: str) -> FloatArray:
@@ -864,9 +894,10 @@ def early_probability(coef: Sequence[float], p_top: float, windows: int) -> floa
     return min(max(1.0 / (1.0 + math.exp(-min(max(z, -700.0), 700.0))), 0.01), 0.99)
 
 
-def _distances(z: FloatArray, train: FloatArray) -> FloatArray:
-    """(q, n) Euclidean distances between the rows of ``z`` (q, F) and of ``train`` (n, F)."""
-    d2 = (z * z).sum(axis=1)[:, None] - 2.0 * z @ train.T + (train * train).sum(axis=1)[None, :]
+def _distances(z: FloatArray, train: FloatArray, alone: bool = False) -> FloatArray:
+    """(q, n) Euclidean distances between the rows of ``z`` (q, F) and of ``train`` (n, F); ``alone``: each row bit for bit
+    that of the row alone (:func:`rowwise_matmul`)."""
+    d2 = (z * z).sum(axis=1)[:, None] - (rowwise_matmul if alone else np.matmul)(2.0 * z, train.T) + (train * train).sum(axis=1)[None, :]
     return np.sqrt(np.maximum(d2, 0.0))
 
 
@@ -877,15 +908,17 @@ def _nearest_mean(d: FloatArray, k: int) -> FloatArray:
     return out
 
 
-def knn_distance(z: FloatArray, train: FloatArray, k: int) -> FloatArray:
-    """(q,) mean Euclidean distance of each row of ``z`` (q, F) to its ``k`` nearest rows of ``train`` (n, F) (k capped at n)."""
-    return _nearest_mean(_distances(z, train), k)
+def knn_distance(z: FloatArray, train: FloatArray, k: int, alone: bool = False) -> FloatArray:
+    """(q,) mean Euclidean distance of each row of ``z`` (q, F) to its ``k`` nearest rows of ``train`` (n, F) (k capped at n);
+    ``alone``: each row bit for bit that of the row alone."""
+    return _nearest_mean(_distances(z, train, alone), k)
 
 
 NOVELTY_SCORES = ("ratio", "distance", "combined")
 
 
-def novelty_parts(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | None, k: int, score: str = "ratio") -> FloatArray:
+def novelty_parts(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | None, k: int, score: str = "ratio",
+                  alone: bool = False, groups: SurfaceGroups | None = None) -> FloatArray:
     """(q, 2) how unlike the training rows ``train`` (n, F) (surfaces ``labels`` (n,)) each row of ``z`` (q, F) is: the
     score, and the distance to the nearest taught surface (mean over its ``k`` nearest rows).
 
@@ -896,11 +929,13 @@ def novelty_parts(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | N
     Unlike a distance, the ratio takes its scale from how far apart the surfaces are, not from how close recordings of
     one surface were in training, so a sensor that is shifted as a whole (another unit, a new sheet of a grade) keeps
     the slides it can still tell apart. With fewer than two surfaces in ``labels`` (or none given), the distance.
+    ``alone``: each row bit for bit that of the row alone (:func:`rowwise_matmul`; else one matrix product, the same to rounding);
+    ``groups``: :func:`surface_groups` of ``labels``, when the caller keeps it.
     """
     if labels is None or score == "distance":
-        d = knn_distance(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64), k)
+        d = knn_distance(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64), k, alone)
         return np.column_stack([d, d])
-    per = nearest_surface_distances(z, train, labels, k)
+    per = nearest_surface_distances(z, train, labels, k, alone, groups)
     ratio = np.where(np.isfinite(per[:, 1]), per[:, 0] / np.maximum(per[:, 1], 1e-300), per[:, 0])
     return np.column_stack([ratio, per[:, 0]])
 
@@ -920,26 +955,40 @@ def over_thresholds(parts: FloatArray, threshold: float, distance_threshold: flo
     return out
 
 
-def nearest_surface_distances(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any], k: int) -> FloatArray:
+def surface_groups(labels: npt.NDArray[Any]) -> SurfaceGroups:
+    """The training rows of each of the S surfaces of ``labels`` (n,), in sorted surface order: (columns (S, m): each surface's
+    row numbers in order, padded with n, m its largest count; counts (S,))."""
+    _, codes = np.unique(labels, return_inverse=True)
+    codes = codes.reshape(-1)
+    counts = np.bincount(codes)
+    order = np.argsort(codes, kind="stable")
+    columns = np.full((len(counts), max(int(counts.max(initial=0)), 1)), len(codes), dtype=np.intp)
+    columns[codes[order], np.arange(len(codes)) - (np.cumsum(counts) - counts)[codes[order]]] = order
+    return columns, counts
+
+
+def nearest_surface_distances(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any], k: int, alone: bool = False,
+                              groups: SurfaceGroups | None = None) -> FloatArray:
     """(q, 2) for each row of ``z`` (q, F): the mean distance to the ``k`` nearest training rows (``train`` (n, F)) of the
-    nearest surface (``labels`` (n,)), and the same for the next nearest surface (inf with a single surface)."""
-    d = _distances(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64))
-    surfaces, codes = np.unique(labels, return_inverse=True)
-    per = np.sort(np.array([_nearest_per_surface(row, codes, len(surfaces), k) for row in d]).reshape(len(d), len(surfaces)), axis=1)
-    out: FloatArray = np.column_stack([per[:, 0], per[:, 1] if len(surfaces) > 1 else np.full(len(d), np.inf)])
+    nearest surface (``labels`` (n,)), and the same for the next nearest surface (inf with a single surface); ``alone``:
+    each row bit for bit that of the row alone; ``groups``: :func:`surface_groups` of ``labels``, when the caller keeps it."""
+    d = _distances(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64), alone)
+    columns, counts = groups if groups is not None else surface_groups(labels)
+    per = np.sort(_nearest_per_surface(d, columns, counts, k), axis=1)
+    out: FloatArray = np.column_stack([per[:, 0], per[:, 1] if len(counts) > 1 else np.full(len(d), np.inf)])
     return out
 
 
-def _nearest_per_surface(d: FloatArray, codes: npt.NDArray[np.intp], surfaces: int, k: int) -> FloatArray:
-    """(surfaces,) the mean of the ``k`` smallest distances ``d`` (n,) of each surface (rows' surface ``codes`` (n,), 0..surfaces-1;
-    k capped at the surface's rows), in one sort rather than one pass per surface."""
-    order = np.lexsort((d, codes))
-    dist, code = d[order], codes[order]
-    counts = np.bincount(codes, minlength=surfaces)
-    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+def _nearest_per_surface(d: FloatArray, columns: npt.NDArray[np.intp], counts: npt.NDArray[np.intp], k: int) -> FloatArray:
+    """(q, S) the mean of the ``k`` smallest distances of each surface in each row of ``d`` (q, n) (:func:`surface_groups`'
+    ``columns`` and ``counts``; k capped at the surface's rows), all rows at once: each surface's distances in a row of its
+    own (padded with inf), sorted, the k smallest summed in ascending order from 0."""
+    nearest = np.sort(np.concatenate([d, np.full((d.shape[0], 1), np.inf)], axis=1)[:, columns], axis=2)
     take = np.minimum(k, counts)
-    keep = np.arange(len(code)) - first[code] < take[code]
-    out: FloatArray = np.bincount(code[keep], weights=dist[keep], minlength=surfaces) / np.maximum(take, 1)
+    total = np.zeros(nearest.shape[:2])
+    for j in range(int(take.max(initial=0))):
+        total = total + (nearest[:, :, j] if j < take.min() else np.where(j < take, nearest[:, :, j], 0.0))
+    out: FloatArray = total / np.maximum(take, 1)
     return out
 
 
