@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from tactiled.config import Config
@@ -37,7 +36,9 @@ def test_enrol_adds_a_surface_from_six_slides_and_labels_it(trained: tuple[Path,
     assert m2.classes == sorted([*old.classes, "NEW"]) and m2.fingerprint != old.fingerprint
     record = m2.summary["enrolled"][-1]
     assert record == {"from": old.fingerprint, "slides": {"NEW": 6}, "files": [Path(p).name for p in new]}
-    assert m2.novelty_y is not None and list(m2.novelty_y).count("NEW") == 6 and np.isfinite(m2.novelty_threshold)
+    assert m2.novelty_y is not None and list(m2.novelty_y).count("NEW") == 6
+    # the threshold fitted again on the new slides, at the share of untaught slides the model was trained with
+    assert m2.summary["novelty"]["known_rejected"] is not None and m2.summary["novelty"]["untaught"] == old.summary["novelty"]["untaught"] == 0.1
     assert old.summary["early_calibration"]["prefixes"] > 0 and m2.early_calibration == old.early_calibration  # fitted in training, kept
     relabelled = run_cli("replay", "--json", "--model", str(tmp_path / "m2.npz"), *new)
     finals = [json.loads(line) for line in relabelled.stdout.splitlines() if line.startswith("{") and '"final": true' in line]

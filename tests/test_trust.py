@@ -104,16 +104,42 @@ def test_the_threshold_never_rejects_more_than_asked_where_known_and_untaught_ov
     assert novelty_threshold(known, np.zeros(0), 0.05) == np.quantile(known, 0.95, method="higher")
 
 
+def test_the_threshold_weighs_untaught_slides_by_their_expected_share() -> None:
+    from tactiled.learn.search import novelty_threshold
+
+    rng = np.random.default_rng(5)
+    known = rng.standard_normal(400)
+    for shift in (0.5, 1.0, 3.0, 6.0):  # untaught slides' scores from barely to far above the known ones'
+        unseen = rng.standard_normal(200) + shift
+        youden, rare = novelty_threshold(known, unseen, 0.05, 0.5), novelty_threshold(known, unseen, 0.05, 0.1)
+        assert np.mean(known > youden) <= 0.05 and np.mean(known > rare) <= np.mean(known > youden)
+        # at a share of 0.1 a rejected known slide costs nine times what a caught untaught one gains
+        assert 0.1 * np.mean(unseen > rare) - 0.9 * np.mean(known > rare) >= 0.0
+    # untaught scores within the known ones' range, twice as dense at the top: worth a threshold when both weigh alike
+    # (Youden's J), not when one slide in ten is expected on an untaught surface
+    flat, barely = np.linspace(0.0, 1.0, 400), np.linspace(0.5, 0.99, 200)
+    assert math.isfinite(novelty_threshold(flat, barely, 0.05, 0.5)) and novelty_threshold(flat, barely, 0.05, 0.1) == math.inf
+    far = rng.standard_normal(200) + 6.0
+    t = novelty_threshold(known, far, 0.05, 0.1)
+    assert np.mean(known > t) == 0.0 and np.mean(far > t) == 1.0  # apart: the same threshold whatever the share
+    z = np.vstack([rng.standard_normal((12, 3)), rng.standard_normal((12, 3)) + 8.0])
+    assert fit_novelty(z, np.arange(24) % 4, np.repeat([0, 1], 12), 3, untaught=0.3)[1]["untaught"] == 0.3
+
+
+def test_train_refuses_a_share_of_untaught_slides_outside_0_1(tmp_path: Path) -> None:
+    res = run_cli("train", str(tmp_path / "none.npz"), "-o", str(tmp_path / "m.npz"), "--untaught-share", "1.5")
+    assert res.returncode == 2 and "--untaught-share" in res.stderr and len(res.stderr.strip().splitlines()) <= 2
+
+
 @pytest.mark.parametrize("case", ["one_recording", "identical_slides", "one_slide"])
 def test_novelty_stays_finite_when_cross_validation_cannot_judge(case: str) -> None:
     n = {"one_slide": 1}.get(case, 12)
     z = np.zeros((n, 3)) if case == "identical_slides" else np.random.default_rng(0).standard_normal((n, 3))
     files = np.zeros(n, dtype=int) if case in ("one_recording", "one_slide") else np.arange(n) % 4
     threshold, info = fit_novelty(z, files, np.arange(n) % 2, 3)
+    assert threshold == math.inf and info["threshold"] is None  # no ratio gate: nothing to judge it by, or nothing it tells apart
     if case == "identical_slides":
-        assert threshold == 1e-9 and info["known_rejected"] == 0.0
-    else:
-        assert threshold == math.inf and info["threshold"] is None
+        assert info["known_rejected"] == 0.0
 
 
 def _model(tmp_path: Path) -> Model:

@@ -51,7 +51,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     check_output(args.output, args.force, (".npz",))  # before minutes of search, not after
     result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
                    scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by,
-                   novelty=args.novelty, ensemble=args.ensemble)
+                   novelty=args.novelty, ensemble=args.ensemble,
+                   **({} if args.untaught_share is None else {"untaught": args.untaught_share}))
     print("leaderboard (slide accuracy, grouped by file: mean ± sd over folds; * the choice, the simplest within one standard error of the best):")
     width = max(len(row["candidate"]) for row in result.leaderboard)
     for row in result.leaderboard:
@@ -66,10 +67,17 @@ def cmd_train(args: argparse.Namespace) -> int:
         early = result.model.summary.get("early_calibration", {})
         print(f"confidence: calibrated ({cal['method']}) on {cal['slides']} out-of-fold slides"
               + (f"; provisional labels on {early['prefixes']} out-of-fold slide prefixes" if result.model.early_calibration else ""))
-    if nov.get("threshold") is not None:
-        print(f"unknown surfaces: by cross-validation, {100 * nov['known_rejected']:.1f} % of slides of known surfaces are called unknown, "
-              + (f"{100 * nov['unseen_flagged']:.1f} % of slides of a surface left out of training" if nov.get("unseen_flagged") is not None
-                 else "and no surface could be left out to test it"))
+    if nov.get("known_rejected") is not None:
+        ratio, far = nov.get("threshold") is not None, nov.get("distance_threshold") is not None
+        if ratio or far:
+            print(f"unknown surfaces: by cross-validation, {100 * nov['known_rejected']:.1f} % of slides of known surfaces are called unknown, "
+                  + (f"{100 * nov['unseen_flagged']:.1f} % of slides of a surface left out of training" if nov.get("unseen_flagged") is not None
+                     else "and no surface could be left out to test it"))
+        if not ratio:
+            print(f"unknown surfaces: the distance ratio flags nothing: by cross-validation, at --untaught-share {nov.get('untaught', 0.5):g} "
+                  "it would cost more known slides than the untaught ones it catches are worth"
+                  + ("; only a slide farther from every taught surface than they are from each other is called unknown" if far else
+                     "; no slide will be called unknown"))
     fingerprint = result.model.save(args.output)
     print(f"{args.output}: {result.model.describe()}; fingerprint {fingerprint}")
     return EXIT_OK
@@ -182,6 +190,10 @@ def add_commands(sub: Sub) -> None:
                         "between taught grades, but also most slides of another unit); combined (the default), the ratio, or a "
                         "distance to the nearest surface beyond the step between taught surfaces (also flags a surface far from "
                         "every taught one where one taught surface is much nearer than the next)")
+    p.add_argument("--untaught-share", type=c.number_in(0.01, 0.99, "share"), default=None,
+                   help="the share of slides you expect on surfaces the model is not taught: the unknown-surface threshold calls "
+                        "known slides unknown (at most 5 %% of them by cross-validation) only where the untaught slides it catches "
+                        "are worth it at this share; 0.5 weighs a caught untaught slide and a rejected known one alike (default: 0.1)")
     p.add_argument("--ensemble", choices=("off", "always", "guarded"), default="off",
                    help="whether the chosen candidate and the plain spectral one (spectrum / svm / 0.25 s / slide mean) make one model, "
                         "the normalised product of their probabilities, when the chosen one's windows are the spectral one's "

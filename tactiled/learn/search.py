@@ -23,7 +23,8 @@ CV of the training files alone picks a candidate, which is then scored on the he
 files. The winner is refitted on every recording; its temperature and its confidence
 calibration (:func:`fit_calibration`) are fitted on its out-of-fold slide scores, and its
 novelty threshold (:func:`fit_novelty`) on the distance ratios of slides to other recordings' slides (and, for the
-``combined`` score, a distance threshold on their distances to the nearest other surface).
+``combined`` score, a distance threshold on their distances to the nearest other surface), weighing a caught untaught
+slide by the share of them expected (``untaught``, :data:`UNTAUGHT_SHARE`) against a rejected known one.
 
 ``ensemble`` (``train --ensemble``, off by default: docs/evaluation.md measured it on every scene and it cost some
 scenes 6 of 90 slides): when the winner shares :data:`SPECTRUM`'s windows, the model multiplies the winner's
@@ -81,6 +82,9 @@ PAPER_PARAMS: dict[str, Any] = {"n_hidden": 200, "alpha": 1e-6}
 # standard error of the winner's out-of-fold accuracy)
 ENSEMBLE_MODES = ("off", "always", "guarded")
 ENSEMBLE_DEFAULT = "off"
+# train --untaught-share: the share of slides expected on surfaces a model was never taught; a novelty threshold is worth
+# what it catches of them, weighed by this, less the known slides it rejects, weighed by the rest (novelty_threshold)
+UNTAUGHT_SHARE = 0.1
 # named feature sets: "spectrum" is the plain whole-slide spectral classifier's input (log band energies of the
 # Welch PSD, log spectral centroid, kurtosis of each channel); "tex.<name>" is one texture descriptor
 ALIASES: dict[str, tuple[str, ...]] = {"spectrum": ("psd", "tex.centroid", "tex.kurtosis")}
@@ -351,12 +355,13 @@ def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, li
 def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
            candidates: Sequence[Candidate] | None = None, progress: Progress | None = None, scheduler: str | None = None,
            found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False,
-           novelty: str = "combined", ensemble: str = ENSEMBLE_DEFAULT) -> SearchResult:
+           novelty: str = "combined", ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE) -> SearchResult:
     """Score every candidate, pick and refit the winner (see the module docstring).
 
     ``keep_models``: also refit every other candidate (``SearchResult.models``, by name; the winner alone under its name
     when the model is an ensemble), to compare them on held-out recordings.
-    ``novelty``: the models' unknown-surface score (:data:`~tactiled.learn.model.NOVELTY_SCORES`).
+    ``novelty``: the models' unknown-surface score (:data:`~tactiled.learn.model.NOVELTY_SCORES`); ``untaught``: the share of
+    slides expected on untaught surfaces, which weighs its threshold (:func:`novelty_threshold`).
     ``ensemble`` (:data:`ENSEMBLE_MODES`): whether the winner and :data:`SPECTRUM` make one model (:func:`ensemble_of`) when the
     winner may have a partner (:func:`can_partner`): ``off`` never, ``always``, or ``guarded``, only when the ensemble's
     out-of-fold accuracy is within one standard error of the winner's (:func:`within_one_se` on the same outer folds).
@@ -442,7 +447,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
     summary: dict[str, Any] = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs)}
-    alone = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty)
+    alone = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty, untaught)
     model, members, scores = alone, [(best, alone.temperature)], oof[best.name]
     if ensemble != "off" and can_partner(best, usable):
         partner = _fit_member(sets, SPECTRUM, oof[SPECTRUM.name], y_idx, classes, config, fs, channels, seed, inner_folds, method)
@@ -474,7 +479,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
                           time.perf_counter() - t0, oof=(scores, y_idx, np.array([sl.file for sl in ws.slides])))
     if keep_models:
         result.models = {c.name: alone if c == best else _refit(sets, c, oof[c.name], y_idx, classes, config, fs, channels, seed,
-                                                                   inner_folds, method, summary, novelty) for c in usable}
+                                                                   inner_folds, method, summary, novelty, untaught) for c in usable}
     return result
 
 
@@ -505,7 +510,7 @@ def ensemble_of(first: Model, partner: Model, oof: FloatArray, y_idx: npt.NDArra
 
 def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: Candidate, oof: FloatArray, y_idx: npt.NDArray[np.intp],
            classes: list[str], config: Config, fs: float, channels: int, seed: int, inner_folds: int, method: str,
-           summary: dict[str, Any], novelty: str = "combined") -> Model:
+           summary: dict[str, Any], novelty: str = "combined", untaught: float = UNTAUGHT_SHARE) -> Model:
     """Candidate ``c`` fitted on every labelled slide (:func:`_fit_member`), its calibration fitted on its out-of-fold slide scores
     ``oof``, its novelty on its standardised slide-mean features."""
     model = _fit_member(sets, c, oof, y_idx, classes, config, fs, channels, seed, inner_folds, method)
@@ -518,7 +523,7 @@ def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: C
     slides = ws if c.fusion == "features" else ws.averaged()  # one row per slide: the mean of its windows' raw features
     labelled = np.flatnonzero(slides.y != "")
     fit_model_novelty(model, model.standardise(take_columns(slides.x[labelled], slides.names, model.names)), slides.y[labelled],
-                      slides.groups[labelled], novelty)
+                      slides.groups[labelled], novelty, untaught)
     return model
 
 
@@ -538,11 +543,13 @@ def _fit_member(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]],
                  {}, "", refit)
 
 
-def fit_model_novelty(model: Model, z: FloatArray, labels: npt.NDArray[Any], groups: npt.NDArray[Any], score: str) -> None:
+def fit_model_novelty(model: Model, z: FloatArray, labels: npt.NDArray[Any], groups: npt.NDArray[Any], score: str,
+                      untaught: float = UNTAUGHT_SHARE) -> None:
     """Give ``model`` its novelty data: the standardised slides ``z`` (n, F') of surfaces ``labels`` and recordings ``groups``
-    (n,), the score (:data:`~tactiled.learn.model.NOVELTY_SCORES`) and its threshold (:func:`fit_novelty`, in ``summary``)."""
+    (n,), the score (:data:`~tactiled.learn.model.NOVELTY_SCORES`) and its threshold (:func:`fit_novelty` at the share
+    ``untaught`` of untaught slides, in ``summary``)."""
     model.novelty_x, model.novelty_y, model.novelty_groups, model.novelty_score = z, labels, groups, score
-    model.novelty_threshold, info = fit_novelty(z, groups, labels, model.novelty_k, score=score)
+    model.novelty_threshold, info = fit_novelty(z, groups, labels, model.novelty_k, score=score, untaught=untaught)
     far = info.get("distance_threshold")
     model.novelty_distance_threshold = float(far) if far is not None else math.inf
     model.summary = {**model.summary, "novelty": info}
@@ -656,13 +663,14 @@ def _logit(q: FloatArray) -> FloatArray:
 
 
 def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any], k: int, reject: float = 0.05,
-                score: str = "ratio") -> tuple[float, dict[str, Any]]:
+                score: str = "ratio", untaught: float = UNTAUGHT_SHARE) -> tuple[float, dict[str, Any]]:
     """The novelty threshold of training slides ``z`` (n, F') (standardised mean features), and what cross-validation says of it.
 
     Each slide's :func:`~tactiled.learn.model.novelty_parts` against the slides of *other recordings* stands for a
     new recording of a known surface; leaving each surface out in turn (its score against the slides of the other
     surfaces) stands for an untaught surface. The threshold (:func:`novelty_threshold`) calls at most ``reject`` of the
-    known slides unknown and flags as many untaught ones as it can; ``info`` says how many of each it does. A threshold of
+    known slides unknown and flags the untaught ones where that pays at the share ``untaught`` of untaught slides; ``info``
+    says how many of each it does. A threshold of
     inf (never unknown) when no slide has another recording to compare with.
 
     ``combined``: the threshold is the ratio's, and ``info["distance_threshold"]`` a second one on the distance to the
@@ -681,30 +689,32 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
             if keep.any():
                 out[i] = novelty_parts(z[i:i + 1], z[keep], labels[keep], k, score)[0]
     have, flagged = known[np.isfinite(known[:, 0])], unseen[np.isfinite(unseen[:, 0])]
-    info: dict[str, Any] = {"k": k, "score": score, "threshold": None, "known_rejected": None, "unseen_flagged": None}
+    info: dict[str, Any] = {"k": k, "score": score, "untaught": untaught, "threshold": None, "known_rejected": None, "unseen_flagged": None}
     if score == "combined":
         info["distance_threshold"] = None
     if not len(have):
         return math.inf, info
-    threshold = max(novelty_threshold(have[:, 0], flagged[:, 0], reject), 1e-9)
+    threshold = max(novelty_threshold(have[:, 0], flagged[:, 0], reject, untaught), 1e-9)
     far = math.inf
     if score == "combined" and len(flagged) and len(np.unique(labels)) >= 2:
         q = 1.0 - reject
         far = max(float(np.quantile(flagged[:, 1], q, method="higher")), float(np.quantile(have[:, 1], q, method="higher")), 1e-9)
         info["distance_threshold"] = far
-    info.update(threshold=threshold, known_rejected=float(np.mean(over_thresholds(have, threshold, far) > 1.0)),
+    info.update(threshold=threshold if math.isfinite(threshold) else None, known_rejected=float(np.mean(over_thresholds(have, threshold, far) > 1.0)),
                 unseen_flagged=float(np.mean(over_thresholds(flagged, threshold, far) > 1.0)) if len(flagged) else None)
     return threshold, info
 
 
-def novelty_threshold(known: FloatArray, unseen: FloatArray, reject: float = 0.05) -> float:
+def novelty_threshold(known: FloatArray, unseen: FloatArray, reject: float = 0.05, untaught: float = UNTAUGHT_SHARE) -> float:
     """The threshold on novelty scores (a score above it: unknown) from known slides' scores (m,) and untaught ones' (u,).
 
-    Of the thresholds that call at most ``reject`` of the known slides unknown, the one that flags the most untaught
-    slides for the fewest known ones (the largest caught minus rejected share, Youden's J), placed in the middle of
-    the gap between the two scores around it: where the known and untaught scores are far apart (surfaces easy to
-    tell apart) a slide may move half the gap (another unit of the sensor) before it is called unknown, rather than
-    being rejected at the edge of the training spread. Without untaught scores, the (1 - ``reject``) quantile.
+    Of the thresholds that call at most ``reject`` of the known slides unknown, the one with the most to gain: untaught
+    slides caught, weighed by ``untaught`` (the share of slides expected on untaught surfaces, :data:`UNTAUGHT_SHARE`), less
+    known slides rejected, weighed by 1 - ``untaught`` (0.5: Youden's J, both alike); placed in the middle of the gap between the two scores around it:
+    where the known and untaught scores are far apart (surfaces easy to tell apart) a slide may move half the gap
+    (another unit of the sensor) before it is called unknown, rather than being rejected at the edge of the training
+    spread. When no threshold gains anything (cross-validation says the score tells untaught surfaces from known ones no
+    better than it costs known slides), inf: the score flags nothing. Without untaught scores, the (1 - ``reject``) quantile.
     """
     cap = float(np.quantile(known, 1.0 - reject, method="higher"))
     if not len(unseen):
@@ -712,8 +722,9 @@ def novelty_threshold(known: FloatArray, unseen: FloatArray, reject: float = 0.0
     points = np.unique(np.concatenate([known, unseen]))
     cuts = np.append((points[:-1] + points[1:]) / 2.0, points[-1])  # between consecutive scores, and at the highest (nothing seen flagged)
     cuts = cuts[cuts >= cap] if np.any(cuts >= cap) else cuts[-1:]
-    j = (unseen[None, :] > cuts[:, None]).mean(axis=1) - (known[None, :] > cuts[:, None]).mean(axis=1)
-    return float(cuts[int(np.argmax(j))])
+    gain = untaught * (unseen[None, :] > cuts[:, None]).mean(axis=1) - (1.0 - untaught) * (known[None, :] > cuts[:, None]).mean(axis=1)
+    best = int(np.argmax(gain))
+    return float(cuts[best]) if gain[best] > 0 else math.inf
 
 
 def complexity(c: Candidate) -> tuple[int, int, int]:
@@ -855,7 +866,8 @@ def window_oof(ws: WindowSet, cols: npt.NDArray[np.intp], kind: str, params: dic
 
 def paper(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
           progress: Progress | None = None, scheduler: str | None = None,
-          found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, novelty: str = "combined") -> SearchResult:
+          found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, novelty: str = "combined",
+          untaught: float = UNTAUGHT_SHARE) -> SearchResult:
     """The papers' DWT + SFS + ELM (:data:`PAPER`), cross-validated the same way as :func:`search`, then fitted on everything."""
     return search(recs, config, folds=folds, inner_folds=inner_folds, seed=seed, candidates=[PAPER], progress=progress, scheduler=scheduler,
-                  found=found, method="paper", novelty=novelty)
+                  found=found, method="paper", novelty=novelty, untaught=untaught)

@@ -17,7 +17,7 @@ from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, find_slides, load_recordings
 from tactiled.learn.model import NOVELTY_SCORES
-from tactiled.learn.search import ENSEMBLE_DEFAULT, ENSEMBLE_MODES, Candidate, SearchResult, paper, quick_candidates, search
+from tactiled.learn.search import ENSEMBLE_DEFAULT, ENSEMBLE_MODES, UNTAUGHT_SHARE, Candidate, SearchResult, paper, quick_candidates, search
 
 METHODS = ("auto", "quick", "paper")
 GROUP_BY = ("file", "slide")
@@ -52,7 +52,7 @@ def class_table(per_file: list[list[LabelledSlide]]) -> dict[str, tuple[int, int
 def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
           drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None,
           candidates: Sequence[Candidate] | None = None, keep_models: bool = False, group_by: str = "file",
-          novelty: str = "combined", ensemble: str = ENSEMBLE_DEFAULT) -> SearchResult:
+          novelty: str = "combined", ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE) -> SearchResult:
     """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save).
 
     ``candidates`` narrows the default search (``method="auto"``) to the given ones; ``keep_models``: see :func:`search`.
@@ -61,7 +61,9 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     (:data:`~tactiled.learn.model.NOVELTY_SCORES`; ``ratio`` tolerates another unit of the sensor, ``distance`` flags
     more untaught surfaces between taught grades but also most slides of another unit or a new sheet of a known one;
     ``combined``, the default, is the ratio or a distance beyond the step between taught surfaces, which also flags a
-    surface far from every taught one where the ratio is small). ``ensemble`` (:data:`~tactiled.learn.search.ENSEMBLE_MODES`):
+    surface far from every taught one where the ratio is small). ``untaught``: the share of slides expected on surfaces the
+    model was not taught, in (0, 1); the unknown-surface threshold rejects known slides only where that catches enough
+    untaught ones at this share (:func:`~tactiled.learn.search.novelty_threshold`). ``ensemble`` (:data:`~tactiled.learn.search.ENSEMBLE_MODES`):
     whether the winner of the search and the plain spectral candidate make one model (:func:`~tactiled.learn.search.search`);
     ``quick`` and ``paper`` never do (their search has no spectral candidate).
     """
@@ -78,6 +80,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         raise TactiledError(f"--seed: must be >= 0, got {seed}")
     if novelty not in NOVELTY_SCORES:
         raise TactiledError(f"--novelty: must be one of {', '.join(NOVELTY_SCORES)}, got {novelty!r}")
+    if not 0.0 < untaught < 1.0:
+        raise TactiledError(f"--untaught-share: must be in (0, 1), got {untaught}")
     if ensemble not in ENSEMBLE_MODES:
         raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
     recs = load_recordings(paths, say)
@@ -112,12 +116,13 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         per_file = [[replace(s, file=next(serial)) for s in slides] for slides in per_file]
     found: tuple[list[list[LabelledSlide]], SlideCounts] = (per_file, counts)
     if method == "paper":
-        result = paper(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, novelty=novelty)
+        result = paper(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, novelty=novelty,
+                       untaught=untaught)
     else:
         if method == "quick" and candidates is None:
             candidates = quick_candidates()
         result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates,
-                        keep_models=keep_models, novelty=novelty, ensemble=ensemble)
+                        keep_models=keep_models, novelty=novelty, ensemble=ensemble, untaught=untaught)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
     result.model.summary["dropped"] = rare
     return result
