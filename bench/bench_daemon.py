@@ -274,6 +274,7 @@ def main() -> None:
         "latency_ms_max": round(float(lat.max()), 3) if lat.size else None,
         "sensor_latency_ms_p50_p99_max": [round(float(np.percentile(sensor_latencies, q)), 1) for q in (50, 99, 100)] if sensor_latencies else None,
         "sensor_latencies_ms": [round(v[1], 1) for _, v in sorted(standing.items()) if v[1] is not None],
+        "latencies_ms": [round(v[0], 2) for _, v in sorted(standing.items())],
         "start_latency_ms_p50_p90_max": pct(list(started.values()), (50, 90, 100)),
         "first_provisional_ms_p50_p90_max": pct(list(first_provisional.values()), (50, 90, 100)),
         "samples_lost_while_measured": None if last is None else last.samples_lost - lost0,
