@@ -113,6 +113,8 @@ def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
     assert res.returncode == 0, res.stderr
     assert "leaderboard" in res.stdout and "nested CV" in res.stdout and "slides per surface" in res.stderr
     assert sum(line.startswith("* ") for line in res.stdout.splitlines()) == 1  # the choice is marked once
+    nov = load_model(model).summary["novelty"]  # what train says of the unknown-surface tests is what the model holds
+    assert nov["untaught"] == 0.1 and ("distance-ratio test flags nothing" in res.stdout) == (nov["threshold"] is None)
     res = run_cli("score", str(model), *files, "--json")
     assert res.returncode == 0, res.stderr
     report = json.loads(res.stdout)

@@ -74,7 +74,8 @@ def cmd_train(args: argparse.Namespace) -> int:
                   + (f"{100 * nov['unseen_flagged']:.1f} % of slides of a surface left out of training" if nov.get("unseen_flagged") is not None
                      else "and no surface could be left out to test it"))
         if not ratio:
-            print(f"unknown surfaces: the distance ratio flags nothing: by cross-validation, at --untaught-share {nov.get('untaught', 0.5):g} "
+            test = "distance" if nov.get("score") == "distance" else "distance-ratio"
+            print(f"unknown surfaces: the {test} test flags nothing: by cross-validation, at --untaught-share {nov.get('untaught', 0.5):g} "
                   "it would cost more known slides than the untaught ones it catches are worth"
                   + ("; only a slide farther from every taught surface than they are from each other is called unknown" if far else
                      "; no slide will be called unknown"))
