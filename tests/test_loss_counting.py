@@ -4,6 +4,8 @@ counted as lost (issue 25); the detector's constant-time skip of a long gap."""
 
 from __future__ import annotations
 
+import os
+import select
 import threading
 from pathlib import Path
 
@@ -11,7 +13,7 @@ import numpy as np
 import pytest
 from tactiled_client import BlockingSubscriber, Status
 
-from tactiled.board.frames import frame_size
+from tactiled.board.frames import FrameDecoder, encode_frame
 from tactiled.config import Config
 from tactiled.core.detect import SlideDetector
 from tactiled.sim.physics import SensorSimulator, SimParams, pick_surfaces
@@ -120,6 +122,39 @@ def test_stale_bytes_in_the_port_at_start_are_discarded_not_lost_and_a_replug_ke
     assert logged >= round(unplug_s * FS) and logged <= st.samples_lost <= logged + unread, (st.samples_lost, logged, unread)
 
 
+def test_the_frames_stranded_at_an_unplug_are_those_the_reader_cannot_decode_when_it_reads_between_the_boards_reads(tmp_path: Path) -> None:
+    """The reader may take a piece of the pty's bytes between two of the board's reads at an unplug: a piece with no whole
+    frame in it leaves two frames cut, so the board must count the frames its reads cut, not its bytes over the frame size."""
+    board = VirtualBoard(SensorSimulator(SimParams(), seed=1), pick_surfaces(3), link=str(tmp_path / "tty"), frame_count=FRAME)
+    board.open()
+    reader = os.open(board.path, os.O_RDWR | os.O_NOCTTY)
+    try:
+        frames = [encode_frame(i * FRAME, np.full((FRAME, 2), i, dtype=np.int16)) for i in range(4)]
+        size = len(frames[0])
+        for i, f in enumerate(frames):
+            board._write(f, i * FRAME, size)
+        took = _read_exact(reader, 200)  # the reader's last read before the unplug: the head of frame 0
+        first = _read_exact(board._slave, 400)  # the board's first read: the rest of frame 0, the head of frame 1
+        took += _read_exact(reader, size)  # the reader reads between: the tail of frame 1, the head of frame 2
+        rest = _read_exact(board._slave, 4 * size - len(took) - len(first))  # the board reads the rest
+        assert board._strand() == (0, 0)  # nothing left
+        assert FrameDecoder().feed(took) == []  # the reader decodes none of the 4 frames
+        assert -(-(len(first) + len(rest)) // size) == 3  # the board's bytes over the frame size say 3
+        assert board._frames_hit([first, rest]) == 4
+        assert board._frames_hit([rest]) == 2 and board._frames_hit([first]) == 2
+    finally:
+        os.close(reader)
+        board.close()
+
+
+def _read_exact(fd: int, n: int) -> bytes:
+    out = b""
+    while len(out) < n:
+        assert select.select([fd], [], [], 10)[0], f"no bytes in 10 s ({len(out)} of {n})"
+        out += os.read(fd, n - len(out))
+    return out
+
+
 def _logged_loss(events: list[dict[str, object]]) -> tuple[int, int]:
     """(samples the board logged as never sent: unplug gaps, drops, overruns; samples queued in the pty when it was unplugged)."""
     lost = unread = 0
@@ -130,7 +165,9 @@ def _logged_loss(events: list[dict[str, object]]) -> tuple[int, int]:
             lost += int(e["count"])  # type: ignore[call-overload]
         elif kind == "unplug":
             pending_unplug = int(e["index"])  # type: ignore[call-overload]
-            unread += -(-int(e["unread"]) // frame_size(2, FRAME)) * FRAME  # type: ignore[call-overload]
+            # the frames the board found it read off the pty, not its bytes over the frame size: the daemon reads between the
+            # board's reads and may take a piece of two frames from the middle, leaving both cut (VirtualBoard._frames_hit)
+            unread += int(e["unread_frames"]) * FRAME  # type: ignore[call-overload]
         elif kind == "open" and pending_unplug is not None:
             lost += int(e["index"]) - pending_unplug  # type: ignore[call-overload]  # from the frame at the unplug to the first after
             pending_unplug = None

@@ -18,6 +18,7 @@ import os
 import threading
 import time
 import tty
+from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TextIO
@@ -26,6 +27,8 @@ import numpy as np
 
 from tactiled.board.frames import encode_frame
 from tactiled.sim.physics import SensorSimulator, Surface
+
+_TAKEN_KEPT = 1 << 18  # bytes of what the pty took kept to find the bytes stranded at an unplug among them
 
 
 class VirtualBoard:
@@ -63,6 +66,9 @@ class VirtualBoard:
         self._overruns: list[list[int]] = []  # [first frame index, frames] not taken by the pty since _overrun_t0
         self._overrun_bytes = 0
         self._overrun_t0 = 0.0
+        self._taken = bytearray()  # the last bytes this pty took (at most ~2 _TAKEN_KEPT), to find the stranded ones among them
+        self._taken_at = 0  # the offset in the pty's stream of _taken[0]
+        self._whole: deque[tuple[int, int, int]] = deque()  # (index, start, end) in that stream of the whole frames it took
         self.ready = threading.Event()
         self._progress = threading.Condition()
 
@@ -100,6 +106,7 @@ class VirtualBoard:
         tty.setraw(slave)
         os.set_blocking(master, False)
         self._master, self._slave = master, slave
+        self._taken, self._taken_at, self._whole = bytearray(), 0, deque()
         self.path = os.ttyname(slave)
         if self.link:
             tmp = f"{self.link}.tmp{os.getpid()}"
@@ -110,17 +117,18 @@ class VirtualBoard:
         self._event("open", path=self.path, index=self.first_index + self.sent_samples + self._shift)
         return self.path
 
-    def _strand(self) -> int:
+    def _strand(self) -> tuple[int, int]:
         """At an unplug: the bytes written to the pty that its reader has not taken, read off the board's own end of it so that
-        they are gone, as a hung-up tty's are; returns how many (0 if the pty is closed).
+        they are gone, as a hung-up tty's are; returns how many, and how many whole frames the pty took lose bytes to them
+        ((0, 0) if the pty is closed).
 
         Reading counts them exactly: FIONREAD sees only the line discipline's buffer, not what still waits in the tty's flip
         buffers (up to 64 kB), while a read that finds nothing waits for those to be flushed first.
         """
         if self._slave < 0:
-            return 0
+            return 0, 0
         os.set_blocking(self._slave, False)  # the board's own open file: the reader's is another
-        n = 0
+        chunks: list[bytes] = []
         while True:
             try:
                 chunk = os.read(self._slave, 1 << 16)
@@ -128,8 +136,42 @@ class VirtualBoard:
                 break
             if not chunk:
                 break
-            n += len(chunk)
-        return n
+            chunks.append(chunk)
+        return sum(map(len, chunks)), self._frames_hit(chunks)
+
+    def _frames_hit(self, chunks: list[bytes]) -> int:
+        """The whole frames the pty took that lose a byte to ``chunks`` (read off it in this order): those its reader cannot decode.
+
+        Not the bytes over the frame size: the reader goes on reading between two of these reads (a tty hands out at most its
+        4 kB line buffer per read), so it may take a piece out of the middle, and a piece that holds no whole frame leaves two
+        frames cut, one more than the bytes say (seen under load: the daemon counted one frame more lost than that). So each
+        read is found in the bytes the pty took, the last one last: only what the reader took after a read lies between it and
+        where it is found.
+        """
+        hit: set[int] = set()
+        at = len(self._taken)  # in _taken: where the read after this one was found
+        for chunk in reversed(chunks):
+            at = self._taken.rfind(chunk, 0, at)
+            if at < 0:
+                raise RuntimeError(f"bytes read off the pty at an unplug are not among those it took ({len(chunk)} bytes)")
+            start = self._taken_at + at
+            end = start + len(chunk)
+            hit.update(k for k, (_, a, b) in enumerate(self._whole) if a < end and b > start)
+        return len(hit)
+
+    def _took(self, data: bytes, index: int, frame_bytes: int) -> None:
+        """Keep the bytes the pty took (``data``) for :meth:`_frames_hit`; they end with the intact frame at ``index``, ``frame_bytes``
+        long (after any garbage), unless that is 0: a frame the pty took only part of (an overrun) or corrupted, logged as such."""
+        end = self._taken_at + len(self._taken) + len(data)
+        if frame_bytes:
+            self._whole.append((index, end - frame_bytes, end))
+        self._taken += data
+        if len(self._taken) > 2 * _TAKEN_KEPT:  # far more than a pty holds (its 4 kB line buffer and 64 kB of flip buffers)
+            drop = len(self._taken) - _TAKEN_KEPT
+            del self._taken[:drop]
+            self._taken_at += drop
+            while self._whole and self._whole[0][1] < self._taken_at:
+                self._whole.popleft()
 
     def close(self) -> None:
         """Close the pty (the link stays; an unplug removes it first, :meth:`run`)."""
@@ -149,13 +191,15 @@ class VirtualBoard:
                         surface=truth.surface.name, ra_um=truth.surface.ra_um)
         self._logged_slides = len(self.model.truth)
 
-    def _write(self, data: bytes, index: int) -> None:
+    def _write(self, data: bytes, index: int, frame_bytes: int) -> None:
         try:
             written = os.write(self._master, data)
         except BlockingIOError:
             written = 0
         except OSError:
             written = 0
+        if written:
+            self._took(data[:written], index, frame_bytes if written == len(data) else 0)
         if written < len(data):
             self._overrun(index, len(data) - written)
         self._flush_overruns()
@@ -193,7 +237,8 @@ class VirtualBoard:
                 if unplugs and self.sent_samples >= unplugs[0]:
                     unplugs.pop(0)
                     self._flush_overruns(force=True)
-                    self._event("unplug", index=index, unread=self._strand())  # the frames still queued are lost with the pty
+                    unread, unread_frames = self._strand()  # the frames still queued are lost with the pty
+                    self._event("unplug", index=index, unread=unread, unread_frames=unread_frames)
                     # the link goes first, as udev removes /dev/serial/by-id/ links: once the pty is closed its number is free, and a
                     # link left pointing at it names the next pty anyone opens (another board's), which the reader would then read
                     self.remove_link()
@@ -209,15 +254,17 @@ class VirtualBoard:
                     self._event("drop", index=index, count=n)
                     continue
                 frame = bytearray(encode_frame(index, block))
+                frame_bytes = len(frame)
                 if self.rng.random() < self.corrupt:
                     at = int(self.rng.integers(2, len(frame)))
                     frame[at] ^= int(self.rng.integers(1, 256))
+                    frame_bytes = 0  # not a frame any reader decodes: logged as corrupt, not as stranded
                     self._event("corrupt", index=index, count=n)
                 if self.rng.random() < self.garbage:
                     junk = self.rng.integers(0, 256, int(self.rng.integers(1, 40)), dtype=np.uint8).tobytes()
                     self._event("garbage", index=index, bytes=len(junk))
                     frame = bytearray(junk) + frame
-                self._write(bytes(frame), index)
+                self._write(bytes(frame), index, frame_bytes)
                 with self._progress:
                     self._progress.notify_all()
         self._flush_overruns(force=True)
