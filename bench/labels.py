@@ -226,10 +226,10 @@ def main() -> None:
         chosen = next(r for r in res.leaderboard if r["candidate"] == res.winner)
         out["ensemble"] = {**chosen.get("ensemble", {}), "chosen_cv": chosen["mean"], "chosen_sd": chosen["sd"],
                            "is_ensemble": res.model.partner is not None}
-        if res.model.partner is not None:  # the winner alone, as train --ensemble off would have made it
-            alone = res.models[res.winner]
-            out["alone"] = {"same": end_to_end(same, config, alone), **{f"other{u}": end_to_end(r, config, alone) for u, r in others.items()}}
         scored = {r["candidate"]: end_to_end(same, config, res.models[r["candidate"]]) for r in res.leaderboard}
+        if res.model.partner is not None:  # the winner alone, as train --ensemble off would have made it (scored above on the same unit)
+            alone = res.models[res.winner]
+            out["alone"] = {"same": scored[res.winner], **{f"other{u}": end_to_end(r, config, alone) for u, r in others.items()}}
         out["candidates"] = [{"candidate": r["candidate"], "cv": r["mean"], "same": scored[r["candidate"]]["accuracy"],
                               "same_top": scored[r["candidate"]]["top_accuracy"]} for r in res.leaderboard]
         if not args.no_paper:

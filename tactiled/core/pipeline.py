@@ -90,8 +90,20 @@ class _Window:
     def usable(self) -> bool:
         return self.result.features is not None
 
+    @property
+    def features(self) -> npt.NDArray[np.float64]:
+        """The window's features (F,) (a usable window's)."""
+        assert self.result.features is not None
+        return self.result.features
+
 
 Assessed = tuple[npt.NDArray[np.float64], float, float | None]  # Classifier.assess: probabilities (K,), confidence, novelty
+AssessmentKey = tuple[tuple[tuple[int, int], ...], bool]  # replay's assessments ahead: (the windows' spans, final)
+
+
+def _assessment_key(used: list[_Window], end: int, final: bool) -> AssessmentKey:
+    """The key of the assessment of the first ``end`` of a slide's usable windows ``used`` (``final``: the whole slide)."""
+    return tuple(w.span for w in used[:end]), final
 
 
 class Pipeline:
@@ -115,7 +127,7 @@ class Pipeline:
         self.ring = RingBuffer(capacity, channels, np.int16 if integer else np.float64)
         self._reader: RingBuffer | HeldSamples = self.ring  # where windows are read: the ring, or a whole recording (replay)
         self._ahead: dict[tuple[int, int], _Window] = {}  # windows analysed ahead of need (replay), by span
-        self._assessed: dict[tuple[tuple[tuple[int, int], ...], bool], Assessed] = {}  # replay: assessed ahead, by (windows' spans, final)
+        self._assessed: dict[AssessmentKey, Assessed] = {}  # replay: assessed ahead, by (windows' spans, final)
         self.detector = SlideDetector(config.detector, fs, channels)
         self._detector_args = (config.detector, fs, channels)
         self._fresh_detector = False  # after shed(): the next samples fed start a new detector
@@ -267,14 +279,15 @@ class Pipeline:
         for final in (False, True):
             features: list[npt.NDArray[np.float64]] = []
             rows: list[tuple[int, int]] = []
-            keys: list[tuple[tuple[tuple[int, int], ...], bool]] = []
+            keys: list[AssessmentKey] = []
             for group, whole in needs:
-                used = [self._ahead[sp] for sp in group if self._ahead[sp].usable] if whole == final else []
-                lo = len(features)
-                for end in ([len(used)] if final else range(1, len(used) + 1)) if used else []:
-                    rows.append((lo, lo + end))
-                    keys.append((tuple(w.span for w in used[:end]), final))
-                features += [w.result.features for w in used if w.result.features is not None]
+                used = [self._ahead[sp] for sp in group if self._ahead[sp].usable]
+                if whole != final or not used:
+                    continue
+                ends = [len(used)] if final else range(1, len(used) + 1)  # the whole slide, or each prefix (provisional)
+                rows += [(len(features), len(features) + end) for end in ends]
+                keys += [_assessment_key(used, end, final) for end in ends]
+                features += [w.features for w in used]
             if rows:
                 proba, confidence, novelty = self.model.assess_many(np.stack(features), rows, final)
                 self._assessed.update((key, (proba[i], confidence[i], novelty[i])) for i, key in enumerate(keys))
@@ -381,10 +394,10 @@ class Pipeline:
         assessed them ahead (:meth:`_assess_ahead`), else in one :meth:`Classifier.assess_many` call."""
         assert self.model is not None
         if self._assessed:
-            known = [self._assessed.get((tuple(w.span for w in used[:end]), final)) for end in ends]
+            known = [self._assessed.get(_assessment_key(used, end, final)) for end in ends]
             if all(a is not None for a in known):
                 return cast(list[Assessed], known)
-        features = np.stack([w.result.features for w in used if w.result.features is not None])
+        features = np.stack([w.features for w in used])
         proba, confidence, novelty = self.model.assess_many(features, [(0, end) for end in ends], final)
         return [(proba[i], confidence[i], novelty[i]) for i in range(len(ends))]
 
@@ -417,7 +430,7 @@ class Pipeline:
         used = [w for w in windows if w.usable] if self.model is not None else []
         if not used:
             reasons = [w.result.reason for w in windows if w.result.reason] or ["window_too_short"]
-            reason = "no_model" if self.model is None and any(w.result.features is not None for w in windows) else Counter(reasons).most_common(1)[0][0]
+            reason = "no_model" if self.model is None and any(w.usable for w in windows) else Counter(reasons).most_common(1)[0][0]
             return SlideResult(self._slide_id, start, stop, (spans[0][0], spans[-1][1]) if spans else (start, start), None, reason, None, [],
                                _quality(windows), None, (time.perf_counter() - t0) * 1e3, True, (stop - start) / self.fs)
         return self._result(start, stop, used, self._assessments(used, [len(used)], final=True)[0], t0, final=True)
