@@ -191,6 +191,20 @@ def test_a_run_overlapping_what_was_placed_drops_whole_frames_like_per_frame_dec
     assert runs.stats.restarts == per_frame.stats.restarts == 0
 
 
+def test_a_repeat_of_a_frame_inside_a_long_run_is_a_duplicate_within_the_window_only() -> None:
+    """The decoder remembers whole runs: a frame repeated from the middle of a run it decoded at once is a duplicate while it
+    lies within ``duplicate_window`` samples of the next index, and a restart beyond, across the 32-bit wrap too."""
+    for first in (0, (1 << 32) - 2000):
+        frames, _ = _stream(200, first=first)  # 4000 samples in one run (the wrap inside it for the second)
+        for back, duplicate in ((900, True), (1000, True), (1100, False)):
+            dec = FrameDecoder(duplicate_window=1000)
+            dec.feed_runs(b"".join(frames))
+            again = frames[(4000 - back) // 20]
+            got = dec.feed_runs(again)
+            assert (dec.stats.duplicates, dec.stats.restarts) == ((1, 0) if duplicate else (0, 1)), (first, back)
+            assert got == [] if duplicate else got[0].restart
+
+
 def test_a_board_reset_at_a_small_index_is_a_restart_not_duplicates() -> None:
     """A board reset while its index is under the duplicate window: frames at indices already placed but with other samples are
     a new session (a restart), never dropped as duplicates; every sample after the reset is delivered."""

@@ -129,8 +129,9 @@ class FrameDecoder:
         self._duplicate_window = duplicate_window
         self._channels = channels
         self._max_gap = _HALF - 1 if max_gap is None else min(max(int(max_gap), 0), _HALF - 1)
-        self._placed: dict[int, int] = {}  # board index -> CRC of the frames placed in the last duplicate_window samples
-        self._placed_order: deque[int] = deque()  # their indices, oldest first
+        # the runs placed whose frames may lie in the last duplicate_window samples, oldest first: (board index of the
+        # run's first frame, samples per frame, the frames' CRCs); a run costs one entry, not one per frame
+        self._runs: deque[tuple[int, int, list[int]]] = deque()
         self.stats = DecoderStats()
 
     @property
@@ -255,12 +256,12 @@ class FrameDecoder:
             if delta <= self._max_gap:
                 lost = delta
                 index = expected + delta
-            elif back <= self._duplicate_window and self._placed.get(index32) == crcs[0]:
+            elif back <= self._duplicate_window and self._placed(index32) == crcs[0]:
                 # a repeat of a frame already placed: the frames that start before what was placed are duplicates,
                 # whole frames as if fed one by one
                 drop = -(-back // count)
                 same = 0  # the leading frames that repeat what was placed, each checked as it would be fed alone
-                while same < min(drop, len(crcs)) and self._placed.get((index32 + same * count) % _WRAP) == crcs[same]:
+                while same < min(drop, len(crcs)) and self._placed((index32 + same * count) % _WRAP) == crcs[same]:
                     same += 1
                 stats.duplicates += same
                 if same < min(drop, len(crcs)):  # then one that goes back with other samples: placed as a frame of its own would be
@@ -278,8 +279,7 @@ class FrameDecoder:
                 restart = True
                 stats.restarts += 1
                 index = expected
-                self._placed.clear()
-                self._placed_order.clear()
+                self._runs.clear()
         n = samples.shape[0]
         stats.frames += -(-n // count)
         stats.samples += n
@@ -290,16 +290,22 @@ class FrameDecoder:
         return Frame(index, samples, lost, restart, count)
 
     def _remember(self, index32: int, count: int, crcs: list[int]) -> None:
-        """Keep the CRCs of the frames just placed, forgetting those more than ``duplicate_window`` samples behind."""
-        placed, order = self._placed, self._placed_order
-        for k in range(max(0, len(crcs) - self._duplicate_window // count - 1), len(crcs)):
-            i = (index32 + k * count) % _WRAP
-            if i not in placed:
-                order.append(i)
-            placed[i] = crcs[k]
-        nxt, window = self._next32, self._duplicate_window
-        while order and (nxt - order[0]) % _WRAP > window:
-            placed.pop(order.popleft(), None)
+        """Keep the CRCs of the run just placed, forgetting the runs wholly more than ``duplicate_window`` samples behind."""
+        runs, nxt, window = self._runs, self._next32, self._duplicate_window
+        runs.append((index32, count, crcs))
+        while runs and (nxt - runs[0][0] - (len(runs[0][2]) - 1) * runs[0][1]) % _WRAP > window:
+            runs.popleft()
+
+    def _placed(self, index32: int) -> int | None:
+        """The CRC of the frame placed at board index ``index32`` in the last ``duplicate_window`` samples (the newest such
+        frame), or None."""
+        if (self._next32 - index32) % _WRAP > self._duplicate_window:
+            return None
+        for first, count, crcs in reversed(self._runs):
+            k, off = divmod((index32 - first) % _WRAP, count)
+            if not off and k < len(crcs):
+                return crcs[k]
+        return None
 
 
 def _split(runs: list[Frame]) -> list[Frame]:
