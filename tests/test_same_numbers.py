@@ -1,20 +1,60 @@
-"""The cheaper numerical paths of replay give the old paths' numbers bit for bit: medians sorted against the partition
-they replace, the detector's medians of three taken ahead, and its blocks in any size, with or without validity flags;
-on random, silent, saturated, tied and non-finite inputs."""
+"""The cheaper numerical paths of replay give the old paths' numbers bit for bit: the band statistics in numpy against
+the per-row arithmetic they replace, medians sorted or chosen among int16 counts against ``np.median``, counts of True
+against ``np.count_nonzero``, the detector's medians of three taken ahead, its blocks in any size, spike removal in
+place, and int16 windows (medians from the counts, no scaling check) against the same windows given in volts; on random,
+silent, constant, saturated, spiky, tiny and non-finite inputs."""
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import warnings
 from collections import deque
+from collections.abc import Sequence
 
 import numpy as np
 import numpy.typing as npt
 import pytest
 
 from tactiled.config import Config
+from tactiled.core.analysis import Analyser, AnalysisSettings, clipped_fractions
 from tactiled.core.detect import SlideDetector, _median3, median3_runs
-from tactiled.core.spikes import median_last
+from tactiled.core.features import band_stats, family_names, row_dots
+from tactiled.core.spikes import median_last, remove_spikes_many, row_counts
 from tactiled.sim.physics import SensorSimulator, SimParams, default_surfaces
+
+STATS = ("mean", "sd", "energy", "rms", "skew", "kurt")
+
+
+def band_stats_per_row(c: npt.NDArray[np.float64], stats: Sequence[str]) -> dict[str, npt.NDArray[np.float64]]:
+    """The band statistics as computed before (each row's arithmetic on Python floats): the reference."""
+    n = c.shape[1]
+    means = [v / n for v in c.sum(axis=1).tolist()]
+    d = c - np.array(means)[:, None]
+    m2s = (row_dots(d, d) / n).tolist()
+    highs, lows = c.max(axis=1).tolist(), c.min(axis=1).tolist()
+    energies = row_dots(c, c).tolist()
+    cubes = ((d * d * d).sum(axis=1) / n).tolist()
+    fourths = (((d * d) ** 2).sum(axis=1) / n).tolist()
+    out: dict[str, list[float]] = {s: [] for s in stats}
+    for mean, m2, high, low, energy, cube, fourth in zip(means, m2s, highs, lows, energies, cubes, fourths, strict=True):
+        scale = max(abs(mean), high, -low, 1e-300)
+        flat = m2 <= (1e-12 * scale) * (1e-12 * scale)
+        for s in stats:
+            if s == "mean":
+                value = mean
+            elif s == "sd":
+                value = 0.0 if flat or n < 2 else math.sqrt(m2 * n / (n - 1))
+            elif s == "energy":
+                value = energy
+            elif s == "rms":
+                value = math.sqrt(energy / n)
+            elif s == "skew":
+                value = 0.0 if flat else cube / m2 ** 1.5
+            else:
+                value = 0.0 if flat else fourth / (m2 * m2)
+            out[s].append(value)
+    return {s: np.array(v, dtype=np.float64) for s, v in out.items()}
 
 
 def median_by_partition(a: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
@@ -27,8 +67,37 @@ def median_by_partition(a: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     return p[..., :k].max(axis=-1) / 2 + p[..., k] / 2  # type: ignore[no-any-return]
 
 
+def rows_of_every_kind(m: int, seed: int) -> npt.NDArray[np.float64]:
+    """(14, m) rows: noise at several scales, silent, constant, saturated, a spike, tiny, large (the features scale larger
+    windows down first), a near-constant one, NaN, inf."""
+    rng = np.random.default_rng(seed)
+    rows = [rng.standard_normal(m), rng.standard_normal(m) * 1e-9, np.abs(rng.standard_normal(m)) * 1e3, np.zeros(m), np.full(m, 0.3),
+            np.where(np.arange(m) % 2, 1.0, -1.0) * 3.2767, rng.standard_normal(m) * 1e-3, np.full(m, 1e-310),
+            rng.standard_normal(m) * 1e25, 0.5 + rng.standard_normal(m) * 1e-14, rng.standard_normal(m), rng.standard_normal(m),
+            rng.standard_normal(m), rng.standard_normal(m)]
+    rows[6][m // 3] = 40.0  # a spike
+    rows[10][m // 2] = np.nan
+    rows[11][-1] = np.inf
+    rows[12][0] = np.inf
+    rows[12][-1] = -np.inf
+    rows[13][:] = np.nan
+    return np.array(rows)
+
+
+@pytest.mark.parametrize("m", [1, 2, 7, 183, 1265])
+def test_band_statistics_in_numpy_are_the_per_row_arithmetic(m: int) -> None:
+    c = rows_of_every_kind(m, m)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for stats in (STATS, ("sd",), ("sd", "energy", "rms"), ("kurt", "mean")):
+            new, old = band_stats(c, stats), band_stats_per_row(c, stats)
+            assert list(new) == list(old)
+            for s in stats:
+                assert new[s].tobytes() == old[s].tobytes(), (m, s)  # bit for bit, NaN and the sign of zero included
+
+
 @pytest.mark.parametrize("n", [1, 2, 3, 20, 21, 256, 257, 5000, 5001])
-def test_medians_sorted_or_partitioned_are_numpys(n: int) -> None:
+def test_medians_sorted_partitioned_or_from_counts_are_numpys(n: int) -> None:
     rng = np.random.default_rng(n)
     counts = rng.integers(-32768, 32768, size=(6, 2, n)).astype(np.int16)
     counts[1] = 0
@@ -39,6 +108,7 @@ def test_medians_sorted_or_partitioned_are_numpys(n: int) -> None:
     volts = counts * vpc
     expected = np.median(volts, axis=-1)
     assert median_last(volts).tobytes() == expected.tobytes()
+    assert median_last(counts, scale=vpc).tobytes() == expected.tobytes()
     assert median_last(volts.copy(), in_place=True).tobytes() == expected.tobytes()
     x = rng.standard_normal((5, n))
     x[1, : n // 2 + 1] = np.nan  # NaN past the middle: numpy's median is NaN
@@ -46,6 +116,15 @@ def test_medians_sorted_or_partitioned_are_numpys(n: int) -> None:
     x[3] = -0.0
     assert median_last(x).tobytes() == median_by_partition(x).tobytes()  # NaN sorted last, as the partition put it
     assert median_last(x.copy(), in_place=True).tobytes() == median_by_partition(x).tobytes()
+
+
+def test_row_counts_are_count_nonzero() -> None:
+    rng = np.random.default_rng(1)
+    for shape in ((16, 2, 5000), (3, 5001), (4, 8), (0, 16), (7,), (2, 3, 0)):
+        b = rng.random(shape) < 0.3
+        assert np.array_equal(row_counts(b), np.count_nonzero(b, axis=-1))
+        t = b[..., ::2]  # not contiguous
+        assert np.array_equal(row_counts(t), np.count_nonzero(t, axis=-1))
 
 
 def test_medians_of_three_taken_ahead_are_the_detectors() -> None:
@@ -102,3 +181,49 @@ def test_the_detector_in_any_block_size_with_or_without_validity_flags() -> None
     flags[8000:16000] = False
     gapped[~flags] = 0.0
     assert _detect(gapped, None, fs, 800, gap=(8000, 16000)) == _detect(gapped, flags, fs, 800)
+
+
+def test_spike_removal_in_place_and_with_the_medians_given() -> None:
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((8, 2, 5000))
+    x[1] = 0.0
+    x[2, 0, ::397] = 40.0
+    x[3, 1, 100] = np.nan
+    x[4] = 1.0
+    x[5, 0, :2600] = 3.0  # most of a row at one value: MAD 0
+    windows = x.transpose(0, 2, 1)
+    clean, counts = remove_spikes_many(windows)
+    assert counts[2] > 0
+    scratch = x.copy()
+    clean2, counts2 = remove_spikes_many(scratch.transpose(0, 2, 1), overwrite=True, medians=median_last(x))
+    assert clean2.tobytes() == clean.tobytes() and np.array_equal(counts2, counts)
+    assert np.array_equal(windows, x.transpose(0, 2, 1), equal_nan=True)  # the caller's samples untouched without overwrite
+
+
+def test_int16_windows_give_the_features_of_the_same_windows_in_volts() -> None:
+    """The int16 path (medians chosen among the counts, volts known to be in range) against the float path (medians of
+    the volts, the range checked) on random, silent, saturated, spiky, clipped and lost-sample windows, every family."""
+    rng = np.random.default_rng(6)
+    names = tuple(name for f in ("dwt", "psd", "tex") for name in family_names(f, 2, 20000.0))
+    vpc = 5 / 32768
+    w = (rng.standard_normal((10, 5000, 2)) * 3000).astype(np.int16)
+    w[1] = 0
+    w[2] = 32767
+    w[3, ::2] = -32768
+    w[4, ::397, 0] = 32767
+    w[5] = 7
+    w[6, :2500] = 32767
+    w[7, 1000:3000:2] = 32767
+    valid = np.ones((10, 5000), dtype=bool)
+    valid[8, :50] = False  # filled in
+    valid[9, :400] = False  # too many lost
+    settings = AnalysisSettings(duration_s=0.25, names=names)
+    counts = Analyser(settings, 20000.0, vpc, True).analyse_many(w, valid)
+    volts = Analyser(settings, 20000.0, 1.0, False).analyse_many(w * vpc, valid)
+    assert [r.reason for r in counts] == [r.reason for r in volts]
+    for a, b in zip(counts, volts, strict=True):
+        assert (a.features is None) == (b.features is None)
+        if a.features is not None and b.features is not None:
+            assert a.features.tobytes() == b.features.tobytes()
+        assert {k: v for k, v in a.quality.items() if k != "saturated"} == {k: v for k, v in b.quality.items() if k != "saturated"}
+    assert np.array_equal(clipped_fractions(w), [r.quality["saturated"] for r in counts])

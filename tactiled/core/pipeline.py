@@ -101,9 +101,11 @@ Assessed = tuple[npt.NDArray[np.float64], float, float | None]  # Classifier.ass
 AssessmentKey = tuple[tuple[tuple[int, int], ...], bool]  # replay's assessments ahead: (the windows' spans, final)
 
 
-def _assessment_key(used: list[_Window], end: int, final: bool) -> AssessmentKey:
-    """The key of the assessment of the first ``end`` of a slide's usable windows ``used`` (``final``: the whole slide)."""
-    return tuple(w.span for w in used[:end]), final
+def _assessment_keys(used: list[_Window], ends: Iterable[int], final: bool) -> list[AssessmentKey]:
+    """The key of the assessment of the first ``end`` of a slide's usable windows ``used`` for each of ``ends`` (``final``:
+    the whole slide)."""
+    spans = [w.span for w in used]
+    return [(tuple(spans[:end]), final) for end in ends]
 
 
 class Pipeline:
@@ -286,7 +288,7 @@ class Pipeline:
                     continue
                 ends = [len(used)] if final else range(1, len(used) + 1)  # the whole slide, or each prefix (provisional)
                 rows += [(len(features), len(features) + end) for end in ends]
-                keys += [_assessment_key(used, end, final) for end in ends]
+                keys += _assessment_keys(used, ends, final)
                 features += [w.features for w in used]
             if rows:
                 proba, confidence, novelty = self.model.assess_many(np.stack(features), rows, final)
@@ -384,7 +386,9 @@ class Pipeline:
                 continue
             groups.setdefault(hi - lo, []).append((i, samples, valid))
         for group in groups.values():
-            analysed = self.analyser.analyse_many(np.stack([g[1] for g in group]), np.stack([g[2] for g in group]))
+            # (W, n, C) as a view of (W, C, n) rows: each channel's samples contiguous, as the analysis reads them (one copy)
+            windows = np.stack([g[1].T for g in group]).transpose(0, 2, 1)
+            analysed = self.analyser.analyse_many(windows, np.stack([g[2] for g in group]))
             for (i, _, _), result in zip(group, analysed, strict=True):
                 results[i] = result
         return [_Window(span, r) for span, r in zip(spans, results, strict=True) if r is not None]
@@ -394,7 +398,7 @@ class Pipeline:
         assessed them ahead (:meth:`_assess_ahead`), else in one :meth:`Classifier.assess_many` call."""
         assert self.model is not None
         if self._assessed:
-            known = [self._assessed.get(_assessment_key(used, end, final)) for end in ends]
+            known = [self._assessed.get(key) for key in _assessment_keys(used, ends, final)]
             if all(a is not None for a in known):
                 return cast(list[Assessed], known)
         features = np.stack([w.features for w in used])
