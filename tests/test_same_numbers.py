@@ -19,6 +19,7 @@ import pytest
 from tactiled.config import Config
 from tactiled.core.analysis import Analyser, AnalysisSettings, clipped_fractions
 from tactiled.core.detect import SlideDetector, _median3, median3_runs
+from tactiled.core.events import DetectorEvent
 from tactiled.core.features import band_stats, family_names, row_dots
 from tactiled.core.spikes import median_last, remove_spikes_many, row_counts
 from tactiled.sim.physics import SensorSimulator, SimParams, default_surfaces
@@ -151,11 +152,23 @@ def _scene(seconds: float, seed: int) -> tuple[npt.NDArray[np.float64], npt.NDAr
     return volts, valid, p.fs
 
 
+class HopByHop(SlideDetector):
+    """The detector with every hop through :meth:`SlideDetector._step` (no short path, no median taken ahead): the reference."""
+
+    def _hops(self, at: int, energy: list[float], hop_valid: list[bool]) -> list[DetectorEvent]:
+        events: list[DetectorEvent] = []
+        unsettled = self._first + self.front.history  # type: ignore[operator]
+        for env, ok in zip(energy, hop_valid, strict=True):
+            events += [dataclasses.replace(e, at=at + self.hop) for e in self._step(at, env, ok and at >= unsettled)]
+            at += self.hop
+        return events
+
+
 def _detect(volts: npt.NDArray[np.float64], valid: npt.NDArray[np.bool_] | None, fs: float, block: int,
-            gap: tuple[int, int] | None = None) -> list[tuple[object, ...]]:
+            gap: tuple[int, int] | None = None, kind: type[SlideDetector] = SlideDetector) -> list[tuple[object, ...]]:
     """Every event of the detector fed ``volts`` in blocks of ``block`` rows (those inside ``gap`` never fed), then its
     state at the end (envelope, floor: the floats its decisions compare)."""
-    det = SlideDetector(Config().detector, fs, 2)
+    det = kind(Config().detector, fs, 2)
     out: list[tuple[object, ...]] = []
     for lo in range(0, volts.shape[0], block):
         hi = min(lo + block, volts.shape[0])
@@ -181,6 +194,16 @@ def test_the_detector_in_any_block_size_with_or_without_validity_flags() -> None
     flags[8000:16000] = False
     gapped[~flags] = 0.0
     assert _detect(gapped, None, fs, 800, gap=(8000, 16000)) == _detect(gapped, flags, fs, 800)
+
+
+@pytest.mark.parametrize("seed", [4, 8])
+def test_the_detectors_short_paths_are_its_step_by_step_decisions(seed: int) -> None:
+    """Slides, their quiet ends (a Pause, then an Offset or a Resume), rest and losses: the same events and end state as
+    every hop through _step."""
+    volts, valid, fs = _scene(40, seed)
+    events = _detect(volts, valid, fs, 65536)
+    assert {"Pause", "Offset", "Resume"} <= {e[0] for e in events}
+    assert events == _detect(volts, valid, fs, 65536, kind=HopByHop)
 
 
 def test_spike_removal_in_place_and_with_the_medians_given() -> None:

@@ -386,9 +386,7 @@ class Pipeline:
                 continue
             groups.setdefault(hi - lo, []).append((i, samples, valid))
         for group in groups.values():
-            # (W, n, C) as a view of (W, C, n) rows: each channel's samples contiguous, as the analysis reads them (one copy)
-            windows = np.stack([g[1].T for g in group]).transpose(0, 2, 1)
-            analysed = self.analyser.analyse_many(windows, np.stack([g[2] for g in group]))
+            analysed = self.analyser.analyse_many(np.stack([g[1] for g in group]), np.stack([g[2] for g in group]))
             for (i, _, _), result in zip(group, analysed, strict=True):
                 results[i] = result
         return [_Window(span, r) for span, r in zip(spans, results, strict=True) if r is not None]
