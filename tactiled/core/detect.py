@@ -101,7 +101,8 @@ def envelope(ext: npt.NDArray[np.float64], fe: FrontEnd) -> npt.NDArray[np.float
     for k in range(1, fe.boxcar):  # the same slices in the same order whatever the block: bit-identical sums
         s = s + ext[fe.boxcar - 1 - k: ext.shape[0] - k]
     y = s[fe.lag: fe.lag + hops * fe.hop] - s[: hops * fe.hop]
-    sub = row_sums(np.square(y).reshape(hops * fe.hop // fe.block, fe.block * y.shape[1])).reshape(hops, fe.hop // fe.block)
+    np.square(y, out=y)  # in place: one array of the chunk's size fewer
+    sub = row_sums(y.reshape(hops * fe.hop // fe.block, fe.block * y.shape[1])).reshape(hops, fe.hop // fe.block)
     return median_last(sub)
 
 
