@@ -15,12 +15,13 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 import pytest
+import pywt
 
 from tactiled.config import Config
 from tactiled.core.analysis import Analyser, AnalysisSettings, clipped_fractions
 from tactiled.core.detect import SlideDetector, _median3, adds_like_numpy, median3_runs, pairwise_row_sums, row_sums
 from tactiled.core.events import DetectorEvent
-from tactiled.core.features import band_stats, family_names, row_dots
+from tactiled.core.features import FeaturePlan, band_stats, family_names, row_dots
 from tactiled.core.spikes import median_last, remove_spikes_many, row_counts
 from tactiled.sim.physics import SensorSimulator, SimParams, default_surfaces
 
@@ -266,3 +267,14 @@ def test_int16_windows_give_the_features_of_the_same_windows_in_volts() -> None:
             assert a.features.tobytes() == b.features.tobytes()
         assert {k: v for k, v in a.quality.items() if k != "saturated"} == {k: v for k, v in b.quality.items() if k != "saturated"}
     assert np.array_equal(clipped_fractions(w), [r.quality["saturated"] for r in counts])
+
+
+@pytest.mark.parametrize("m", [60, 183, 338, 647, 1000, 1001, 2501])
+def test_a_dwt_level_of_all_rows_at_once_is_pywavelets_row_by_row(m: int) -> None:
+    """Short rows go down a level in one pywt.dwt call: the coefficients of pywt.downcoef of each row, bit for bit."""
+    plan = FeaturePlan(["film1.freq.A1.sd"])
+    a = np.abs(rows_of_every_kind(m, m))
+    a[np.isnan(a)] = 0.0
+    for part in ("a", "d"):
+        expected = np.stack([pywt.downcoef(part, row, plan.wavelet, mode=plan.mode, level=1) for row in a])
+        assert plan._downcoef(part, a).tobytes() == expected.tobytes(), part

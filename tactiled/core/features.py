@@ -172,6 +172,7 @@ def family_names(family: str, channels: int, fs: float, settings: Any = None) ->
     raise ValueError(f"unknown feature family {family!r}; known: {', '.join(FAMILIES)}")
 
 
+SHORT_DWT = 1000  # rows of at most this many values go down one DWT level in one pywt.dwt call (FeaturePlan._downcoef)
 HUGE_EXPONENT = 100  # a window with samples beyond 2**100 V is analysed scaled down by a power of two (squares stay finite)
 
 
@@ -484,6 +485,10 @@ class FeaturePlan:
 
     def _downcoef(self, part: str, a: npt.NDArray[np.float64], levels: int = 1) -> npt.NDArray[np.float64]:
         """The ``part`` ("a" or "d") coefficients ``levels`` levels down of each row of ``a`` (W, m): pywt.downcoef is one
-        signal at a time."""
+        signal at a time; one level of rows of at most :data:`SHORT_DWT` values, one pywt.dwt of all rows (the same
+        coefficients: the same convolution per row; it computes the other half too, which costs less there than a call per row)."""
+        if levels == 1 and a.shape[0] > 1 and a.shape[1] <= SHORT_DWT:
+            coeffs: npt.NDArray[np.float64] = pywt.dwt(a, self.wavelet, mode=self.mode, axis=1)[0 if part == "a" else 1]
+            return coeffs
         rows = [pywt.downcoef(part, row, self.wavelet, mode=self.mode, level=levels) for row in a]
         return np.stack(rows) if len(rows) > 1 else rows[0][None]
