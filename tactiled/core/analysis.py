@@ -258,19 +258,19 @@ class Analyser:
         results: list[WindowResult | None] = [None] * w
         todo: list[int] = []
         too_short = n < self.plan.min_samples()
-        for i in range(w):
-            quality: dict[str, Any] = {"samples": n, "lost": int(lost[i]), "saturated": round(float(saturated[i]), 6), "spikes": 0}
+        for i, (lost_i, saturated_i) in enumerate(zip(cast(list[int], lost.tolist()), cast(list[float], saturated.tolist()), strict=True)):
+            quality: dict[str, Any] = {"samples": n, "lost": lost_i, "saturated": round(saturated_i, 6), "spikes": 0}
             reason = None
-            if lost[i] > self.max_lost * n:
+            if lost_i > self.max_lost * n:
                 reason = "samples_lost"
             elif too_short:
                 reason = "window_too_short"
-            elif saturated[i] > self.max_saturated:
+            elif saturated_i > self.max_saturated:
                 reason = "saturated"
             results[i] = WindowResult(None, reason, quality)
             if reason is None:
                 todo.append(i)
-                if lost[i]:
+                if lost_i:
                     assert valid is not None
                     volts[i] = fill_lost(volts[i], valid[i])
         if todo:
@@ -281,10 +281,10 @@ class Analyser:
             bounded = self.integer and volts_bound(samples.dtype, self.volts_per_count) <= 2.0 ** HUGE_EXPONENT
             features = self.plan.compute_many(clean, bounded=bounded)
             finite = cast(list[bool], np.isfinite(features).all(axis=1).tolist())
-            for j, i in enumerate(todo):
+            for j, (i, removed) in enumerate(zip(todo, cast(list[int], spikes.tolist()), strict=True)):
                 r = results[i]
                 assert r is not None
-                r.quality["spikes"] = int(spikes[j])
+                r.quality["spikes"] = removed
                 if finite[j]:
                     r.features, r.reason = features[j], None
                 else:  # energies of samples near 1e307: beyond float64
