@@ -19,7 +19,7 @@ import pywt
 
 from tactiled.config import Config
 from tactiled.core.analysis import Analyser, AnalysisSettings, clipped_fractions
-from tactiled.core.detect import SlideDetector, _median3, adds_like_numpy, median3_runs, pairwise_row_sums, row_sums
+from tactiled.core.detect import SlideDetector, _median3, median3_runs
 from tactiled.core.events import DetectorEvent
 from tactiled.core.features import FeaturePlan, band_stats, family_names, row_dots
 from tactiled.core.spikes import median_last, remove_spikes_many, row_counts
@@ -205,22 +205,6 @@ def test_the_detectors_short_paths_are_its_step_by_step_decisions(seed: int) -> 
     events = _detect(volts, valid, fs, 65536)
     assert {"Pause", "Offset", "Resume"} <= {e[0] for e in events}
     assert events == _detect(volts, valid, fs, 65536, kind=HopByHop)
-
-
-def test_row_sums_are_numpys() -> None:
-    """The sub-blocks' energies summed for all rows at once are numpy's own row sums whatever the width (numpy's order
-    where the check finds it, numpy's sum elsewhere), and the check tells another order of the additions apart."""
-    rng = np.random.default_rng(9)
-    for m in (1, 2, 7, 8, 10, 16, 23, 64, 128, 129, 300):
-        v = np.square(rng.standard_normal((500, m)) * 10.0 ** rng.integers(-5, 6, size=(500, m)))
-        assert row_sums(v).tobytes() == v.sum(axis=1).tobytes(), m
-        if adds_like_numpy(m):
-            assert pairwise_row_sums(v).tobytes() == v.sum(axis=1).tobytes(), m
-    probe = np.square(rng.standard_normal((4096, 10)))
-    in_turn = probe[:, 0].copy()
-    for j in range(1, 10):
-        in_turn += probe[:, j]
-    assert not np.array_equal(in_turn, probe.sum(axis=1))
 
 
 def test_spike_removal_in_place_and_with_the_medians_given() -> None:

@@ -51,7 +51,6 @@ events.
 
 from __future__ import annotations
 
-import functools
 import math
 import statistics
 from collections import deque
@@ -102,59 +101,8 @@ def envelope(ext: npt.NDArray[np.float64], fe: FrontEnd) -> npt.NDArray[np.float
         s = s + ext[fe.boxcar - 1 - k: ext.shape[0] - k]
     y = s[fe.lag: fe.lag + hops * fe.hop] - s[: hops * fe.hop]
     np.square(y, out=y)  # in place: one array of the chunk's size fewer
-    sub = row_sums(y.reshape(hops * fe.hop // fe.block, fe.block * y.shape[1])).reshape(hops, fe.hop // fe.block)
+    sub = y.reshape(hops * fe.hop // fe.block, fe.block * y.shape[1]).sum(axis=1).reshape(hops, fe.hop // fe.block)
     return median_last(sub)
-
-
-PAIRWISE_BLOCK = 128  # numpy adds a row of up to this many values with eight running sums (pairwise beyond)
-
-
-def row_sums(v: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """(M,) the sums of the rows of ``v`` (M, m) (squares: no -0.0), bit for bit ``v.sum(axis=1)``: the additions that numpy
-    makes for each row, made for all rows at once (:func:`pairwise_row_sums`; numpy's own reduction loops row by row, a
-    quarter of the detector's time with rows of ten) wherever numpy was checked to add in that order (:func:`adds_like_numpy`),
-    else numpy's sum."""
-    if v.shape[1] and adds_like_numpy(v.shape[1]):
-        return pairwise_row_sums(v)
-    return v.sum(axis=1)  # type: ignore[no-any-return]
-
-
-def pairwise_row_sums(v: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """(M,) the sums of the rows of ``v`` (M, m), 1 <= m <= :data:`PAIRWISE_BLOCK`, in the order of numpy's pairwise sum of
-    a row: fewer than eight values in turn; else eight running sums over the first m - m % 8 values, combined as
-    ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7)), then the rest in turn. One vectorised addition per value."""
-    m = v.shape[1]
-    if m < 8:
-        out = v[:, 0].copy()
-        for j in range(1, m):
-            out += v[:, j]
-        return out
-    r = [v[:, j] for j in range(8)]
-    if m >= 16:
-        r = [c.copy() for c in r]
-        for i in range(8, m - m % 8, 8):
-            for j in range(8):
-                r[j] += v[:, i + j]
-    out = r[0] + r[1]
-    out += r[2] + r[3]
-    high = r[4] + r[5]
-    high += r[6] + r[7]
-    out += high
-    for i in range(m - m % 8, m):
-        out += v[:, i]
-    return out
-
-
-@functools.cache
-def adds_like_numpy(m: int) -> bool:
-    """Whether :func:`pairwise_row_sums` gives numpy's own row sums (``sum(axis=1)``) for rows of ``m`` values with this
-    numpy, checked once per width on 4096 rows of squares of varied size (any other order of the additions rounds
-    differently on many of them)."""
-    if not 1 <= m <= PAIRWISE_BLOCK:
-        return False
-    rng = np.random.default_rng(m)
-    probe = np.square(rng.standard_normal((4096, m)) * 10.0 ** rng.integers(-3, 4, size=(4096, m)))
-    return bool(np.array_equal(pairwise_row_sums(probe), probe.sum(axis=1)))
 
 
 def joined_rows(head: npt.NDArray[np.float64], tail: npt.NDArray[np.float64], start: int, stop: int) -> npt.NDArray[np.float64]:
