@@ -233,7 +233,6 @@ class SlideDetector:
         hop, last, recent = self.hop, self._last3, self._recent
         on, off, alpha = self.c.on_factor, self.c.off_factor, self._alpha
         longest = self.c.max_slide_s * self.fs if self.c.max_slide_s > 0 else math.inf
-        off_hold, end_hold, shortest = self.c.off_hold_s * self.fs, self._end_hold, self.c.min_slide_s * self.fs
         exp, log = math.exp, math.log
         unsettled = self._first + self.front.history  # type: ignore[operator]
         floor, sliding, paused, settle, holdoff = self._floor, self.sliding, self._paused, self._settle_until, self._holdoff_until
@@ -257,13 +256,6 @@ class SlideDetector:
                     continue
                 if sliding and smooth >= off * floor and not paused and at + hop - self._start < longest:  # a slide goes on (as _in_slide)
                     self._quiet_since = None
-                    recent.append((at, smooth))
-                    envelope = env
-                    at += hop
-                    continue
-                quiet = self._quiet_since
-                if (sliding and smooth < off * floor and quiet is not None and at + hop - quiet < off_hold
-                        and (paused or at + hop - quiet < end_hold or quiet - self._start < shortest)):  # a slide's quiet goes on (as _in_slide)
                     recent.append((at, smooth))
                     envelope = env
                     at += hop
