@@ -5,6 +5,7 @@ window samples → volts (float64) → quality (lost, saturated) → spike remov
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, cast
@@ -13,8 +14,8 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.config import Config
-from tactiled.core.features import FeaturePlan, family_names, feature_names
-from tactiled.core.spikes import remove_spikes_many
+from tactiled.core.features import HUGE_EXPONENT, FeaturePlan, family_names, feature_names
+from tactiled.core.spikes import median_last, remove_spikes_many, row_counts
 from tactiled.errors import WindowError
 
 
@@ -180,28 +181,43 @@ def clipped_fraction(samples: npt.NDArray[Any]) -> float:
 def clipped_fractions(samples: npt.NDArray[Any]) -> npt.NDArray[np.float64]:
     """:func:`clipped_fraction` of each of W windows ``samples`` (W, n, C), int or float: (W,)."""
     x = np.asarray(samples)
-    w, n = x.shape[:2]
+    # (W, C, n): per channel, contiguous (numpy reduces strided columns ~15x slower)
+    return clipped_row_fractions(np.ascontiguousarray(x.transpose(0, 2, 1)))
+
+
+def clipped_row_fractions(rows: npt.NDArray[Any]) -> npt.NDArray[np.float64]:
+    """:func:`clipped_fraction` of each of W windows given as rows ``rows`` (W, C, n), each channel's samples: (W,)."""
+    w, _, n = rows.shape
     if n < 3:
         return np.zeros(w)
-    xt = np.ascontiguousarray(x.transpose(0, 2, 1))  # (W, C, n): per channel, contiguous (numpy reduces strided columns ~15x slower)
-    integer = np.issubdtype(x.dtype, np.integer)
-    high, low = xt.max(axis=2), xt.min(axis=2)  # (W, C)
+    integer = np.issubdtype(rows.dtype, np.integer)
+    high, low = rows.max(axis=2), rows.min(axis=2)  # (W, C)
     hits = np.zeros((w, n), dtype=bool)
-    if x.dtype == np.int16 and bool(((high >= 32767) | (low <= -32768)).any()):
-        hits |= ((xt >= 32767) | (xt <= -32768)).any(axis=1)
+    if rows.dtype == np.int16 and bool(((high >= 32767) | (low <= -32768)).any()):
+        hits |= ((rows >= 32767) | (rows <= -32768)).any(axis=1)
     for rail in (high, low):
         # held for three samples in a row (a single extreme sample, the usual case, is not a rail)
         candidate = high != low
         if integer:
             candidate &= np.abs(rail.astype(np.int64)) >= 1024
-        at = xt == rail[..., None]
-        candidate &= np.count_nonzero(at, axis=2) >= 3
+        if not candidate.any():
+            continue
+        at = rows == rail[..., None]
+        candidate &= row_counts(at) >= 3
         for i, c in zip(*np.nonzero(candidate), strict=True):
             row = at[i, c]
             if bool(np.any(row[:-2] & row[1:-1] & row[2:])):
                 hits[i] |= row
-    out: npt.NDArray[np.float64] = np.count_nonzero(hits, axis=1) / n
+    out: npt.NDArray[np.float64] = row_counts(hits) / n
     return out
+
+
+def volts_bound(dtype: np.dtype[Any], volts_per_count: float) -> float:
+    """The largest |volts| that samples of the integer ``dtype`` can give at ``volts_per_count`` (inf for any other dtype)."""
+    if not np.issubdtype(dtype, np.integer):
+        return math.inf
+    info = np.iinfo(dtype)
+    return max(-float(info.min), float(info.max)) * abs(volts_per_count)
 
 
 class Analyser:
@@ -226,43 +242,65 @@ class Analyser:
         """W windows of the same length at once: ``samples`` (W, n, C) int16 counts (or float volts when not ``integer``),
         ``valid`` (W, n); each result the same as :meth:`analyse` of the window alone (the transforms run once for all)."""
         w, n = samples.shape[:2]
-        lost = np.zeros(w, dtype=np.int64) if valid is None else n - np.count_nonzero(valid, axis=1)
-        saturated = clipped_fractions(samples)
-        # volts in one pass, each channel's samples contiguous (W, C, n) as spike removal and the transforms read them
+        lost = np.zeros(w, dtype=np.int64) if valid is None else n - row_counts(np.ascontiguousarray(valid))
+        # volts in one pass, each channel's samples contiguous (W, C, n) as spike removal and the transforms read them (this
+        # call's own scratch); counts too, as the clipping check and the medians read them
         rows = np.empty((w, samples.shape[2], n))
+        counts = None
         if self.integer:
-            np.multiply(samples.transpose(0, 2, 1), self.volts_per_count, out=rows)
+            counts = np.ascontiguousarray(samples.transpose(0, 2, 1))
+            saturated = clipped_row_fractions(counts)
+            np.multiply(counts, self.volts_per_count, out=rows)
         else:
+            saturated = clipped_fractions(samples)
             rows[...] = samples.transpose(0, 2, 1)
         volts = rows.transpose(0, 2, 1)
         results: list[WindowResult | None] = [None] * w
         todo: list[int] = []
-        for i in range(w):
-            quality: dict[str, Any] = {"samples": n, "lost": int(lost[i]), "saturated": round(float(saturated[i]), 6), "spikes": 0}
+        too_short = n < self.plan.min_samples()
+        for i, (lost_i, saturated_i) in enumerate(zip(cast(list[int], lost.tolist()), cast(list[float], saturated.tolist()), strict=True)):
+            quality: dict[str, Any] = {"samples": n, "lost": lost_i, "saturated": round(saturated_i, 6), "spikes": 0}
             reason = None
-            if lost[i] > self.max_lost * n:
+            if lost_i > self.max_lost * n:
                 reason = "samples_lost"
-            elif n < self.plan.min_samples():
+            elif too_short:
                 reason = "window_too_short"
-            elif saturated[i] > self.max_saturated:
+            elif saturated_i > self.max_saturated:
                 reason = "saturated"
             results[i] = WindowResult(None, reason, quality)
             if reason is None:
                 todo.append(i)
-                if lost[i]:
+                if lost_i:
                     assert valid is not None
                     volts[i] = fill_lost(volts[i], valid[i])
         if todo:
             s = self.settings
-            clean, spikes = remove_spikes_many(volts[todo] if len(todo) < w else volts, s.spikes, s.half_width, s.nsigma)
-            features = self.plan.compute_many(clean)
+            medians = self._medians(counts, rows, todo, lost) if s.spikes == "mad" and counts is not None else None
+            clean, spikes = remove_spikes_many(volts[todo] if len(todo) < w else volts, s.spikes, s.half_width, s.nsigma, overwrite=True,
+                                               medians=medians)
+            bounded = self.integer and volts_bound(samples.dtype, self.volts_per_count) <= 2.0 ** HUGE_EXPONENT
+            features = self.plan.compute_many(clean, bounded=bounded)
             finite = cast(list[bool], np.isfinite(features).all(axis=1).tolist())
-            for j, i in enumerate(todo):
+            for j, (i, removed) in enumerate(zip(todo, cast(list[int], spikes.tolist()), strict=True)):
                 r = results[i]
                 assert r is not None
-                r.quality["spikes"] = int(spikes[j])
+                r.quality["spikes"] = removed
                 if finite[j]:
                     r.features, r.reason = features[j], None
                 else:  # energies of samples near 1e307: beyond float64
                     r.reason = "non_finite"
         return [r for r in results if r is not None]
+
+    def _medians(self, counts: npt.NDArray[Any], rows: npt.NDArray[np.float64], todo: list[int],
+                 lost: npt.NDArray[np.int64]) -> npt.NDArray[np.float64] | None:
+        """(len(todo), C) the medians of the volts ``rows`` (W, C, n) of the windows ``todo``, chosen among their integer
+        ``counts`` (W, C, n) (cheaper; the same values, see :func:`median_last`), those of windows with lost samples (filled
+        in volts) from their volts; None (spike removal takes them) unless the counts are integers at a positive scale."""
+        vpc = self.volts_per_count
+        if not (np.issubdtype(counts.dtype, np.integer) and 0.0 < vpc < math.inf):
+            return None
+        medians = median_last(counts[todo] if len(todo) < counts.shape[0] else counts, scale=vpc)
+        for j, i in enumerate(todo):
+            if lost[i]:
+                medians[j] = median_last(rows[i])
+        return medians

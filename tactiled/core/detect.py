@@ -100,8 +100,41 @@ def envelope(ext: npt.NDArray[np.float64], fe: FrontEnd) -> npt.NDArray[np.float
     for k in range(1, fe.boxcar):  # the same slices in the same order whatever the block: bit-identical sums
         s = s + ext[fe.boxcar - 1 - k: ext.shape[0] - k]
     y = s[fe.lag: fe.lag + hops * fe.hop] - s[: hops * fe.hop]
-    sub = np.square(y).reshape(hops * fe.hop // fe.block, fe.block * y.shape[1]).sum(axis=1).reshape(hops, fe.hop // fe.block)
+    np.square(y, out=y)  # in place: one array of the chunk's size fewer
+    sub = y.reshape(hops * fe.hop // fe.block, fe.block * y.shape[1]).sum(axis=1).reshape(hops, fe.hop // fe.block)
     return median_last(sub)
+
+
+def joined_rows(head: npt.NDArray[np.float64], tail: npt.NDArray[np.float64], start: int, stop: int) -> npt.NDArray[np.float64]:
+    """Rows [start, stop) of ``head`` (m, C) followed by ``tail`` (n, C): a view of one of them when the rows lie in it,
+    else a copy of the rows across the join."""
+    m = head.shape[0]
+    if start >= m:
+        return tail[start - m: stop - m]
+    if stop <= m:
+        return head[start:stop]
+    return np.concatenate([head[start:], tail[: stop - m]])
+
+
+def median3_runs(values: list[float]) -> list[float]:
+    """(n,) the median of each value and the two before it (the first two: their own value), as :func:`_median3` of
+    three takes it: ``max(min(a, b), min(max(a, b), c))``, for positive values (min and max exact, in numpy at once)."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.size < 3:
+        return v.tolist()  # type: ignore[no-any-return]
+    a, b, c = v[:-2], v[1:-1], v[2:]
+    mid = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+    return v[:2].tolist() + mid.tolist()  # type: ignore[no-any-return]
+
+
+def _hop_validity(pending: npt.NDArray[np.bool_], valid: npt.NDArray[np.bool_] | None, rows: int, hop: int) -> tuple[list[bool], npt.NDArray[np.bool_]]:
+    """(whether each whole hop of the flags ``pending`` followed by ``valid`` (``rows`` new rows; None: all valid) is valid,
+    the flags of the rows after the last whole hop); no array is walked when every flag is True."""
+    hops = (pending.shape[0] + rows) // hop
+    if valid is None and bool(pending.all()):
+        return [True] * hops, np.ones(pending.shape[0] + rows - hops * hop, dtype=bool)
+    flags = np.concatenate([pending, np.ones(rows, dtype=bool) if valid is None else valid])
+    return cast(list[bool], flags[: hops * hop].reshape(hops, hop).all(axis=1).tolist()), flags[hops * hop:]
 
 
 def _median3(v: deque[float]) -> float:
@@ -161,8 +194,6 @@ class SlideDetector:
 
         ``valid`` (n,) marks samples that carry data; an index gap counts as invalid samples.
         """
-        if valid is None:
-            valid = np.ones(samples.shape[0], dtype=bool)
         if self._pending_index is None:
             self._pending_index = index  # hops start at the first sample fed
             self._first = index
@@ -173,19 +204,22 @@ class SlideDetector:
         if index != expected:
             if index < expected:
                 raise ValueError(f"block at {index} overlaps samples already fed up to {expected}")
+            fed = np.ones(samples.shape[0], dtype=bool) if valid is None else valid
             samples = np.concatenate([np.zeros((index - expected, samples.shape[1])), samples])
-            valid = np.concatenate([np.zeros(index - expected, dtype=bool), valid])
-        buf = np.concatenate([self._pending, samples]) if self._pending.shape[0] else samples
-        vbuf = np.concatenate([self._pending_valid, valid]) if self._pending_valid.shape[0] else valid
-        hops = buf.shape[0] // self.hop
+            valid = np.concatenate([np.zeros(index - expected, dtype=bool), fed])
+        # the stream from the comb's history on: head (history, then the samples pending from the last block) + samples, not
+        # copied into one array (a block is ~1 MB; only the first chunk of hops reads across the join)
+        head = np.concatenate([self._history, self._pending])
+        hops = (self._pending.shape[0] + samples.shape[0]) // self.hop
+        used = hops * self.hop
+        hop_valid, self._pending_valid = _hop_validity(self._pending_valid, valid, samples.shape[0], self.hop)
         if hops:
-            used = hops * self.hop
-            energy = self._envelope(buf, hops)
-            hop_valid = cast(list[bool], np.asarray(vbuf[:used]).reshape(hops, self.hop).all(axis=1).tolist())
+            energy = self._envelope(head, samples, hops)
             events += self._hops(self._pending_index, energy, hop_valid)
-        self._pending = buf[hops * self.hop:]
-        self._pending_valid = vbuf[hops * self.hop:]
-        self._pending_index += hops * self.hop
+        history = self.front.history
+        self._history = joined_rows(head, samples, used, used + history).copy()
+        self._pending = joined_rows(head, samples, used + history, head.shape[0] + samples.shape[0]).copy()
+        self._pending_index += used
         return events
 
     def _hops(self, at: int, energy: list[float], hop_valid: list[bool]) -> list[DetectorEvent]:
@@ -203,20 +237,19 @@ class SlideDetector:
         unsettled = self._first + self.front.history  # type: ignore[operator]
         floor, sliding, paused, settle, holdoff = self._floor, self.sliding, self._paused, self._settle_until, self._holdoff_until
         shown, envelope = self.floor, self.envelope  # self.floor and self.envelope, written back before any other path
-        for env, ok in zip(energy, hop_valid, strict=True):
+        medians = median3_runs(energy)
+        run = 0  # hops just before this one whose envelopes the short path appended to ``last``, in a row
+        for env, ok, med in zip(energy, hop_valid, medians, strict=True):
             if floor is not None and ok and env > 0.0 and at >= unsettled and (sliding or at >= settle):
                 last.append(env)
-                if len(last) == 3:  # the median of three as _step takes it (min and max as the builtins order them)
-                    a, b, c = last
-                    lo, hi = (b if b < a else a), (b if b > a else a)
-                    mid = c if c < hi else hi
-                    smooth = mid if mid > lo else lo
-                else:
-                    smooth = _median3(last)
+                # the last three this hop's and the two before (their median taken ahead), or as _step takes it
+                smooth = med if run >= 2 else _median3(last)
+                run += 1
                 if not sliding and (smooth <= on * floor or at < holdoff):  # at rest: the floor follows (as _idle)
                     shown = floor
                     if smooth > 0:
-                        floor = exp(log(floor) + alpha * (log(smooth) - log(floor)))
+                        log_floor = log(floor)
+                        floor = exp(log_floor + alpha * (log(smooth) - log_floor))
                     recent.append((at, smooth))
                     envelope = env
                     at += hop
@@ -230,6 +263,7 @@ class SlideDetector:
                 self._floor, self.floor, self.envelope = floor, shown, env
                 evs = self._idle(at, smooth) if not sliding else self._in_slide(at, smooth)
             else:
+                run = 0
                 self._floor, self.floor, self.envelope = floor, shown, envelope
                 evs = self._step(at, env, ok and at >= unsettled)
             if evs:
@@ -267,18 +301,16 @@ class SlideDetector:
         self._pending_index = last
         return events, index
 
-    def _envelope(self, buf: npt.NDArray[np.float64], hops: int) -> list[float]:
-        """Envelopes of the first ``hops`` hops of ``buf``, in chunks of about :data:`CHUNK` samples that stay in cache
-        (3x faster than whole 64k-sample blocks, the same values); keeps the history the next hops need."""
+    def _envelope(self, head: npt.NDArray[np.float64], samples: npt.NDArray[np.float64], hops: int) -> list[float]:
+        """Envelopes of the first ``hops`` hops of the stream ``head`` + ``samples`` (head: the comb's history, then the
+        samples pending), in chunks of about :data:`CHUNK` samples that stay in cache (3x faster than whole 64k-sample
+        blocks, the same values)."""
         hop, history = self.hop, self.front.history
         per = max(1, CHUNK // hop)
         out: list[float] = []
         for h in range(0, hops, per):
             lo, hi = h * hop, min(hops, h + per) * hop
-            seg = buf[lo - history: hi] if lo >= history else np.concatenate([self._history[lo:], buf[:hi]])
-            out += envelope(seg, self.front).tolist()
-        used = hops * hop
-        self._history = buf[used - history: used].copy() if used >= history else np.concatenate([self._history[used:], buf[:used]])
+            out += envelope(joined_rows(head, samples, lo, hi + history), self.front).tolist()
         return out
 
     def finish(self) -> list[DetectorEvent]:

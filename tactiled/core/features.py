@@ -75,38 +75,44 @@ def rowwise_matmul(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]) -> np
 
 
 def band_stats(c: npt.NDArray[np.float64], stats: Sequence[str]) -> dict[str, npt.NDArray[np.float64]]:
-    """The asked statistics (each (W,)) of the rows of the coefficient arrays ``c`` (W, m), float64, m >= 1: the sums
-    over each row in numpy for all rows at once, the few operations per row on Python floats (cheaper than numpy's
-    per-call cost on W values; the same values, row by row, as of each row alone)."""
+    """The asked statistics (each (W,)) of the rows of the coefficient arrays ``c`` (W, m), float64, m >= 1: every row at
+    once in numpy, each value the same, row by row, as of each row alone (the same IEEE operations on each row's sums;
+    skew and kurt, which divide by a power, on Python floats as ever)."""
     n = c.shape[1]
-    means = [v / n for v in c.sum(axis=1).tolist()]  # as c.mean(axis=1), without its overhead
-    d = c - np.array(means)[:, None]
-    m2s = (row_dots(d, d) / n).tolist()
-    highs, lows = c.max(axis=1).tolist(), c.min(axis=1).tolist()
-    energies = row_dots(c, c).tolist() if "energy" in stats or "rms" in stats else m2s
-    cubes = ((d * d * d).sum(axis=1) / n).tolist() if "skew" in stats else m2s  # as np.mean(d * d * d) of each row
-    fourths = (((d * d) ** 2).sum(axis=1) / n).tolist() if "kurt" in stats else m2s
-    out: dict[str, list[float]] = {s: [] for s in stats}
-    for mean, m2, high, low, energy, cube, fourth in zip(means, m2s, highs, lows, energies, cubes, fourths, strict=True):
-        scale = max(abs(mean), high, -low, 1e-300)  # max |c|
-        flat = m2 <= (1e-12 * scale) * (1e-12 * scale)  # a float product overflows to inf; ** would raise OverflowError
-        for s in stats:
-            if s == "mean":
-                value = mean
-            elif s == "sd":
-                value = 0.0 if flat or n < 2 else math.sqrt(m2 * n / (n - 1))
-            elif s == "energy":
-                value = energy
-            elif s == "rms":
-                value = math.sqrt(energy / n)
-            elif s == "skew":
-                value = 0.0 if flat else cube / m2 ** 1.5
-            elif s == "kurt":
-                value = 0.0 if flat else fourth / (m2 * m2)
-            else:
-                raise ValueError(f"unknown statistic {s!r}")
-            out[s].append(value)
-    return {s: np.array(v, dtype=np.float64) for s, v in out.items()}
+    means = c.sum(axis=1) / n  # as c.mean(axis=1), without its overhead
+    d = c - means[:, None]
+    m2 = row_dots(d, d) / n
+    scale = np.maximum(np.maximum(np.abs(means), c.max(axis=1)), np.maximum(-c.min(axis=1), 1e-300))  # max |c|
+    flat = m2 <= (1e-12 * scale) * (1e-12 * scale)  # a float product overflows to inf; ** would raise OverflowError
+    energy = row_dots(c, c) if "energy" in stats or "rms" in stats else m2
+    out: dict[str, npt.NDArray[np.float64]] = {}
+    for s in stats:
+        if s == "mean":
+            out[s] = means
+        elif s == "sd":
+            out[s] = np.zeros_like(m2) if n < 2 else np.where(flat, 0.0, np.sqrt(m2 * n / (n - 1)))
+        elif s == "energy":
+            out[s] = energy
+        elif s == "rms":
+            out[s] = np.sqrt(energy / n)
+        elif s in ("skew", "kurt"):
+            out[s] = _shape_stat(s, d, m2, flat)
+        else:
+            raise ValueError(f"unknown statistic {s!r}")
+    return out
+
+
+def _shape_stat(stat: str, d: npt.NDArray[np.float64], m2: npt.NDArray[np.float64], flat: npt.NDArray[np.bool_]) -> npt.NDArray[np.float64]:
+    """Skew or kurt (W,) of rows with deviations ``d`` (W, m) from their mean, second moments ``m2`` (W,) and ``flat``
+    (W,) (a constant row: 0), per row on Python floats (``m2 ** 1.5`` as Python takes it)."""
+    n = d.shape[1]
+    if stat == "skew":
+        cubes = ((d * d * d).sum(axis=1) / n).tolist()  # as np.mean(d * d * d) of each row
+        values = [0.0 if f else cube / m ** 1.5 for f, cube, m in zip(flat.tolist(), cubes, m2.tolist(), strict=True)]
+    else:
+        fourths = (((d * d) ** 2).sum(axis=1) / n).tolist()
+        values = [0.0 if f else fourth / (m * m) for f, fourth, m in zip(flat.tolist(), fourths, m2.tolist(), strict=True)]
+    return np.array(values, dtype=np.float64)
 
 
 FAMILIES = ("dwt", "psd", "tex")
@@ -166,6 +172,7 @@ def family_names(family: str, channels: int, fs: float, settings: Any = None) ->
     raise ValueError(f"unknown feature family {family!r}; known: {', '.join(FAMILIES)}")
 
 
+SHORT_DWT = 1000  # rows of at most this many values go down one DWT level in one pywt.dwt call (FeaturePlan._downcoef)
 HUGE_EXPONENT = 100  # a window with samples beyond 2**100 V is analysed scaled down by a power of two (squares stay finite)
 
 
@@ -384,9 +391,13 @@ class FeaturePlan:
         self.channels_needed = 1 + max(channels, default=-1)
         self._degrees = np.array([feature_degree(n) for n in self.names], dtype=np.int64)
         self._slope_range = (20.0, 0.45 * fs)
+        self._min_samples = self._shortest()
 
     def min_samples(self) -> int:
         """The shortest window every feature of the plan can be computed on (DWT: no boundary-only coefficients)."""
+        return self._min_samples
+
+    def _shortest(self) -> int:
         need = MIN_PSD_SAMPLES if (self._psd or self._tex) else 0
         for (_, domain), level in self._levels.items():
             n = (self.wavelet.dec_len - 1) * 2 ** level
@@ -409,9 +420,10 @@ class FeaturePlan:
             raise WindowError("non_finite", "features are not finite" + (f" (samples up to 2^{k} V: their energies are beyond float64)" if k else ""))
         return out
 
-    def compute_many(self, x: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    def compute_many(self, x: npt.NDArray[np.float64], *, bounded: bool = False) -> npt.NDArray[np.float64]:
         """Feature vectors (W, len(names)) of W windows ``x`` (W, n, C) in volts, float64, each row the same values as the
-        window alone (the transforms run on all windows at once: offline, a slide's windows cost one call).
+        window alone (the transforms run on all windows at once: offline, a slide's windows cost one call). ``bounded``:
+        the caller knows that no |x| exceeds 2**:data:`HUGE_EXPONENT` (int16 counts in volts), so no window is scaled.
 
         A row with a feature beyond float64 (the energy of samples near 1e307) holds inf (:meth:`compute` raises ``non_finite``).
         Raises :class:`WindowError` (reason ``window_too_short``) when n < :meth:`min_samples`, and ValueError if x has fewer
@@ -422,7 +434,7 @@ class FeaturePlan:
             raise ValueError(f"windows must have shape (W, n, >= {self.channels_needed}), got {x.shape}")
         if x.shape[1] < self.min_samples():
             raise WindowError("window_too_short", f"window of {x.shape[1]} samples is shorter than the {self.min_samples()} the features need")
-        x, k = pow2_normalised(x)
+        x, k = (x, np.zeros(x.shape[0], dtype=np.int64)) if bounded else pow2_normalised(x)
         xt = x.transpose(0, 2, 1)  # (W, C, n): each channel's samples contiguous (free after remove_spikes_many)
         if not xt.flags.c_contiguous:
             xt = np.ascontiguousarray(xt)
@@ -473,6 +485,10 @@ class FeaturePlan:
 
     def _downcoef(self, part: str, a: npt.NDArray[np.float64], levels: int = 1) -> npt.NDArray[np.float64]:
         """The ``part`` ("a" or "d") coefficients ``levels`` levels down of each row of ``a`` (W, m): pywt.downcoef is one
-        signal at a time."""
+        signal at a time; one level of rows of at most :data:`SHORT_DWT` values, one pywt.dwt of all rows (the same
+        coefficients: the same convolution per row; it computes the other half too, which costs less there than a call per row)."""
+        if levels == 1 and a.shape[0] > 1 and a.shape[1] <= SHORT_DWT:
+            coeffs: npt.NDArray[np.float64] = pywt.dwt(a, self.wavelet, mode=self.mode, axis=1)[0 if part == "a" else 1]
+            return coeffs
         rows = [pywt.downcoef(part, row, self.wavelet, mode=self.mode, level=levels) for row in a]
         return np.stack(rows) if len(rows) > 1 else rows[0][None]

@@ -101,9 +101,11 @@ Assessed = tuple[npt.NDArray[np.float64], float, float | None]  # Classifier.ass
 AssessmentKey = tuple[tuple[tuple[int, int], ...], bool]  # replay's assessments ahead: (the windows' spans, final)
 
 
-def _assessment_key(used: list[_Window], end: int, final: bool) -> AssessmentKey:
-    """The key of the assessment of the first ``end`` of a slide's usable windows ``used`` (``final``: the whole slide)."""
-    return tuple(w.span for w in used[:end]), final
+def _assessment_keys(used: list[_Window], ends: Iterable[int], final: bool) -> list[AssessmentKey]:
+    """The key of the assessment of the first ``end`` of a slide's usable windows ``used`` for each of ``ends`` (``final``:
+    the whole slide)."""
+    spans = [w.span for w in used]
+    return [(tuple(spans[:end]), final) for end in ends]
 
 
 class Pipeline:
@@ -286,7 +288,7 @@ class Pipeline:
                     continue
                 ends = [len(used)] if final else range(1, len(used) + 1)  # the whole slide, or each prefix (provisional)
                 rows += [(len(features), len(features) + end) for end in ends]
-                keys += [_assessment_key(used, end, final) for end in ends]
+                keys += _assessment_keys(used, ends, final)
                 features += [w.features for w in used]
             if rows:
                 proba, confidence, novelty = self.model.assess_many(np.stack(features), rows, final)
@@ -394,7 +396,7 @@ class Pipeline:
         assessed them ahead (:meth:`_assess_ahead`), else in one :meth:`Classifier.assess_many` call."""
         assert self.model is not None
         if self._assessed:
-            known = [self._assessed.get(_assessment_key(used, end, final)) for end in ends]
+            known = [self._assessed.get(key) for key in _assessment_keys(used, ends, final)]
             if all(a is not None for a in known):
                 return cast(list[Assessed], known)
         features = np.stack([w.features for w in used])
