@@ -86,3 +86,18 @@ def test_svm_file_without_fitted_arrays_loads_through_sklearn(tmp_path: Path) ->
     assert not isinstance(old.pipeline, LeanPipeline)
     x = _raw(arrays["train_x"][:50], model)
     np.testing.assert_allclose(old.predict_proba(x), load_model().predict_proba(x), rtol=0, atol=1e-9)
+
+
+def test_svm_soft_count_is_not_always_the_vote() -> None:
+    """pairwise_scores' argmax can differ from the one-vs-one vote (SVC.predict), as its docstring says: a class that wins
+    every duel narrowly ranks below one that loses to it narrowly and wins its other duel by far; a clear winner stays on top."""
+    from tactiled.learn.infer import pair_matrices, pairwise_scores
+
+    first, second = pair_matrices(3)  # pairs (0, 1), (0, 2), (1, 2)
+    dec = np.array([[0.1, 0.1, 5.0], [2.0, 2.0, 5.0]])
+    votes = (dec > 0) @ first + (dec <= 0) @ second
+    scores = pairwise_scores(dec, first, second)
+    assert votes.argmax(axis=1).tolist() == [0, 0]  # class 0 wins both its duels in both rows
+    assert scores.argmax(axis=1).tolist() == [1, 0]  # narrowly: class 1 scores higher; clearly: class 0 stays on top
+    np.testing.assert_allclose(scores[0], [np.log(1 / (1 + np.exp(-0.2))), (np.log(1 / (1 + np.exp(0.2))) + np.log(1 / (1 + np.exp(-10.0)))) / 2,
+                                           (np.log(1 / (1 + np.exp(0.2))) + np.log(1 / (1 + np.exp(10.0)))) / 2])
