@@ -6,7 +6,7 @@ the sample index only: the same samples in any block sizes give the same events.
 
 A slide is cut into successive windows (:meth:`AnalysisSettings.spans`); each is analysed
 as soon as the ring holds it, while the slide goes on. After each window the scores so
-far are combined (:meth:`Classifier.assess`: probabilities, the calibrated confidence that the
+far are combined (:meth:`Classifier.assess_many`: probabilities, the calibrated confidence that the
 top class is right, and the novelty); when the confidence first reaches
 ``classifier.provisional_confidence`` (and again whenever the leading label changes
 while above it) and the slide is not novel, a provisional :class:`SlideResult` (``final=False``)
@@ -47,15 +47,11 @@ class Classifier(Protocol):
     fingerprint: str
     settings: AnalysisSettings
 
-    def assess(self, features: npt.NDArray[np.float64], final: bool = True) -> tuple[npt.NDArray[np.float64], float, float | None]:
-        """(probabilities (K,), calibrated confidence that the top class is right, novelty or None) of a slide's windows' raw features (w, F);
-        ``final``: the whole slide, else its first w windows (a provisional label)."""
-
     def assess_many(self, features: npt.NDArray[np.float64], rows: Sequence[tuple[int, int]],
                     final: bool = True) -> tuple[npt.NDArray[np.float64], list[float], list[float | None]]:
-        """:meth:`assess` of q slides in one call, slide i the windows ``features[lo:hi]`` ((lo, hi) = ``rows[i]``) of raw
-        features (n, F): (probabilities (q, K), confidences (q,), novelties (q,)), row i bit for bit
-        ``assess(features[lo:hi], final)``."""
+        """(probabilities (q, K), calibrated confidences that the top class is right (q,), novelties or None (q,)) of q slides in
+        one call, slide i the windows ``features[lo:hi]`` ((lo, hi) = ``rows[i]``) of raw features (n, F); ``final``: whole
+        slides, else each slide's first windows (provisional labels). Row i is the same, bit for bit, as slide i alone."""
 
 
 
@@ -97,7 +93,7 @@ class _Window:
         return self.result.features
 
 
-Assessed = tuple[npt.NDArray[np.float64], float, float | None]  # Classifier.assess: probabilities (K,), confidence, novelty
+Assessed = tuple[npt.NDArray[np.float64], float, float | None]  # one slide of Classifier.assess_many: probabilities (K,), confidence, novelty
 AssessmentKey = tuple[tuple[tuple[int, int], ...], bool]  # replay's assessments ahead: (the windows' spans, final)
 
 
@@ -392,8 +388,8 @@ class Pipeline:
         return [_Window(span, r) for span, r in zip(spans, results, strict=True) if r is not None]
 
     def _assessments(self, used: list[_Window], ends: Sequence[int], final: bool) -> list[Assessed]:
-        """:meth:`Classifier.assess` of the first ``ends[i]`` of a slide's usable windows ``used``, for each i: as replay
-        assessed them ahead (:meth:`_assess_ahead`), else in one :meth:`Classifier.assess_many` call."""
+        """The assessment of the first ``ends[i]`` of a slide's usable windows ``used``, for each i: as replay assessed them
+        ahead (:meth:`_assess_ahead`), else in one :meth:`Classifier.assess_many` call."""
         assert self.model is not None
         if self._assessed:
             known = [self._assessed.get(key) for key in _assessment_keys(used, ends, final)]

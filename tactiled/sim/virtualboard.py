@@ -68,7 +68,7 @@ class VirtualBoard:
         self._overrun_t0 = 0.0
         self._taken = bytearray()  # the last bytes this pty took (at most ~2 _TAKEN_KEPT), to find the stranded ones among them
         self._taken_at = 0  # the offset in the pty's stream of _taken[0]
-        self._whole: deque[tuple[int, int, int]] = deque()  # (index, start, end) in that stream of the whole frames it took
+        self._whole: deque[tuple[int, int]] = deque()  # (start, end) in that stream of the whole frames it took
         self.ready = threading.Event()
         self._progress = threading.Condition()
 
@@ -156,21 +156,21 @@ class VirtualBoard:
                 raise RuntimeError(f"bytes read off the pty at an unplug are not among those it took ({len(chunk)} bytes)")
             start = self._taken_at + at
             end = start + len(chunk)
-            hit.update(k for k, (_, a, b) in enumerate(self._whole) if a < end and b > start)
+            hit.update(k for k, (a, b) in enumerate(self._whole) if a < end and b > start)
         return len(hit)
 
-    def _took(self, data: bytes, index: int, frame_bytes: int) -> None:
-        """Keep the bytes the pty took (``data``) for :meth:`_frames_hit`; they end with the intact frame at ``index``, ``frame_bytes``
-        long (after any garbage), unless that is 0: a frame the pty took only part of (an overrun) or corrupted, logged as such."""
+    def _took(self, data: bytes, frame_bytes: int) -> None:
+        """Keep the bytes the pty took (``data``) for :meth:`_frames_hit`; they end with an intact frame ``frame_bytes`` long
+        (after any garbage), unless that is 0: a frame the pty took only part of (an overrun) or corrupted, logged as such."""
         end = self._taken_at + len(self._taken) + len(data)
         if frame_bytes:
-            self._whole.append((index, end - frame_bytes, end))
+            self._whole.append((end - frame_bytes, end))
         self._taken += data
         if len(self._taken) > 2 * _TAKEN_KEPT:  # far more than a pty holds (its 4 kB line buffer and 64 kB of flip buffers)
             drop = len(self._taken) - _TAKEN_KEPT
             del self._taken[:drop]
             self._taken_at += drop
-            while self._whole and self._whole[0][1] < self._taken_at:
+            while self._whole and self._whole[0][0] < self._taken_at:
                 self._whole.popleft()
 
     def close(self) -> None:
@@ -199,7 +199,7 @@ class VirtualBoard:
         except OSError:
             written = 0
         if written:
-            self._took(data[:written], index, frame_bytes if written == len(data) else 0)
+            self._took(data[:written], frame_bytes if written == len(data) else 0)
         if written < len(data):
             self._overrun(index, len(data) - written)
         self._flush_overruns()
