@@ -43,6 +43,11 @@ import numpy as np
 import zmq
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, Status
 
+# The tactiled command every bench runs. -P: the working directory is not put first on sys.path, so PYTHONPATH chooses
+# the code (an A/B of two checkouts: PYTHONPATH=/tmp/old python bench/...). Without it, `python -m tactiled` run from a
+# checkout imports that checkout's tactiled whatever PYTHONPATH says.
+TACTILED = [sys.executable, "-P", "-m", "tactiled"]
+
 
 def cpu_seconds(pid: int) -> float:
     with open(f"/proc/{pid}/stat") as fh:
@@ -162,10 +167,9 @@ def main() -> None:
     floor = args.board == "player" and not args.no_floor
     tmp = tempfile.mkdtemp(prefix="tactiled-bench-")
     link, endpoint, log = f"{tmp}/tty", f"ipc://{tmp}/pub", f"{tmp}/board.jsonl"
-    exe = [sys.executable, "-m", "tactiled"]
     unplug_at = ",".join(str(round(args.seconds * (k + 1) / (args.unplugs + 1), 1)) for k in range(args.unplugs))
     if args.board == "sim":
-        board = subprocess.Popen([*exe, "simulate", "serial", "--link", link, "--seed", "11", "--corrupt", str(args.corrupt), "--drop", str(args.drop),
+        board = subprocess.Popen([*TACTILED, "simulate", "serial", "--link", link, "--seed", "11", "--corrupt", str(args.corrupt), "--drop", str(args.drop),
                                   "--garbage", str(args.garbage), "--log", log, *(["--unplug-at", unplug_at] if unplug_at else [])],
                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     else:
@@ -188,9 +192,9 @@ def main() -> None:
     lazy = zmq.Context.instance().socket(zmq.SUB)
     lazy.setsockopt(zmq.SUBSCRIBE, b"")
     lazy.connect(endpoint)
-    run = [*exe, "run", "--port", link, "--publish", endpoint, *(["--config", args.config] if args.config else [])]
+    run = [*TACTILED, "run", "--port", link, "--publish", endpoint, *(["--config", args.config] if args.config else [])]
     if args.profile:
-        run = [sys.executable, "-m", "cProfile", "-o", args.profile, "-m", "tactiled", *run[3:]]
+        run = [sys.executable, "-P", "-m", "cProfile", "-o", args.profile, "-m", "tactiled", *run[len(TACTILED):]]
     daemon = subprocess.Popen(run, stderr=open(f"{tmp}/daemon.log", "w"))  # noqa: SIM115
     standing: dict[int, tuple[float, float | None]] = {}  # slide id -> (daemon latency, sensor-side latency) of its last final label
     withdrawn = [0]

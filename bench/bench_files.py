@@ -18,6 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_daemon import TACTILED
+
 from tactiled.learn.model import default_model_path
 from tactiled.run.pool import cores
 from tactiled.sim.simulate import write_dataset
@@ -57,11 +59,11 @@ def main() -> None:
             paths = folder(root, originals, n)
             for jobs in args.jobs.split(","):
                 if command == "score":
-                    cmd = [sys.executable, "-m", "tactiled", "score", str(default_model_path()), *paths, "--json", "--jobs", jobs]
+                    cmd = [*TACTILED, "score", str(default_model_path()), *paths, "--json", "--jobs", jobs]
                 elif command == "replay":
-                    cmd = [sys.executable, "-m", "tactiled", "replay", *paths, "--json", "--jobs", jobs]
+                    cmd = [*TACTILED, "replay", *paths, "--json", "--jobs", jobs]
                 else:
-                    cmd = [sys.executable, "-m", "tactiled", "features", *paths, "-o", str(root / "f.npz"), "--jobs", jobs]
+                    cmd = [*TACTILED, "features", *paths, "-o", str(root / "f.npz"), "--jobs", jobs]
                 t0 = time.perf_counter()
                 subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=True)
                 wall = time.perf_counter() - t0

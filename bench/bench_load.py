@@ -29,7 +29,7 @@ import zmq
 from tactiled_client import schema
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from bench_daemon import FS, cpu_seconds, make_stream
+from bench_daemon import FS, TACTILED, cpu_seconds, make_stream
 
 LINE_RATE = 92 * FS // 20  # bytes/s of 2-channel, 20-sample frames
 
@@ -67,13 +67,12 @@ def overruns_so_far(player: subprocess.Popen[str]) -> int:
 
 def run(k: int, seconds: float, stream_path: str, warmup: float, config: str | None = None) -> dict[str, object]:
     tmp = tempfile.mkdtemp(prefix=f"tactiled-load{k}-")
-    exe = [sys.executable, "-m", "tactiled"]
     links = [f"{tmp}/tty{i}" for i in range(k)]
     player = subprocess.Popen([sys.executable, __file__, "--play", ",".join(links), "--stream", stream_path], stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE, text=True)
     assert player.stdout is not None and player.stdin is not None
     player.stdout.readline()
-    daemons = [subprocess.Popen([*exe, "run", "--port", links[i], "--publish", f"ipc://{tmp}/pub{i}", "--sensor-id", f"s{i}",
+    daemons = [subprocess.Popen([*TACTILED, "run", "--port", links[i], "--publish", f"ipc://{tmp}/pub{i}", "--sensor-id", f"s{i}",
                                  *(["--config", config] if config else [])],
                                 stderr=subprocess.DEVNULL) for i in range(k)]
     ctx = zmq.Context.instance()

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_daemon import TACTILED
 
 from tactiled.config import Config
 from tactiled.core.analysis import AnalysisSettings
@@ -29,8 +30,6 @@ from tactiled.files.recording import Recording, load_recording, save_recording
 from tactiled.learn.model import load_model
 from tactiled.run.replay import replay_recording
 from tactiled.sim.physics import SensorSimulator, SimParams, default_surfaces
-
-EXE = [sys.executable, "-m", "tactiled"]
 
 
 def simulate(seconds: float, seed: int = 0) -> Recording:
@@ -84,11 +83,11 @@ def daemon_memory(seconds: float) -> tuple[int, int]:
 
 def _daemon_memory(seconds: float, tmp: str) -> tuple[int, int]:
     link = f"{tmp}/tty"
-    board = subprocess.Popen([*EXE, "simulate", "serial", "--link", link, "--seed", "11"], stdout=subprocess.PIPE,
+    board = subprocess.Popen([*TACTILED, "simulate", "serial", "--link", link, "--seed", "11"], stdout=subprocess.PIPE,
                              stderr=subprocess.DEVNULL, text=True)
     assert board.stdout is not None
     board.stdout.readline()  # the board announces its tty when it is ready
-    daemon = subprocess.Popen([*EXE, "run", "--port", link, "--publish", f"ipc://{tmp}/pub"], stderr=subprocess.DEVNULL)
+    daemon = subprocess.Popen([*TACTILED, "run", "--port", link, "--publish", f"ipc://{tmp}/pub"], stderr=subprocess.DEVNULL)
     try:
         time.sleep(seconds)  # the measurement period, not synchronisation
         return vm_kb(daemon.pid, "VmHWM"), vm_kb(daemon.pid, "VmRSS")
@@ -150,7 +149,7 @@ def measure(args: argparse.Namespace, tmp: Path) -> None:
         short = tmp / "short.npz"
         save_recording(short, Recording(rec.samples[: round(2 * rec.fs)], rec.fs, rec.volts_per_count))
         for label, cmd in (("tactiled --help", ["--help"]), ("tactiled replay (2 s recording)", ["replay", str(short)])):
-            runs = [wall_s([*EXE, *cmd]) for _ in range(args.startup)]
+            runs = [wall_s([*TACTILED, *cmd]) for _ in range(args.startup)]
             print(f"start-up, {label}: best {min(runs):.3f} s, median {float(np.median(runs)):.3f} s of {args.startup}; "
                   f"peak resident {peak_kb(cmd) / 1024:.1f} MB")
         print(f"tactiled replay ({seconds:.0f} s recording): peak resident (VmHWM) {peak_kb(['replay', str(path)]) / 1024:.1f} MB")

@@ -17,12 +17,12 @@ import os
 import resource
 import socket
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import zmq
+from bench_daemon import TACTILED
 
 
 def rss_mb(pid: int) -> float:
@@ -58,7 +58,7 @@ def main() -> int:
         resource.setrlimit(resource.RLIMIT_NOFILE, (args.silent + 1024, max(args.silent + 1024, resource.getrlimit(resource.RLIMIT_NOFILE)[1])))
     with tempfile.TemporaryDirectory() as tmp:
         endpoint = f"ipc://{tmp}/pub"
-        proc = subprocess.Popen([sys.executable, "-m", "tactiled", "run", "--port", f"{tmp}/absent", "--publish", endpoint],
+        proc = subprocess.Popen([*TACTILED, "run", "--port", f"{tmp}/absent", "--publish", endpoint],
                                 stderr=subprocess.DEVNULL, preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (1024, 4096)))
         ctx = zmq.Context()
         try:
