@@ -36,6 +36,26 @@ def test_the_shipped_model_keeps_up_and_a_model_on_two_sample_windows_does_not(t
     assert check_speed(tiny, "tiny", force=True) == pytest.approx(speed, rel=10)
 
 
+def test_a_model_that_keeps_up_costs_three_windows_and_one_that_does_not_is_measured_longer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from tactiled.core.analysis import Analyser
+
+    calls = 0
+    analyse = Analyser.analyse
+
+    def counted(self: Analyser, x: np.ndarray) -> object:
+        nonlocal calls
+        calls += 1
+        return analyse(self, x)
+
+    shipped, tiny = load_model(), load_model(_tiny(tmp_path))  # loading probes one window
+    monkeypatch.setattr(Analyser, "analyse", counted)
+    analysis_speed(shipped)
+    assert calls == 3
+    calls = 0
+    analysis_speed(tiny)
+    assert calls > 3
+
+
 def test_run_refuses_a_model_that_cannot_keep_up_in_one_line(tmp_path: Path) -> None:
     tiny = _tiny(tmp_path)
     res = run_cli("run", "--model", str(tiny), "--port", str(tmp_path / "no-such-port"), "--publish", f"ipc://{tmp_path}/pub", timeout=60)
