@@ -62,7 +62,7 @@ finally:  # also after --help, which exits from argparse
 
 def peak_kb(args: list[str]) -> int:
     """Peak resident memory (VmHWM, kB) of ``tactiled ARGS``."""
-    out = subprocess.run([sys.executable, "-c", PEAK, *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=True)
+    out = subprocess.run([sys.executable, "-P", "-c", PEAK, *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=True)
     return int(out.stderr.split()[-1])
 
 
