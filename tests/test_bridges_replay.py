@@ -54,3 +54,15 @@ def test_a_bridge_on_a_replay_gets_every_sample_its_losses_status_and_labels(tmp
     assert status[-1].slides == 2 and status[-1].model and len(status[-2].level) == 2 and status[-2].level[0] > 0
     labels = standing_finals(sink.got)
     assert len(labels) == 2 and all(first <= m.start < first + len(samples) for m in labels)
+
+
+def test_a_replay_that_publishes_nothing_imports_neither_zeromq_nor_asyncio(tmp_path: Path) -> None:
+    """Start-up: ZeroMQ, asyncio and the publishing side are imported only for ``replay --publish``."""
+    import sys
+
+    save_recording(tmp_path / "r.npz", lossy_recording(0))
+    code = ("import sys, runpy; sys.argv = ['tactiled', 'replay', sys.argv[1]]\n"
+            "try:\n    runpy.run_module('tactiled', run_name='__main__')\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
+            "print(sorted({k.split('.')[0] for k in sys.modules} & {'zmq', 'asyncio'}), 'tactiled.service.replay_feed' in sys.modules, file=sys.stderr)")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "r.npz")], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stderr.strip().splitlines()[-1] == "[] False", out.stderr
