@@ -1,7 +1,7 @@
 """What ``tactiled replay --publish`` sends while a file plays: the daemon's messages (:class:`ReplayFeed`).
 
-Kept apart from :mod:`tactiled.service.replay_files` so that a replay that publishes nothing does not import ZeroMQ,
-asyncio and the message schema (start-up).
+Kept apart from :mod:`tactiled.service.replay_files` so that a replay that publishes nothing imports neither the
+publisher nor ZeroMQ and asyncio with it (start-up).
 """
 
 from __future__ import annotations

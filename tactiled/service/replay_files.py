@@ -5,8 +5,8 @@
 (:class:`tactiled.learn.choose.ModelChoice`), paces it (:class:`tactiled.run.pacer.Pacer`), replays it
 (:func:`tactiled.run.replay.replay_recording`, :func:`~tactiled.run.replay.replay_capture`) and yields one
 :class:`Replayed` per file; a file that cannot be read or analysed is one line and the others go on. With a
-publisher, :class:`tactiled.service.replay_feed.ReplayFeed` sends what the daemon sends, so a subscriber or a bridge on a replay works as on a
-live sensor.
+publisher, :class:`tactiled.service.replay_feed.ReplayFeed` sends what the daemon sends, so a subscriber or a bridge
+on a replay works as on a live sensor.
 """
 
 from __future__ import annotations
