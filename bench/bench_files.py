@@ -63,7 +63,7 @@ def main() -> None:
                 elif command == "replay":
                     cmd = [*TACTILED, "replay", *paths, "--json", "--jobs", jobs]
                 else:
-                    cmd = [*TACTILED, "features", *paths, "-o", str(root / "f.npz"), "--jobs", jobs]
+                    cmd = [*TACTILED, "features", *paths, "-o", str(root / "f.npz"), "--force", "--jobs", jobs]
                 t0 = time.perf_counter()
                 subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=True)
                 wall = time.perf_counter() - t0
