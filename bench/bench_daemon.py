@@ -151,7 +151,7 @@ def main() -> None:
     ap.add_argument("--corrupt", type=float, default=0.0)
     ap.add_argument("--drop", type=float, default=0.0)
     ap.add_argument("--garbage", type=float, default=0.0)
-    ap.add_argument("--unplugs", type=int, default=0)
+    ap.add_argument("--unplugs", type=int, default=0, help="unplug the board this many times (needs --board sim: the player cannot)")
     ap.add_argument("--subscribers", type=int, default=1, help="readers; one more that never reads is always added")
     ap.add_argument("--json", help="write the figures here too")
     ap.add_argument("--config", help="the daemon's config file (e.g. serial.read_interval_s, serial.batch_s)")
@@ -162,6 +162,8 @@ def main() -> None:
     ap.add_argument("--bare-reader", help=argparse.SUPPRESS)  # the floor's own process: the pty to read
     ap.add_argument("--interval", type=float, default=0.01, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.unplugs and args.board != "sim":
+        ap.error("--unplugs needs --board sim (the player board cannot unplug)")
     if args.bare_reader:
         return bare_reader(args.bare_reader, args.interval)
     floor = args.board == "player" and not args.no_floor
