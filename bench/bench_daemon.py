@@ -44,7 +44,7 @@ import zmq
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, Status
 
 # The tactiled command every bench runs. -P: the working directory is not put first on sys.path, so PYTHONPATH chooses
-# the code (an A/B of two checkouts: PYTHONPATH=/tmp/old python bench/...). Without it, `python -m tactiled` run from a
+# the code (an A/B of two checkouts: PYTHONPATH=/path/to/other/checkout python bench/...). Without it, `python -m tactiled` run from a
 # checkout imports that checkout's tactiled whatever PYTHONPATH says.
 TACTILED = [sys.executable, "-P", "-m", "tactiled"]
 
