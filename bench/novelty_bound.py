@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from labels import LEAVE_OUT, plain_rows  # bench/ is first on sys.path when run as a script
+from labels import LEAVE_OUT, plain_rows, ra  # bench/ is first on sys.path when run as a script
 from novelty import scores as ratio_scores
 from novelty import slide_rows
 
@@ -59,11 +59,6 @@ class _K:
 
     def __init__(self, k: int) -> None:
         self.novelty_k = k
-
-
-def ra(s: str) -> float:
-    """The grade's Ra of a surface name (``Ra0.61`` -> 0.61), to sort as bench/labels.py does."""
-    return float("".join(c for c in s if c.isdigit() or c == "."))
 
 
 def per_recording(recs: list[tuple[str, Any]], rows: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
