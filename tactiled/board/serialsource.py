@@ -311,7 +311,8 @@ class SerialSource:
         os.set_blocking(fd, False)
         n = 0
         with contextlib.suppress(OSError):
-            while n < self._max_backlog and (chunk := _read_all(fd, self._read_size)):
+            buf = bytearray(READ_CHUNK)
+            while n < self._max_backlog and (chunk := _read_all(fd, self._read_size, buf)):
                 n += len(chunk)
         return n
 
@@ -322,6 +323,7 @@ class SerialSource:
             os.set_blocking(fd, False)
         tee, interval, stop = self._tee, self._read_interval, self._stop
         held: list[bytes] = []
+        buf = bytearray(READ_CHUNK)
         handed = time.monotonic()
         try:
             # one read per period: waking per frame cost 36 % of a core at 1 000 frames/s (measured)
@@ -329,7 +331,7 @@ class SerialSource:
             while not stop.is_set():
                 time.sleep(interval)  # the read period, not synchronisation
                 now = self.alive_at = time.monotonic()
-                data = _read_all(fd, self._read_size) if fd is not None else port.read(max(1, min(port.in_waiting, self._read_size)))
+                data = _read_all(fd, self._read_size, buf) if fd is not None else port.read(max(1, min(port.in_waiting, self._read_size)))
                 if data:
                     self.arrival = now
                     if tee is not None:
@@ -343,25 +345,32 @@ class SerialSource:
                 deliver(b"".join(held))
 
 
-def _read_all(fd: int, limit: int) -> bytes:
-    """Everything the kernel holds for ``fd`` (non-blocking), up to ``limit`` bytes; raises :class:`Disconnected` on end of file."""
+def _read_all(fd: int, limit: int, buf: bytearray) -> bytes:
+    """Everything the kernel holds for ``fd`` (non-blocking), up to ``limit`` bytes; raises :class:`Disconnected` on end of file.
+
+    Reads into ``buf`` (the caller's, reused) and copies out what came: ``os.read(fd, n)`` allocates ``n`` bytes and shrinks
+    them to what the kernel had, and 64 kB allocations shrunk to ~1 kB a hundred times a second fragmented the reader
+    thread's heap (the daemon's resident memory grew ~0.2 MB a minute, docs/benchmarks.md).
+    """
     parts: list[bytes] = []
     total = 0
+    view = memoryview(buf)
     while total < limit:
+        want = view[: min(len(buf), limit - total)]
         try:
-            chunk = os.read(fd, min(READ_CHUNK, limit - total))
+            n = os.readv(fd, [want])
         except BlockingIOError:
             break
-        if not chunk:
+        if not n:
             # a tty with VMIN = VTIME = 0 reads nothing when it has nothing; after a hangup it polls readable yet reads nothing
             if parts or not select.select([fd], [], [], 0)[0]:
                 break
-            chunk = os.read(fd, min(READ_CHUNK, limit - total))  # readable: data that just came, or the hangup
-            if not chunk:
+            n = os.readv(fd, [want])  # readable: data that just came, or the hangup
+            if not n:
                 raise Disconnected("device reports readiness to read but returned no data (unplugged?)")
-        parts.append(chunk)
-        total += len(chunk)
-        if len(chunk) < 4096:  # the kernel had no more (a tty hands out at most its buffer per read)
+        parts.append(bytes(want[:n]))
+        total += n
+        if n < 4096:  # the kernel had no more (a tty hands out at most its buffer per read)
             break
     return parts[0] if len(parts) == 1 else b"".join(parts)
 
