@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import json
 import re
+import threading
 from dataclasses import fields
 from pathlib import Path
 
+import pytest
 from tactiled_client import schema
 
 from tactiled.config import Config
@@ -52,6 +54,27 @@ def test_builders_write_only_schema_fields() -> None:
     assert "stop" not in start and "reason" not in start  # absent on start, as documented
     rough = built[0]
     assert isinstance(rough, schema.Roughness) and rough.final is False and rough.used_s == 0.4 and rough.stop_mono == 9000 / 20_000
+
+
+def test_encode_reuses_a_packer_per_thread_and_recovers_from_a_failed_message() -> None:
+    body = schema.status("s", state=schema.STATE_IDLE).to_map()
+    first = schema.encode(schema.STATUS, "s", body)
+    with pytest.raises(TypeError):
+        schema.encode(schema.STATUS, "s", {**body, "bad": object()})
+    assert schema.encode(schema.STATUS, "s", body) == first  # nothing of the failed message left in the buffer
+    results: dict[int, list[bytes]] = {}
+
+    def encode_in_thread(n: int) -> None:
+        results[n] = [schema.encode(schema.STATUS, "s", {**body, "seq": n})[1] for _ in range(200)]
+
+    threads = [threading.Thread(target=encode_in_thread, args=(n,)) for n in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=30)
+    assert sorted(results) == [0, 1, 2, 3]
+    for n, payloads in results.items():
+        assert {schema.decode([b"status/s", p])[1]["seq"] for p in payloads} == {n}
 
 
 def test_replay_json_is_one_line_per_slide_with_its_provisional_labels(tmp_path: Path) -> None:

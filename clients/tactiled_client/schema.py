@@ -17,6 +17,7 @@ and the bridges all build through them.
 from __future__ import annotations
 
 import builtins
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Protocol, TypeVar
@@ -58,9 +59,25 @@ def topic(kind: str, sensor: str) -> str:
     return f"{kind}/{sensor}"
 
 
+_packers = threading.local()
+
+
+def _pack(body: dict[str, Any]) -> bytes:
+    """``msgpack.packb(body, use_bin_type=True)`` through this thread's own reused packer.
+
+    ``packb`` allocates a 256 kB buffer per call; a daemon that publishes several messages a second then holds heap it
+    cannot give back (docs/benchmarks.md, resident memory). A packer resets its buffer after each message, and on error.
+    """
+    packer = getattr(_packers, "packer", None)
+    if packer is None:
+        packer = _packers.packer = msgpack.Packer(use_bin_type=True)
+    out: bytes = packer.pack(body)
+    return out
+
+
 def encode(kind: str, sensor: str, body: dict[str, Any]) -> list[bytes]:
     """The two frames of a message; ``body`` must already carry v, seq, sensor and type."""
-    return [topic(kind, sensor).encode(), msgpack.packb(body, use_bin_type=True)]
+    return [topic(kind, sensor).encode(), _pack(body)]
 
 
 def decode(frames: list[bytes]) -> tuple[str, dict[str, Any]]:
