@@ -108,3 +108,15 @@ def test_before_any_arrival_there_is_no_time() -> None:
     assert not clock.ready and clock.rate(0, 100) == FS
     with pytest.raises(ValueError):
         clock.mono(0)
+
+
+def test_a_full_map_drops_its_oldest_knots_and_stays_monotonic(monkeypatch: pytest.MonkeyPatch) -> None:
+    import tactiled.board.clockmap as cm
+
+    monkeypatch.setattr(cm, "MAX_KNOTS", 64)
+    _, rows, clock = stream(4, seconds=10.0)
+    assert 48 <= len(clock._ki) <= 64  # bounded: the oldest quarter went each time it filled
+    assert clock._ki[0] > 0  # early knots are gone: their indices are extrapolated at the rate then
+    probe = np.linspace(0, rows[-1], 2001).astype(np.int64)
+    times = np.array([clock.mono(int(i)) for i in probe])
+    assert np.all(np.isfinite(times)) and np.all(np.diff(times) > 0)
