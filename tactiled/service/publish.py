@@ -103,17 +103,26 @@ def _share(path: Path, group: str) -> None:
                 os.chown(path, -1, gid)
 
 
+# Messages queued for one subscriber before ZeroMQ drops that subscriber's newest. A live daemon sends a few a second
+# (about 25 more with the raw samples topic), so a subscriber may stall for minutes (about 30 s with the raw topic) and
+# lose nothing, and one that never reads holds at most this many messages of the daemon's memory. At 10 000, a subscriber
+# that never read grew the daemon by about 0.12 MB a minute for the better part of an hour (docs/benchmarks.md).
+SEND_HWM = 1_000
+BURST_SEND_HWM = 10_000  # replay --publish sends as fast as it can: room for a subscriber to fall that far behind a file
+
+
 class Publisher:
     """Binds ``config.endpoint`` (``auto``: :func:`bind_address`); :meth:`publish` stamps seq and time_unix on schema messages and sends them."""
 
     def __init__(self, config: PublishConfig, context: zmq.Context[Any] | None = None, see_subscribers: bool = False,
-                 sensor: str = "fingertip0") -> None:
+                 sensor: str = "fingertip0", send_hwm: int = SEND_HWM) -> None:
         """``see_subscribers``: an XPUB socket, so that :meth:`wait_subscriber` can tell when a subscription arrived; ``sensor``:
-        the id that names the socket of ``auto``."""
+        the id that names the socket of ``auto``; ``send_hwm``: messages queued per subscriber before ZeroMQ drops that
+        subscriber's newest (:data:`SEND_HWM`, :data:`BURST_SEND_HWM`)."""
         self.context = context or zmq.Context.instance()
         self.socket = self.context.socket(zmq.XPUB if see_subscribers else zmq.PUB)
         self.socket.setsockopt(zmq.LINGER, 0)
-        self.socket.setsockopt(zmq.SNDHWM, 10_000)
+        self.socket.setsockopt(zmq.SNDHWM, send_hwm)
         # PUB and XPUB sockets receive their subscribers' SUBSCRIBE messages: a peer sending a longer one is disconnected,
         # so a 16 MB topic prefix can never grow the daemon (topics are "<type>/<sensor id>", under 100 bytes)
         self.socket.setsockopt(zmq.MAXMSGSIZE, MAX_INBOUND_CURVE_BYTES if config.curve_secret_key_file else MAX_INBOUND_BYTES)

@@ -60,9 +60,9 @@ def replay_files(paths: Sequence[str], config: Config, choice: ModelChoice, *, b
         return
     publisher = None
     if publish:
-        from tactiled.service.publish import Publisher  # ZeroMQ and asyncio only when publishing (start-up)
+        from tactiled.service.publish import BURST_SEND_HWM, Publisher  # ZeroMQ and asyncio only when publishing (start-up)
 
-        publisher = Publisher(config.override({"publish.endpoint": publish}).publish, see_subscribers=True)
+        publisher = Publisher(config.override({"publish.endpoint": publish}).publish, see_subscribers=True, send_hwm=BURST_SEND_HWM)
         publisher.wait_subscriber(wait_subscriber_s)
     try:
         for k, path in enumerate(paths):
