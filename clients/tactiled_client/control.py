@@ -30,10 +30,13 @@ def control(endpoint: str, cmd: str, path: str | None = None, *, curve: tuple[st
     try:
         sock.setsockopt(zmq.LINGER, 0)
         sock.setsockopt(zmq.RCVTIMEO, round(timeout * 1000))
+        # a REQ socket's send waits for a peer; a daemon that refuses this client's CURVE key drops the connection, so a send
+        # after that would wait for ever (seen once in CI under load: the command outlived its 2 s timeout by a minute)
+        sock.setsockopt(zmq.SNDTIMEO, round(timeout * 1000))
         _secure(sock, curve)
         sock.connect(endpoint)
-        sock.send(msgpack.packb({"cmd": cmd, "path": path}, use_bin_type=True))
         try:
+            sock.send(msgpack.packb({"cmd": cmd, "path": path}, use_bin_type=True))
             body = msgpack.unpackb(sock.recv(), raw=False)
         except zmq.Again:
             raise NoData(f"no reply from {endpoint} within {timeout:g} s") from None
