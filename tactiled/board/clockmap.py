@@ -150,7 +150,10 @@ class ClockMap:
         """Extend the map from its last knot to ``end`` towards the estimate (module docstring)."""
         desired = self.estimate(end)
         if not self._ki:
-            self._ki, self._kt, self._ku, self._head = array("q", [end]), array("d", [desired]), array("d", [wall]), 1.0 / self.fs
+            self._ki.append(end)
+            self._kt.append(desired)
+            self._ku.append(wall)
+            self._head = 1.0 / self.fs
             return
         p, tp, up = self._ki[-1], self._kt[-1], self._ku[-1]
         if end <= p:
