@@ -11,7 +11,7 @@ import pytest
 
 from tactiled.core.analysis import Analyser, AnalysisSettings
 from tactiled.errors import ModelError
-from tactiled.learn.model import Model, fit_pipeline, load_model, novelty_scores
+from tactiled.learn.model import Model, fit_pipeline, load_model, novelty_scores, softmax
 from tactiled.learn.score import calibration_scores
 from tactiled.learn.search import fit_calibration, fit_novelty
 from tests.conftest import run_cli
@@ -31,17 +31,25 @@ def _oof(n: int, k: int, accuracy: float, seed: int = 0) -> tuple[np.ndarray, np
 
 
 @pytest.mark.parametrize("n", [5, 60, 400])
-def test_calibration_is_a_monotone_probability_map_that_matches_accuracy(n: int) -> None:
+def test_calibration_is_a_monotone_probability_map_never_certain(n: int) -> None:
     scores, y = _oof(n, 5, 0.7)
-    knots, info = fit_calibration(scores, y, 1.0)
+    temperature, knots, info = fit_calibration(scores, y)
     assert knots.shape[0] == 2 and np.all(np.isfinite(knots)) and np.all(np.diff(knots, axis=1) >= 0)
     assert knots[1].min() >= 1 / (n + 2) - 1e-12 and knots[1].max() <= 1 - 1 / (n + 2) + 1e-12
-    assert info["method"] == {5: "constant", 60: "platt", 400: "isotonic"}[n]
-    if n == 400:  # on its own data, the calibrated confidence averages to the accuracy
-        p = np.exp(scores - scores.max(axis=1, keepdims=True))
-        p /= p.sum(axis=1, keepdims=True)
-        conf = np.interp(p.max(axis=1), knots[0], knots[1])
-        assert abs(conf.mean() - info["accuracy"]) < 0.02
+    assert math.isfinite(temperature) and temperature > 0
+    assert info["method"] == ("constant" if n == 5 else "temperature")
+
+
+def test_calibration_finds_the_temperature_of_overconfident_scores() -> None:
+    """Labels drawn from softmax(z), scores 3 z: the fitted temperature undoes the factor, and the confidence averages to
+    the accuracy."""
+    rng = np.random.default_rng(0)
+    z = 2.0 * rng.standard_normal((4000, 5))
+    y = (softmax(z).cumsum(axis=1) > rng.random((4000, 1))).argmax(axis=1)
+    temperature, knots, info = fit_calibration(3.0 * z, y)
+    assert info["method"] == "temperature" and abs(temperature - 3.0) < 0.3
+    conf = np.interp(softmax(3.0 * z, temperature).max(axis=1), knots[0], knots[1])
+    assert abs(conf.mean() - info["accuracy"]) < 0.03
 
 
 @pytest.mark.parametrize("case", ["all_right", "all_wrong", "no_scores", "one_class", "constant_scores", "huge_scores"])
@@ -59,7 +67,8 @@ def test_calibration_stays_finite_on_degenerate_slides(case: str) -> None:
         scores[:] = 0.0
     elif case == "huge_scores":
         scores *= 1e300
-    knots, _ = fit_calibration(scores, y, 1.0)
+    temperature, knots, _ = fit_calibration(scores, y)
+    assert math.isfinite(temperature) and temperature > 0
     assert np.all(np.isfinite(knots)) and np.all((knots >= 0) & (knots <= 1)) and np.all(np.diff(knots, axis=1) >= 0)
 
 

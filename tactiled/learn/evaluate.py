@@ -272,18 +272,19 @@ class Evaluator:
                           "compute_ms": float((feat_ms + infer_ms) * (n_used[decided].mean() if decided.any() else 0.0))})
         self.progress(f"(g) default method {res.winner}: nested CV {res.nested['mean']:.3f}")
         return {"winner": res.winner, "nested": res.nested, "leaderboard": res.leaderboard, "feature_ms": feat_ms, "infer_ms": infer_ms,
-                "curve": curve, "calibration": self.calibration(res, model.temperature)}
+                "curve": curve, "calibration": self.calibration(res)}
 
-    def calibration(self, res: Any, temperature: float) -> dict[str, Any]:
+    def calibration(self, res: Any) -> dict[str, Any]:
         """(g) ECE, Brier and the reliability table of the chosen model's confidence, cross-fitted: each outer fold's slides
-        are calibrated by a map fitted on the other folds' out-of-fold scores (the model file's map is fitted on all of them)."""
+        are calibrated by a temperature and map fitted on the other folds' out-of-fold scores (the model file's are fitted on
+        all of them)."""
         if res.oof is None:
             return calibration_scores(np.zeros(0), np.zeros(0, dtype=bool))
         scores, y_idx, groups = res.oof
         ok = (y_idx >= 0) & np.isfinite(scores).any(axis=1)
         confidence, right = np.zeros(len(y_idx)), np.zeros(len(y_idx), dtype=bool)
         for train, test in grouped_splits(y_idx, groups, self.n_folds, self.seed):
-            knots, _ = fit_calibration(scores[train], y_idx[train], temperature)
+            temperature, knots, _ = fit_calibration(scores[train], y_idx[train])
             p = softmax(scores[test], temperature)
             confidence[test] = np.interp(p.max(axis=1), knots[0], knots[1])
             right[test] = np.argmax(p, axis=1) == y_idx[test]

@@ -25,10 +25,12 @@ probabilities for kNN); ``temperature`` is fitted on out-of-fold slides in train
 that a slide's confidence is calibrated.
 
 A slide's label comes with two numbers (:meth:`Model.assess`): ``confidence``, the probability that the label is
-right, a monotone map (``calibration``, fitted in training on grouped out-of-fold slides: isotonic regression
-with 200 or more slides, else Platt scaling) of the top softmax probability (for a provisional label, from the first
-windows of a slide, :func:`early_probability` of the top probability and the number of windows: ``early_calibration``,
-fitted on out-of-fold prefixes of slides, format 5); and ``novelty``, a score of the slide
+right, a monotone map (``calibration``) of the top softmax probability. Training fits ``temperature`` on grouped
+out-of-fold slides by temperature scaling and makes the map the top probability itself, kept within [1/(n+2),
+1 - 1/(n+2)] (``summary["calibration"]["method"]`` is ``temperature``); older models hold a Platt or isotonic map over a
+label-smoothed temperature, and still load. A provisional label's confidence, from the first windows of a slide, is
+:func:`early_probability` of the top probability and the number of windows (``early_calibration``, fitted on out-of-fold
+prefixes of slides, format 5). The second number is ``novelty``, a score of the slide
 (the mean of its windows' features, standardised as the classifier sees them) against the training slides
 (:func:`novelty_parts`), divided by the threshold that grouped cross-validation set so that at most 5 % of slides
 of known surfaces exceed it: above 1, the slide is unlike every surface the model was taught. From format 5 on the
