@@ -227,3 +227,32 @@ def test_config_example_prints_the_shipped_example_that_loads(tmp_path: Path, ca
     assert text == (REPO / "configs" / "tactiled.toml").read_text(encoding="utf-8") and "[sensor]" in text
     (tmp_path / "my.toml").write_text(text)
     load_config(tmp_path / "my.toml")  # raises on any bad key
+
+
+def test_the_process_exits_with_mains_code_after_freezing_its_objects(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``run`` (the console script, ``python -m tactiled``): main's return value is the exit code, and the objects are frozen out
+    of the cycle collector just before (the exit's collections skip them); main's own callers (these tests) are not frozen."""
+    import gc
+    import importlib
+
+    cli_main = importlib.import_module("tactiled.cli.main")  # the module: tactiled.cli's own ``main`` is the function
+    seen: list[str] = []
+    monkeypatch.setattr(cli_main, "main", lambda: seen.append("main") or 3)
+    monkeypatch.setattr(gc, "freeze", lambda: seen.append("freeze"))
+    with pytest.raises(SystemExit) as stop:
+        cli_main.run()
+    assert stop.value.code == 3 and seen == ["main", "freeze"]
+
+
+def test_python_m_tactiled_prints_everything_and_exits_with_the_code(tmp_path: Path) -> None:
+    """The frozen exit loses no output: every slide line and the summary of a replay, exit 0; a usage error exits 2."""
+    import sys
+
+    from tactiled.files.recording import save_recording
+    from tests.conftest import lossy_recording
+
+    save_recording(tmp_path / "r.npz", lossy_recording(0))
+    out = subprocess.run([sys.executable, "-m", "tactiled", "replay", str(tmp_path / "r.npz")], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.count(": slide ") == 3 and "3 slides, 3 labelled" in out.stdout.splitlines()[-1], out
+    bad = subprocess.run([sys.executable, "-m", "tactiled", "replay", str(tmp_path / "missing.npz")], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "missing.npz" in bad.stderr
