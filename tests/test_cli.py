@@ -256,3 +256,21 @@ def test_python_m_tactiled_prints_everything_and_exits_with_the_code(tmp_path: P
     assert out.returncode == 0 and out.stdout.count(": slide ") == 3 and "3 slides, 3 labelled" in out.stdout.splitlines()[-1], out
     bad = subprocess.run([sys.executable, "-m", "tactiled", "replay", str(tmp_path / "missing.npz")], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "missing.npz" in bad.stderr
+
+
+def test_a_command_runs_numpys_blas_on_one_thread(tmp_path: Path) -> None:
+    """The handler imports numpy after main set the thread variables (unless the environment sets them): OpenBLAS loads with
+    one thread (threadpoolctl before numpy was loaded limited nothing), and the variables reach the command's workers."""
+    import sys
+
+    from tactiled.files.recording import save_recording
+    from tests.conftest import lossy_recording
+
+    save_recording(tmp_path / "r.npz", lossy_recording(0))
+    code = ("import contextlib, io, os, sys\nfrom tactiled.cli.main import main\nassert 'numpy' not in sys.modules\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n    assert main(['replay', sys.argv[1]]) == 0\n"
+            "from threadpoolctl import threadpool_info\n"
+            "print([i['num_threads'] for i in threadpool_info() if i['internal_api'] == 'openblas'], os.environ['OMP_NUM_THREADS'])")
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "r.npz")], capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 0 and out.stdout.split()[-2:] in (["[1]", "1"], ["[]", "1"]), out
