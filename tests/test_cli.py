@@ -278,23 +278,24 @@ def test_a_command_runs_numpys_blas_on_one_thread(tmp_path: Path) -> None:
 
 def test_replay_sets_glibcs_heap_thresholds_and_prints_the_same(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                                  capsys: pytest.CaptureFixture[str]) -> None:
-    """``replay`` asks glibc to keep its temporaries in the heap (:func:`keep_freed_memory`: mallopt succeeds on glibc, elsewhere
-    it is a no-op), and prints the same lines with it as without."""
+    """Each file a replay plays (in this process or a worker) asks glibc to keep the pipeline's temporaries in its heap
+    (:func:`tactiled.run.heap.keep_freed_memory`: mallopt succeeds on glibc, elsewhere it is a no-op), and the same lines
+    are printed with it as without."""
     import platform
     import sys
 
-    from tactiled.cli import common
     from tactiled.files.recording import save_recording
+    from tactiled.service import replay_files
     from tests.conftest import lossy_recording
 
     path = str(tmp_path / "r.npz")
     save_recording(path, lossy_recording(0))
-    out = subprocess.run([sys.executable, "-c", "from tactiled.cli.common import keep_freed_memory; print(keep_freed_memory())"],
+    out = subprocess.run([sys.executable, "-c", "from tactiled.run.heap import keep_freed_memory; print(keep_freed_memory())"],
                          capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == str(platform.libc_ver()[0] == "glibc")
     calls: list[int] = []
-    monkeypatch.setattr(common, "keep_freed_memory", lambda: calls.append(1) or False)
-    assert main(["replay", path]) == 0 and calls == [1]
+    monkeypatch.setattr(replay_files, "keep_freed_memory", lambda: calls.append(1) or False)
+    assert main(["replay", path, path]) == 0 and calls == [1, 1]
     without = capsys.readouterr().out
     monkeypatch.undo()
-    assert main(["replay", path]) == 0 and capsys.readouterr().out == without and ": slide " in without
+    assert main(["replay", path, path]) == 0 and capsys.readouterr().out == without and ": slide " in without

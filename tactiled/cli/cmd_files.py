@@ -81,7 +81,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from tactiled.service.replay_files import replay_files
 
     config = config_of(args)
-    c.keep_freed_memory()
     failed = 0
     for done in replay_files(args.files, config, _choice(args, config), block=args.block or BLOCK, speed=args.speed,
                              publish=args.publish, wait_subscriber_s=args.wait_subscriber, samples=args.samples, jobs=args.jobs):
