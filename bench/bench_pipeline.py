@@ -102,6 +102,9 @@ def main() -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1)  # as the tactiled command does
+    from tactiled.run.heap import keep_freed_memory
+
+    keep_freed_memory()  # as tactiled replay does: the pipeline's temporaries stay in glibc's heap
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=300.0, help="simulated recording length, s")
     ap.add_argument("--recording", help="replay this recording instead of simulating one")

@@ -1,7 +1,5 @@
-"""``python -m tactiled``: the command line (:func:`tactiled.cli.main`), its return value the exit code."""
+"""``python -m tactiled``: the command line as a process (:func:`tactiled.cli.main.run`: :func:`tactiled.cli.main`, its return value the exit code)."""
 
-import sys
+from tactiled.cli.main import run
 
-from tactiled.cli import main
-
-sys.exit(main())
+run()

@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import ipaddress
 import math
-import tomllib
 import types
 import typing
 from dataclasses import dataclass, field
@@ -420,6 +419,8 @@ def _build(cls: type[T], table: Any, prefix: str) -> T:
 
 def parse_config(text: str, source: str = "<config>") -> Config:
     """Parse TOML text into a validated :class:`Config`; errors name ``source`` and the key path."""
+    import tomllib  # here: the defaults (no --config) need no TOML parser (start-up)
+
     try:
         if len(text) > MAX_CONFIG_BYTES:
             raise ConfigError(f"larger than {MAX_CONFIG_BYTES} bytes")

@@ -66,3 +66,15 @@ def test_a_replay_that_publishes_nothing_imports_neither_zeromq_nor_asyncio(tmp_
             "print(sorted({k.split('.')[0] for k in sys.modules} & {'zmq', 'asyncio'}), 'tactiled.service.replay_feed' in sys.modules, file=sys.stderr)")
     out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "r.npz")], capture_output=True, text=True, timeout=120, check=True)
     assert out.stderr.strip().splitlines()[-1] == "[] False", out.stderr
+
+
+def test_a_replay_with_the_default_config_imports_no_msgpack_toml_parser_or_statistics(tmp_path: Path) -> None:
+    """Start-up: msgpack (packing a message), tomllib (a --config file) and statistics are not imported by a plain replay."""
+    import sys
+
+    save_recording(tmp_path / "r.npz", lossy_recording(0))
+    code = ("import sys, runpy; sys.argv = ['tactiled', 'replay', '--json', sys.argv[1]]\n"
+            "try:\n    runpy.run_module('tactiled', run_name='__main__')\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
+            "print(sorted({k.split('.')[0] for k in sys.modules} & {'msgpack', 'tomllib', 'statistics'}), file=sys.stderr)")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "r.npz")], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stderr.strip().splitlines()[-1] == "[]", out.stderr

@@ -227,3 +227,75 @@ def test_config_example_prints_the_shipped_example_that_loads(tmp_path: Path, ca
     assert text == (REPO / "configs" / "tactiled.toml").read_text(encoding="utf-8") and "[sensor]" in text
     (tmp_path / "my.toml").write_text(text)
     load_config(tmp_path / "my.toml")  # raises on any bad key
+
+
+def test_the_process_exits_with_mains_code_after_freezing_its_objects(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``run`` (the console script, ``python -m tactiled``): main's return value is the exit code, and the objects are frozen out
+    of the cycle collector just before (the exit's collections skip them); main's own callers (these tests) are not frozen."""
+    import gc
+    import importlib
+
+    cli_main = importlib.import_module("tactiled.cli.main")  # the module: tactiled.cli's own ``main`` is the function
+    seen: list[str] = []
+    monkeypatch.setattr(cli_main, "main", lambda: seen.append("main") or 3)
+    monkeypatch.setattr(gc, "freeze", lambda: seen.append("freeze"))
+    with pytest.raises(SystemExit) as stop:
+        cli_main.run()
+    assert stop.value.code == 3 and seen == ["main", "freeze"]
+
+
+def test_python_m_tactiled_prints_everything_and_exits_with_the_code(tmp_path: Path) -> None:
+    """The frozen exit loses no output: every slide line and the summary of a replay, exit 0; a usage error exits 2."""
+    import sys
+
+    from tactiled.files.recording import save_recording
+    from tests.conftest import lossy_recording
+
+    save_recording(tmp_path / "r.npz", lossy_recording(0))
+    out = subprocess.run([sys.executable, "-m", "tactiled", "replay", str(tmp_path / "r.npz")], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.count(": slide ") == 3 and "3 slides, 3 labelled" in out.stdout.splitlines()[-1], out
+    bad = subprocess.run([sys.executable, "-m", "tactiled", "replay", str(tmp_path / "missing.npz")], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "missing.npz" in bad.stderr
+
+
+def test_a_command_runs_numpys_blas_on_one_thread(tmp_path: Path) -> None:
+    """The handler imports numpy after main set the thread variables (unless the environment sets them): OpenBLAS loads with
+    one thread (threadpoolctl before numpy was loaded limited nothing), and the variables reach the command's workers."""
+    import sys
+
+    from tactiled.files.recording import save_recording
+    from tests.conftest import lossy_recording
+
+    save_recording(tmp_path / "r.npz", lossy_recording(0))
+    code = ("import contextlib, io, os, sys\nfrom tactiled.cli.main import main\nassert 'numpy' not in sys.modules\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n    assert main(['replay', sys.argv[1]]) == 0\n"
+            "from threadpoolctl import threadpool_info\n"
+            "print([i['num_threads'] for i in threadpool_info() if i['internal_api'] == 'openblas'], os.environ['OMP_NUM_THREADS'])")
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "r.npz")], capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 0 and out.stdout.split()[-2:] in (["[1]", "1"], ["[]", "1"]), out
+
+
+def test_replay_sets_glibcs_heap_thresholds_and_prints_the_same(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """Each file a replay plays (in this process or a worker) asks glibc to keep the pipeline's temporaries in its heap
+    (:func:`tactiled.run.heap.keep_freed_memory`: mallopt succeeds on glibc, elsewhere it is a no-op), and the same lines
+    are printed with it as without."""
+    import platform
+    import sys
+
+    from tactiled.files.recording import save_recording
+    from tactiled.service import replay_files
+    from tests.conftest import lossy_recording
+
+    path = str(tmp_path / "r.npz")
+    save_recording(path, lossy_recording(0))
+    out = subprocess.run([sys.executable, "-c", "from tactiled.run.heap import keep_freed_memory; print(keep_freed_memory())"],
+                         capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.strip() == str(platform.libc_ver()[0] == "glibc")
+    calls: list[int] = []
+    monkeypatch.setattr(replay_files, "keep_freed_memory", lambda: calls.append(1) or False)
+    assert main(["replay", path, path]) == 0 and calls == [1, 1]
+    without = capsys.readouterr().out
+    monkeypatch.undo()
+    assert main(["replay", path, path]) == 0 and capsys.readouterr().out == without and ": slide " in without

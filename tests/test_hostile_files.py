@@ -319,3 +319,20 @@ def test_a_journal_whose_label_is_longer_than_a_surface_name_is_refused(tmp_path
     code, err = _cli(capsys, "recover", str(j), "-o", str(tmp_path / "l.npz"))
     assert code == 2 and len(err) == 1 and "label: 300000 characters" in err[0], err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["l.npz.journal"]
+
+
+def test_the_peak_bound_counts_an_int16_minus_32768_at_its_magnitude(tmp_path: Path) -> None:
+    """The load bound's peak is max |x| from the least and greatest sample (no |x| array): equal to np.abs's for floats, and an
+    int16 -32768 counts as 32768 volts-per-count (np.abs wraps it to -32768), so counts just over the bound are refused."""
+    from tactiled.errors import RecordingError
+    from tactiled.files.recording import MAX_VOLTS, Recording, largest_magnitude, save_recording
+
+    rng = np.random.default_rng(3)
+    for x in (rng.standard_normal((999, 2)), rng.standard_normal((5, 1)).astype(np.float32) - 7, np.array([[-0.0], [0.0]])):
+        assert largest_magnitude(x) == float(np.max(np.abs(x)))
+    counts = np.array([[-32768, 5], [100, 32767]], dtype=np.int16)
+    assert largest_magnitude(counts) == 32768.0
+    path = tmp_path / "edge.npz"
+    save_recording(path, Recording(samples=counts, fs=20_000.0, volts_per_count=MAX_VOLTS / 32767.5))
+    with pytest.raises(RecordingError, match="samples: reach"):
+        load_recording(path)

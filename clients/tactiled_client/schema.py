@@ -22,8 +22,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Protocol, TypeVar
 
-import msgpack
-
 SCHEMA_VERSION = 7  # 3: roughness messages carry novelty; reason unknown_surface. 4: shadow messages, status.shadow.
 # 5: roughness.overloaded; status.overloaded, status.behind_s, status.input_shed_bytes (load shed when the daemon cannot keep up)
 # 6: slide event "resumed": an end published after a short quiet (detector.end_hold_s) is withdrawn with its final label
@@ -70,6 +68,8 @@ def _pack(body: dict[str, Any]) -> bytes:
     """
     packer = getattr(_packers, "packer", None)
     if packer is None:
+        import msgpack  # on first use: a replay that only builds messages (replay --json) never packs one (start-up)
+
         packer = _packers.packer = msgpack.Packer(use_bin_type=True)
     out: bytes = packer.pack(body)
     return out
@@ -84,6 +84,8 @@ def decode(frames: list[bytes]) -> tuple[str, dict[str, Any]]:
     """(topic, map) of a two-part message; raises ValueError on anything else."""
     if len(frames) != 2:
         raise ValueError(f"expected 2 frames, got {len(frames)}")
+    import msgpack
+
     body = msgpack.unpackb(frames[1], raw=False, strict_map_key=False)
     if not isinstance(body, dict):
         raise ValueError("message body is not a map")

@@ -52,7 +52,6 @@ events.
 from __future__ import annotations
 
 import math
-import statistics
 from collections import deque
 from dataclasses import dataclass, replace
 from typing import cast
@@ -370,7 +369,7 @@ class SlideDetector:
         ref = self._reference or 0.0
         self._recent.append((at, env))
         window = [e for _, e in list(self._recent)[-self._initial_hops:]]
-        if len(window) == self._initial_hops and statistics.median(window) > c.on_factor * ref:
+        if len(window) == self._initial_hops and float(np.median(window)) > c.on_factor * ref:
             # the stream began at rest: a sustained rise (a slide's own level fluctuates hop to hop more than on_factor)
             self._floor = ref
             self.floor = ref

@@ -91,6 +91,12 @@ def merge_ranges(ranges: npt.ArrayLike) -> npt.NDArray[np.int64]:
     return np.column_stack([start[first], ends - start[first]])
 
 
+def largest_magnitude(samples: npt.NDArray[Any]) -> float:
+    """max |x| of the non-empty array ``samples`` (int16 counts or finite floats), as a float, from its least and greatest
+    values: no array of |x| (24 MB for a 5-minute recording), and an int16 -32768 counts as 32768 (np.abs wraps it to itself)."""
+    return max(-float(samples.min()), float(samples.max()))
+
+
 def lost_rows_budget(file_bytes: int, floor: int) -> int:
     """Rows of zeros a reader may make for the lost samples a file of ``file_bytes`` declares or implies (index gaps,
     lost ranges): one per byte of the file, and at least ``floor``. Beyond it, a few bytes could claim terabytes."""
@@ -150,7 +156,7 @@ def validate_arrays(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
     vpc = float(_scalar(path, a, "volts_per_count", "f")) if "volts_per_count" in a else 1.0
     if not (np.isfinite(vpc) and vpc > 0):
         raise _fail(path, "volts_per_count", f"must be > 0, got {vpc}")
-    peak = float(np.max(np.abs(samples))) * (vpc if samples.dtype.kind == "i" else 1.0) if samples.size else 0.0
+    peak = largest_magnitude(samples) * (vpc if samples.dtype.kind == "i" else 1.0) if samples.size else 0.0
     if not peak <= MAX_VOLTS:
         raise _fail(path, "samples", f"reach {peak:.3g} V, beyond the {MAX_VOLTS:g} V of any sensor (samples are volts, or counts "
                                      "times volts_per_count)")

@@ -23,6 +23,7 @@ from tactiled.files.capture import Capture
 from tactiled.files.formats import open_recording
 from tactiled.files.recording import Recording
 from tactiled.learn.choose import ModelChoice
+from tactiled.run.heap import keep_freed_memory
 from tactiled.run.pacer import Pacer
 from tactiled.run.pool import map_files, workers
 from tactiled.run.replay import BLOCK, replay_capture, replay_recording
@@ -109,6 +110,7 @@ def _replay_path(path: str, config: Config, choice: ModelChoice, block: int, spe
                  samples: bool, last: bool) -> Replayed:
     """One file: opened by its name, its model chosen, paced at ``speed``, published on ``publisher`` (``last``: the
     final status says ``stopping``); a file that cannot be read or analysed is its one-line error."""
+    keep_freed_memory()  # in this process or a worker's: before the recording and the pipeline's temporaries are made
     try:
         source = open_recording(path)
     except RecordingError as exc:
