@@ -563,7 +563,8 @@ def fit_calibration(oof: FloatArray, y_idx: npt.NDArray[np.intp]) -> tuple[float
     slide is ever called certain. One parameter fitted on every class's probability, not two on the top one alone
     (Platt scaling, used before): on 21 training sets of the simulator's scenes its test-set ECE was lower on 16
     (docs/evaluation.md). Slides without a score are left out; with fewer than 10 left, or all of them right (or all
-    wrong), the map is the constant (right + 1) / (n + 2) at T = 1.
+    wrong), the map is the constant (right + 1) / (n + 2), and T the label-smoothed one (it keeps the scores' spread for
+    ``top`` and for the provisional labels' own calibration; unsmoothed, separable slides drive it to zero).
     """
     ok = (y_idx >= 0) & np.isfinite(oof).any(axis=1)
     right = (np.argmax(oof[ok], axis=1) == y_idx[ok]).astype(np.float64)
@@ -573,7 +574,7 @@ def fit_calibration(oof: FloatArray, y_idx: npt.NDArray[np.intp]) -> tuple[float
     accuracy = float(right.mean()) if n else None
     if n < 10 or right.min() == right.max():
         value = np.full_like(grid, (right.sum() + 1.0) / (n + 2.0))
-        return 1.0, np.vstack([grid, value]), {"method": "constant", "slides": n, "accuracy": accuracy}
+        return fit_temperature(oof, y_idx), np.vstack([grid, value]), {"method": "constant", "slides": n, "accuracy": accuracy}
     temperature = fit_temperature(oof, y_idx, smoothing=0.0)
     return temperature, np.vstack([grid, np.clip(grid, lo, hi)]), {"method": "temperature", "slides": n, "accuracy": accuracy,
                                                                     "temperature": temperature}
