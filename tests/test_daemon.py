@@ -230,7 +230,8 @@ def test_sighup_swaps_the_model_between_slides_and_refuses_a_bad_file(tmp_path: 
     ends = [m.slide_id for m in got if isinstance(m, Slide) and m.event == "end"]
     finals = [m for m in got if isinstance(m, Roughness) and m.final]
     assert {m.slide_id for m in finals} >= set(ends[:-1]) and all(m.label is not None or m.reason for m in finals)
-    assert [m.model for m in finals] == sorted((m.model for m in finals), key=lambda fp: fp == b)  # a, then b: never back
+    assert [m.model for m in finals] == sorted((m.model for m in finals), key=lambda fp: fp == b), [  # a, then b: never back
+        (m.slide_id, m.final, m.model, m.label, m.reason) for m in got if isinstance(m, Roughness)]
     statuses = statuses_after_first_label(got)
     assert statuses and statuses[-1].model == b
     assert lost_across(statuses) <= running_daemon.overrun_samples(first_label(got).start)  # nothing lost but what the board could not send
@@ -305,7 +306,8 @@ def test_a_control_request_swaps_the_model_refuses_a_bad_one_and_starts_and_stop
         live.stop()
     assert proc.returncode == 0
     finals = [m for m in got if isinstance(m, Roughness) and m.final]
-    assert [m.model for m in finals] == sorted((m.model for m in finals), key=lambda fp: fp == b)  # a, then b: never back
+    assert [m.model for m in finals] == sorted((m.model for m in finals), key=lambda fp: fp == b), [  # a, then b: never back
+        (m.slide_id, m.final, m.model, m.label, m.reason) for m in got if isinstance(m, Roughness)]
     statuses = statuses_after_first_label(got)
     assert statuses and lost_across(statuses) <= live.overrun_samples(first_label(got).start)  # no sample lost across the swap
 
