@@ -188,7 +188,7 @@ class LogReader:
                         continue  # samples and ground-truth slides are not wire messages
                     body = _json_map(message.data, f"{self.path}: {channel.topic} message {message.sequence}")
                     t = message.log_time / 1e9
-                    yield Entry(t, t, schema.topic(schema.ROUGHNESS, parts[1]), _pack(body))
+                    yield Entry(t, t, schema.topic(schema.ROUGHNESS, parts[1]), schema.pack(body))
             except LogError:
                 raise
             except (McapError, ValueError, KeyError, EOFError, OSError, struct.error) as exc:  # what the mcap reader raises on a bad file
@@ -210,9 +210,9 @@ class LogReader:
                         raise LogError(f"{where}: provisional: not a map")
                     early = {**final, **{k: v for k, v in p.items() if k in fields}, "final": False}
                     t = start + float(p.get("used_s", 0.0) or 0.0)
-                    yield Entry(t, t, schema.topic(schema.ROUGHNESS, sensor), _pack(early))
+                    yield Entry(t, t, schema.topic(schema.ROUGHNESS, sensor), schema.pack(early))
                 t = float(final.get("t_stop", start) or start)
-                yield Entry(t, t, schema.topic(schema.ROUGHNESS, sensor), _pack(final))
+                yield Entry(t, t, schema.topic(schema.ROUGHNESS, sensor), schema.pack(final))
 
 
 def _lines(fh: IO[bytes], path: Path) -> Iterator[bytes]:
@@ -234,11 +234,6 @@ def _json_map(data: bytes, where: str) -> dict[str, Any]:
         raise LogError(f"{where}: not a JSON object")
     _check_version(obj, where)
     return obj
-
-
-def _pack(body: dict[str, Any]) -> bytes:
-    out: bytes = msgpack.packb(body, use_bin_type=True)
-    return out
 
 
 def check_body(body: bytes, where: str) -> dict[str, Any]:

@@ -177,7 +177,6 @@ def publish(path: str | Path, endpoint: str, *, speed: float | None = 1.0, topic
             wait_subscriber_s: float = 0.0) -> int:
     """Publish a recorded session on ``endpoint`` (bound) as the daemon would: the same topics and two-frame msgpack framing,
     a fresh gapless ``seq`` per topic. Waits up to ``wait_subscriber_s`` for a first subscriber. Returns the messages sent."""
-    import msgpack
     import zmq
 
     from tactiled_client.log import check_body
@@ -198,7 +197,7 @@ def publish(path: str | Path, endpoint: str, *, speed: float | None = 1.0, topic
             body = check_body(entry.body, str(path))
             body["seq"] = sent.get(entry.topic, 0)
             sent[entry.topic] = body["seq"] + 1
-            sock.send_multipart([entry.topic.encode(), msgpack.packb(body, use_bin_type=True)])
+            sock.send_multipart([entry.topic.encode(), schema.pack(body)])
     finally:
         sock.close()
     return sum(sent.values())

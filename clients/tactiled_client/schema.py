@@ -60,7 +60,7 @@ def topic(kind: str, sensor: str) -> str:
 _packers = threading.local()
 
 
-def _pack(body: dict[str, Any]) -> bytes:
+def pack(body: dict[str, Any]) -> bytes:
     """``msgpack.packb(body, use_bin_type=True)`` through this thread's own reused packer.
 
     ``packb`` allocates and frees a 256 kB buffer per call; a reused packer allocates nothing per message and packs a status
@@ -77,7 +77,7 @@ def _pack(body: dict[str, Any]) -> bytes:
 
 def encode(kind: str, sensor: str, body: dict[str, Any]) -> list[bytes]:
     """The two frames of a message; ``body`` must already carry v, seq, sensor and type."""
-    return [topic(kind, sensor).encode(), _pack(body)]
+    return [topic(kind, sensor).encode(), pack(body)]
 
 
 def decode(frames: list[bytes]) -> tuple[str, dict[str, Any]]:
