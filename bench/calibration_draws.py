@@ -11,8 +11,9 @@ on every slide exactly as ``train`` does, and scores the true slides of one fixe
   the top probability's logit (isotonic regression from 200 slides), kept within [1/(n+2), 1 - 1/(n+2)].
 
 Labels are the same for both (a temperature never changes the top class). Prints one row per draw (accuracy, ECE of
-each, nested CV minus test accuracy) and a summary; true slides and the winner's own windows, not the daemon's detector
-(``bench/labels.py`` is the end-to-end measurement; on the draws measured both gave the same ECE to 0.002).
+each, nested CV minus test accuracy, the nested CV's 95 % interval over recordings) and a summary; true slides and the
+winner's own windows, not the daemon's detector (``bench/labels.py`` is the end-to-end measurement; on the draws measured
+both gave the same ECE to 0.002).
 
 Usage: python bench/calibration_draws.py [--scenes "hand;hot-gain"] [--seeds 100,101] [--files 3] [--test-files 10]
        [--out DIR] [--json FILE]
@@ -92,11 +93,16 @@ def one_draw(spec: str, seed: int, root: Path, files: int, test_files: int, conf
     t_old = fit_temperature(oof, ytr)
     knots_old = platt_map(oof, ytr, t_old)
     right = softmax(scores, t_new).argmax(axis=1) == yte
-    out: dict[str, Any] = {"scene": spec, "seed": seed, "winner": res.winner, "accuracy": float(right.mean()), "nested": res.nested["mean"]}
+    out: dict[str, Any] = {"scene": spec, "seed": seed, "winner": res.winner, "accuracy": float(right.mean()), "nested": res.nested["mean"],
+                           "interval": res.nested.get("interval95")}
     for key, t, knots in (("temperature", t_new, knots_new), ("platt", t_old, knots_old)):
         conf = np.interp(softmax(scores, t).max(axis=1), knots[0], knots[1])
         out[key] = {"ece": calibration_scores(conf, right)["ece"], "mean_confidence": float(conf.mean())}
     return out
+
+
+def _band(interval: list[float] | None) -> str:
+    return f"{100 * interval[0]:.1f}–{100 * interval[1]:.1f} %" if interval else "-"
 
 
 def main() -> None:
@@ -114,15 +120,16 @@ def main() -> None:
     root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-caldraws-"))
     config = Config()
     rows: list[dict[str, Any]] = []
-    print("| scene | seed | winner | accuracy | ECE: temperature / Platt | mean confidence: temperature / Platt | nested CV - test |")
-    print("|---|---|---|---|---|---|---|", flush=True)
+    print("| scene | seed | winner | accuracy | ECE: temperature / Platt | mean confidence: temperature / Platt | nested CV - test "
+          "| nested CV's 95 % interval over recordings |")
+    print("|---|---|---|---|---|---|---|---|", flush=True)
     for spec in args.scenes.split(";"):
         for seed in (int(s) for s in args.seeds.split(",")):
             r = one_draw(spec, seed, root, args.files, args.test_files, config)
             rows.append(r)
             print(f"| {spec} | {seed} | {r['winner']} | {100 * r['accuracy']:.1f} % | {r['temperature']['ece']:.3f} / {r['platt']['ece']:.3f} | "
                   f"{r['temperature']['mean_confidence']:.3f} / {r['platt']['mean_confidence']:.3f} | "
-                  f"{100 * (r['nested'] - r['accuracy']):+.1f} |", flush=True)
+                  f"{100 * (r['nested'] - r['accuracy']):+.1f} | {_band(r['interval'])} |", flush=True)
             if args.json:
                 Path(args.json).write_text(json.dumps(rows, indent=1))
     for key in ("temperature", "platt"):
@@ -132,6 +139,10 @@ def main() -> None:
     gaps = [100 * (r["nested"] - r["accuracy"]) for r in rows]
     print(f"temperature below Platt on {lower} of {len(rows)} draws; nested CV - test: mean {statistics.mean(gaps):+.1f}, "
           f"sd {statistics.pstdev(gaps):.1f} points, within 5 points on {sum(abs(g) <= 5 for g in gaps)} of {len(gaps)}")
+    inside = [r for r in rows if r["interval"] and r["interval"][0] <= r["accuracy"] <= r["interval"][1]]
+    widths = [100 * (r["interval"][1] - r["interval"][0]) for r in rows if r["interval"]]
+    print(f"test accuracy inside the nested CV's 95 % interval over recordings on {len(inside)} of {len(rows)} draws; "
+          f"interval width median {statistics.median(widths):.1f} points" if widths else "no interval")
 
 
 if __name__ == "__main__":

@@ -440,3 +440,21 @@ def test_shadow_stats_uncount_a_withdrawn_final_label() -> None:
     stats.withdraw(shadow=True)
     stats.add_shadow(result(2500, "Ra2", 0.7))
     assert (stats.slides, stats.agreed, stats.finals, round(stats.confidence_sum, 6)) == (2, 1, 2, 1.6)
+
+
+def test_the_nested_estimates_interval_resamples_recordings_not_slides() -> None:
+    """recording_interval: a percentile bootstrap over whole recordings; wider when slides of a recording agree (they carry
+    less), the accuracy inside it, None with fewer than 3 recordings, the rule of three when every slide is right or wrong."""
+    from tactiled.learn.search import recording_interval
+
+    rng = np.random.default_rng(2)
+    groups = np.repeat(np.arange(40), 5)
+    independent = rng.random(200) < 0.6
+    clustered = np.repeat(rng.random(40) < 0.6, 5)  # a recording all right or all wrong
+    loose, tight = recording_interval(clustered, groups), recording_interval(independent, groups)
+    assert loose is not None and tight is not None
+    assert loose[0] <= clustered.mean() <= loose[1] and tight[0] <= independent.mean() <= tight[1]
+    assert loose[1] - loose[0] > 1.5 * (tight[1] - tight[0])
+    assert recording_interval(independent[:10], groups[:10]) is None  # two recordings
+    assert recording_interval(np.ones(200, dtype=bool), groups) == [1.0 - 3 / 40, 1.0]  # the rule of three over 40 recordings
+    assert recording_interval(np.zeros(200, dtype=bool), groups) == [0.0, 3 / 40]

@@ -481,6 +481,9 @@ class Model:
         """One line: method, classifier(s), features, windows, cross-validated accuracy."""
         cv = self.summary.get("cv_accuracy")
         acc = f", nested CV accuracy {100 * cv['mean']:.1f} ± {100 * cv['sd']:.1f} %" if isinstance(cv, dict) else ""
+        band = cv.get("interval95") if isinstance(cv, dict) else None
+        if acc and isinstance(band, list) and len(band) == 2 and all(_is_number(v) for v in band):
+            acc += f" (95 % interval over recordings {100 * band[0]:.0f}–{100 * band[1]:.0f} %)"
         s = self.settings
         what = f"{self.kind} on {len(self.names)} features"
         if self.partner is not None:

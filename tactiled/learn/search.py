@@ -270,11 +270,48 @@ def fold_slide_scores(ws: WindowSet, cols: npt.NDArray[np.intp], kind: str, para
     return slide_scores(ws, pipe, list(cols), test, classes)
 
 
-def accuracy_of(scores: FloatArray, y_idx: npt.NDArray[np.intp]) -> float:
-    """Slide accuracy: argmax of each row against ``y_idx``; a row with no finite score is wrong."""
+def hits_of(scores: FloatArray, y_idx: npt.NDArray[np.intp]) -> npt.NDArray[np.bool_]:
+    """Per slide (rows of ``scores`` (n, K)), whether its argmax is ``y_idx``; a row with no finite score is wrong."""
     decided = np.isfinite(scores).any(axis=1)
     pred = np.where(decided, np.argmax(np.where(np.isfinite(scores), scores, -np.inf), axis=1), -1)
-    return float(np.mean(pred == y_idx)) if len(y_idx) else 0.0
+    out: npt.NDArray[np.bool_] = pred == y_idx
+    return out
+
+
+def accuracy_of(scores: FloatArray, y_idx: npt.NDArray[np.intp]) -> float:
+    """Slide accuracy: the mean of :func:`hits_of`; 0 without slides."""
+    return float(np.mean(hits_of(scores, y_idx))) if len(y_idx) else 0.0
+
+
+def _interval_text(band: list[float] | None) -> str:
+    """`` (95 % interval over recordings 0.52-0.69)`` of :func:`recording_interval`, or nothing."""
+    return f" (95 % interval over recordings {band[0]:.2f}-{band[1]:.2f})" if band else ""
+
+
+def recording_interval(hits: npt.NDArray[np.bool_], groups: npt.NDArray[Any], level: float = 0.95,
+                       resamples: int = 2000, seed: int = 0) -> list[float] | None:
+    """[low, high] of the slide accuracy ``hits`` (n,) at ``level``, resampling whole recordings (``groups`` (n,)).
+
+    A percentile bootstrap over recordings, not slides: slides of one recording share its day, specimen and fingertip, so
+    they say less than as many independent slides, and a new recording can miss by as much as the recordings differ.
+    Where every slide is right (or every one wrong) the resamples cannot vary: the rule of three over the m recordings
+    gives [1 - 3/m, 1] (or [0, 3/m]). None with fewer than 3 recordings.
+    """
+    from scipy import stats
+
+    names, idx = np.unique(np.asarray(groups).astype(str), return_inverse=True)
+    if len(names) < 3:
+        return None
+    if hits.all() or not hits.any():
+        m = len(names)
+        return [1.0 - min(1.0, 3.0 / m), 1.0] if hits.all() else [0.0, min(1.0, 3.0 / m)]
+    right = np.bincount(idx, weights=hits.astype(np.float64), minlength=len(names))
+    count = np.bincount(idx, minlength=len(names)).astype(np.float64)
+    res = stats.bootstrap((right, count), lambda r, c, axis: r.sum(axis=axis) / c.sum(axis=axis), paired=True, vectorized=True,
+                          confidence_level=level, n_resamples=resamples, method="percentile", random_state=seed)
+    low, high = float(res.confidence_interval.low), float(res.confidence_interval.high)
+    mean = float(right.sum() / count.sum())
+    return [low, high] if math.isfinite(low) and math.isfinite(high) else [mean, mean]
 
 
 # ---- parallel execution -----------------------------------------------------------------------------------------
@@ -444,7 +481,10 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         pick = choose(usable, [inner_acc[c.name][o] for c in usable]) if nested_on else 0
         picks.append(usable[pick].name)
         nested_accs.append(float(board[pick]["folds"][o]))
-    nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks}
+    nested_hits = np.concatenate([hits_of(oof[name][te], y_idx[te]) for name, (_, te) in zip(picks, outer, strict=True)])
+    nested_groups = np.concatenate([np.array([first.slides[i].file for i in te]) for _, te in outer])
+    band = recording_interval(nested_hits, nested_groups)
+    nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks, "interval95": band}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
     summary: dict[str, Any] = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs)}
     alone = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty, untaught)
@@ -467,7 +507,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     said = f" with {SPECTRUM.name} (ensemble)" if model.partner is not None else ""
     ens_cv = f"; ensemble CV {board[chosen]['ensemble']['mean']:.3f}" if "ensemble" in board[chosen] else ""
     say(f"winner {best.name}{said}: {board[chosen]['mean']:.3f} ± {board[chosen]['sd']:.3f} (best mean {leaderboard[0]['mean']:.3f}){ens_cv}; "
-        f"nested CV {nested['mean']:.3f}; fitted on every slide")
+        f"nested CV {nested['mean']:.3f}{_interval_text(band)}; fitted on every slide")
     # provisional labels come from the first windows of a slide: their own calibration (the winner alone's too, when it is
     # kept beside the ensemble, so that it is the model train --ensemble off makes)
     for m, of in [(model, members), *([(alone, members[:1])] if keep_models and model is not alone else [])]:
