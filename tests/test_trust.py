@@ -445,7 +445,7 @@ def test_shadow_stats_uncount_a_withdrawn_final_label() -> None:
 def test_the_nested_estimates_interval_resamples_recordings_not_slides() -> None:
     """recording_interval: a percentile bootstrap over whole recordings; wider when slides of a recording agree (they carry
     less), the accuracy inside it, None with fewer than 3 recordings, the rule of three when every slide is right or wrong."""
-    from tactiled.learn.search import recording_interval
+    from tactiled.learn.score import recording_interval
 
     rng = np.random.default_rng(2)
     groups = np.repeat(np.arange(40), 5)

@@ -119,7 +119,9 @@ def cmd_score(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report))
         return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
-    print(f"accuracy {report['accuracy']:.4f} ({report['correct']} of {report['n']} true slides); coverage {report['coverage']:.4f} "
+    band = report["interval95"]
+    within = f", 95 % interval over recordings {band[0]:.4f}-{band[1]:.4f}" if band else ""
+    print(f"accuracy {report['accuracy']:.4f} ({report['correct']} of {report['n']} true slides{within}); coverage {report['coverage']:.4f} "
           f"({report['labelled']} labelled); accuracy of the labelled {report['accuracy_of_labelled']:.4f}")
     if report["abstained"]:
         print("no label: " + ", ".join(f"{k} {v}" for k, v in sorted(report["abstained"].items())))

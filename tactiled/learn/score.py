@@ -9,6 +9,7 @@ true slide; coverage is the fraction that got a label; abstentions are listed by
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -44,6 +45,8 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
     conf: list[float] = []
     hit: list[bool] = []
     top_right = 0  # the top class right, labelled or not (what the accuracy would be without abstaining)
+    hits: list[bool] = []  # per true slide, labelled right
+    files: list[str] = []
     for (name, rec), res in zip(recs, results, strict=True):
         truth, paired, unpaired = pair_results(rec, res)
         extra += unpaired
@@ -56,6 +59,8 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
             elif r.label is None:
                 reasons[r.reason or "?"] += 1
             right += r is not None and r.label == t
+            hits.append(r is not None and r.label == t)
+            files.append(name)
             if r is not None and r.confidence is not None and r.top:
                 conf.append(r.confidence)
                 hit.append(r.top[0][0] == t)  # the top class, labelled or not (an unknown surface still has one)
@@ -66,10 +71,37 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
     labelled = sum(p is not None for p in y_pred)
     out = {"n": n, "correct": correct, "accuracy": correct / n if n else 0.0, "labelled": labelled, "coverage": labelled / n if n else 0.0,
            "accuracy_of_labelled": correct / labelled if labelled else 0.0, "abstained": dict(reasons), "unpaired_detections": extra,
-           "files": per_file, "unknown": reasons.get("unknown_surface", 0), "top_accuracy": top_right / n if n else 0.0}
+           "files": per_file, "unknown": reasons.get("unknown_surface", 0), "top_accuracy": top_right / n if n else 0.0,
+           "interval95": recording_interval(np.array(hits, dtype=bool), np.array(files))}
     out.update(calibration_scores(np.array(conf), np.array(hit, dtype=bool)))
     out.update(confusion(y_true, y_pred, classes))
     return out
+
+
+def recording_interval(hits: npt.NDArray[np.bool_], groups: npt.NDArray[Any], level: float = 0.95,
+                       resamples: int = 2000, seed: int = 0) -> list[float] | None:
+    """[low, high] of the slide accuracy ``hits`` (n,) at ``level``, resampling whole recordings (``groups`` (n,)).
+
+    A percentile bootstrap over recordings, not slides: slides of one recording share its day, specimen and fingertip, so
+    they say less than as many independent slides, and a new recording can miss by as much as the recordings differ.
+    Where every slide is right (or every one wrong) the resamples cannot vary: the rule of three over the m recordings
+    gives [1 - 3/m, 1] (or [0, 3/m]). None with fewer than 3 recordings.
+    """
+    from scipy import stats
+
+    names, idx = np.unique(np.asarray(groups).astype(str), return_inverse=True)
+    if len(names) < 3:
+        return None
+    if hits.all() or not hits.any():
+        m = len(names)
+        return [1.0 - min(1.0, 3.0 / m), 1.0] if hits.all() else [0.0, min(1.0, 3.0 / m)]
+    right = np.bincount(idx, weights=hits.astype(np.float64), minlength=len(names))
+    count = np.bincount(idx, minlength=len(names)).astype(np.float64)
+    res = stats.bootstrap((right, count), lambda r, c, axis: r.sum(axis=axis) / c.sum(axis=axis), paired=True, vectorized=True,
+                          confidence_level=level, n_resamples=resamples, method="percentile", random_state=seed)
+    low, high = float(res.confidence_interval.low), float(res.confidence_interval.high)
+    mean = float(right.sum() / count.sum())
+    return [low, high] if math.isfinite(low) and math.isfinite(high) else [mean, mean]
 
 
 def calibration_scores(confidence: npt.NDArray[np.float64], right: npt.NDArray[np.bool_], bins: int = 10) -> dict[str, Any]:

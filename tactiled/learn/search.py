@@ -67,6 +67,7 @@ from tactiled.learn.model import (
     softmax,
     take_columns,
 )
+from tactiled.learn.score import recording_interval
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -286,32 +287,6 @@ def accuracy_of(scores: FloatArray, y_idx: npt.NDArray[np.intp]) -> float:
 def _interval_text(band: list[float] | None) -> str:
     """`` (95 % interval over recordings 0.52-0.69)`` of :func:`recording_interval`, or nothing."""
     return f" (95 % interval over recordings {band[0]:.2f}-{band[1]:.2f})" if band else ""
-
-
-def recording_interval(hits: npt.NDArray[np.bool_], groups: npt.NDArray[Any], level: float = 0.95,
-                       resamples: int = 2000, seed: int = 0) -> list[float] | None:
-    """[low, high] of the slide accuracy ``hits`` (n,) at ``level``, resampling whole recordings (``groups`` (n,)).
-
-    A percentile bootstrap over recordings, not slides: slides of one recording share its day, specimen and fingertip, so
-    they say less than as many independent slides, and a new recording can miss by as much as the recordings differ.
-    Where every slide is right (or every one wrong) the resamples cannot vary: the rule of three over the m recordings
-    gives [1 - 3/m, 1] (or [0, 3/m]). None with fewer than 3 recordings.
-    """
-    from scipy import stats
-
-    names, idx = np.unique(np.asarray(groups).astype(str), return_inverse=True)
-    if len(names) < 3:
-        return None
-    if hits.all() or not hits.any():
-        m = len(names)
-        return [1.0 - min(1.0, 3.0 / m), 1.0] if hits.all() else [0.0, min(1.0, 3.0 / m)]
-    right = np.bincount(idx, weights=hits.astype(np.float64), minlength=len(names))
-    count = np.bincount(idx, minlength=len(names)).astype(np.float64)
-    res = stats.bootstrap((right, count), lambda r, c, axis: r.sum(axis=axis) / c.sum(axis=axis), paired=True, vectorized=True,
-                          confidence_level=level, n_resamples=resamples, method="percentile", random_state=seed)
-    low, high = float(res.confidence_interval.low), float(res.confidence_interval.high)
-    mean = float(right.sum() / count.sum())
-    return [low, high] if math.isfinite(low) and math.isfinite(high) else [mean, mean]
 
 
 # ---- parallel execution -----------------------------------------------------------------------------------------
