@@ -56,25 +56,26 @@ def test_a_bridge_on_a_replay_gets_every_sample_its_losses_status_and_labels(tmp
     assert len(labels) == 2 and all(first <= m.start < first + len(samples) for m in labels)
 
 
-def test_a_replay_that_publishes_nothing_imports_neither_zeromq_nor_asyncio(tmp_path: Path) -> None:
-    """Start-up: ZeroMQ, asyncio and the publishing side are imported only for ``replay --publish``."""
+def _imported_by_replay(tmp_path: Path, options: list[str], names: list[str]) -> list[str]:
+    """Which of the modules ``names`` a plain ``tactiled replay OPTIONS r.npz`` imports, run in a fresh interpreter (sorted)."""
+    import json
     import sys
 
     save_recording(tmp_path / "r.npz", lossy_recording(0))
-    code = ("import sys, runpy; sys.argv = ['tactiled', 'replay', sys.argv[1]]\n"
+    code = ("import json, runpy, sys; names = json.loads(sys.argv[2]); sys.argv = ['tactiled', 'replay', *json.loads(sys.argv[3]), sys.argv[1]]\n"
             "try:\n    runpy.run_module('tactiled', run_name='__main__')\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
-            "print(sorted({k.split('.')[0] for k in sys.modules} & {'zmq', 'asyncio'}), 'tactiled.service.replay_feed' in sys.modules, file=sys.stderr)")
-    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "r.npz")], capture_output=True, text=True, timeout=120, check=True)
-    assert out.stderr.strip().splitlines()[-1] == "[] False", out.stderr
+            "print(json.dumps(sorted(n for n in names if n in sys.modules)), file=sys.stderr)")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "r.npz"), json.dumps(names), json.dumps(options)], capture_output=True,
+                         text=True, timeout=120, check=True)
+    found: list[str] = json.loads(out.stderr.strip().splitlines()[-1])
+    return found
+
+
+def test_a_replay_that_publishes_nothing_imports_neither_zeromq_nor_asyncio(tmp_path: Path) -> None:
+    """Start-up: ZeroMQ, asyncio and the publishing side are imported only for ``replay --publish``."""
+    assert _imported_by_replay(tmp_path, [], ["zmq", "asyncio", "tactiled.service.replay_feed"]) == []
 
 
 def test_a_replay_with_the_default_config_imports_no_msgpack_toml_parser_or_statistics(tmp_path: Path) -> None:
     """Start-up: msgpack (packing a message), tomllib (a --config file) and statistics are not imported by a plain replay."""
-    import sys
-
-    save_recording(tmp_path / "r.npz", lossy_recording(0))
-    code = ("import sys, runpy; sys.argv = ['tactiled', 'replay', '--json', sys.argv[1]]\n"
-            "try:\n    runpy.run_module('tactiled', run_name='__main__')\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
-            "print(sorted({k.split('.')[0] for k in sys.modules} & {'msgpack', 'tomllib', 'statistics'}), file=sys.stderr)")
-    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "r.npz")], capture_output=True, text=True, timeout=120, check=True)
-    assert out.stderr.strip().splitlines()[-1] == "[]", out.stderr
+    assert _imported_by_replay(tmp_path, ["--json"], ["msgpack", "tomllib", "statistics"]) == []
