@@ -9,7 +9,6 @@ true slide; coverage is the fraction that got a label; abstentions are listed by
 
 from __future__ import annotations
 
-import math
 from collections import Counter
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -41,12 +40,10 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
     y_pred: list[str | None] = []
     reasons: Counter[str] = Counter()
     extra = 0
-    per_file = []
+    per_file: list[dict[str, Any]] = []
     conf: list[float] = []
     hit: list[bool] = []
     top_right = 0  # the top class right, labelled or not (what the accuracy would be without abstaining)
-    hits: list[bool] = []  # per true slide, labelled right
-    files: list[str] = []
     for (name, rec), res in zip(recs, results, strict=True):
         truth, paired, unpaired = pair_results(rec, res)
         extra += unpaired
@@ -59,20 +56,20 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
             elif r.label is None:
                 reasons[r.reason or "?"] += 1
             right += r is not None and r.label == t
-            hits.append(r is not None and r.label == t)
-            files.append(name)
             if r is not None and r.confidence is not None and r.top:
                 conf.append(r.confidence)
                 hit.append(r.top[0][0] == t)  # the top class, labelled or not (an unknown surface still has one)
             top_right += r is not None and bool(r.top) and r.top[0][0] == t
         per_file.append({"file": name, "slides": len(truth), "correct": right, "unpaired_detections": unpaired})
     n = len(y_true)
-    correct = sum(p == t for p, t in zip(y_pred, y_true, strict=True))
+    hits = np.array([p == t for p, t in zip(y_pred, y_true, strict=True)], dtype=bool)
+    correct = int(hits.sum())
+    files = np.repeat([f["file"] for f in per_file], [f["slides"] for f in per_file])
     labelled = sum(p is not None for p in y_pred)
     out = {"n": n, "correct": correct, "accuracy": correct / n if n else 0.0, "labelled": labelled, "coverage": labelled / n if n else 0.0,
            "accuracy_of_labelled": correct / labelled if labelled else 0.0, "abstained": dict(reasons), "unpaired_detections": extra,
            "files": per_file, "unknown": reasons.get("unknown_surface", 0), "top_accuracy": top_right / n if n else 0.0,
-           "interval95": recording_interval(np.array(hits, dtype=bool), np.array(files))}
+           "interval95": recording_interval(hits, files)}
     out.update(calibration_scores(np.array(conf), np.array(hit, dtype=bool)))
     out.update(confusion(y_true, y_pred, classes))
     return out
@@ -99,9 +96,7 @@ def recording_interval(hits: npt.NDArray[np.bool_], groups: npt.NDArray[Any], le
     count = np.bincount(idx, minlength=len(names)).astype(np.float64)
     res = stats.bootstrap((right, count), lambda r, c, axis: r.sum(axis=axis) / c.sum(axis=axis), paired=True, vectorized=True,
                           confidence_level=level, n_resamples=resamples, method="percentile", random_state=seed)
-    low, high = float(res.confidence_interval.low), float(res.confidence_interval.high)
-    mean = float(right.sum() / count.sum())
-    return [low, high] if math.isfinite(low) and math.isfinite(high) else [mean, mean]
+    return [float(res.confidence_interval.low), float(res.confidence_interval.high)]
 
 
 def calibration_scores(confidence: npt.NDArray[np.float64], right: npt.NDArray[np.bool_], bins: int = 10) -> dict[str, Any]:

@@ -415,6 +415,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     if len(classes) < 2:
         raise TactiledError(f"training needs at least two surfaces, got {classes}")
     y_idx = np.array([classes.index(s.label) if s.label in classes else -1 for s in first.slides])
+    files = np.array([s.file for s in first.slides])  # every window set has these slides in this order
     outer = slide_folds(first, folds, seed)
     nested_on = len(usable) > 1
     # every window set has the same slides in the same order (detection does not depend on the window)
@@ -457,15 +458,14 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         picks.append(usable[pick].name)
         nested_accs.append(float(board[pick]["folds"][o]))
     nested_hits = np.concatenate([hits_of(oof[name][te], y_idx[te]) for name, (_, te) in zip(picks, outer, strict=True)])
-    nested_groups = np.concatenate([np.array([first.slides[i].file for i in te]) for _, te in outer])
-    band = recording_interval(nested_hits, nested_groups)
+    band = recording_interval(nested_hits, np.concatenate([files[te] for _, te in outer]))
     nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks, "interval95": band}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
     summary: dict[str, Any] = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs)}
     alone = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty, untaught)
-    own_t = fit_temperature(oof[best.name], y_idx)  # the winner's temperature as an ensemble member (label-smoothed, as the partner's)
     model, members, scores = alone, [(best, alone.temperature)], oof[best.name]
     if ensemble != "off" and can_partner(best, usable):
+        own_t = fit_temperature(oof[best.name], y_idx)  # the winner's temperature as a member (label-smoothed, as the partner's)
         partner = _fit_member(sets, SPECTRUM, oof[SPECTRUM.name], y_idx, classes, config, fs, channels, seed, inner_folds, method)
         both = ensemble_scores(oof[best.name], own_t, oof[SPECTRUM.name], partner.temperature)
         folds_both = [accuracy_of(both[te], y_idx[te]) for _, te in outer]
@@ -492,7 +492,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
             m.summary = {**m.summary, "early_calibration": early_info}
     ws = sets[_key(best)][1]
     result = SearchResult(leaderboard, best.name, nested, model, len(ws.slides), len(recs), ws.per_class(), _counts(ws),
-                          time.perf_counter() - t0, oof=(scores, y_idx, np.array([sl.file for sl in ws.slides])))
+                          time.perf_counter() - t0, oof=(scores, y_idx, files))
     if keep_models:
         result.models = {c.name: alone if c == best else _refit(sets, c, oof[c.name], y_idx, classes, config, fs, channels, seed,
                                                                    inner_folds, method, summary, novelty, untaught) for c in usable}

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import functools
+
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
 HEAP_BLOCK_BYTES = 4 << 20  # blocks up to this size come from the heap (the pipeline's temporaries are 0.25-1.3 MB)
 HEAP_KEPT_BYTES = 8 << 20  # freed memory at the heap's top kept up to this size, not given back to the system
 
 
+@functools.cache  # once per process (a replay, or each worker): every file after the first asks again for nothing
 def keep_freed_memory() -> bool:
     """For a process that runs whole files through the pipeline (a replay, its workers): glibc's malloc serves blocks up to
     :data:`HEAP_BLOCK_BYTES` from its heap and keeps up to :data:`HEAP_KEPT_BYTES` freed, so that the temporaries made for
