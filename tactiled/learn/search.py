@@ -20,7 +20,8 @@ the best mean (:func:`choose`): with few recordings the top of the leaderboard i
 noise, and the simpler candidate is the safer bet on new data. Its accuracy is estimated
 honestly by nested cross-validation: in each outer fold, the same rule on an inner grouped
 CV of the training files alone picks a candidate, which is then scored on the held-out
-files. The winner is refitted on every recording; its temperature and its confidence
+files (where a surface has a single file in an outer fold's training part, as with two recordings per surface, the
+inner folds there split by slide: grouped by file they could test nothing; the outer folds stay grouped). The winner is refitted on every recording; its temperature and its confidence
 calibration (:func:`fit_calibration`) are fitted on its out-of-fold slide scores, and its
 novelty threshold (:func:`fit_novelty`) on the distance ratios of slides to other recordings' slides (and, for the
 ``combined`` score, a distance threshold on their distances to the nearest other surface), weighing a caught untaught
@@ -217,9 +218,7 @@ def grouped_splits(y: npt.NDArray[Any], groups: npt.NDArray[Any], n_splits: int,
     n_groups = len(np.unique(groups))
     if n_groups < 2:
         raise TactiledError("cross-validation needs at least two recordings")
-    labelled = (y != "") if y.dtype.kind in "US" else (y >= 0)  # unlabelled slides: "" (surface names) or -1 (class indices)
-    pairs = {(str(a), str(b)) for a, b in zip(y[labelled], groups[labelled], strict=True)}
-    fewest = min(np.unique([a for a, _ in pairs], return_counts=True)[1], default=0)  # recordings of the class with fewest
+    fewest = fewest_groups(y, groups)
     if fewest < 2:
         k = max(2, min(n_splits, n_groups))
         return list(GroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, groups))
@@ -227,6 +226,14 @@ def grouped_splits(y: npt.NDArray[Any], groups: npt.NDArray[Any], n_splits: int,
     with warnings.catch_warnings():  # unlabelled slides (a "class" of a few members) do not set k: no warning for them
         warnings.filterwarnings("ignore", "The least populated class", UserWarning)
         return list(StratifiedGroupKFold(n_splits=k, shuffle=True, random_state=seed).split(np.zeros(len(y)), y, groups))
+
+
+def fewest_groups(y: npt.NDArray[Any], groups: npt.NDArray[Any]) -> int:
+    """The number of groups (recordings) of the labelled class with fewest; 0 if none is labelled (unlabelled: "" or -1)."""
+    y, groups = np.asarray(y), np.asarray(groups)
+    labelled = (y != "") if y.dtype.kind in "US" else (y >= 0)
+    pairs = {(str(a), str(b)) for a, b in zip(y[labelled], groups[labelled], strict=True)}
+    return int(min(np.unique([a for a, _ in pairs], return_counts=True)[1], default=0))
 
 
 def slide_folds(ws: WindowSet, n_splits: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
@@ -418,6 +425,10 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     files = np.array([s.file for s in first.slides])  # every window set has these slides in this order
     outer = slide_folds(first, folds, seed)
     nested_on = len(usable) > 1
+    by_slide = nested_on and any(inner_by_slide(first, tr) for tr, _ in outer)
+    if by_slide:
+        say("nested CV: an outer training fold holds a single recording of some surface, so the inner folds that choose "
+            "the candidate there split recordings by slide (their scores are optimistic; only the outer folds are reported)")
     # every window set has the same slides in the same order (detection does not depend on the window)
     tasks = []
     for c in usable:  # one task per candidate (its data crosses to a worker once); per outer fold for the slow forward selection
@@ -459,7 +470,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         nested_accs.append(float(board[pick]["folds"][o]))
     nested_hits = np.concatenate([hits_of(oof[name][te], y_idx[te]) for name, (_, te) in zip(picks, outer, strict=True)])
     band = recording_interval(nested_hits, np.concatenate([files[te] for _, te in outer]))
-    nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks, "interval95": band}
+    nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks, "interval95": band,
+              **({"inner_grouped_by": "slide"} if by_slide else {})}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
     summary: dict[str, Any] = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs)}
     alone = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty, untaught)
@@ -787,11 +799,23 @@ def _counts(ws: WindowSet) -> dict[str, Any]:
 
 
 def _inner_folds(ws: WindowSet, train: npt.NDArray[np.intp], n: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
-    """:func:`grouped_splits` of the slides ``train`` (indices into ws.slides), as indices into ws.slides; [] if fewer than 2 files."""
+    """:func:`grouped_splits` of the slides ``train`` (indices into ws.slides), as indices into ws.slides; [] if fewer than 2 files.
+
+    Grouped by file, or by slide where a surface has a single file among ``train`` (:func:`inner_by_slide`: an outer
+    training fold of surfaces recorded twice). Folds grouped by file would test that file with nothing of its surface to
+    train on: every candidate would score nothing there, and the inner choice would fall to the simplest, whatever it scores.
+    """
     files = np.array([ws.slides[i].file for i in train])
     if len(np.unique(files)) < 2:
         return []
-    return [(train[a], train[b]) for a, b in grouped_splits(ws.slide_labels()[train], files, n, seed)]
+    labels = ws.slide_labels()[train]
+    groups = train if inner_by_slide(ws, train) else files
+    return [(train[a], train[b]) for a, b in grouped_splits(labels, groups, n, seed)]
+
+
+def inner_by_slide(ws: WindowSet, train: npt.NDArray[np.intp]) -> bool:
+    """Whether the inner folds of outer training slides ``train`` are grouped by slide (a surface has a single file there)."""
+    return fewest_groups(ws.slide_labels()[train], np.array([ws.slides[i].file for i in train])) < 2
 
 
 def _run_with_progress(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]], say: Progress, scheduler: str | None,
@@ -836,7 +860,8 @@ def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_fold
                 pool: int = 0) -> list[int]:
     """Forward selection (scikit-learn's SequentialFeatureSelector, ELM criterion, grouped CV) on the windows ``rows``.
 
-    ``n_features`` "auto": add features while the CV accuracy rises by at least 0.005.
+    ``n_features`` "auto": add features while the CV accuracy rises by at least 0.005. Folds grouped by file, or by slide
+    where a surface has a single file among ``rows`` (as :func:`_inner_folds`).
     Constant columns are never candidates. ``pool`` > 0: only the ``pool`` columns with the largest
     ANOVA F on ``rows`` are candidates (a cheaper search; every step costs one CV per candidate).
     Returns column indices into ``ws.names``.
@@ -849,6 +874,8 @@ def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_fold
     from tactiled.learn.model import LogFeatures
 
     x, y, g = ws.x[rows], ws.y[rows], ws.groups[rows]
+    if fewest_groups(y, g) < 2:  # a surface with one file here (an outer fold's training part): by slide, as _inner_folds
+        g = ws.slide[rows]
     cv = grouped_splits(y, g, inner_folds, seed)
     z = Pipeline([("log", LogFeatures(tuple(ws.names))), ("scale", StandardScaler())]).fit_transform(x)
     varying = np.flatnonzero(np.ptp(z, axis=0) > 1e-12)
