@@ -167,6 +167,17 @@ class LogFeatures:
         return self
 
 
+def anova_f(x: Any, y: Any) -> tuple[FloatArray, FloatArray]:
+    """scikit-learn's ``f_classif`` (ANOVA F and p-values of each column of x (n, F) against labels y (n,)) without its
+    division warnings: a fold with one row per class (no within-class degrees of freedom) or a constant column gives
+    NaN, which the callers rank last."""
+    from sklearn.feature_selection import f_classif
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f_stat, p = f_classif(x, y)
+    return np.asarray(f_stat, dtype=np.float64), np.asarray(p, dtype=np.float64)
+
+
 def make_pipeline(names: tuple[str, ...] | list[str], kind: str, params: dict[str, Any], seed: int = 0) -> Any:
     """An unfitted sklearn Pipeline: log of scale features → standardise → [the ``kbest`` best by ANOVA F] → classifier."""
     from sklearn.pipeline import Pipeline
@@ -175,9 +186,9 @@ def make_pipeline(names: tuple[str, ...] | list[str], kind: str, params: dict[st
     steps: list[tuple[str, Any]] = [("log", LogFeatures(tuple(names))), ("scale", StandardScaler())]
     k = int(params.get("kbest", 0))
     if 0 < k < len(names):
-        from sklearn.feature_selection import SelectKBest, f_classif
+        from sklearn.feature_selection import SelectKBest
 
-        steps.append(("select", SelectKBest(f_classif, k=k)))
+        steps.append(("select", SelectKBest(anova_f, k=k)))
     return Pipeline([*steps, ("clf", make_classifier(kind, params, seed))])
 
 
@@ -484,6 +495,8 @@ class Model:
         band = cv.get("interval95") if isinstance(cv, dict) else None
         if acc and isinstance(band, list) and len(band) == 2 and all(_is_number(v) for v in band):
             acc += f" (95 % interval over recordings {100 * band[0]:.0f}–{100 * band[1]:.0f} %)"
+        if isinstance(cv, dict) and cv.get("inner_grouped_by") == "none":
+            acc += ", optimistic (one slide of a surface in a fold: no choice inside it)"
         s = self.settings
         what = f"{self.kind} on {len(self.names)} features"
         if self.partner is not None:

@@ -21,7 +21,8 @@ noise, and the simpler candidate is the safer bet on new data. Its accuracy is e
 honestly by nested cross-validation: in each outer fold, the same rule on an inner grouped
 CV of the training files alone picks a candidate, which is then scored on the held-out
 files (where a surface has a single file in an outer fold's training part, as with two recordings per surface, the
-inner folds there split by slide: grouped by file they could test nothing; the outer folds stay grouped). The winner is refitted on every recording; its temperature and its confidence
+inner folds there split by slide: grouped by file they could test nothing; where it has a single slide, that fold
+scores the winner itself; the outer folds stay grouped). The winner is refitted on every recording; its temperature and its confidence
 calibration (:func:`fit_calibration`) are fitted on its out-of-fold slide scores, and its
 novelty threshold (:func:`fit_novelty`) on the distance ratios of slides to other recordings' slides (and, for the
 ``combined`` score, a distance threshold on their distances to the nearest other surface), weighing a caught untaught
@@ -425,8 +426,11 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     files = np.array([s.file for s in first.slides])  # every window set has these slides in this order
     outer = slide_folds(first, folds, seed)
     nested_on = len(usable) > 1
-    by_slide = nested_on and any(inner_by_slide(first, tr) for tr, _ in outer)
-    if by_slide:
+    grouping = [inner_grouping(first, tr) if nested_on else "file" for tr, _ in outer]
+    if "none" in grouping:
+        say("nested CV: an outer training fold holds a single slide of some surface, so no inner folds can choose the "
+            "candidate there: that fold scores the winner itself, and the nested estimate is optimistic")
+    elif "slide" in grouping:
         say("nested CV: an outer training fold holds a single recording of some surface, so the inner folds that choose "
             "the candidate there split recordings by slide (their scores are optimistic; only the outer folds are reported)")
     # every window set has the same slides in the same order (detection does not depend on the window)
@@ -465,13 +469,13 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     # nested: per outer fold, the rule applied to the inner folds' accuracies, its pick scored on that fold
     nested_accs, picks = [], []
     for o in range(len(outer)):
-        pick = choose(usable, [inner_acc[c.name][o] for c in usable]) if nested_on else 0
+        pick = choose(usable, [inner_acc[c.name][o] for c in usable]) if nested_on and grouping[o] != "none" else chosen
         picks.append(usable[pick].name)
         nested_accs.append(float(board[pick]["folds"][o]))
     nested_hits = np.concatenate([hits_of(oof[name][te], y_idx[te]) for name, (_, te) in zip(picks, outer, strict=True)])
     band = recording_interval(nested_hits, np.concatenate([files[te] for _, te in outer]))
     nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks, "interval95": band,
-              **({"inner_grouped_by": "slide"} if by_slide else {})}
+              **({"inner_grouped_by": "none" if "none" in grouping else "slide"} if set(grouping) - {"file"} else {})}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
     summary: dict[str, Any] = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs)}
     alone = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty, untaught)
@@ -799,23 +803,24 @@ def _counts(ws: WindowSet) -> dict[str, Any]:
 
 
 def _inner_folds(ws: WindowSet, train: npt.NDArray[np.intp], n: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
-    """:func:`grouped_splits` of the slides ``train`` (indices into ws.slides), as indices into ws.slides; [] if fewer than 2 files.
-
-    Grouped by file, or by slide where a surface has a single file among ``train`` (:func:`inner_by_slide`: an outer
-    training fold of surfaces recorded twice). Folds grouped by file would test that file with nothing of its surface to
-    train on: every candidate would score nothing there, and the inner choice would fall to the simplest, whatever it scores.
-    """
-    files = np.array([ws.slides[i].file for i in train])
-    if len(np.unique(files)) < 2:
+    """:func:`grouped_splits` of the slides ``train`` (indices into ws.slides), as indices into ws.slides, grouped as
+    :func:`inner_grouping` says ([] for ``none``)."""
+    how = inner_grouping(ws, train)
+    if how == "none":
         return []
+    groups = np.array([ws.slides[i].file for i in train]) if how == "file" else train
+    return [(train[a], train[b]) for a, b in grouped_splits(ws.slide_labels()[train], groups, n, seed)]
+
+
+def inner_grouping(ws: WindowSet, train: npt.NDArray[np.intp]) -> str:
+    """How the inner folds of the outer training slides ``train`` keep slides together: ``file``; ``slide`` where a surface
+    has a single file among them (an outer fold of surfaces recorded twice: folds grouped by file would test that file
+    with nothing of its surface to train on, every candidate would score nothing, and the choice would fall to the
+    simplest whatever it scores); ``none`` (no inner folds, no inner choice) where a surface has a single slide there."""
     labels = ws.slide_labels()[train]
-    groups = train if inner_by_slide(ws, train) else files
-    return [(train[a], train[b]) for a, b in grouped_splits(labels, groups, n, seed)]
-
-
-def inner_by_slide(ws: WindowSet, train: npt.NDArray[np.intp]) -> bool:
-    """Whether the inner folds of outer training slides ``train`` are grouped by slide (a surface has a single file there)."""
-    return fewest_groups(ws.slide_labels()[train], np.array([ws.slides[i].file for i in train])) < 2
+    if fewest_groups(labels, np.array([ws.slides[i].file for i in train])) >= 2:
+        return "file"
+    return "slide" if fewest_groups(labels, train) >= 2 else "none"
 
 
 def _run_with_progress(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]], say: Progress, scheduler: str | None,
@@ -860,8 +865,8 @@ def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_fold
                 pool: int = 0) -> list[int]:
     """Forward selection (scikit-learn's SequentialFeatureSelector, ELM criterion, grouped CV) on the windows ``rows``.
 
-    ``n_features`` "auto": add features while the CV accuracy rises by at least 0.005. Folds grouped by file, or by slide
-    where a surface has a single file among ``rows`` (as :func:`_inner_folds`).
+    ``n_features`` "auto": add features while the CV accuracy rises by at least 0.005. Folds grouped by file; by slide
+    where a surface has a single file among ``rows`` (as :func:`_inner_folds`), by window where it has a single slide.
     Constant columns are never candidates. ``pool`` > 0: only the ``pool`` columns with the largest
     ANOVA F on ``rows`` are candidates (a cheaper search; every step costs one CV per candidate).
     Returns column indices into ``ws.names``.
@@ -871,18 +876,18 @@ def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_fold
     from sklearn.preprocessing import StandardScaler
 
     from tactiled.learn.elm import ELMClassifier
-    from tactiled.learn.model import LogFeatures
+    from tactiled.learn.model import LogFeatures, anova_f
 
     x, y, g = ws.x[rows], ws.y[rows], ws.groups[rows]
-    if fewest_groups(y, g) < 2:  # a surface with one file here (an outer fold's training part): by slide, as _inner_folds
-        g = ws.slide[rows]
+    if fewest_groups(y, g) < 2:  # a surface with one file here (an outer fold's training part): by slide, as _inner_folds,
+        g = ws.slide[rows]       # or, with one slide, by window (optimistic, but the features are still ranked on held-out rows)
+        if fewest_groups(y, g) < 2:
+            g = np.arange(len(rows))
     cv = grouped_splits(y, g, inner_folds, seed)
     z = Pipeline([("log", LogFeatures(tuple(ws.names))), ("scale", StandardScaler())]).fit_transform(x)
     varying = np.flatnonzero(np.ptp(z, axis=0) > 1e-12)
     if 0 < pool < len(varying) and len(np.unique(y)) > 1:
-        from sklearn.feature_selection import f_classif
-
-        f_stat = np.nan_to_num(f_classif(z[:, varying], y)[0], nan=0.0, posinf=np.finfo(np.float64).max)
+        f_stat = np.nan_to_num(anova_f(z[:, varying], y)[0], nan=0.0, posinf=np.finfo(np.float64).max)
         varying = np.sort(varying[np.argsort(-f_stat, kind="stable")[:pool]])
     n: int | str = n_features if n_features == "auto" else min(int(n_features), len(varying) - 1)
     sfs = SequentialFeatureSelector(ELMClassifier(n_hidden=50, calibrate=False, random_state=seed), n_features_to_select=n,
