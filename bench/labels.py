@@ -20,7 +20,7 @@ from 20 Hz to 0.45 fs, the log spectral centroid and the kurtosis; StandardScale
 
 Usage: python bench/labels.py [--scenes "hand;robot;..."] [--files 3] [--test-files 2] [--slides 3] [--out DIR] [--json FILE]
        [--other-units 1,2] [--no-paper] [--leave-out-scenes "hand;robot;one-channel"] [--novelty ratio|distance|combined]
-       [--no-gratings] [--ensemble off|always|guarded]
+       [--no-gratings] [--ensemble off|always|guarded] [--candidates-on-units]
 
 ``--ensemble`` trains every default model with ``train --ensemble``; where the model is an ensemble, the winner alone (the
 candidate ``train`` chose, with its own calibration) is scored on the same test sets beside it, and a second table gives
@@ -186,6 +186,39 @@ def ensemble_row(out: dict[str, Any], units: list[int]) -> str:
             + (f"{accs(out['alone'])} % |" if "alone" in out else f"{accs(mine)} % |"))
 
 
+def candidates_table(rows: list[dict[str, Any]], units: list[int]) -> str:
+    """Each candidate's means over the scenes (distinct data: ``hot-gain`` and ``hand,hot-gain`` once): cross-validated and
+    same-unit top class, top class per other unit, and over the other units top class and accuracy with unknowns counted
+    wrong; then the plain baseline's and the chosen candidate's (``--candidates-on-units``)."""
+    seen, distinct = set(), []
+    for r in rows:
+        key = frozenset(r["scene"].split(",")) - {"hand"} if "hot-gain" in r["scene"] else r["scene"]
+        if key not in seen:
+            seen.add(key)
+            distinct.append(r)
+    names = sorted({c["candidate"] for r in distinct for c in r["candidates"]})
+    head = ("| candidate | scenes | CV | same unit | " + " | ".join(f"unit {u}" for u in units)
+            + " | other units, top class | other units, unknowns wrong |\n|---|---|---|---|" + "---|" * len(units) + "---|---|")
+    lines = [head]
+
+    def line(name: str, n: int, cv: str, same: float, per: list[float], gated: float | None) -> str:
+        g = f"{100 * gated:.1f}" if gated is not None else "-"
+        return (f"| {name} | {n} | {cv} | {100 * same:.1f} | " + " | ".join(f"{100 * v:.1f}" for v in per)
+                + f" | {100 * float(np.mean(per)):.1f} | {g} |")
+
+    for name in names:
+        cs = [c for r in distinct for c in r["candidates"] if c["candidate"] == name]
+        per = [float(np.mean([c["other"][u][1] for c in cs])) for u in units]
+        gated = float(np.mean([c["other"][u][0] for c in cs for u in units]))
+        lines.append(line(name, len(cs), f"{100 * np.mean([c['cv'] for c in cs]):.1f}", float(np.mean([c["same_top"] for c in cs])), per, gated))
+    plain = [float(np.mean([r["plain"][f"other{u}"] for r in distinct])) for u in units]
+    lines.append(line("plain baseline", len(distinct), "-", float(np.mean([r["plain"]["same"] for r in distinct])), plain, None))
+    won = [next(c for c in r["candidates"] if c["candidate"] == r["winner"]) for r in distinct]
+    lines.append(line("the chosen candidate", len(won), f"{100 * np.mean([c['cv'] for c in won]):.1f}", float(np.mean([c["same_top"] for c in won])),
+                      [float(np.mean([c["other"][u][1] for c in won])) for u in units], float(np.mean([c["other"][u][0] for c in won for u in units]))))
+    return "\n".join(lines)
+
+
 def main() -> None:
     from threadpoolctl import threadpool_limits
 
@@ -203,6 +236,8 @@ def main() -> None:
     ap.add_argument("--novelty", default=None, help="train --novelty for every model (default: train's)")
     ap.add_argument("--no-gratings", action="store_true", help="skip the far-surface test (the default model on the 15 gratings)")
     ap.add_argument("--ensemble", default=None, help="train --ensemble for the default models (default: train's)")
+    ap.add_argument("--candidates-on-units", action="store_true", help="also score every candidate on every other unit, and print a "
+                    "table of each candidate's means over the scenes")
     args = ap.parse_args()
     opts: dict[str, Any] = {"novelty": args.novelty} if args.novelty else {}
     ens_opts: dict[str, Any] = {"ensemble": args.ensemble} if args.ensemble else {}
@@ -237,6 +272,10 @@ def main() -> None:
             out["alone"] = {"same": scored[res.winner], **{f"other{u}": end_to_end(r, config, alone) for u, r in others.items()}}
         out["candidates"] = [{"candidate": r["candidate"], "cv": r["mean"], "same": scored[r["candidate"]]["accuracy"],
                               "same_top": scored[r["candidate"]]["top_accuracy"]} for r in res.leaderboard]
+        if args.candidates_on_units:  # every candidate on every other unit too: (accuracy, top class) per unit
+            for c in out["candidates"]:
+                c["other"] = {u: [e["accuracy"], e["top_accuracy"]] for u, r in others.items()
+                              for e in [end_to_end(r, config, res.models[c["candidate"]])]}
         if not args.no_paper:
             pres = train(tr, config, method="paper", progress=lambda m: None, **opts)
             out["paper"] = {"same": end_to_end(same, config, pres.model)["accuracy"], "nested_cv": pres.nested["mean"],
@@ -255,6 +294,8 @@ def main() -> None:
         print("|---|---|---|---|---|")
         for r in rows:
             print(ensemble_row(r, units))
+    if args.candidates_on_units:
+        print(candidates_table(rows, units))
     # cross-validation scores the top class (no novelty gate): against the test's top class
     gaps = [(r["scene"], c["candidate"], c["cv"] - c["same_top"]) for r in rows for c in r["candidates"]]
     worst = max(gaps, key=lambda g: abs(g[2])) if gaps else None

@@ -16,7 +16,8 @@ sees them, the way the daemon scores novelty) of:
 
 Two numbers per slide: ``d``, the mean distance to the 3 nearest slides of the nearest taught surface (the ratio's
 numerator), and ``ratio``, that over the same for the next surface. Printed as quantiles, ``d`` also in units of the
-training LORO median, and the share of each population each gate flags (the model's own threshold).
+training LORO median, and the share of each population the gate flags (the model's own thresholds), by each test apart,
+and by the distance test with its threshold 1.25 and 2 times as large.
 
 Usage: python bench/novelty.py [--scenes "robot;hand;one-channel"] [--out DIR] [--json FILE]
 """
@@ -125,7 +126,8 @@ def main() -> None:
         print(f"\n{spec}: {model.kind} on {len(model.names)} features; novelty {model.novelty_score}, ratio threshold {model.novelty_threshold:.3f}, "
               f"distance threshold {model.novelty_distance_threshold / scale:.2f} LORO medians; "
               f"d in units of the training LORO median ({scale:.2f})")
-        print("| population | slides | d / LORO median: q05 / q25 / median / q75 / q95 / max | ratio: q05 / q25 / median / q75 / q95 / max | flagged |")
+        print("| population | slides | d / LORO median: q05 / q25 / median / q75 / q95 / max | ratio: q05 / q25 / median / q75 / q95 / max "
+              "| flagged (by the ratio, by the distance; distance threshold x1.25, x2) |")
         print("|---|---|---|---|---|---|")
         for key, s in pops.items():
             m = lo_model if key.startswith("left") else model
@@ -136,9 +138,17 @@ def main() -> None:
 
 
 def flags(model: Model, s: dict[str, list[Any]]) -> str:
-    """The share of slides whose novelty (the model's own gate) is above 1."""
-    nov = over_thresholds(np.column_stack([s["ratio"], s["d"]]), model.novelty_threshold, model.novelty_distance_threshold)
-    return f"{100 * float(np.mean(nov > 1)):.1f} %"
+    """The share of slides whose novelty (the model's own gate) is above 1; then, apart, the share over the ratio's threshold
+    and over the distance threshold, and over the distance threshold times 1.25 and 2 (how much slack the distance test has)."""
+    parts = np.column_stack([s["ratio"], s["d"]])
+    nov = over_thresholds(parts, model.novelty_threshold, model.novelty_distance_threshold)
+    ratio, d, far = parts[:, 0], parts[:, 1], model.novelty_distance_threshold
+
+    def share(hit: np.ndarray) -> str:
+        return f"{100 * float(np.mean(hit)):.1f}"
+
+    return (f"{share(nov > 1)} % (ratio {share(ratio > model.novelty_threshold)}, distance {share(d > far)}, "
+            f"x1.25 {share(d > 1.25 * far)}, x2 {share(d > 2 * far)})")
 
 
 if __name__ == "__main__":
