@@ -371,6 +371,20 @@ def test_nested_estimate_with_two_recordings_per_surface(tmp_path: Path, method:
         assert res.nested["inner_grouped_by"] == "slide"
 
 
+def test_anova_f_warns_nothing_on_constant_columns_and_one_row_per_class() -> None:
+    """The selection's F statistic: NaN (ranked last) where scikit-learn's would warn (a constant column; one row per
+    class, no within-class degrees of freedom), the same value elsewhere."""
+    import warnings
+
+    from tactiled.learn.model import anova_f
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f_one, _ = anova_f(np.array([[1.0, 0.0], [1.0, 1.0], [1.0, 2.0]]), np.array([0, 1, 2]))
+        f_two, _ = anova_f(np.array([[1.0, 0.0], [1.0, 1.0], [1.0, 2.0], [1.0, 5.0]]), np.array([0, 0, 1, 1]))
+    assert np.isnan(f_one).all() and np.isnan(f_two[0]) and f_two[1] == pytest.approx(3.6)
+
+
 def test_nested_estimate_with_one_slide_per_surface_and_recording(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     """Two recordings of one slide per surface (a robot sliding through each file): no inner folds can choose inside an
     outer fold, so those folds score the winner itself and train says the estimate is optimistic (it was the simplest

@@ -169,11 +169,14 @@ class LogFeatures:
 
 def anova_f(x: Any, y: Any) -> tuple[FloatArray, FloatArray]:
     """scikit-learn's ``f_classif`` (ANOVA F and p-values of each column of x (n, F) against labels y (n,)) without its
-    division warnings: a fold with one row per class (no within-class degrees of freedom) or a constant column gives
-    NaN, which the callers rank last."""
+    warnings in ``train``'s output: a fold with one row per class (no within-class degrees of freedom) or a constant
+    column (a band empty in a fold) gives NaN, which the callers rank last."""
+    import warnings
+
     from sklearn.feature_selection import f_classif
 
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", r"Features .* are constant", UserWarning)
         f_stat, p = f_classif(x, y)
     return np.asarray(f_stat, dtype=np.float64), np.asarray(p, dtype=np.float64)
 
