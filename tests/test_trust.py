@@ -352,7 +352,7 @@ def test_the_ece_a_calibrated_model_would_show_is_large_on_few_mid_range_slides_
     assert calibration_scores(np.array([]), np.array([], dtype=bool))["ece_calibrated"] is None
 
 
-def test_train_refuses_a_surface_with_one_recording_and_allows_it_by_slide(tmp_path: Path) -> None:
+def test_train_and_evaluate_refuse_a_surface_with_one_recording_train_allows_it_by_slide(tmp_path: Path) -> None:
     data = tmp_path / "data"
     res = run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "1", "--slides-per-file", "4",
                   "--scene", "robot", "--fs", "2200", "--channels", "1")
@@ -365,6 +365,9 @@ def test_train_refuses_a_surface_with_one_recording_and_allows_it_by_slide(tmp_p
     res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick", "--group-by", "slide")
     assert res.returncode == 0, res.stderr
     assert "optimistic" in res.stderr and "confidence: calibrated" in res.stdout and load_model(tmp_path / "m.npz").novelty_x is not None
+    res = run_cli("evaluate", *files, "--report", str(tmp_path / "report"), "--quick", "--experiments", "a")  # it printed 0.0 % for all
+    assert res.returncode == 2 and not (tmp_path / "report").exists()
+    assert "single recording" in res.stderr.strip().splitlines()[-1] and "--group-by" not in res.stderr
 
 
 def test_train_on_unlabelled_recordings_says_so_at_once(tmp_path: Path) -> None:

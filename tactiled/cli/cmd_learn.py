@@ -205,7 +205,8 @@ def add_commands(sub: Sub) -> None:
 
     p = command(sub, "evaluate", "the papers' experiments by grouped cross-validation", cmd_evaluate,
                 "tactiled evaluate data/sim/*.npz --report report/")
-    p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth, all of one rate and channel count")
+    p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth, all of one rate and channel count, "
+                   "at least two of each surface (folds are grouped by recording)")
     p.add_argument("--report", required=True, help="output folder: report.md, report.json, PNG figures")
     p.add_argument("--force", action="store_true", help="write into a report folder that is not empty")
     p.add_argument("--config", help=c.CONFIG_HELP)

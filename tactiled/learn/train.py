@@ -49,6 +49,16 @@ def class_table(per_file: list[list[LabelledSlide]]) -> dict[str, tuple[int, int
     return {k: (v[0], v[1], len(v[2])) for k, v in sorted(out.items())}
 
 
+def check_two_recordings(table: dict[str, tuple[int, int, int]], hint: str = "") -> None:
+    """Refuse (one line naming them) surfaces of :func:`class_table` with a single recording: cross-validation grouped by
+    recording can never test them on one it did not train on (every such slide would count as wrong). ``hint``: what
+    else the command allows, appended to the advice."""
+    single = [k for k, (_, _, files) in table.items() if files < 2]
+    if single:
+        raise TactiledError(f"surface(s) {', '.join(single)} have a single recording: cross-validation grouped by recording cannot "
+                            f"test them on a recording it did not train on; record a second file of each{hint}")
+
+
 def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
           drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None,
           candidates: Sequence[Candidate] | None = None, keep_models: bool = False, group_by: str = "file",
@@ -104,11 +114,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     if rare:
         say(f"training without {', '.join(rare)} (--drop-rare)")
         per_file = [[s for s in slides if s.label not in rare] for slides in per_file]
-    single = [k for k, (_, _, files) in table.items() if files < 2 and k not in rare]
-    if group_by == "file" and single:
-        raise TactiledError(f"surface(s) {', '.join(single)} have a single recording: cross-validation grouped by recording cannot "
-                            "test them on a recording it did not train on; record a second file of each, or pass --group-by slide "
-                            "(an optimistic estimate)")
+    if group_by == "file":
+        check_two_recordings({k: v for k, v in table.items() if k not in rare}, ", or pass --group-by slide (an optimistic estimate)")
     if group_by == "slide":
         say("warning: --group-by slide: folds split recordings, so slides of one recording are both trained and tested on; "
             "the cross-validated accuracy, the calibration and the novelty threshold are optimistic")
