@@ -172,6 +172,11 @@ def test_score_counts_every_true_slide_and_reads_file_labels(tmp_path: Path) -> 
     labelled = Recording(np.zeros((100, 1), dtype=np.int16), 1000.0, label="b")
     report = score([("g", labelled)], [[ok, SlideResult(1, 50, 90, (50, 90), None, "low_confidence", 0.2, [], {})]], ["a", "b"])
     assert report["n"] == 2 and report["correct"] == 0 and report["abstained"] == {"low_confidence": 1}
+    assert report["untaught"] == {}
+    # a surface the model was not taught: wrong in the accuracy, listed apart with how many came out unknown
+    unknown = SlideResult(1, 42, 88, (42, 88), None, "unknown_surface", 0.4, [("a", 0.4)], {})
+    report = score([("f", rec)], [[ok, unknown]], ["a"])
+    assert report["correct"] == 1 and report["unknown"] == 1 and report["untaught"] == {"b": [1, 1]}
     # end to end: a file-level label recording scored through the CLI
     sim = tmp_path / "sim"
     assert run_cli("simulate", "dataset", "--out", str(sim), "--surfaces", "2", "--files-per-surface", "2", "--slides-per-file", "2",

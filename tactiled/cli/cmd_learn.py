@@ -126,6 +126,8 @@ def cmd_score(args: argparse.Namespace) -> int:
     if report["abstained"]:
         print("no label: " + ", ".join(f"{k} {v}" for k, v in sorted(report["abstained"].items())))
     print(f"unknown surfaces: {report['unknown']} of {report['n']} true slides")
+    for surface, (slides, unknown) in report["untaught"].items():
+        print(f"not a surface of the model: {surface}, {unknown} of its {slides} slides called unknown (the right answer), the rest labelled")
     if report["ece"] is not None:
         null = report["ece_calibrated"]
         print(f"confidence: expected calibration error {report['ece']:.3f} (10 bins; a perfectly calibrated model would show {null[0]:.3f}, "

@@ -4,7 +4,9 @@ With per-slide ground truth, each true slide is paired with the pipeline's slide
 overlaps it most (:func:`tactiled.core.matching.match_slides`); a true slide without a label
 (missed by the detector, or abstained) counts as wrong. With a file-level ``label`` only,
 the slides are the detector's and each should carry that label. Accuracy is over every
-true slide; coverage is the fraction that got a label; abstentions are listed by reason.
+true slide; coverage is the fraction that got a label; abstentions are listed by reason. Slides of a surface the model
+was not taught count as wrong in the accuracy (no label can be right) and are listed apart (``untaught``: how many of them
+came out unknown, the right answer there).
 """
 
 from __future__ import annotations
@@ -44,6 +46,8 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
     conf: list[float] = []
     hit: list[bool] = []
     top_right = 0  # the top class right, labelled or not (what the accuracy would be without abstaining)
+    untaught: dict[str, list[int]] = {}  # surfaces the model was not taught: [slides, called unknown] (the right answer there)
+    taught = set(classes)
     for (name, rec), res in zip(recs, results, strict=True):
         truth, paired, unpaired = pair_results(rec, res)
         extra += unpaired
@@ -60,6 +64,10 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
                 conf.append(r.confidence)
                 hit.append(r.top[0][0] == t)  # the top class, labelled or not (an unknown surface still has one)
             top_right += r is not None and bool(r.top) and r.top[0][0] == t
+            if t not in taught:
+                row = untaught.setdefault(t, [0, 0])
+                row[0] += 1
+                row[1] += r is not None and r.reason == "unknown_surface"
         per_file.append({"file": name, "slides": len(truth), "correct": right, "unpaired_detections": unpaired})
     n = len(y_true)
     hits = np.array([p == t for p, t in zip(y_pred, y_true, strict=True)], dtype=bool)
@@ -72,6 +80,7 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
            "interval95": recording_interval(hits, files)}
     out.update(calibration_scores(np.array(conf), np.array(hit, dtype=bool)))
     out.update(confusion(y_true, y_pred, classes))
+    out["untaught"] = {t: [int(n_), int(k)] for t, (n_, k) in sorted(untaught.items())}
     return out
 
 
