@@ -370,6 +370,23 @@ def test_train_and_evaluate_refuse_a_surface_with_one_recording_train_allows_it_
     assert "single recording" in res.stderr.strip().splitlines()[-1] and "--group-by" not in res.stderr
 
 
+def test_train_and_evaluate_refuse_a_recording_given_twice(tmp_path: Path) -> None:
+    """The same samples under two names (a copy, or one file matched by two globs): grouped folds would test a recording on
+    its copy (cross-validation then promised 100 % on the hand scene), so train and evaluate stop with one line naming both."""
+    data = tmp_path / "data"
+    assert run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "2", "--files-per-surface", "1", "--slides-per-file", "2",
+                   "--scene", "robot", "--fs", "2200", "--channels", "1").returncode == 0
+    files = sorted(data.glob("*.npz"))
+    copy = data / "copy.npz"
+    copy.write_bytes(files[0].read_bytes())
+    argv = [*map(str, files), str(copy)]
+    for command in (["train", *argv, "-o", str(tmp_path / "m.npz")], ["evaluate", *argv, "--report", str(tmp_path / "r")]):
+        res = run_cli(*command)
+        line = res.stderr.strip().splitlines()[-1]
+        assert res.returncode == 2 and "hold the same samples" in line and files[0].name in line and "copy.npz" in line, res.stderr
+    assert not (tmp_path / "m.npz").exists() and not (tmp_path / "r").exists()
+
+
 def test_train_on_unlabelled_recordings_says_so_at_once(tmp_path: Path) -> None:
     from tactiled.files.recording import Recording, save_recording
 

@@ -49,7 +49,7 @@ from tactiled.learn.search import (
     window_oof,
     window_settings,
 )
-from tactiled.learn.train import check_two_recordings, class_table
+from tactiled.learn.train import check_distinct, check_two_recordings, class_table
 
 Folds = list[tuple[Any, Any]]
 CLASSIFIERS: dict[str, tuple[str, dict[str, Any]]] = {
@@ -80,6 +80,7 @@ class Evaluator:
         self.fs = self.recs[0][1].fs
         self.channels = self.recs[0][1].channels
         self.found: dict[Any, tuple[list[list[LabelledSlide]], SlideCounts]] = {None: find_slides(self.recs, config)}
+        check_distinct(self.recs)
         check_two_recordings(class_table(self.found[None][0]))
         self._features: dict[tuple[Any, ...], WindowSet] = {}
         self._selection: dict[tuple[Any, ...], list[list[int]]] = {}

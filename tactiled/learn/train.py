@@ -12,6 +12,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from tactiled.config import Config
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
@@ -24,7 +26,7 @@ GROUP_BY = ("file", "slide")
 
 
 def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None:
-    """Every file readable, one rate and channel count."""
+    """Every file readable, one rate and channel count, no recording twice (:func:`check_distinct`)."""
     if len(recs) != wanted:
         raise TactiledError("unreadable recordings (listed above); nothing written")
     if not recs:
@@ -33,6 +35,24 @@ def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None
     channels = {r.channels for _, r in recs}
     if len(fs) != 1 or len(channels) != 1:
         raise TactiledError(f"recordings differ in fs {sorted(fs)} or channels {sorted(channels)}; train one rate at a time")
+    check_distinct(recs)
+
+
+def check_distinct(recs: Sequence[tuple[str, Recording]]) -> None:
+    """Refuse (one line naming both) two recordings with the same samples, such as one file given twice or a copy under
+    another name: cross-validation grouped by recording would test each on its own copy and promise what it never measured."""
+    import hashlib
+
+    seen: dict[str, str] = {}
+    for name, rec in recs:
+        samples = np.ascontiguousarray(rec.samples)
+        h = hashlib.blake2b(f"{samples.dtype.str}{samples.shape}".encode())
+        h.update(samples.data)
+        digest = h.hexdigest()
+        if digest in seen:
+            raise TactiledError(f"{seen[digest]} and {name} hold the same samples: cross-validation would test a recording on its "
+                                "own copy; give each recording once")
+        seen[digest] = name
 
 
 def class_table(per_file: list[list[LabelledSlide]]) -> dict[str, tuple[int, int, int]]:
