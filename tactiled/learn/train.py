@@ -75,7 +75,7 @@ def check_two_recordings(table: dict[str, tuple[int, int, int]], hint: str = "")
     else the command allows, appended to the advice."""
     single = [k for k, (_, _, files) in table.items() if files < 2]
     if single:
-        raise TactiledError(f"surface(s) {', '.join(single)} have a single recording: cross-validation grouped by recording cannot "
+        raise TactiledError(f"surface(s) {', '.join(single)} have a single recording with slides: cross-validation grouped by recording cannot "
                             f"test them on a recording it did not train on; record a second file of each{hint}")
 
 
