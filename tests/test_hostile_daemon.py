@@ -245,3 +245,20 @@ def test_hundreds_of_silent_peers_do_not_stop_the_port_reopening_after_an_unplug
         finally:
             for peer in peers:
                 peer.close()
+
+
+def test_frames_of_another_channel_count_are_counted_and_said_once(tmp_path: Path) -> None:
+    """A one-channel board on a port configured for two: every intact frame is skipped (no sample analysed), status counts
+    them, and the daemon says why once, naming both counts, however long they keep coming."""
+    link, endpoint = str(tmp_path / "tty"), f"ipc://{tmp_path}/pub"
+    one = np.array([[120]] * 64, dtype=np.int16)
+    stream = b"".join(encode_frame(k * 64, one) for k in range(4_000))
+    with flooding(stream, 20_000.0, link), BlockingSubscriber(endpoint, topics=["status"], timeout=30) as sub, \
+            daemon_process(link, endpoint, "--no-model") as proc:
+        first = status_where(sub, lambda m: m.channel_errors > 0, 30, "frames skipped for their channel count")
+        status_where(sub, lambda m: m.channel_errors > first.channel_errors, 30, "more of them")  # they keep coming
+        proc.terminate()
+        _, err = proc.communicate(timeout=30)
+    said = [line for line in err.splitlines() if "channel(s) skipped" in line]
+    assert len(said) == 1 and "frames of 1 channel(s)" in said[0] and "sensor.channels is 2" in said[0], err
+    assert first.samples == 0

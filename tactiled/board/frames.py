@@ -133,6 +133,7 @@ class FrameDecoder:
         # run's first frame, samples per frame, the frames' CRCs); a run costs one entry, not one per frame
         self._runs: deque[tuple[int, int, list[int]]] = deque()
         self.stats = DecoderStats()
+        self.foreign_channels: int | None = None  # the channel count of the last intact frame skipped for its layout
 
     @property
     def next_index(self) -> int | None:
@@ -230,6 +231,7 @@ class FrameDecoder:
             start, pos = pos, p
             if self._channels is not None and channels != self._channels:
                 stats.channel_errors += good  # intact, but not this sensor's layout: the index must not move
+                self.foreign_channels = channels
                 continue
             if good == 1:
                 samples = np.frombuffer(buf, dtype="<i2", count=channels * count, offset=start + HEADER_SIZE).reshape(count, channels)

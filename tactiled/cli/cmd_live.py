@@ -75,12 +75,26 @@ def cmd_ros2(args: argparse.Namespace) -> int:
     return serve("ros2", config_of(args), args.connect, args.sensor_id, ros_args=args.ros_args)
 
 
+def check_demo_scene(spec: str) -> None:
+    """Refuse (one line) a scene whose board the demo's daemon cannot read: the demo runs ``tactiled run`` with the default
+    sensor settings and the shipped model, so the board must stream at their rate and channel count."""
+    from tactiled.config import Config
+    from tactiled.sim.physics import scene_params
+
+    params, sensor = scene_params(spec), Config().sensor
+    if (params.fs, params.channels) != (sensor.fs, sensor.channels):
+        raise TactiledError(f"--scene {spec}: its board streams {params.channels} channel(s) at {params.fs:g} Hz, and the demo's daemon "
+                            f"and the shipped model expect {sensor.channels} at {sensor.fs:g} Hz; run `tactiled simulate serial --scene "
+                            f"{spec}` and `tactiled run` with a config and a model for that rate (README: train on your own surfaces)")
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """Virtual board + daemon with the shipped model + monitor (or, headless, label lines for ``--seconds``)."""
     from tactiled.apps.demo import run_demo
 
     if args.seconds is not None and not args.headless:
         raise TactiledError("--seconds needs --headless")
+    check_demo_scene(args.scene)
     return run_demo(args.scene, args.seed, args.publish, args.headless, args.seconds if args.seconds is not None else 20.0)
 
 
@@ -128,7 +142,8 @@ def add_commands(sub: Sub) -> None:
 
     p = command(sub, "demo", "simulated sensor + daemon + monitor", cmd_demo, "tactiled demo --scene robot")
     p.add_argument("--scene", type=c.scene, default="hand",
-                   help="the simulated sensor's scene (docs/simulator.md; the shipped model knows hand and robot sliding)")
+                   help="the simulated sensor's scene (docs/simulator.md; the shipped model knows hand and robot sliding at 20 kHz on "
+                   "2 channels; a scene at another rate or channel count, such as one-channel, is refused)")
     p.add_argument("--seed", type=c.seed, default=0, help="the simulated sensor's random seed")
     p.add_argument("--publish", help="endpoint for the demo daemon (default: an ipc socket in a temporary folder)")
     p.add_argument("--headless", action="store_true", help="print one line per label (with the true surface) instead of the monitor")

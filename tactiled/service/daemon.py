@@ -107,6 +107,7 @@ class Daemon:
         # pipeline), compared with it and never published as it
         self.stream = Stream(config, model, min_batch=round(config.serial.batch_s * s.fs))
         self.decoder = self.stream.ingest.decoder
+        self._channel_errors_seen, self._channel_errors_said = 0, False  # for _say_channel_errors
         self.pipeline = self.stream.live
         self.shadow_stats: ShadowStats | None = None
         self.set_shadow(shadow)
@@ -450,6 +451,16 @@ class Daemon:
         behind = self.source.behind if self.source is not None else 0.0
         return behind <= SHED_AFTER_S or handled >= KEEPING_UP * self.config.sensor.fs * interval
 
+    def _say_channel_errors(self) -> None:
+        """Log once when intact frames of another channel count than ``sensor.channels`` begin to be skipped (the board is
+        not the one configured: no sample of it is analysed), and once more each time they start again after a quiet spell."""
+        errors = self.stream.stats.channel_errors
+        if errors > self._channel_errors_seen and not self._channel_errors_said:
+            log.warning("sensor %s: frames of %s channel(s) skipped, sensor.channels is %d: set [sensor] channels to the board's "
+                        "(status: channel_errors)", self.config.sensor.id, self.decoder.foreign_channels, self.config.sensor.channels)
+        self._channel_errors_said = errors > self._channel_errors_seen  # a quiet interval: the next ones are said again
+        self._channel_errors_seen = errors
+
     async def _status(self) -> None:
         interval = self.config.publish.status_interval_s
         last = time.monotonic()
@@ -459,6 +470,7 @@ class Daemon:
             await asyncio.sleep(interval)  # the status period itself, not synchronisation
             now = time.monotonic()
             self.publisher.publish(self._status_message(now - last))
+            self._say_channel_errors()
             self.state.samples_window = 0
             self.state.sumsq = None
             # a dead reader, or input the daemon cannot keep up with, starves the watchdog: systemd restarts the daemon
