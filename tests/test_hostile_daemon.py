@@ -262,3 +262,17 @@ def test_frames_of_another_channel_count_are_counted_and_said_once(tmp_path: Pat
     said = [line for line in err.splitlines() if "channel(s) skipped" in line]
     assert len(said) == 1 and "frames of 1 channel(s)" in said[0] and "sensor.channels is 2" in said[0], err
     assert first.samples == 0
+
+
+def test_a_board_at_another_rate_than_configured_is_said_once(tmp_path: Path) -> None:
+    """The virtual board at 3 x real time is a board at 60 kHz on a port configured for 20 kHz: once the clock map has
+    measured the rate for a few seconds, the daemon says so once, naming both rates, however long it goes on."""
+    with board_and_daemon(tmp_path, "--no-model", speed=3.0) as live, \
+            BlockingSubscriber(live.endpoint, topics=["status"], timeout=30) as sub:
+        fast = status_where(sub, lambda m: m.uptime_s > 6.0 and m.fs_clock > 1.5 * m.fs_nominal, 60, "the rate measured")
+        status_where(sub, lambda m: m.uptime_s > fast.uptime_s + 2.0, 30, "two more seconds of it")
+        err = live.stop()
+    said = [line for line in err.splitlines() if "samples arrive at about" in line]
+    assert len(said) == 1 and "sensor.fs is 20000 Hz" in said[0], err
+    rate = float(said[0].split("samples arrive at about ")[1].split(" Hz")[0])
+    assert 45_000 < rate < 75_000, said[0]

@@ -65,6 +65,8 @@ SLICE_BYTES = 4096  # bytes decoded per step (a flood of headers claiming 16 kB 
 TURN_S = 0.02  # the most work, s, done between two turns of the event loop (beyond one slice or one batch)
 SHED_AFTER_S = 0.5  # input waiting longer than this: analysis is skipped (load shed) ...
 RESUME_BELOW_S = 0.1  # ... until the oldest input waiting is younger than this
+RATE_TOLERANCE = 0.25  # a measured sample rate this far off sensor.fs (a fraction) is said once (a crystal is 1e-4 off)
+RATE_INTERVALS = 10  # ... after this many status intervals running (5 s at the default: past the clock map's start-up)
 KEEPING_UP = 0.5  # the watchdog is fed only while samples are handled at no less than this fraction of real time
 INLINE_ANALYSIS_S = 0.005  # a batch that completes a window is analysed on the loop if the last such batch took at most this, s
 
@@ -108,6 +110,7 @@ class Daemon:
         self.stream = Stream(config, model, min_batch=round(config.serial.batch_s * s.fs))
         self.decoder = self.stream.ingest.decoder
         self._channel_errors_seen, self._channel_errors_said = 0, False  # for _say_channel_errors
+        self._rate_off = 0  # status intervals running with the measured rate off sensor.fs (_say_rate)
         self.pipeline = self.stream.live
         self.shadow_stats: ShadowStats | None = None
         self.set_shadow(shadow)
@@ -451,6 +454,17 @@ class Daemon:
         behind = self.source.behind if self.source is not None else 0.0
         return behind <= SHED_AFTER_S or handled >= KEEPING_UP * self.config.sensor.fs * interval
 
+    def _say_rate(self) -> None:
+        """Log once when samples have arrived at a rate more than :data:`RATE_TOLERANCE` away from ``sensor.fs`` for
+        :data:`RATE_INTERVALS` status intervals running (the clock map's measured rate: a board at another rate than
+        configured, whose slides and features would be timed wrong), and again after it has been back in tolerance."""
+        fs, nominal = self.clock.fs, self.config.sensor.fs
+        off = self.clock.ready and abs(fs / nominal - 1.0) > RATE_TOLERANCE
+        self._rate_off = self._rate_off + 1 if off else 0
+        if self._rate_off == RATE_INTERVALS:
+            log.warning("sensor %s: samples arrive at about %.0f Hz, sensor.fs is %g Hz: set [sensor] fs to the board's rate "
+                        "(status: fs_clock)", self.config.sensor.id, fs, nominal)
+
     def _say_channel_errors(self) -> None:
         """Log once when intact frames of another channel count than ``sensor.channels`` begin to be skipped (the board is
         not the one configured: no sample of it is analysed), and once more each time they start again after a quiet spell."""
@@ -471,6 +485,7 @@ class Daemon:
             now = time.monotonic()
             self.publisher.publish(self._status_message(now - last))
             self._say_channel_errors()
+            self._say_rate()
             self.state.samples_window = 0
             self.state.sumsq = None
             # a dead reader, or input the daemon cannot keep up with, starves the watchdog: systemd restarts the daemon
