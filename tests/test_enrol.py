@@ -55,6 +55,8 @@ def test_enrol_refuses_too_few_slides_the_input_as_output_and_an_empty_label(tra
     assert same.returncode == 2 and "never changes its input" in same.stderr
     with pytest.raises(TactiledError, match="--label: must not be empty"):
         enrol(model, one, Config(), label=" ")
+    twice = run_cli("enrol", str(model), *one, *one, "--label", "NEW", "-o", str(tmp_path / "m2.npz"))  # 6 slides, but 3 twice
+    assert twice.returncode == 2 and "hold the same samples" in twice.stderr and not (tmp_path / "m2.npz").exists(), twice.stderr
 
 
 def test_enrol_adds_slides_of_known_surfaces_by_their_own_labels(trained: tuple[Path, Path, list[str]], tmp_path: Path) -> None:

@@ -30,7 +30,7 @@ from tactiled.core.analysis import Analyser, AnalysisSettings
 from tactiled.core.detect import SlideDetector
 from tactiled.core.events import DetectorEvent, Offset
 from tactiled.core.matching import match_slides
-from tactiled.errors import RecordingError
+from tactiled.errors import RecordingError, TactiledError
 from tactiled.files.recording import Recording, load_recording
 
 log = logging.getLogger(__name__)
@@ -47,6 +47,24 @@ def load_recordings(paths: Sequence[str | Path], report: Progress | None = None)
             if report is not None:
                 report(f"skipped: {exc}")
     return out
+
+
+def check_distinct(recs: Sequence[tuple[str, Recording]]) -> None:
+    """Refuse (one line naming both) two recordings with the same samples, such as one file given twice or a copy under
+    another name: cross-validation grouped by recording would test each on its own copy and promise what it never measured
+    (``train``, ``evaluate``), and enrolment would count its slides twice."""
+    import hashlib
+
+    seen: dict[str, str] = {}
+    for name, rec in recs:
+        samples = np.ascontiguousarray(rec.samples)
+        h = hashlib.blake2b(f"{samples.dtype.str}{samples.shape}".encode())
+        h.update(samples.data)
+        digest = h.hexdigest()
+        if digest in seen:
+            raise TactiledError(f"{seen[digest]} and {name} hold the same samples: one recording would count as two (cross-validation "
+                                "would test it on its own copy); give each recording once")
+        seen[digest] = name
 
 
 def detector_events(rec: Recording, config: Config) -> list[DetectorEvent]:

@@ -25,7 +25,7 @@ import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.errors import ModelError, TactiledError
-from tactiled.learn.dataset import Progress, WindowSet, collect_windows, find_slides, load_recordings
+from tactiled.learn.dataset import Progress, WindowSet, check_distinct, collect_windows, find_slides, load_recordings
 from tactiled.learn.model import FloatArray, Model, fit_pipeline, load_model, take_columns
 from tactiled.learn.search import PARAMS, fit_model_novelty
 
@@ -59,6 +59,7 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
         raise TactiledError(f"{len(paths) - len(recs)} of {len(paths)} recordings unreadable (named above); nothing enrolled")
     for name, rec in recs:
         old.check_stream(rec.fs, rec.channels, name)
+    check_distinct(recs)  # a copy would count its slides twice towards min_slides
     per_file, counts = find_slides(recs, config)
     if label is not None:
         per_file = [[replace(s, label=label) for s in slides] for slides in per_file]

@@ -34,7 +34,7 @@ from tactiled.core.analysis import AnalysisSettings
 from tactiled.core.features import FeaturePlan, classifier_inputs
 from tactiled.files.recording import Recording
 from tactiled.learn.cluster import hungarian_accuracy, kmeans, som_clusters
-from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, collect_windows, find_slides
+from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, check_distinct, collect_windows, find_slides
 from tactiled.learn.model import decision_scores, fit_pipeline, softmax
 from tactiled.learn.score import calibration_scores
 from tactiled.learn.search import (
@@ -49,7 +49,7 @@ from tactiled.learn.search import (
     window_oof,
     window_settings,
 )
-from tactiled.learn.train import check_distinct, check_two_recordings, class_table
+from tactiled.learn.train import check_two_recordings, class_table
 
 Folds = list[tuple[Any, Any]]
 CLASSIFIERS: dict[str, tuple[str, dict[str, Any]]] = {

@@ -12,12 +12,10 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from tactiled.config import Config
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
-from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, find_slides, load_recordings
+from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, check_distinct, find_slides, load_recordings
 from tactiled.learn.model import NOVELTY_SCORES
 from tactiled.learn.search import ENSEMBLE_DEFAULT, ENSEMBLE_MODES, UNTAUGHT_SHARE, Candidate, SearchResult, paper, quick_candidates, search
 
@@ -36,23 +34,6 @@ def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None
     if len(fs) != 1 or len(channels) != 1:
         raise TactiledError(f"recordings differ in fs {sorted(fs)} or channels {sorted(channels)}; train one rate at a time")
     check_distinct(recs)
-
-
-def check_distinct(recs: Sequence[tuple[str, Recording]]) -> None:
-    """Refuse (one line naming both) two recordings with the same samples, such as one file given twice or a copy under
-    another name: cross-validation grouped by recording would test each on its own copy and promise what it never measured."""
-    import hashlib
-
-    seen: dict[str, str] = {}
-    for name, rec in recs:
-        samples = np.ascontiguousarray(rec.samples)
-        h = hashlib.blake2b(f"{samples.dtype.str}{samples.shape}".encode())
-        h.update(samples.data)
-        digest = h.hexdigest()
-        if digest in seen:
-            raise TactiledError(f"{seen[digest]} and {name} hold the same samples: cross-validation would test a recording on its "
-                                "own copy; give each recording once")
-        seen[digest] = name
 
 
 def class_table(per_file: list[list[LabelledSlide]]) -> dict[str, tuple[int, int, int]]:
