@@ -546,3 +546,19 @@ def test_a_gap_across_the_limit_ends_a_limited_recording(tmp_path: Path) -> None
     sink.add(Frame(5000, before[:20]))
     assert sink.done and sink.finish().error is None
     assert load_recording(tmp_path / "o.npz").samples.shape[0] == 400
+
+
+def test_record_says_at_once_that_the_boards_frames_have_another_channel_count(tmp_path: Path) -> None:
+    """A two-channel board recorded as one channel: every frame is skipped, so the recording would never fill; the recorder
+    says why at once (not after the seconds it would never reach), and the summary counts the frames after Ctrl-C."""
+    out = tmp_path / "r.npz"
+    with running_board(tmp_path, seed=1) as board, \
+            spawned("record", "--port", board.link or "", "--channels", "1", "--seconds", "600", "-o", str(out)) as proc:
+        assert proc.stderr is not None
+        lines: list[str] = []
+        wait_for(lambda: lines.append(proc.stderr.readline()) or "channel(s) skipped" in lines[-1], 30, "the mismatch said")  # type: ignore[union-attr]
+        assert "frames of 2 channel(s) skipped, sensor.channels is 1" in lines[-1], lines
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=30)
+    said = "".join(lines) + stdout + stderr
+    assert "frames of another channel count skipped" in said and said.count("channel(s) skipped") == 1, said

@@ -107,6 +107,12 @@ class DecoderStats:
     channel_errors: int = 0  # intact frames with a channel count other than the expected one (skipped)
 
 
+def channel_mismatch(sensor_id: str, found: int | None, expected: int) -> str:
+    """The one line a daemon or a recorder logs when intact frames of ``found`` channels are skipped on a port configured
+    for ``expected`` (``sensor.channels``): the board is not the one configured, and none of its samples is used."""
+    return f"sensor {sensor_id}: frames of {found} channel(s) skipped, sensor.channels is {expected}: set [sensor] channels to the board's"
+
+
 class FrameDecoder:
     """Sans-IO decoder: ``feed(bytes) -> list[Frame]`` (one per frame) or ``feed_runs`` (runs of frames); counters in :attr:`stats`.
 

@@ -44,6 +44,7 @@ from tactiled_client import schema
 
 from tactiled import __version__
 from tactiled.board.clockmap import ClockMap
+from tactiled.board.frames import channel_mismatch
 from tactiled.board.serialsource import CONNECTED, ByteSource, SerialSource
 from tactiled.config import Config
 from tactiled.core.events import PipelineEvent, SlideResult, SlideResumed
@@ -470,8 +471,7 @@ class Daemon:
         not the one configured: no sample of it is analysed), and once more each time they start again after a quiet spell."""
         errors = self.stream.stats.channel_errors
         if errors > self._channel_errors_seen and not self._channel_errors_said:
-            log.warning("sensor %s: frames of %s channel(s) skipped, sensor.channels is %d: set [sensor] channels to the board's "
-                        "(status: channel_errors)", self.config.sensor.id, self.decoder.foreign_channels, self.config.sensor.channels)
+            log.warning("%s", channel_mismatch(self.config.sensor.id, self.decoder.foreign_channels, self.config.sensor.channels))
         self._channel_errors_said = errors > self._channel_errors_seen  # a quiet interval: the next ones are said again
         self._channel_errors_seen = errors
 

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from tactiled.board.frames import DecoderStats, Frame
+from tactiled.board.frames import DecoderStats, Frame, channel_mismatch
 from tactiled.board.serialsource import DISCONNECTED, ByteSource, SerialSource, check_port
 from tactiled.config import Config
 from tactiled.errors import OutputError
@@ -251,11 +251,13 @@ class RecordSummary:
     crc_errors: int
     reconnects: int
     error: str | None = None  # the capture stopped on a write error (the journal keeps what was written)
+    channel_errors: int = 0  # intact frames of another channel count, skipped
 
     def line(self) -> str:
-        """One line for the user: seconds, samples, lost, CRC failures and reconnects."""
+        """One line for the user: seconds, samples, lost, CRC failures and reconnects (and frames skipped for their channel count)."""
+        skipped = f", {self.channel_errors} frames of another channel count skipped" if self.channel_errors else ""
         return (f"recorded {self.seconds:.3f} s: {self.samples} samples, {self.samples_lost} lost, "
-                f"{self.crc_errors} CRC failures, {self.reconnects} reconnects")
+                f"{self.crc_errors} CRC failures, {self.reconnects} reconnects{skipped}")
 
 
 def link_counters(stats: DecoderStats, source: ByteSource | None) -> dict[str, int]:
@@ -297,9 +299,14 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
         if state == DISCONNECTED:
             log.warning("%s: %s", s.port, detail)
 
+    said: list[bool] = []  # the channel mismatch said (once)
+
     def take(data: bytes | None) -> None:
         for batch in stream.feed_bytes(data or b"").batches:
             sink.add(batch)
+        if stream.stats.channel_errors and not said:  # nothing of such a board is recorded: say so at once, not at the end
+            said.append(True)
+            log.warning("%s", channel_mismatch(s.id, stream.ingest.decoder.foreign_channels, s.channels))
 
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}  # a flag: never interrupts a write
@@ -327,4 +334,5 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     stats = stream.stats
-    return RecordSummary(result.samples / s.fs, result.samples, result.samples_lost, stats.crc_errors, source.reconnects, result.error)
+    return RecordSummary(result.samples / s.fs, result.samples, result.samples_lost, stats.crc_errors, source.reconnects, result.error,
+                         stats.channel_errors)
