@@ -48,6 +48,18 @@ def test_a_capture_whose_index_jumps_keeps_zero_rows_bounded_by_its_size_and_cou
     assert summary_line([], rec).endswith(f", {99 * 398_999} samples lost")
 
 
+def test_a_capture_of_another_channel_count_is_one_line_not_an_empty_replay(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Every frame of a one-channel board, replayed with a two-channel config: nothing could be decoded, so replay says why
+    (exit 2) instead of "0 slides"; with the config's channels set, the same capture replays."""
+    path = tmp_path / "one.bin"
+    path.write_bytes(b"".join(encode_frame(k * 64, np.full((64, 1), 120, dtype=np.int16)) for k in range(100)))
+    code, errors = _cli(capsys, "replay", str(path))
+    assert code == 2 and len(errors) == 1 and "frames of 1 channel(s) skipped, sensor.channels is 2" in errors[0] and str(path) in errors[0]
+    config = tmp_path / "one.toml"
+    config.write_text("[sensor]\nchannels = 1\n")
+    assert _cli(capsys, "replay", "--config", str(config), "--no-model", str(path)) == (0, [])
+
+
 def _journal(path: Path, *chunks: bytes) -> Path:
     path.write_bytes(encode_header(20_000.0, 2, 1e-4, "a", {}) + b"".join(chunks))
     return path
