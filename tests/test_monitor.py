@@ -52,7 +52,7 @@ def test_monitor_highlights_abstentions_and_provisional_labels() -> None:
     from tactiled.core.events import SlideResult
 
     model = MonitorState()
-    model.update(schema.status("s", state=schema.STATE_DISCONNECTED, fs_nominal=20_000.0, discarded_at_start=68_040))
+    model.update(schema.status("s", state=schema.STATE_DISCONNECTED, fs_nominal=20_000.0, discarded_at_start=68_040, channel_errors=300))
     for final, label, reason in ((False, "Ra1.00", None), (True, None, "samples_lost")):
         r = SlideResult(1, 0, 20_000, (6000, 16_000), label, reason, 0.4, [], {}, final=final, used_s=0.5)
         model.update(schema.roughness("s", r, fs=20_000.0, model="m", version="t"))
@@ -60,7 +60,7 @@ def test_monitor_highlights_abstentions_and_provisional_labels() -> None:
     console.print(render(model, "ipc://x"))
     text = console.export_text(clear=False)
     assert " DISCONNECTED " in text and "provisional" in text and "samples_lost" in text and "(waiting for raw samples)" in text
-    assert "discarded at start 68040 bytes" in text
+    assert "discarded at start 68040 bytes" in text and "300 frames of another channel count skipped" in text
     styled = console.export_text(styles=True)
     assert "\x1b[1;31m" in styled  # bold red: the abstention and the disconnected state
     small = Console(file=io.StringIO(), width=80, height=24, record=True, color_system=None)
@@ -69,3 +69,4 @@ def test_monitor_highlights_abstentions_and_provisional_labels() -> None:
     assert len(lines) <= 24 and max(len(line) for line in lines) <= 80
     assert " DISCONNECTED " in lines[1] and any("samples_lost" in line for line in lines) and any("prov." in line for line in lines)
     assert lines[3].startswith("discarded at start 68040 bytes") and "…" not in lines[3]
+    assert lines[4].startswith("300 frames of another channel count skipped")

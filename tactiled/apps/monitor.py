@@ -133,6 +133,12 @@ def at_start(s: Status) -> str:
     return f"discarded at start {s.discarded_at_start} bytes (stale: sent before the port was opened)"
 
 
+def foreign_frames(s: Status) -> str:
+    """The frames the daemon skipped for their channel count, in one line for either screen (shown when not 0: the board
+    is not the one configured, and none of its samples is used)."""
+    return f"{s.channel_errors} frames of another channel count skipped: check [sensor] channels"
+
+
 def render(model: MonitorState, endpoint: str, width: int = 140, height: int = 50) -> Any:
     """The whole screen, for a terminal of ``width`` columns and ``height`` lines, as one rich renderable.
 
@@ -162,6 +168,8 @@ def render(model: MonitorState, endpoint: str, width: int = 140, height: int = 5
                 f"missed msgs {model.missed}")
     if s.discarded_at_start:
         head.append(f"\n{at_start(s)}")
+    if s.channel_errors:
+        head.append(f"\n{foreign_frames(s)}", style="bold red")
     if model.slide is not None:
         head.append(f"\nSLIDING: slide {model.slide.slide_id} since sample {model.slide.start}", style="bold green")
     levels = Table(title="film levels (RMS per 10 ms, mV)", expand=True, title_justify="left")
@@ -226,6 +234,8 @@ def render_compact(model: MonitorState, endpoint: str, width: int, height: int) 
                           f"missed msgs {model.missed}  samples {s.samples}"))]
     if s.discarded_at_start:
         counters.append(line(Text(at_start(s))))
+    if s.channel_errors:
+        counters.append(line(Text(foreign_frames(s), style="bold red")))
     levels = [line(Text("film levels, mV RMS per 10 ms (now, max, trace)", style="bold"))]
     if model.traces:
         for k, trace in enumerate(model.traces):
