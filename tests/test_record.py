@@ -562,3 +562,20 @@ def test_record_says_at_once_that_the_boards_frames_have_another_channel_count(t
         stdout, stderr = proc.communicate(timeout=30)
     said = "".join(lines) + stdout + stderr
     assert "frames of another channel count skipped" in said and said.count("channel(s) skipped") == 1, said
+
+
+def test_record_says_when_the_boards_rate_is_not_sensor_fs(tmp_path: Path) -> None:
+    """sensor.fs is written into the recording, and the board does not send its rate: recorded as 2 kHz, a 20 kHz board
+    is said once, naming both rates, after the few seconds the recorder measures it over."""
+    out = tmp_path / "r.npz"
+    with running_board(tmp_path, seed=1) as board, \
+            spawned("record", "--port", board.link or "", "--fs", "2000", "--seconds", "600", "-o", str(out)) as proc:
+        assert proc.stderr is not None
+        lines: list[str] = []
+        wait_for(lambda: lines.append(proc.stderr.readline()) or "samples arrive at about" in lines[-1], 30, "the rate said")  # type: ignore[union-attr]
+        proc.send_signal(signal.SIGINT)
+        _stdout, stderr = proc.communicate(timeout=30)
+    said = [line for line in "".join(lines).splitlines() + stderr.splitlines() if "samples arrive at about" in line]
+    assert len(said) == 1 and "sensor.fs is 2000 Hz" in said[0], said
+    rate = float(said[0].split("samples arrive at about ")[1].split(" Hz")[0])
+    assert 15_000 < rate < 25_000, said[0]

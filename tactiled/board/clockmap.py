@@ -53,6 +53,18 @@ WALL_SLEW = 5e-4  # how fast the unix offset follows the host's, s per s of the 
 WALL_BAND_S = 5e-6  # a wall-offset difference the map ignores (the two clocks are read one after the other)
 
 
+RATE_TOLERANCE = 0.25  # a measured sample rate this far off sensor.fs (a fraction) is said once (a crystal is 1e-4 off)
+
+
+def rate_mismatch(sensor_id: str, measured: float, nominal: float) -> str | None:
+    """The one line a daemon or a recorder logs when samples arrive at ``measured`` Hz, more than :data:`RATE_TOLERANCE`
+    away from ``sensor.fs`` = ``nominal`` (the board does not send its rate: one configured wrong times every slide and
+    feature wrong, and is written into every recording); None within it."""
+    if abs(measured / nominal - 1.0) <= RATE_TOLERANCE:
+        return None
+    return f"sensor {sensor_id}: samples arrive at about {measured:.0f} Hz, sensor.fs is {nominal:g} Hz: set [sensor] fs to the board's rate"
+
+
 def wall_offset() -> float:
     """The host's ``time.time() - time.monotonic()`` now, s."""
     return time.time() - time.monotonic()

@@ -43,7 +43,7 @@ import numpy as np
 from tactiled_client import schema
 
 from tactiled import __version__
-from tactiled.board.clockmap import ClockMap
+from tactiled.board.clockmap import ClockMap, rate_mismatch
 from tactiled.board.frames import channel_mismatch
 from tactiled.board.serialsource import CONNECTED, ByteSource, SerialSource
 from tactiled.config import Config
@@ -66,8 +66,7 @@ SLICE_BYTES = 4096  # bytes decoded per step (a flood of headers claiming 16 kB 
 TURN_S = 0.02  # the most work, s, done between two turns of the event loop (beyond one slice or one batch)
 SHED_AFTER_S = 0.5  # input waiting longer than this: analysis is skipped (load shed) ...
 RESUME_BELOW_S = 0.1  # ... until the oldest input waiting is younger than this
-RATE_TOLERANCE = 0.25  # a measured sample rate this far off sensor.fs (a fraction) is said once (a crystal is 1e-4 off)
-RATE_INTERVALS = 10  # ... after this many status intervals running (5 s at the default: past the clock map's start-up)
+RATE_INTERVALS = 10  # a rate off sensor.fs (rate_mismatch) is said after this many status intervals running (5 s at the default)
 KEEPING_UP = 0.5  # the watchdog is fed only while samples are handled at no less than this fraction of real time
 INLINE_ANALYSIS_S = 0.005  # a batch that completes a window is analysed on the loop if the last such batch took at most this, s
 
@@ -456,15 +455,13 @@ class Daemon:
         return behind <= SHED_AFTER_S or handled >= KEEPING_UP * self.config.sensor.fs * interval
 
     def _say_rate(self) -> None:
-        """Log once when samples have arrived at a rate more than :data:`RATE_TOLERANCE` away from ``sensor.fs`` for
-        :data:`RATE_INTERVALS` status intervals running (the clock map's measured rate: a board at another rate than
-        configured, whose slides and features would be timed wrong), and again after it has been back in tolerance."""
-        fs, nominal = self.clock.fs, self.config.sensor.fs
-        off = self.clock.ready and abs(fs / nominal - 1.0) > RATE_TOLERANCE
-        self._rate_off = self._rate_off + 1 if off else 0
+        """Log once when the clock map's measured rate has been off ``sensor.fs`` (:func:`rate_mismatch`) for
+        :data:`RATE_INTERVALS` status intervals running (a board at another rate than configured), and again after it
+        has been back in tolerance."""
+        line = rate_mismatch(self.config.sensor.id, self.clock.fs, self.config.sensor.fs) if self.clock.ready else None
+        self._rate_off = self._rate_off + 1 if line else 0
         if self._rate_off == RATE_INTERVALS:
-            log.warning("sensor %s: samples arrive at about %.0f Hz, sensor.fs is %g Hz: set [sensor] fs to the board's rate "
-                        "(status: fs_clock)", self.config.sensor.id, fs, nominal)
+            log.warning("%s (status: fs_clock)", line)
 
     def _say_channel_errors(self) -> None:
         """Log once when intact frames of another channel count than ``sensor.channels`` begin to be skipped (the board is

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from tactiled.board.clockmap import rate_mismatch
 from tactiled.board.frames import DecoderStats, Frame, channel_mismatch
 from tactiled.board.serialsource import DISCONNECTED, ByteSource, SerialSource, check_port
 from tactiled.config import Config
@@ -37,6 +38,7 @@ log = logging.getLogger(__name__)
 
 COMMIT_S = 0.5  # the commit period, s of wall time: about what a kill or a power cut can lose
 MAX_CHUNK_BYTES = 4 << 20  # a chunk is committed at this size at the latest
+RATE_AFTER_S = 5.0  # the recorder measures the board's sample rate over this long from its first samples (rate_mismatch)
 QUEUE_BYTES = 64 << 20  # samples waiting for the writer (a disk stalled 13 min at 20 kHz x 2 channels); beyond, frames are lost, counted
 
 
@@ -300,6 +302,7 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
             log.warning("%s: %s", s.port, detail)
 
     said: list[bool] = []  # the channel mismatch said (once)
+    first: list[float] = []  # when samples first came, and how many had come by then (for the rate, measured once)
 
     def take(data: bytes | None) -> None:
         for batch in stream.feed_bytes(data or b"").batches:
@@ -307,6 +310,14 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
         if stream.stats.channel_errors and not said:  # nothing of such a board is recorded: say so at once, not at the end
             said.append(True)
             log.warning("%s", channel_mismatch(s.id, stream.ingest.decoder.foreign_channels, s.channels))
+        now, n = time.monotonic(), stream.stats.samples
+        if n and not first:
+            first[:] = [now, n]
+        elif len(first) == 2 and now - first[0] >= RATE_AFTER_S:  # sensor.fs is written into the recording: say so if wrong
+            first.append(now)
+            line = rate_mismatch(s.id, (n - first[1]) / (now - first[0]), s.fs)
+            if line:
+                log.warning("%s", line)
 
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}  # a flag: never interrupts a write
