@@ -548,34 +548,31 @@ def test_a_gap_across_the_limit_ends_a_limited_recording(tmp_path: Path) -> None
     assert load_recording(tmp_path / "o.npz").samples.shape[0] == 400
 
 
+def record_until_said(tmp_path: Path, text: str, *options: str) -> str:
+    """``tactiled record OPTIONS`` from a virtual board (2 channels, 20 kHz) until a line of its log holds ``text``, then
+    Ctrl-C; everything it wrote (log, summary)."""
+    with running_board(tmp_path, seed=1) as board, \
+            spawned("record", "--port", board.link or "", *options, "--seconds", "600", "-o", str(tmp_path / "r.npz")) as proc:
+        assert proc.stderr is not None
+        lines: list[str] = []
+        wait_for(lambda: lines.append(proc.stderr.readline()) or text in lines[-1], 30, text)  # type: ignore[union-attr]
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=30)
+    return "".join(lines) + stdout + stderr
+
+
 def test_record_says_at_once_that_the_boards_frames_have_another_channel_count(tmp_path: Path) -> None:
     """A two-channel board recorded as one channel: every frame is skipped, so the recording would never fill; the recorder
     says why at once (not after the seconds it would never reach), and the summary counts the frames after Ctrl-C."""
-    out = tmp_path / "r.npz"
-    with running_board(tmp_path, seed=1) as board, \
-            spawned("record", "--port", board.link or "", "--channels", "1", "--seconds", "600", "-o", str(out)) as proc:
-        assert proc.stderr is not None
-        lines: list[str] = []
-        wait_for(lambda: lines.append(proc.stderr.readline()) or "channel(s) skipped" in lines[-1], 30, "the mismatch said")  # type: ignore[union-attr]
-        assert "frames of 2 channel(s) skipped, sensor.channels is 1" in lines[-1], lines
-        proc.send_signal(signal.SIGINT)
-        stdout, stderr = proc.communicate(timeout=30)
-    said = "".join(lines) + stdout + stderr
-    assert "frames of another channel count skipped" in said and said.count("channel(s) skipped") == 1, said
+    said = record_until_said(tmp_path, "channel(s) skipped", "--channels", "1")
+    assert "frames of 2 channel(s) skipped, sensor.channels is 1" in said and said.count("channel(s) skipped") == 1, said
+    assert "frames of another channel count skipped" in said, said
 
 
 def test_record_says_when_the_boards_rate_is_not_sensor_fs(tmp_path: Path) -> None:
     """sensor.fs is written into the recording, and the board does not send its rate: recorded as 2 kHz, a 20 kHz board
     is said once, naming both rates, after the few seconds the recorder measures it over."""
-    out = tmp_path / "r.npz"
-    with running_board(tmp_path, seed=1) as board, \
-            spawned("record", "--port", board.link or "", "--fs", "2000", "--seconds", "600", "-o", str(out)) as proc:
-        assert proc.stderr is not None
-        lines: list[str] = []
-        wait_for(lambda: lines.append(proc.stderr.readline()) or "samples arrive at about" in lines[-1], 30, "the rate said")  # type: ignore[union-attr]
-        proc.send_signal(signal.SIGINT)
-        _stdout, stderr = proc.communicate(timeout=30)
-    said = [line for line in "".join(lines).splitlines() + stderr.splitlines() if "samples arrive at about" in line]
+    said = [line for line in record_until_said(tmp_path, "samples arrive at about", "--fs", "2000").splitlines() if "samples arrive" in line]
     assert len(said) == 1 and "sensor.fs is 2000 Hz" in said[0], said
     rate = float(said[0].split("samples arrive at about ")[1].split(" Hz")[0])
     assert 15_000 < rate < 25_000, said[0]
