@@ -89,3 +89,20 @@ def test_check_config_cli(tmp_path: Path) -> None:
     res = run_cli("check-config", str(bad))
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [f"tactiled: error: {bad}: detector.min_slide_s: must be in (0, 60] s"]
+
+
+def test_check_config_says_whether_run_would_find_a_model(tmp_path: Path) -> None:
+    """A sensor at 2.2 kHz on one channel: the config is valid, but the shipped model does not fit it (a note: a config for
+    record needs no model); a model.path that does not fit is an error naming the key, as run refuses it."""
+    sensor = "[sensor]\nfs = 2200\nchannels = 1\n"
+    one = tmp_path / "one.toml"
+    one.write_text(sensor)
+    res = run_cli("check-config", str(one))
+    assert res.returncode == 0 and res.stdout.strip() == f"{one}: ok", res.stderr
+    assert "shipped model not used: model trained at fs 20000 Hz" in res.stderr and "tactiled run needs a model" in res.stderr
+    named = tmp_path / "named.toml"
+    named.write_text(sensor + f'[model]\npath = "{REPO / "tactiled" / "data" / "default_model.npz"}"\n')
+    res = run_cli("check-config", str(named))
+    assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+        f"tactiled: error: {named}: model.path: model trained at fs 20000 Hz, sensor fingertip0 is 2200 Hz"], res.stderr
+    assert run_cli("check-config", str(REPO / "configs" / "tactiled.toml")).stderr == ""  # the shipped model fits: nothing to say

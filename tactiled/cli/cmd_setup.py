@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from tactiled.cli.common import EXIT_OK, Sub, command
+from tactiled.cli.common import EXIT_OK, Sub, command, say
 from tactiled.config import load_config
+from tactiled.errors import ModelError
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -17,9 +18,28 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
-    """Load and validate a config file: ok, or one line naming the key."""
-    load_config(args.file)
+    """Load and validate a config file: ok, or one line naming the key. Then the model ``tactiled run`` would use with it:
+    a ``model.path`` or ``model.shadow`` that does not fit the sensor's rate and channels is an error (one line), as it is
+    for ``run``; the shipped model not fitting is a note (a config for ``record`` needs no model)."""
+    from tactiled.learn.choose import ModelChoice
+
+    config = load_config(args.file)
+    s = config.sensor
+    where = f"sensor {s.id}"
+    notes: list[str] = []
+    key = "model.path"
+    try:
+        model = ModelChoice(config, config.model.path or None, check_cost=False, warn=notes.append).for_stream(s.fs, s.channels, where)
+        key = "model.shadow"
+        if config.model.shadow:
+            ModelChoice(config, config.model.shadow, explicit=True, check_cost=False).for_stream(s.fs, s.channels, where)
+    except ModelError as exc:
+        raise ModelError(f"{args.file}: {key}: {exc}") from None
     print(f"{args.file}: ok")
+    for note in notes:
+        say(f"note: {note}")
+    if model is None:
+        say("note: tactiled run needs a model that fits this sensor (train one with tactiled train and set model.path) or --no-model")
     return EXIT_OK
 
 
