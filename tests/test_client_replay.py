@@ -223,3 +223,12 @@ def test_a_fifo_given_as_a_session_is_refused_without_opening_it(tmp_path: Path)
     os.mkfifo(tmp_path / "s.tlog")  # opening it would block until a writer came
     with pytest.raises(LogError, match="not a regular file"):
         BlockingReplay(tmp_path / "s.tlog", speed=None)
+
+
+def test_recording_from_an_endpoint_nobody_publishes_on_says_so(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A mistyped endpoint is not an error (a daemon may come later), but an empty session says where nothing came from."""
+    from tactiled_client.__main__ import main
+
+    endpoint = f"ipc://{tmp_path}/nobody"
+    assert main(["record", endpoint, str(tmp_path / "s.tlog"), "--seconds", "0.3"]) == 0
+    assert capsys.readouterr().err.strip() == f"{tmp_path / 's.tlog'}: 0 messages (nothing came from {endpoint}: is a daemon publishing there?)"

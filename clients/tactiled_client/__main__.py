@@ -86,7 +86,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             *endpoints, out = args.endpoint
             n = record(endpoints, out, seconds=args.seconds, topics=args.topics, sensor=args.sensor,
                        curve=tuple(args.curve) if args.curve else None, stop=lambda: stopping, overwrite=args.force)
-            print(f"{out}: {n} messages", file=sys.stderr)
+            print(f"{out}: {n} messages" + ("" if n else f" (nothing came from {', '.join(endpoints)}: is a daemon publishing there?)"),
+                  file=sys.stderr)
             return 0
         if args.command == "control":
             import os
