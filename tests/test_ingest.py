@@ -30,7 +30,7 @@ from tactiled.run.ingest import Batch, Ingest, max_gap_for
 from tactiled.run.stream import Stream
 from tactiled.service.daemon import Daemon
 from tactiled.sim.physics import SimParams, pick_surfaces, simulate_file
-from tests.conftest import board_and_daemon, standing_finals, tactiled_cmd, wait_for
+from tests.conftest import board_and_daemon, run_cli, standing_finals, tactiled_cmd, wait_for
 
 FS = 20_000.0
 
@@ -164,6 +164,29 @@ def test_opening_the_port_keeps_what_the_board_sent_before() -> None:
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_a_port_has_one_reader_and_a_second_is_told_why(tmp_path: Path) -> None:
+    """A recorder started beside a running daemon would take part of each one's bytes: ports open exclusively, and the
+    second opener gets one line saying another process has it (the daemon: the same reason, and it keeps retrying)."""
+    from tactiled.board.serialsource import KeepInputSerial, check_port
+    from tactiled.errors import DeviceError
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link = tmp_path / "tty"
+    link.symlink_to(os.ttyname(slave))
+    first = KeepInputSerial(str(link), timeout=0, exclusive=True)
+    try:
+        with pytest.raises(DeviceError, match="another process has it open"):
+            check_port(os.ttyname(slave))  # the same tty under its own name
+        res = run_cli("record", "--port", str(link), "--seconds", "1", "-o", str(tmp_path / "r.npz"))
+        assert res.returncode == 2 and "another process has it open (a running daemon or recorder?)" in res.stderr, res.stderr
+    finally:
+        first.close()
+        os.close(master)
+        os.close(slave)
+    assert not (tmp_path / "r.npz").exists()
 
 
 def test_serial_source_survives_reader_and_consumer_failures_and_counts_them() -> None:

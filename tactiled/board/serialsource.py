@@ -92,10 +92,17 @@ def check_port(path: str) -> None:
     if not os.path.exists(path):
         raise DeviceError(f"{path}: no such serial device")
     try:
-        port = serial.Serial(path, timeout=0)
+        port = serial.Serial(path, timeout=0, exclusive=True)
     except (serial.SerialException, OSError) as exc:
-        raise DeviceError(f"{path}: cannot open serial device: {exc}") from None
+        raise DeviceError(f"{path}: cannot open serial device: {open_error(exc)}") from None
     port.close()
+
+
+def open_error(exc: BaseException) -> str:
+    """Why a port did not open, for the user: pyserial's lock failure (ports are opened exclusively) said plainly."""
+    if "exclusively lock" in str(exc):
+        return "another process has it open (a running daemon or recorder?): a port has one reader, or each gets part of its bytes"
+    return str(exc)
 
 
 class Disconnected(OSError):
@@ -274,7 +281,7 @@ class SerialSource:
                 port = self._open()
             except (serial.SerialException, OSError, ValueError, OverflowError) as exc:
                 if not reported:
-                    deliver((DISCONNECTED, f"cannot open: {exc}; retrying"))
+                    deliver((DISCONNECTED, f"cannot open: {open_error(exc)}; retrying"))
                     reported = True
                 self._stop.wait(delay)  # capped backoff between failing opens, not synchronisation
                 delay = min(delay * 2, self._retry[1])
@@ -297,7 +304,8 @@ class SerialSource:
     def _open(self) -> serial.Serial:
         if self._url:  # pyserial URL handlers (loop://, socket://, ...)
             return serial.serial_for_url(self.path, baudrate=self._baudrate, timeout=0)
-        return KeepInputSerial(self.path, baudrate=self._baudrate, timeout=0)
+        # exclusive: a second reader of one port (a recorder beside the daemon) would take half of each one's bytes
+        return KeepInputSerial(self.path, baudrate=self._baudrate, timeout=0, exclusive=True)
 
     def _discard_waiting(self, port: serial.Serial) -> int:
         """Read and drop what a tty holds now (pyserial's URL handlers hold nothing stale); returns how many bytes.
