@@ -358,7 +358,7 @@ def test_inner_folds_test_only_surfaces_they_train_on() -> None:
         ws, files = windows(per_surface, slides)
         train = np.arange(len(files))
         assert inner_grouping(ws, train) == how  # type: ignore[arg-type]
-        folds = _inner_folds(ws, train, 3, seed=0)  # type: ignore[arg-type]
+        folds = _inner_folds(ws, train, inner_grouping(ws, train), 3, seed=0)  # type: ignore[arg-type]
         assert bool(folds) is (how != "none")
         labels = ws.slide_labels()
         for tr, te in folds:

@@ -107,12 +107,6 @@ class DecoderStats:
     channel_errors: int = 0  # intact frames with a channel count other than the expected one (skipped)
 
 
-def channel_mismatch(sensor_id: str, found: int | None, expected: int) -> str:
-    """The one line a daemon or a recorder logs when intact frames of ``found`` channels are skipped on a port configured
-    for ``expected`` (``sensor.channels``): the board is not the one configured, and none of its samples is used."""
-    return f"sensor {sensor_id}: frames of {found} channel(s) skipped, sensor.channels is {expected}: set [sensor] channels to the board's"
-
-
 class FrameDecoder:
     """Sans-IO decoder: ``feed(bytes) -> list[Frame]`` (one per frame) or ``feed_runs`` (runs of frames); counters in :attr:`stats`.
 
@@ -140,6 +134,12 @@ class FrameDecoder:
         self._runs: deque[tuple[int, int, list[int]]] = deque()
         self.stats = DecoderStats()
         self.foreign_channels: int | None = None  # the channel count of the last intact frame skipped for its layout
+
+    def channel_mismatch(self, sensor_id: str) -> str:
+        """The one line a daemon, a recorder or a replay says when intact frames were skipped for their channel count (the
+        last such frame's against the ``channels`` expected): the board is not the one configured, none of its samples is used."""
+        return (f"sensor {sensor_id}: frames of {self.foreign_channels} channel(s) skipped, sensor.channels is {self._channels}: "
+                "set [sensor] channels to the board's")
 
     @property
     def next_index(self) -> int | None:

@@ -67,7 +67,7 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
             if t not in taught:
                 row = untaught.setdefault(t, [0, 0])
                 row[0] += 1
-                row[1] += r is not None and r.reason == "unknown_surface"
+                row[1] += int(r is not None and r.reason == "unknown_surface")
         per_file.append({"file": name, "slides": len(truth), "correct": right, "unpaired_detections": unpaired})
     n = len(y_true)
     hits = np.array([p == t for p, t in zip(y_pred, y_true, strict=True)], dtype=bool)
@@ -80,7 +80,7 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
            "interval95": recording_interval(hits, files)}
     out.update(calibration_scores(np.array(conf), np.array(hit, dtype=bool)))
     out.update(confusion(y_true, y_pred, classes))
-    out["untaught"] = {t: [int(n_), int(k)] for t, (n_, k) in sorted(untaught.items())}
+    out["untaught"] = dict(sorted(untaught.items()))
     return out
 
 

@@ -427,6 +427,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     outer = slide_folds(first, folds, seed)
     nested_on = len(usable) > 1
     grouping = [inner_grouping(first, tr) if nested_on else "file" for tr, _ in outer]
+    # every window set has the same slides in the same order, so one set of inner folds per outer fold serves every candidate
+    inner = [_inner_folds(first, tr, how, inner_folds, seed) if nested_on else [] for (tr, _), how in zip(outer, grouping, strict=True)]
     if "none" in grouping:
         say("nested CV: an outer training fold holds a single slide of some surface, so no inner folds can choose the "
             "candidate there: that fold scores the winner itself, and the nested estimate is optimistic")
@@ -436,7 +438,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     # every window set has the same slides in the same order (detection does not depend on the window)
     tasks = []
     for c in usable:  # one task per candidate (its data crosses to a worker once); per outer fold for the slow forward selection
-        splits = [(tr, te, _inner_folds(sets[_key(c)][1], tr, inner_folds, seed) if nested_on else []) for tr, te in outer]
+        splits = [(tr, te, folds_in) for (tr, te), folds_in in zip(outer, inner, strict=True)]
         parts = [[sp] for sp in splits] if c.sfs else [splits]
         tasks += [(candidate_folds, (sets[_key(c)][1], c, part, classes, seed, inner_folds)) for part in parts]
     fits = [sum(1 + len(inner) for _, _, inner in t[1][2]) for t in tasks]  # model fits per task: each outer fold and its inner folds
@@ -451,11 +453,10 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         scores = np.full((len(ws.slides), len(classes)), -np.inf)
         accs, per_outer_inner = [], []
         per_fold = [r for _ in range(len(outer) if c.sfs else 1) for r in next(results)]
-        for (tr, te), (sc, inner_scores) in zip(outer, per_fold, strict=True):
+        for (_, te), folds_in, (sc, inner_scores) in zip(outer, inner, per_fold, strict=True):
             scores[te] = sc
             accs.append(accuracy_of(sc, y_idx[te]))
-            per_outer_inner.append([accuracy_of(isc, y_idx[ite]) for (_itr, ite), isc in
-                                    zip(_inner_folds(ws, tr, inner_folds, seed) if nested_on else [], inner_scores, strict=True)])
+            per_outer_inner.append([accuracy_of(isc, y_idx[ite]) for (_itr, ite), isc in zip(folds_in, inner_scores, strict=True)])
         oof[c.name] = scores
         inner_acc[c.name] = per_outer_inner
         board.append({"candidate": c.name, "families": list(c.families), "classifier": c.kind, "start_s": c.start_s, "duration_s": c.duration_s,
@@ -802,10 +803,10 @@ def _counts(ws: WindowSet) -> dict[str, Any]:
             "false": sum(c.false.values())}
 
 
-def _inner_folds(ws: WindowSet, train: npt.NDArray[np.intp], n: int, seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
-    """:func:`grouped_splits` of the slides ``train`` (indices into ws.slides), as indices into ws.slides, grouped as
-    :func:`inner_grouping` says ([] for ``none``)."""
-    how = inner_grouping(ws, train)
+def _inner_folds(ws: WindowSet, train: npt.NDArray[np.intp], how: str, n: int,
+                 seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
+    """:func:`grouped_splits` of the slides ``train`` (indices into ws.slides), as indices into ws.slides, grouped ``how``
+    (:func:`inner_grouping`: ``file``, ``slide``, or ``none``: no folds)."""
     if how == "none":
         return []
     groups = np.array([ws.slides[i].file for i in train]) if how == "file" else train
@@ -817,10 +818,14 @@ def inner_grouping(ws: WindowSet, train: npt.NDArray[np.intp]) -> str:
     has a single file among them (an outer fold of surfaces recorded twice: folds grouped by file would test that file
     with nothing of its surface to train on, every candidate would score nothing, and the choice would fall to the
     simplest whatever it scores); ``none`` (no inner folds, no inner choice) where a surface has a single slide there."""
-    labels = ws.slide_labels()[train]
-    if fewest_groups(labels, np.array([ws.slides[i].file for i in train])) >= 2:
-        return "file"
-    return "slide" if fewest_groups(labels, train) >= 2 else "none"
+    k = coarsest_testable(ws.slide_labels()[train], [np.array([ws.slides[i].file for i in train]), train])
+    return ("file", "slide")[k] if k is not None else "none"
+
+
+def coarsest_testable(y: npt.NDArray[Any], groupings: Sequence[npt.NDArray[Any]]) -> int | None:
+    """Index of the first of ``groupings`` (each (n,), coarsest first) in which every labelled class of ``y`` (n,) has two
+    groups or more, so that grouped folds can test each class on a group they did not train on; None if none does."""
+    return next((k for k, g in enumerate(groupings) if fewest_groups(y, g) >= 2), None)
 
 
 def _run_with_progress(tasks: list[tuple[Callable[..., Any], tuple[Any, ...]]], say: Progress, scheduler: str | None,
@@ -878,12 +883,12 @@ def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_fold
     from tactiled.learn.elm import ELMClassifier
     from tactiled.learn.model import LogFeatures, anova_f
 
-    x, y, g = ws.x[rows], ws.y[rows], ws.groups[rows]
-    if fewest_groups(y, g) < 2:  # a surface with one file here (an outer fold's training part): by slide, as _inner_folds,
-        g = ws.slide[rows]       # or, with one slide, by window (optimistic, but the features are still ranked on held-out rows)
-        if fewest_groups(y, g) < 2:
-            g = np.arange(len(rows))
-    cv = grouped_splits(y, g, inner_folds, seed)
+    x, y = ws.x[rows], ws.y[rows]
+    # by file; where a surface has one file here (an outer fold's training part) by slide, as _inner_folds; where it has one
+    # slide, by window (optimistic, but the features are still ranked on held-out rows)
+    groupings = [ws.groups[rows], ws.slide[rows], np.arange(len(rows))]
+    k = coarsest_testable(y, groupings)
+    cv = grouped_splits(y, groupings[-1 if k is None else k], inner_folds, seed)
     z = Pipeline([("log", LogFeatures(tuple(ws.names))), ("scale", StandardScaler())]).fit_transform(x)
     varying = np.flatnonzero(np.ptp(z, axis=0) > 1e-12)
     if 0 < pool < len(varying) and len(np.unique(y)) > 1:

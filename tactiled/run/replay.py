@@ -17,7 +17,6 @@ from tactiled_client import schema
 from tactiled_client.truth import overlapping
 
 from tactiled import __version__
-from tactiled.board.frames import channel_mismatch
 from tactiled.config import Config
 from tactiled.core.events import PipelineEvent, SlideResult, SlideResumed
 from tactiled.core.matching import match_slides
@@ -211,8 +210,7 @@ def replay_capture(capture: Capture, config: Config, model: Any | None, *, pacer
         collect(results, ev, base)
     st = stream.stats
     if st.channel_errors and not collector.samples_seen:  # every intact frame had another layout: nothing was replayed
-        raise RecordingError(f"{capture.path}: {channel_mismatch(s.id, stream.ingest.decoder.foreign_channels, s.channels)} "
-                             "(--config)")
+        raise RecordingError(f"{capture.path}: {stream.ingest.decoder.channel_mismatch(s.id)} (--config)")
     info = {"capture": str(capture.path), "crc_errors": st.crc_errors, "bytes_discarded": st.bytes_discarded, "restarts": st.restarts,
             "channel_errors": st.channel_errors, "duplicate_frames": st.duplicates, "samples": collector.samples_seen,
             "samples_lost": collector.samples_lost}

@@ -44,7 +44,6 @@ from tactiled_client import schema
 
 from tactiled import __version__
 from tactiled.board.clockmap import ClockMap, rate_mismatch
-from tactiled.board.frames import channel_mismatch
 from tactiled.board.serialsource import CONNECTED, ByteSource, SerialSource
 from tactiled.config import Config
 from tactiled.core.events import PipelineEvent, SlideResult, SlideResumed
@@ -468,7 +467,7 @@ class Daemon:
         not the one configured: no sample of it is analysed), and once more each time they start again after a quiet spell."""
         errors = self.stream.stats.channel_errors
         if errors > self._channel_errors_seen and not self._channel_errors_said:
-            log.warning("%s", channel_mismatch(self.config.sensor.id, self.decoder.foreign_channels, self.config.sensor.channels))
+            log.warning("%s", self.decoder.channel_mismatch(self.config.sensor.id))
         self._channel_errors_said = errors > self._channel_errors_seen  # a quiet interval: the next ones are said again
         self._channel_errors_seen = errors
 

@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.board.clockmap import rate_mismatch
-from tactiled.board.frames import DecoderStats, Frame, channel_mismatch
+from tactiled.board.frames import DecoderStats, Frame
 from tactiled.board.serialsource import DISCONNECTED, ByteSource, SerialSource, check_port
 from tactiled.config import Config
 from tactiled.errors import OutputError
@@ -301,20 +301,21 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
         if state == DISCONNECTED:
             log.warning("%s: %s", s.port, detail)
 
-    said: list[bool] = []  # the channel mismatch said (once)
-    first: list[float] = []  # when samples first came, and how many had come by then (for the rate, measured once)
+    channels_said = rate_said = False  # each said once
+    first: tuple[float, int] | None = None  # when samples first came, and how many had come by then (the rate's start)
 
     def take(data: bytes | None) -> None:
+        nonlocal channels_said, rate_said, first
         for batch in stream.feed_bytes(data or b"").batches:
             sink.add(batch)
-        if stream.stats.channel_errors and not said:  # nothing of such a board is recorded: say so at once, not at the end
-            said.append(True)
-            log.warning("%s", channel_mismatch(s.id, stream.ingest.decoder.foreign_channels, s.channels))
+        if stream.stats.channel_errors and not channels_said:  # nothing of such a board is recorded: say so at once, not at the end
+            channels_said = True
+            log.warning("%s", stream.ingest.decoder.channel_mismatch(s.id))
         now, n = time.monotonic(), stream.stats.samples
-        if n and not first:
-            first[:] = [now, n]
-        elif len(first) == 2 and now - first[0] >= RATE_AFTER_S:  # sensor.fs is written into the recording: say so if wrong
-            first.append(now)
+        if n and first is None:
+            first = (now, n)
+        elif first is not None and not rate_said and now - first[0] >= RATE_AFTER_S:  # sensor.fs is written into the recording
+            rate_said = True
             line = rate_mismatch(s.id, (n - first[1]) / (now - first[0]), s.fs)
             if line:
                 log.warning("%s", line)
