@@ -58,6 +58,20 @@ def ra(surface: str) -> float:
     return float("".join(c for c in surface if c.isdigit() or c == "."))
 
 
+MIXED = (8, 7)  # --mixed: grades spread over the range (39 % apart in Ra), and gratings
+
+
+def dataset(out: Path, spec: str, seed: int, files: int, slides: int, mixed: bool = False, **kw: Any) -> list[Path]:
+    """Recordings of the 15 surfaces of scene ``spec`` (write_dataset); ``mixed``: of 8 grades spread over the range and 7
+    gratings instead, far apart as a lab's sandpapers, fabrics and machined textures are (the gratings' file names carry
+    ``+grating``)."""
+    if not mixed:
+        return write_dataset(out, scene=spec, seed=seed, files_per_surface=files, slides_per_file=slides, **kw)
+    return (write_dataset(out, scene=spec, seed=seed, surfaces=str(MIXED[0]), files_per_surface=files, slides_per_file=slides, **kw)
+            + write_dataset(out, scene=f"{spec},grating", seed=seed + 1, surfaces=str(MIXED[1]), files_per_surface=files,
+                            slides_per_file=slides, **kw))
+
+
 def plain_features(x: np.ndarray, fs: float) -> list[float]:
     """The plain baseline's features of one slide (n, C): per channel 24 log band energies, log centroid, kurtosis."""
     nper = max(64, round(1024 * fs / 20000))
@@ -238,6 +252,8 @@ def main() -> None:
     ap.add_argument("--ensemble", default=None, help="train --ensemble for the default models (default: train's)")
     ap.add_argument("--candidates-on-units", action="store_true", help="also score every candidate on every other unit, and print a "
                     "table of each candidate's means over the scenes")
+    ap.add_argument("--mixed", action="store_true", help="each scene's surfaces are 8 grades spread over the range and 7 gratings (far "
+                    "apart, as most labs' sets are) instead of 15 neighbouring grades; no far-surface test")
     args = ap.parse_args()
     opts: dict[str, Any] = {"novelty": args.novelty} if args.novelty else {}
     ens_opts: dict[str, Any] = {"ensemble": args.ensemble} if args.ensemble else {}
@@ -251,11 +267,10 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|---|---|---|", flush=True)
     for spec in args.scenes.split(";"):
         name = spec.replace(",", "+")
-        tr = write_dataset(root / name / "train", scene=spec, seed=100, files_per_surface=args.files, slides_per_file=args.slides)
-        same = load_recordings(write_dataset(root / name / "same", scene=spec, seed=200, files_per_surface=args.test_files,
-                                             slides_per_file=args.slides))
-        others = {u: load_recordings(write_dataset(root / name / f"other{u}", scene=spec, seed=200 + 100 * u, files_per_surface=args.test_files,
-                                                   slides_per_file=args.slides, unit=u, specimen=u)) for u in units}
+        tr = dataset(root / name / "train", spec, 100, args.files, args.slides, args.mixed)
+        same = load_recordings(dataset(root / name / "same", spec, 200, args.test_files, args.slides, args.mixed))
+        others = {u: load_recordings(dataset(root / name / f"other{u}", spec, 200 + 100 * u, args.test_files, args.slides, args.mixed,
+                                             unit=u, specimen=u)) for u in units}
         train_recs = load_recordings(tr)
         out: dict[str, Any] = {"scene": spec, "plain": plain_baseline(train_recs, {"same": same, **{f"other{u}": r for u, r in others.items()}})}
         t0 = time.perf_counter()
@@ -280,7 +295,7 @@ def main() -> None:
             pres = train(tr, config, method="paper", progress=lambda m: None, **opts)
             out["paper"] = {"same": end_to_end(same, config, pres.model)["accuracy"], "nested_cv": pres.nested["mean"],
                             **{f"other{u}": end_to_end(r, config, pres.model)["accuracy"] for u, r in others.items()}}
-        if not args.no_gratings and "grating" not in spec:
+        if not args.no_gratings and not args.mixed and "grating" not in spec:
             far = load_recordings(write_dataset(root / name / "gratings", scene=f"{spec},grating", seed=400, files_per_surface=1,
                                                 slides_per_file=3))
             out["gratings_unknown"], out["gratings_slides"] = unknown_share(far, config, res.model)

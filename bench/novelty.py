@@ -19,7 +19,10 @@ numerator), and ``ratio``, that over the same for the next surface. Printed as q
 training LORO median, and the share of each population the gate flags (the model's own thresholds), by each test apart,
 and by the distance test with its threshold 1.25 and 2 times as large.
 
-Usage: python bench/novelty.py [--scenes "robot;hand;one-channel"] [--out DIR] [--json FILE]
+``--mixed``: each scene's surfaces are 8 grades spread over the range and 7 gratings (bench/labels.py --mixed); no
+gratings population then (they are taught).
+
+Usage: python bench/novelty.py [--scenes "robot;hand;one-channel"] [--mixed] [--out DIR] [--json FILE]
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from labels import LEAVE_OUT, dataset, ra
 
 from tactiled.config import Config
 from tactiled.files.recording import Recording
@@ -38,8 +42,6 @@ from tactiled.learn.dataset import collect_windows, find_slides, load_recordings
 from tactiled.learn.model import Model, novelty_parts, over_thresholds
 from tactiled.learn.train import train
 from tactiled.sim.simulate import write_dataset
-
-LEAVE_OUT = (2, 7, 12)
 
 
 def slide_rows(recs: list[tuple[str, Recording]], config: Config, model: Model) -> tuple[np.ndarray, np.ndarray]:
@@ -90,6 +92,7 @@ def main() -> None:
     ap.add_argument("--out", default=None)
     ap.add_argument("--json", default=None)
     ap.add_argument("--novelty", default=None, help="train --novelty (default: train's)")
+    ap.add_argument("--mixed", action="store_true", help="8 grades spread over the range and 7 gratings per scene (bench/labels.py --mixed)")
     args = ap.parse_args()
     opts: dict[str, Any] = {"novelty": args.novelty} if args.novelty else {}
     config = Config()
@@ -97,18 +100,18 @@ def main() -> None:
     result: dict[str, Any] = {}
     for spec in args.scenes.split(";"):
         name = spec.replace(",", "+")
-        tr = write_dataset(root / name / "train", scene=spec, seed=100, files_per_surface=3, slides_per_file=3)
-        sets = {"same unit": write_dataset(root / name / "same", scene=spec, seed=200, files_per_surface=2, slides_per_file=3)}
+        tr = dataset(root / name / "train", spec, 100, 3, 3, args.mixed)
+        sets = {"same unit": dataset(root / name / "same", spec, 200, 2, 3, args.mixed)}
         for u in (1, 2):
-            sets[f"unit {u}"] = write_dataset(root / name / f"other{u}", scene=spec, seed=200 + 100 * u, files_per_surface=2,
-                                              slides_per_file=3, unit=u, specimen=u)
-        sets["gratings"] = write_dataset(root / name / "gratings", scene=f"{spec},grating", seed=400, files_per_surface=1, slides_per_file=3)
+            sets[f"unit {u}"] = dataset(root / name / f"other{u}", spec, 200 + 100 * u, 2, 3, args.mixed, unit=u, specimen=u)
+        if not args.mixed:
+            sets["gratings"] = write_dataset(root / name / "gratings", scene=f"{spec},grating", seed=400, files_per_surface=1, slides_per_file=3)
         model = train(tr, config, progress=lambda m: None, **opts).model
         pops = training_scores(model)
         for key, paths in sets.items():
             z, _ = slide_rows(load_recordings(paths), config, model)
             pops[key] = scores(model, z)
-        surfaces = sorted({str(s) for s in model.classes}, key=lambda s: float("".join(c for c in s if c.isdigit() or c == ".")))
+        surfaces = sorted({str(s) for s in model.classes}, key=ra)
         gone = {surfaces[i] for i in LEAVE_OUT}
         keep = [p for p in tr if not any(f"_{g}_" in p.name for g in gone)]
         lo_model = train(keep, config, progress=lambda m: None, **opts).model
