@@ -73,7 +73,11 @@ def cmd_train(args: argparse.Namespace) -> int:
             print(f"unknown surfaces: by cross-validation, {100 * nov['known_rejected']:.1f} % of slides of known surfaces are called unknown, "
                   + (f"{100 * nov['unseen_flagged']:.1f} % of slides of a surface left out of training" if nov.get("unseen_flagged") is not None
                      else "and no surface could be left out to test it"))
-        if not ratio:
+        if nov.get("score") == "far":
+            print("unknown surfaces: " + ("only a slide farther from every taught surface than they are from each other is called unknown "
+                                          "(--novelty combined also tests for one between two taught surfaces)" if far else
+                                          "no slide will be called unknown (fewer than two surfaces)"))
+        elif not ratio:
             test = "distance" if nov.get("score") == "distance" else "distance-ratio"
             print(f"unknown surfaces: the {test} test flags nothing: by cross-validation, at --untaught-share {nov.get('untaught', 0.5):g} "
                   "it would cost more known slides than the untaught ones it catches are worth"
@@ -188,17 +192,19 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--scheduler", help="dask.distributed scheduler address (tcp://host:port) to run the cross-validation on a cluster "
                                         "(default: this machine, every core)")
     p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP + " (the same files, options and seed give the same model file)")
-    p.add_argument("--novelty", choices=("ratio", "distance", "combined"), default="combined",
-                   help="how a slide is judged unlike every taught surface (label null, reason unknown_surface): ratio, its distance to "
-                        "the nearest surface over that to the next (keeps labelling on another unit of the sensor or a new sheet "
-                        "of a known grade); distance, its distance to the nearest training slides (flags more untaught surfaces "
-                        "between taught grades, but also most slides of another unit); combined (the default), the ratio, or a "
-                        "distance to the nearest surface beyond the step between taught surfaces (also flags a surface far from "
-                        "every taught one where one taught surface is much nearer than the next)")
+    p.add_argument("--novelty", choices=("far", "combined", "ratio", "distance"), default="far",
+                   help="how a slide is judged unlike every taught surface (label null, reason unknown_surface): far (the default), "
+                        "its distance to the nearest surface beyond the step between taught surfaces (keeps labelling on another "
+                        "unit of the sensor or a new sheet of a known grade); combined, that or its distance to the nearest surface "
+                        "over that to the next, where cross-validation says it pays (also flags an untaught surface between two "
+                        "taught ones, and slides of another unit that a shift puts there: docs/evaluation.md); ratio, that ratio "
+                        "alone; distance, its distance to the nearest training slides (flags more untaught surfaces between "
+                        "taught grades, but also most slides of another unit)")
     p.add_argument("--untaught-share", type=c.number_in(0.01, 0.99, "share"), default=None,
                    help="the share of slides you expect on surfaces the model is not taught: the unknown-surface threshold calls "
                         "known slides unknown (at most 5 %% of them by cross-validation) only where the untaught slides it catches "
-                        "are worth it at this share; 0.5 weighs a caught untaught slide and a rejected known one alike (default: 0.1)")
+                        "are worth it at this share; 0.5 weighs a caught untaught slide and a rejected known one alike (default: 0.1; "
+                        "with --novelty combined, ratio or distance: the far test has no such trade to weigh)")
     p.add_argument("--ensemble", choices=("off", "always", "guarded"), default="off",
                    help="whether the chosen candidate and the plain spectral one (spectrum / svm / 0.25 s / slide mean) make one model, "
                         "the normalised product of their probabilities, when the chosen one's windows are the spectral one's "

@@ -86,8 +86,10 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     groups = np.concatenate([old.novelty_groups, slides.groups[labelled] + int(old.novelty_groups.max(initial=-1)) + 1])
     labels = np.concatenate([old.novelty_y, slides.y[labelled]]).astype(np.str_)
     new.novelty_k, new.early_calibration = old.novelty_k, old.early_calibration
-    # the score and the share of untaught slides the model was trained with (a model from before the share: Youden's J, 0.5)
-    fit_model_novelty(new, z, labels, groups, old.novelty_score, float(old.summary.get("novelty", {}).get("untaught", 0.5)))
+    # the tests and the share of untaught slides the model was trained with (the summary says "far" where the model file says
+    # "combined" without a ratio threshold; a model from before the share: Youden's J, 0.5)
+    trained = old.summary.get("novelty", {})
+    fit_model_novelty(new, z, labels, groups, str(trained.get("score", old.novelty_score)), float(trained.get("untaught", 0.5)))
     return Enrolled(new, added, files, [k for k in added if k not in old.classes])
 
 

@@ -58,6 +58,7 @@ from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, collect_windows, find_slides
 from tactiled.learn.model import (
+    NOVELTY_SCORES,
     Model,
     decision_scores,
     ensemble_scores,
@@ -88,6 +89,12 @@ ENSEMBLE_DEFAULT = "off"
 # train --untaught-share: the share of slides expected on surfaces a model was never taught; a novelty threshold is worth
 # what it catches of them, weighed by this, less the known slides it rejects, weighed by the rest (novelty_threshold)
 UNTAUGHT_SHARE = 0.1
+# train --novelty: the unknown-surface tests a model gets. "far" (the default): only the distance test of "combined" (a
+# slide farther from every taught surface than they are from one another), never the distance ratio (a slide between two
+# taught surfaces), whose cost on another unit of the sensor cross-validation on one unit cannot see (docs/evaluation.md);
+# the model stores it as "combined" with no ratio threshold. The others: tactiled.learn.model.NOVELTY_SCORES.
+NOVELTY_TESTS = ("far", *NOVELTY_SCORES)
+NOVELTY_DEFAULT = "far"
 # named feature sets: "spectrum" is the plain whole-slide spectral classifier's input (log band energies of the
 # Welch PSD, log spectral centroid, kurtosis of each channel); "tex.<name>" is one texture descriptor
 ALIASES: dict[str, tuple[str, ...]] = {"spectrum": ("psd", "tex.centroid", "tex.kurtosis")}
@@ -375,12 +382,12 @@ def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, li
 def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
            candidates: Sequence[Candidate] | None = None, progress: Progress | None = None, scheduler: str | None = None,
            found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False,
-           novelty: str = "combined", ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE) -> SearchResult:
+           novelty: str = NOVELTY_DEFAULT, ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE) -> SearchResult:
     """Score every candidate, pick and refit the winner (see the module docstring).
 
     ``keep_models``: also refit every other candidate (``SearchResult.models``, by name; the winner alone under its name
     when the model is an ensemble), to compare them on held-out recordings.
-    ``novelty``: the models' unknown-surface score (:data:`~tactiled.learn.model.NOVELTY_SCORES`); ``untaught``: the share of
+    ``novelty``: the models' unknown-surface tests (:data:`NOVELTY_TESTS`); ``untaught``: the share of
     slides expected on untaught surfaces, which weighs its threshold (:func:`novelty_threshold`).
     ``ensemble`` (:data:`ENSEMBLE_MODES`): whether the winner and :data:`SPECTRUM` make one model (:func:`ensemble_of`) when the
     winner may have a partner (:func:`can_partner`): ``off`` never, ``always``, or ``guarded``, only when the ensemble's
@@ -543,7 +550,7 @@ def ensemble_of(first: Model, first_temperature: float, partner: Model, oof: Flo
 
 def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: Candidate, oof: FloatArray, y_idx: npt.NDArray[np.intp],
            classes: list[str], config: Config, fs: float, channels: int, seed: int, inner_folds: int, method: str,
-           summary: dict[str, Any], novelty: str = "combined", untaught: float = UNTAUGHT_SHARE) -> Model:
+           summary: dict[str, Any], novelty: str = NOVELTY_DEFAULT, untaught: float = UNTAUGHT_SHARE) -> Model:
     """Candidate ``c`` fitted on every labelled slide (:func:`_fit_member`), its temperature and calibration fitted on its
     out-of-fold slide scores ``oof`` (:func:`calibrate`), its novelty on its standardised slide-mean features."""
     model = _fit_member(sets, c, oof, y_idx, classes, config, fs, channels, seed, inner_folds, method)
@@ -577,9 +584,10 @@ def _fit_member(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]],
 def fit_model_novelty(model: Model, z: FloatArray, labels: npt.NDArray[Any], groups: npt.NDArray[Any], score: str,
                       untaught: float = UNTAUGHT_SHARE) -> None:
     """Give ``model`` its novelty data: the standardised slides ``z`` (n, F') of surfaces ``labels`` and recordings ``groups``
-    (n,), the score (:data:`~tactiled.learn.model.NOVELTY_SCORES`) and its threshold (:func:`fit_novelty` at the share
-    ``untaught`` of untaught slides, in ``summary``)."""
-    model.novelty_x, model.novelty_y, model.novelty_groups, model.novelty_score = z, labels, groups, score
+    (n,), the tests (:data:`NOVELTY_TESTS`; ``far`` is stored as ``combined`` without its ratio threshold) and their
+    thresholds (:func:`fit_novelty` at the share ``untaught`` of untaught slides, in ``summary``)."""
+    model.novelty_x, model.novelty_y, model.novelty_groups = z, labels, groups
+    model.novelty_score = "combined" if score == "far" else score
     model.novelty_threshold, info = fit_novelty(z, groups, labels, model.novelty_k, score=score, untaught=untaught)
     far = info.get("distance_threshold")
     model.novelty_distance_threshold = float(far) if far is not None else math.inf
@@ -706,7 +714,8 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     says how many of each it does. A threshold of
     inf (never unknown) when no slide has another recording to compare with.
 
-    ``combined``: the threshold is the ratio's, and ``info["distance_threshold"]`` a second one on the distance to the
+    ``far``: ``combined`` without the ratio's threshold (inf), only the distance test below. ``combined``: the threshold is
+    the ratio's, and ``info["distance_threshold"]`` a second one on the distance to the
     nearest surface (the ratio's numerator): the (1 - ``reject``) quantile of the left-out surfaces' distances, the
     distance from a taught slide to the nearest *other* surface (a step between taught surfaces), and never below the
     same quantile of the known slides' distances. A slide beyond it is farther from every taught surface than taught
@@ -714,22 +723,23 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     smaller than that step, is not. None (no distance gate) with fewer than two surfaces.
     """
     n = len(z)
+    parts_of = "combined" if score == "far" else score
     known = np.full((n, 2), np.nan)  # novelty_parts per slide: (score, distance to the nearest surface)
     unseen = np.full((n, 2), np.nan)
     for i in range(n):
         other_file, other_surface = files != files[i], labels != labels[i]
         for out, keep in ((known, other_file), (unseen, other_surface)):
             if keep.any():
-                out[i] = novelty_parts(z[i:i + 1], z[keep], labels[keep], k, score)[0]
+                out[i] = novelty_parts(z[i:i + 1], z[keep], labels[keep], k, parts_of)[0]
     have, flagged = known[np.isfinite(known[:, 0])], unseen[np.isfinite(unseen[:, 0])]
     info: dict[str, Any] = {"k": k, "score": score, "untaught": untaught, "threshold": None, "known_rejected": None, "unseen_flagged": None}
-    if score == "combined":
+    if parts_of == "combined":
         info["distance_threshold"] = None
     if not len(have):
         return math.inf, info
-    threshold = max(novelty_threshold(have[:, 0], flagged[:, 0], reject, untaught), 1e-9)
+    threshold = math.inf if score == "far" else max(novelty_threshold(have[:, 0], flagged[:, 0], reject, untaught), 1e-9)
     far = math.inf
-    if score == "combined" and len(flagged) and len(np.unique(labels)) >= 2:
+    if parts_of == "combined" and len(flagged) and len(np.unique(labels)) >= 2:
         q = 1.0 - reject
         far = max(float(np.quantile(flagged[:, 1], q, method="higher")), float(np.quantile(have[:, 1], q, method="higher")), 1e-9)
         info["distance_threshold"] = far
@@ -919,7 +929,7 @@ def window_oof(ws: WindowSet, cols: npt.NDArray[np.intp], kind: str, params: dic
 
 def paper(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
           progress: Progress | None = None, scheduler: str | None = None,
-          found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, novelty: str = "combined",
+          found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, novelty: str = NOVELTY_DEFAULT,
           untaught: float = UNTAUGHT_SHARE) -> SearchResult:
     """The papers' DWT + SFS + ELM (:data:`PAPER`), cross-validated the same way as :func:`search`, then fitted on everything."""
     return search(recs, config, folds=folds, inner_folds=inner_folds, seed=seed, candidates=[PAPER], progress=progress, scheduler=scheduler,

@@ -16,8 +16,18 @@ from tactiled.config import Config
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, check_distinct, find_slides, load_recordings
-from tactiled.learn.model import NOVELTY_SCORES
-from tactiled.learn.search import ENSEMBLE_DEFAULT, ENSEMBLE_MODES, UNTAUGHT_SHARE, Candidate, SearchResult, paper, quick_candidates, search
+from tactiled.learn.search import (
+    ENSEMBLE_DEFAULT,
+    ENSEMBLE_MODES,
+    NOVELTY_DEFAULT,
+    NOVELTY_TESTS,
+    UNTAUGHT_SHARE,
+    Candidate,
+    SearchResult,
+    paper,
+    quick_candidates,
+    search,
+)
 
 METHODS = ("auto", "quick", "paper")
 GROUP_BY = ("file", "slide")
@@ -63,18 +73,20 @@ def check_two_recordings(table: dict[str, tuple[int, int, int]], hint: str = "")
 def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
           drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None,
           candidates: Sequence[Candidate] | None = None, keep_models: bool = False, group_by: str = "file",
-          novelty: str = "combined", ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE) -> SearchResult:
+          novelty: str = NOVELTY_DEFAULT, ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE) -> SearchResult:
     """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save).
 
     ``candidates`` narrows the default search (``method="auto"``) to the given ones; ``keep_models``: see :func:`search`.
     ``group_by``: ``file`` (folds never split a recording; every surface needs two) or ``slide`` (allowed with one
-    recording per surface, with a warning that the estimates are optimistic). ``novelty``: the unknown-surface score
-    (:data:`~tactiled.learn.model.NOVELTY_SCORES`; ``ratio`` tolerates another unit of the sensor, ``distance`` flags
-    more untaught surfaces between taught grades but also most slides of another unit or a new sheet of a known one;
-    ``combined``, the default, is the ratio or a distance beyond the step between taught surfaces, which also flags a
-    surface far from every taught one where the ratio is small). ``untaught``: the share of slides expected on surfaces the
-    model was not taught, in (0, 1); the unknown-surface threshold rejects known slides only where that catches enough
-    untaught ones at this share (:func:`~tactiled.learn.search.novelty_threshold`). ``ensemble`` (:data:`~tactiled.learn.search.ENSEMBLE_MODES`):
+    recording per surface, with a warning that the estimates are optimistic). ``novelty``: the unknown-surface tests
+    (:data:`~tactiled.learn.search.NOVELTY_TESTS`): ``far``, the default, flags a slide farther from every taught surface
+    than they are from one another; ``combined`` adds the distance ratio, which flags a slide between two taught surfaces
+    where cross-validation says that pays, and also slides of another unit of the sensor that a shift puts there;
+    ``ratio`` is that test alone; ``distance`` flags slides far from the nearest training slides (more untaught surfaces
+    between taught grades, but also most slides of another unit or a new sheet of a known one). ``untaught``: the share of
+    slides expected on surfaces the model was not taught, in (0, 1); with ``combined``, ``ratio`` and ``distance``, their
+    threshold rejects known slides only where that catches enough untaught ones at this share
+    (:func:`~tactiled.learn.search.novelty_threshold`). ``ensemble`` (:data:`~tactiled.learn.search.ENSEMBLE_MODES`):
     whether the winner of the search and the plain spectral candidate make one model (:func:`~tactiled.learn.search.search`);
     ``quick`` and ``paper`` never do (their search has no spectral candidate).
     """
@@ -89,8 +101,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         raise TactiledError(f"--group-by: must be one of {', '.join(GROUP_BY)}, got {group_by!r}")
     if seed < 0:
         raise TactiledError(f"--seed: must be >= 0, got {seed}")
-    if novelty not in NOVELTY_SCORES:
-        raise TactiledError(f"--novelty: must be one of {', '.join(NOVELTY_SCORES)}, got {novelty!r}")
+    if novelty not in NOVELTY_TESTS:
+        raise TactiledError(f"--novelty: must be one of {', '.join(NOVELTY_TESTS)}, got {novelty!r}")
     if not 0.0 < untaught < 1.0:
         raise TactiledError(f"--untaught-share: must be in (0, 1), got {untaught}")
     if ensemble not in ENSEMBLE_MODES:
