@@ -478,3 +478,32 @@ def test_the_nested_estimates_interval_resamples_recordings_not_slides() -> None
     assert recording_interval(independent[:10], groups[:10]) is None  # two recordings
     assert recording_interval(np.ones(200, dtype=bool), groups) == [1.0 - 3 / 40, 1.0]  # the rule of three over 40 recordings
     assert recording_interval(np.zeros(200, dtype=bool), groups) == [0.0, 3 / 40]
+
+
+def test_the_far_test_is_combined_without_its_ratio_and_flags_only_a_slide_far_from_every_surface(tmp_path: Path) -> None:
+    """train --novelty far: the ratio's threshold is inf, the distance threshold the combined score's; the file says combined
+    (no format change) and the summary far; a slide between two surfaces is not flagged, a far one is; finite on one surface."""
+    from tactiled.learn.model import novelty_parts, over_thresholds
+    from tactiled.learn.search import fit_model_novelty
+
+    z, labels, files = _isolated_surface()
+    threshold, info = fit_novelty(z, files, labels, 3, score="far")
+    combined = fit_novelty(z, files, labels, 3, score="combined")[1]
+    assert threshold == math.inf and info["score"] == "far" and info["threshold"] is None
+    assert info["distance_threshold"] == combined["distance_threshold"] and info["known_rejected"] <= 0.05
+    slides = np.array([[60.0, 15.0], [8.2, 4.1], [2.0, 2.0], [-40.0, 6.0]])  # far; taught; between two; far
+    nov = over_thresholds(novelty_parts(slides, z, labels, 3, "combined"), threshold, info["distance_threshold"])
+    assert nov[0] > 1.0 and nov[1] < 1.0 and nov[2] < 1.0 and nov[3] > 1.0  # the slide between two surfaces keeps its label
+    rng = np.random.default_rng(0)
+    y = np.repeat(["a", "b", "c"], 20)
+    x = np.abs(rng.standard_normal((60, 4))) + np.repeat([1.0, 3.0, 9.0], 20)[:, None]
+    model = _model(tmp_path)
+    fit_model_novelty(model, model.standardise(x), y, np.arange(60) // 5, "far")
+    model.save(tmp_path / "far.npz")
+    loaded = load_model(tmp_path / "far.npz")
+    assert loaded.novelty_score == "combined" and loaded.summary["novelty"]["score"] == "far" and loaded.novelty_threshold == math.inf
+    assert math.isfinite(loaded.novelty_distance_threshold)
+    known, far = loaded.assess(np.full((2, 4), 3.5))[2], loaded.assess(np.full((2, 4), 300.0))[2]
+    assert known is not None and far is not None and known < 1.0 < far
+    threshold, info = fit_novelty(z[:12], np.arange(12) % 4, np.zeros(12, dtype=int), 3, score="far")  # one surface: no test
+    assert threshold == math.inf and info["distance_threshold"] is None
