@@ -299,3 +299,12 @@ def test_replay_sets_glibcs_heap_thresholds_and_prints_the_same(tmp_path: Path, 
     without = capsys.readouterr().out
     monkeypatch.undo()
     assert main(["replay", path, path]) == 0 and capsys.readouterr().out == without and ": slide " in without
+
+
+def test_train_offers_the_choices_the_trainer_takes() -> None:
+    """train's options are written out in the parser (it imports no learning code, for a quick --help); they are the trainer's."""
+    from tactiled.learn.search import ENSEMBLE_DEFAULT, ENSEMBLE_MODES, NOVELTY_DEFAULT, NOVELTY_TESTS
+
+    options = {a.dest: a for a in COMMANDS["train"]._actions}
+    assert sorted(options["novelty"].choices) == sorted(NOVELTY_TESTS) and options["novelty"].default == NOVELTY_DEFAULT
+    assert sorted(options["ensemble"].choices) == sorted(ENSEMBLE_MODES) and options["ensemble"].default == ENSEMBLE_DEFAULT

@@ -24,9 +24,10 @@ files (where a surface has a single file in an outer fold's training part, as wi
 inner folds there split by slide: grouped by file they could test nothing; where it has a single slide, that fold
 scores the winner itself; the outer folds stay grouped). The winner is refitted on every recording; its temperature and its confidence
 calibration (:func:`fit_calibration`) are fitted on its out-of-fold slide scores, and its
-novelty threshold (:func:`fit_novelty`) on the distance ratios of slides to other recordings' slides (and, for the
-``combined`` score, a distance threshold on their distances to the nearest other surface), weighing a caught untaught
-slide by the share of them expected (``untaught``, :data:`UNTAUGHT_SHARE`) against a rejected known one.
+unknown-surface thresholds (:func:`fit_novelty`): by default (``far``) a distance threshold on the slides' distances to
+the nearest other surface, beyond the step between taught surfaces; with ``combined`` also one on the distance ratios
+of slides to other recordings' slides, weighing a caught untaught slide by the share of them expected (``untaught``,
+:data:`UNTAUGHT_SHARE`) against a rejected known one.
 
 ``ensemble`` (``train --ensemble``, off by default: docs/evaluation.md measured it on every scene and it cost some
 scenes 6 of 90 slides): when the winner shares :data:`SPECTRUM`'s windows, the model multiplies the winner's
