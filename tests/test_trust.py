@@ -250,16 +250,17 @@ def test_a_slide_far_from_every_taught_surface_is_flagged_even_where_the_ratio_i
     assert np.all(both >= ratio)
 
 
-def _combined_model(tmp_path: Path) -> Model:
+def _combined_model(tmp_path: Path, score: str = "combined") -> Model:
+    """A model of three surfaces a, b, c (20 slides each, 5 per recording) with ``score``'s novelty, saved and loaded."""
     from tactiled.learn.search import fit_model_novelty
 
     rng = np.random.default_rng(0)
     y = np.repeat(["a", "b", "c"], 20)
     x = np.abs(rng.standard_normal((60, 4))) + np.repeat([1.0, 3.0, 9.0], 20)[:, None]
     model = _model(tmp_path)
-    fit_model_novelty(model, model.standardise(x), y, np.arange(60) // 5, "combined")
-    model.save(tmp_path / "c.npz")
-    return load_model(tmp_path / "c.npz")
+    fit_model_novelty(model, model.standardise(x), y, np.arange(60) // 5, score)
+    model.save(tmp_path / f"{score}.npz")
+    return load_model(tmp_path / f"{score}.npz")
 
 
 def test_a_combined_model_keeps_both_thresholds_and_flags_a_far_slide_not_a_known_one(tmp_path: Path) -> None:
@@ -484,7 +485,6 @@ def test_the_far_test_is_combined_without_its_ratio_and_flags_only_a_slide_far_f
     """train --novelty far: the ratio's threshold is inf, the distance threshold the combined score's; the file says combined
     (no format change) and the summary far; a slide between two surfaces is not flagged, a far one is; finite on one surface."""
     from tactiled.learn.model import novelty_parts, over_thresholds
-    from tactiled.learn.search import fit_model_novelty
 
     z, labels, files = _isolated_surface()
     threshold, info = fit_novelty(z, files, labels, 3, score="far")
@@ -494,13 +494,7 @@ def test_the_far_test_is_combined_without_its_ratio_and_flags_only_a_slide_far_f
     slides = np.array([[60.0, 15.0], [8.2, 4.1], [2.0, 2.0], [-40.0, 6.0]])  # far; taught; between two; far
     nov = over_thresholds(novelty_parts(slides, z, labels, 3, "combined"), threshold, info["distance_threshold"])
     assert nov[0] > 1.0 and nov[1] < 1.0 and nov[2] < 1.0 and nov[3] > 1.0  # the slide between two surfaces keeps its label
-    rng = np.random.default_rng(0)
-    y = np.repeat(["a", "b", "c"], 20)
-    x = np.abs(rng.standard_normal((60, 4))) + np.repeat([1.0, 3.0, 9.0], 20)[:, None]
-    model = _model(tmp_path)
-    fit_model_novelty(model, model.standardise(x), y, np.arange(60) // 5, "far")
-    model.save(tmp_path / "far.npz")
-    loaded = load_model(tmp_path / "far.npz")
+    loaded = _combined_model(tmp_path, "far")
     assert loaded.novelty_score == "combined" and loaded.summary["novelty"]["score"] == "far" and loaded.novelty_threshold == math.inf
     assert math.isfinite(loaded.novelty_distance_threshold)
     known, far = loaded.assess(np.full((2, 4), 3.5))[2], loaded.assess(np.full((2, 4), 300.0))[2]
