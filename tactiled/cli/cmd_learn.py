@@ -201,10 +201,10 @@ def add_commands(sub: Sub) -> None:
                         "alone; distance, its distance to the nearest training slides (flags more untaught surfaces between "
                         "taught grades, but also most slides of another unit)")
     p.add_argument("--untaught-share", type=c.number_in(0.01, 0.99, "share"), default=None,
-                   help="the share of slides you expect on surfaces the model is not taught: the unknown-surface threshold calls "
-                        "known slides unknown (at most 5 %% of them by cross-validation) only where the untaught slides it catches "
-                        "are worth it at this share; 0.5 weighs a caught untaught slide and a rejected known one alike (default: 0.1; "
-                        "with --novelty combined, ratio or distance: the far test has no such trade to weigh)")
+                   help="with --novelty combined, ratio or distance (far has no threshold to weigh): the share of slides you expect "
+                        "on surfaces the model is not taught; the threshold calls known slides unknown (at most 5 %% of them by "
+                        "cross-validation) only where the untaught slides it catches are worth it at this share; 0.5 weighs a caught "
+                        "untaught slide and a rejected known one alike (default: 0.1)")
     p.add_argument("--ensemble", choices=("off", "always", "guarded"), default="off",
                    help="whether the chosen candidate and the plain spectral one (spectrum / svm / 0.25 s / slide mean) make one model, "
                         "the normalised product of their probabilities, when the chosen one's windows are the spectral one's "
