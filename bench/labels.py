@@ -19,8 +19,11 @@ whole slide (segments of 1024 samples at 20 kHz, scaled to the rate), the log en
 from 20 Hz to 0.45 fs, the log spectral centroid and the kurtosis; StandardScaler; RBF SVM (C=10).
 
 Usage: python bench/labels.py [--scenes "hand;robot;..."] [--files 3] [--test-files 2] [--slides 3] [--out DIR] [--json FILE]
-       [--other-units 1,2] [--no-paper] [--leave-out-scenes "hand;robot;one-channel"] [--novelty ratio|distance|combined]
-       [--no-gratings] [--ensemble off|always|guarded] [--candidates-on-units]
+       [--other-units 1,2] [--no-paper] [--leave-out-scenes "hand;robot;one-channel"] [--novelty far|combined|ratio|distance]
+       [--no-gratings] [--ensemble off|always|guarded] [--candidates-on-units] [--mixed]
+
+``--mixed``: each scene's surfaces are 8 grades spread over the range and 7 gratings (:func:`dataset`), far apart as most
+labs' sets are, instead of 15 neighbouring grades; the far-surface test (the gratings) is then left out.
 
 ``--ensemble`` trains every default model with ``train --ensemble``; where the model is an ensemble, the winner alone (the
 candidate ``train`` chose, with its own calibration) is scored on the same test sets beside it, and a second table gives
