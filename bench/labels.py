@@ -158,17 +158,22 @@ def leave_out(spec: str, tr: list[Path], test: list[tuple[str, Recording]], conf
     gone = {surfaces[i] for i in LEAVE_OUT if i < len(surfaces)}
     keep = [p for p in tr if not any(f"_{g}_" in p.name for g in gone)]
     res = train(keep, config, progress=lambda m: None, **({"novelty": novelty} if novelty else {}))
+    shares = left_out_share(test, config, res.model, gone)
+    return {"scene": spec, "left_out": sorted(gone), "unseen_unknown": shares["unseen"], "known_unknown": shares["known"],
+            "unseen_slides": shares["unseen_slides"], "known_slides": shares["known_slides"], "cv_estimate": res.model.summary.get("novelty")}
+
+
+def left_out_share(recs: list[tuple[str, Recording]], config: Config, model: Any, gone: set[str]) -> dict[str, float]:
+    """Of the true slides of ``recs``, end to end: the share of those of the surfaces ``gone`` (left out of training) and of
+    the known ones that come out unknown, and how many of each there are."""
     flagged = {True: [0, 0], False: [0, 0]}
-    for _, rec in test:
-        results = replay_recording(rec, config, res.model)
-        truth, paired, _ = pair_results(rec, results)
+    for _, rec in recs:
+        truth, paired, _ = pair_results(rec, replay_recording(rec, config, model))
         for t, r in zip(truth, paired, strict=True):
-            row = flagged[t in gone]
-            row[0] += r is not None and r.reason == "unknown_surface"
-            row[1] += 1
-    return {"scene": spec, "left_out": sorted(gone), "unseen_unknown": flagged[True][0] / max(1, flagged[True][1]),
-            "known_unknown": flagged[False][0] / max(1, flagged[False][1]), "unseen_slides": flagged[True][1], "known_slides": flagged[False][1],
-            "cv_estimate": res.model.summary.get("novelty")}
+            flagged[t in gone][0] += r is not None and r.reason == "unknown_surface"
+            flagged[t in gone][1] += 1
+    return {"unseen": flagged[True][0] / max(1, flagged[True][1]), "known": flagged[False][0] / max(1, flagged[False][1]),
+            "unseen_slides": flagged[True][1], "known_slides": flagged[False][1]}
 
 
 def table_row(out: dict[str, Any], units: list[int]) -> str:

@@ -28,7 +28,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from labels import DEFAULT, LEAVE_OUT, dataset, ra, unknown_share
+from labels import DEFAULT, LEAVE_OUT, dataset, left_out_share, ra, unknown_share
 
 from tactiled.config import Config
 from tactiled.files.recording import Recording
@@ -36,7 +36,7 @@ from tactiled.learn.dataset import load_recordings
 from tactiled.learn.model import Model
 from tactiled.learn.score import score
 from tactiled.learn.train import train
-from tactiled.run.replay import pair_results, replay_recording
+from tactiled.run.replay import replay_recording
 from tactiled.sim.simulate import write_dataset
 
 UNITS = (1, 2, 3, 4)
@@ -55,17 +55,6 @@ def accuracy(recs: list[tuple[str, Recording]], config: Config, model: Model) ->
     """Accuracy (unknowns wrong), top class and the share of slides called unknown, over every true slide."""
     sc = score(recs, [replay_recording(rec, config, model) for _, rec in recs], model.classes)
     return {"accuracy": sc["accuracy"], "top": sc["top_accuracy"], "unknown": sc["unknown"] / max(1, sc["n"])}
-
-
-def left_out_share(recs: list[tuple[str, Recording]], config: Config, model: Model, gone: set[str]) -> dict[str, float]:
-    """The share of the left-out surfaces' slides, and of the known ones, that come out unknown."""
-    flagged = {True: [0, 0], False: [0, 0]}
-    for _, rec in recs:
-        truth, paired, _ = pair_results(rec, replay_recording(rec, config, model))
-        for t, r in zip(truth, paired, strict=True):
-            flagged[t in gone][0] += r is not None and r.reason == "unknown_surface"
-            flagged[t in gone][1] += 1
-    return {"unseen": flagged[True][0] / max(1, flagged[True][1]), "known": flagged[False][0] / max(1, flagged[False][1])}
 
 
 def main() -> None:

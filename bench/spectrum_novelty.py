@@ -27,7 +27,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from labels import LEAVE_OUT, dataset, plain_features, ra
+from labels import LEAVE_OUT, dataset, plain_rows, ra
 
 from tactiled.learn.dataset import load_recordings
 from tactiled.learn.model import nearest_surface_distances
@@ -37,15 +37,10 @@ BANDS = 24  # plain_features: per channel 24 band levels, then the log centroid 
 
 
 def slide_rows(paths: list[Path]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(plain features (s, 26 C), surfaces (s,), recording index (s,)) of every true slide of ``paths``."""
-    x, y, g = [], [], []
-    for i, (_, rec) in enumerate(load_recordings(paths)):
-        volts = rec.samples.astype(np.float64) * rec.volts_per_count
-        for a, b, surface in rec.slides():
-            x.append(plain_features(volts[a:b], rec.fs))
-            y.append(str(surface))
-            g.append(i)
-    return np.array(x), np.array(y), np.array(g)
+    """(plain features (s, 26 C), surfaces (s,), recording index (s,)) of every true slide of ``paths`` (``plain_rows``)."""
+    per_file = [rows for rows in (plain_rows([rec]) for rec in load_recordings(paths)) if len(rows[1])]
+    return (np.vstack([x for x, _ in per_file]), np.concatenate([y for _, y in per_file]).astype(np.str_),
+            np.concatenate([np.full(len(y), i) for i, (_, y) in enumerate(per_file)]))
 
 
 def view(x: np.ndarray, name: str) -> np.ndarray:

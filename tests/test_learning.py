@@ -352,7 +352,7 @@ def test_inner_folds_test_only_surfaces_they_train_on() -> None:
     are none where a surface has a single slide (that fold then scores the winner itself)."""
     from types import SimpleNamespace
 
-    from tactiled.learn.search import _inner_folds, inner_grouping
+    from tactiled.learn.search import _inner_folds
 
     def windows(files_per_surface: int, slides: int) -> tuple[SimpleNamespace, np.ndarray]:
         labels = np.repeat([f"Ra{i}" for i in range(4)], files_per_surface * slides)
@@ -362,8 +362,8 @@ def test_inner_folds_test_only_surfaces_they_train_on() -> None:
     for per_surface, slides, how in ((1, 3, "slide"), (2, 3, "file"), (1, 1, "none")):
         ws, files = windows(per_surface, slides)
         train = np.arange(len(files))
-        assert inner_grouping(ws, train) == how  # type: ignore[arg-type]
-        folds = _inner_folds(ws, train, inner_grouping(ws, train), 3, seed=0)  # type: ignore[arg-type]
+        grouped, folds = _inner_folds(ws, train, 3, seed=0)  # type: ignore[arg-type]
+        assert grouped == how
         assert bool(folds) is (how != "none")
         labels = ws.slide_labels()
         for tr, te in folds:

@@ -434,9 +434,9 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     files = np.array([s.file for s in first.slides])  # every window set has these slides in this order
     outer = slide_folds(first, folds, seed)
     nested_on = len(usable) > 1
-    grouping = [inner_grouping(first, tr) if nested_on else "file" for tr, _ in outer]
     # every window set has the same slides in the same order, so one set of inner folds per outer fold serves every candidate
-    inner = [_inner_folds(first, tr, how, inner_folds, seed) if nested_on else [] for (tr, _), how in zip(outer, grouping, strict=True)]
+    made = [_inner_folds(first, tr, inner_folds, seed) if nested_on else ("file", []) for tr, _ in outer]
+    grouping, inner = [how for how, _ in made], [folds_in for _, folds_in in made]
     if "none" in grouping:
         say("nested CV: an outer training fold holds a single slide of some surface, so no inner folds can choose the "
             "candidate there: that fold scores the winner itself, and the nested estimate is optimistic")
@@ -814,23 +814,19 @@ def _counts(ws: WindowSet) -> dict[str, Any]:
             "false": sum(c.false.values())}
 
 
-def _inner_folds(ws: WindowSet, train: npt.NDArray[np.intp], how: str, n: int,
-                 seed: int) -> list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]:
-    """:func:`grouped_splits` of the slides ``train`` (indices into ws.slides), as indices into ws.slides, grouped ``how``
-    (:func:`inner_grouping`: ``file``, ``slide``, or ``none``: no folds)."""
-    if how == "none":
-        return []
-    groups = np.array([ws.slides[i].file for i in train]) if how == "file" else train
-    return [(train[a], train[b]) for a, b in grouped_splits(ws.slide_labels()[train], groups, n, seed)]
-
-
-def inner_grouping(ws: WindowSet, train: npt.NDArray[np.intp]) -> str:
-    """How the inner folds of the outer training slides ``train`` keep slides together: ``file``; ``slide`` where a surface
-    has a single file among them (an outer fold of surfaces recorded twice: folds grouped by file would test that file
-    with nothing of its surface to train on, every candidate would score nothing, and the choice would fall to the
-    simplest whatever it scores); ``none`` (no inner folds, no inner choice) where a surface has a single slide there."""
-    k = coarsest_testable(ws.slide_labels()[train], [np.array([ws.slides[i].file for i in train]), train])
-    return ("file", "slide")[k] if k is not None else "none"
+def _inner_folds(ws: WindowSet, train: npt.NDArray[np.intp], n: int,
+                 seed: int) -> tuple[str, list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]]]:
+    """(how, folds): :func:`grouped_splits` of the slides ``train`` (indices into ws.slides), as indices into ws.slides,
+    grouped by ``file``; by ``slide`` where a surface has a single file among them (an outer fold of surfaces recorded
+    twice: folds grouped by file would test that file with nothing of its surface to train on, every candidate would score
+    nothing, and the choice would fall to the simplest whatever it scores); ``none`` (no folds, no inner choice) where a
+    surface has a single slide there (:func:`coarsest_testable`)."""
+    labels = ws.slide_labels()[train]
+    groupings = [np.array([ws.slides[i].file for i in train]), train]
+    k = coarsest_testable(labels, groupings)
+    if k is None:
+        return "none", []
+    return ("file", "slide")[k], [(train[a], train[b]) for a, b in grouped_splits(labels, groupings[k], n, seed)]
 
 
 def coarsest_testable(y: npt.NDArray[Any], groupings: Sequence[npt.NDArray[Any]]) -> int | None:

@@ -311,10 +311,12 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
         if stream.stats.channel_errors and not channels_said:  # nothing of such a board is recorded: say so at once, not at the end
             channels_said = True
             log.warning("%s", stream.ingest.decoder.channel_mismatch(s.id))
+        if rate_said:
+            return
         now, n = time.monotonic(), stream.stats.samples
         if n and first is None:
             first = (now, n)
-        elif first is not None and not rate_said and now - first[0] >= RATE_AFTER_S:  # sensor.fs is written into the recording
+        elif first is not None and now - first[0] >= RATE_AFTER_S:  # sensor.fs is written into the recording
             rate_said = True
             line = rate_mismatch(s.id, (n - first[1]) / (now - first[0]), s.fs)
             if line:
