@@ -70,8 +70,8 @@ def test_enrol_adds_slides_of_known_surfaces_by_their_own_labels(trained: tuple[
 
 def test_train_novelty_distance_is_kept_in_the_file_and_through_enrolment(trained: tuple[Path, Path, list[str]], tmp_path: Path) -> None:
     """train --novelty distance: the file says so, its threshold is fitted on that score, and enrol keeps the score it was trained with
-    (and refits the default far test's distance threshold, with no ratio test: the default model's file says combined, its
-    summary far)."""
+    (and refits the default spectrum test's distance threshold on the spectral shape, with no ratio test: the default model's
+    file says combined, its summary spectrum)."""
     model, data, surfaces = trained
     known = [str(p) for p in sorted(data.glob("*.npz")) if f"_{surfaces[2]}_" not in p.name]
     res = run_cli("train", *known, "-o", str(tmp_path / "d.npz"), "--method", "quick", "--folds", "2", "--novelty", "distance")
@@ -80,13 +80,16 @@ def test_train_novelty_distance_is_kept_in_the_file_and_through_enrolment(traine
     assert (combined.novelty_score, distance.novelty_score) == ("combined", "distance")
     assert distance.summary["novelty"]["score"] == "distance" and distance.novelty_threshold != combined.novelty_threshold
     assert combined.summary["novelty"]["distance_threshold"] == combined.novelty_distance_threshold < float("inf")
-    assert combined.summary["novelty"]["score"] == "far" and combined.novelty_threshold == float("inf")
+    assert combined.summary["novelty"]["score"] == "spectrum" and combined.novelty_threshold == float("inf")
+    assert combined.novelty_names is not None and distance.novelty_names is None
     new = sorted(str(p) for p in data.glob(f"*_{surfaces[2]}_*.npz"))
     assert run_cli("enrol", str(tmp_path / "d.npz"), *new, "--label", "NEW", "-o", str(tmp_path / "d2.npz")).returncode == 0
     assert load_model(tmp_path / "d2.npz").novelty_score == "distance"
     assert run_cli("enrol", str(model), *new, "--label", "NEW", "-o", str(tmp_path / "c2.npz")).returncode == 0
     enrolled = load_model(tmp_path / "c2.npz")
     assert enrolled.novelty_score == "combined" and enrolled.summary["novelty"]["distance_threshold"] == enrolled.novelty_distance_threshold
-    assert enrolled.summary["novelty"]["score"] == "far" and enrolled.novelty_threshold == float("inf")  # enrolment adds no ratio test
+    assert enrolled.summary["novelty"]["score"] == "spectrum" and enrolled.novelty_threshold == float("inf")  # enrolment adds no ratio test
+    assert enrolled.novelty_names == combined.novelty_names and enrolled.novelty_x is not None and enrolled.novelty_x.shape[1] == len(combined.novelty_names)
+    assert enrolled.novelty_distance_threshold != combined.novelty_distance_threshold  # refitted with the new surface's slides
     bad = run_cli("train", *known, "-o", str(tmp_path / "x.npz"), "--novelty", "cosine")
     assert bad.returncode == 2 and "--novelty" in bad.stderr

@@ -62,7 +62,7 @@ def test_an_ensemble_round_trips_lean_and_through_sklearn(trained: tuple[Path, P
     path, data, _ = trained
     lean, ref = load_model(path), load_model(path, lean=False)
     assert lean.partner is not None and ref.partner is not None
-    assert json.loads(np.load(path)["header"].item())["version"] == 7
+    assert json.loads(np.load(path)["header"].item())["version"] == 8  # its novelty reads the spectral shape (train's default)
     x = _windows(lean, data)
     for w in (1, 3, 6):
         np.testing.assert_allclose(lean.slide_proba(x[:w]), ref.slide_proba(x[:w]), rtol=0, atol=1e-9)
@@ -97,12 +97,18 @@ def test_ensemble_probabilities_are_the_normalised_product_of_the_members(traine
     np.testing.assert_allclose(model.predict_proba(x[:1])[0], model.slide_proba(x[:1]), rtol=1e-12)
 
 
-def test_a_single_model_is_still_written_and_read_as_format_6(tmp_path: Path) -> None:
-    shipped = load_model()  # the shipped file: format 6
-    assert shipped.partner is None and shipped.inputs == shipped.names
+def test_a_single_model_is_written_as_format_8_with_the_spectral_novelty_and_6_without(tmp_path: Path) -> None:
+    shipped = load_model()  # the shipped file: format 8, its novelty on psd columns its classifier does not read
+    assert shipped.partner is None and shipped.novelty_names is not None and set(shipped.inputs) < set(shipped.names)
     shipped.save(tmp_path / "m.npz")
-    assert json.loads(np.load(tmp_path / "m.npz")["header"].item())["version"] == 6
-    assert load_model(tmp_path / "m.npz").fingerprint == shipped.fingerprint
+    assert json.loads(np.load(tmp_path / "m.npz")["header"].item())["version"] == 8
+    again = load_model(tmp_path / "m.npz")
+    assert again.fingerprint == shipped.fingerprint and again.inputs == shipped.inputs and again.novelty_names == shipped.novelty_names
+    plain = replace(shipped, settings=replace(shipped.settings, names=shipped.inputs), member_names=None, novelty_names=None,
+                    novelty_center=None, novelty_scale=None, novelty_x=None, novelty_y=None, novelty_groups=None, fingerprint="")
+    plain.save(tmp_path / "p.npz")
+    assert json.loads(np.load(tmp_path / "p.npz")["header"].item())["version"] == 6
+    assert load_model(tmp_path / "p.npz").names == shipped.inputs
 
 
 @pytest.mark.parametrize("signal", ["silent", "saturated", "constant"])

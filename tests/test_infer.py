@@ -18,11 +18,14 @@ NAMES = ("film1.time.D1.sd", "film1.time.D2.energy", "film1.time.A1.mean", "film
 
 
 def _raw(z: np.ndarray, model: Model) -> np.ndarray:
-    """Raw features whose standardised classifier inputs are ``z`` (the inverse of log → scale)."""
+    """Raw features (n, F) of the model's analysis whose standardised classifier inputs are ``z`` (the inverse of log → scale
+    on the classifier's columns; 1 in the columns only the novelty reads)."""
     arrays = model._arrays()
-    x = z * arrays["scaler_scale"] + arrays["scaler_mean"]
-    logs = np.array([is_log_feature(n) for n in model.names])
-    x[:, logs] = 10.0 ** x[:, logs]
+    own = z * arrays["scaler_scale"] + arrays["scaler_mean"]
+    logs = np.array([is_log_feature(n) for n in model.inputs])
+    own[:, logs] = 10.0 ** own[:, logs]
+    x = np.ones((len(z), len(model.names)))
+    x[:, [model.names.index(n) for n in model.inputs]] = own
     return x
 
 

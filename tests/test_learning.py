@@ -114,8 +114,9 @@ def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
     assert "leaderboard" in res.stdout and "nested CV" in res.stdout and "slides per surface" in res.stderr
     assert sum(line.startswith("* ") for line in res.stdout.splitlines()) == 1  # the choice is marked once
     nov = load_model(model).summary["novelty"]  # what train says of the unknown-surface tests is what the model holds
-    assert nov["score"] == "far" and nov["threshold"] is None and nov["distance_threshold"] is not None  # the default: no ratio test
-    assert "only a slide farther from every taught surface than they are from each other is called unknown" in res.stdout
+    assert nov["score"] == "spectrum" and nov["threshold"] is None and nov["distance_threshold"] is not None  # the default: no ratio test
+    assert load_model(model).novelty_names is not None  # one channel at 2.2 kHz: its psd bands
+    assert "whose spectral shape is farther from every taught surface than 95 % of the slides" in res.stdout
     res = run_cli("train", *files, "-o", str(tmp_path / "c.npz"), "--folds", "2", "--method", "quick", "--novelty", "combined")
     nov = load_model(tmp_path / "c.npz").summary["novelty"]
     assert res.returncode == 0 and nov["score"] == "combined" and nov["untaught"] == 0.1, res.stderr

@@ -111,7 +111,8 @@ def small_model(tmp_path_factory: pytest.TempPathFactory, datasets: dict[str, li
     root = tmp_path_factory.mktemp("model")
     recs = load_recordings(write_dataset(root, scene="continuous,one-channel", seed=12, surfaces="5", files_per_surface=2))
     model = search(recs, Config(), folds=2, candidates=[Candidate(("psd",), "linear", 0.5)]).model
-    model.novelty_threshold = math.inf  # trained on continuous slides only: a fluctuating one may be unknown; here every slide gets its label
+    # trained on continuous slides only: a fluctuating one may be unknown; here every slide gets its label
+    model.novelty_threshold = model.novelty_distance_threshold = math.inf
     return model
 
 

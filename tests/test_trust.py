@@ -258,7 +258,7 @@ def _combined_model(tmp_path: Path, score: str = "combined") -> Model:
     y = np.repeat(["a", "b", "c"], 20)
     x = np.abs(rng.standard_normal((60, 4))) + np.repeat([1.0, 3.0, 9.0], 20)[:, None]
     model = _model(tmp_path)
-    fit_model_novelty(model, model.standardise(x), y, np.arange(60) // 5, score)
+    fit_model_novelty(model, x, y, np.arange(60) // 5, score)
     model.save(tmp_path / f"{score}.npz")
     return load_model(tmp_path / f"{score}.npz")
 

@@ -73,7 +73,11 @@ def cmd_train(args: argparse.Namespace) -> int:
             print(f"unknown surfaces: by cross-validation, {100 * nov['known_rejected']:.1f} % of slides of known surfaces are called unknown, "
                   + (f"{100 * nov['unseen_flagged']:.1f} % of slides of a surface left out of training" if nov.get("unseen_flagged") is not None
                      else "and no surface could be left out to test it"))
-        if nov.get("score") == "far":
+        if nov.get("score") == "spectrum":
+            print("unknown surfaces: " + ("a slide whose spectral shape is farther from every taught surface than 95 % of the slides of "
+                                          "another recording of its own surface is called unknown" if far else
+                                          "no slide will be called unknown (no surface has two recordings to set the threshold)"))
+        elif nov.get("score") == "far":
             print("unknown surfaces: " + ("only a slide farther from every taught surface than they are from each other is called unknown "
                                           "(--novelty combined also tests for one between two taught surfaces)" if far else
                                           "no slide will be called unknown (fewer than two surfaces)"))
@@ -192,8 +196,11 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--scheduler", help="dask.distributed scheduler address (tcp://host:port) to run the cross-validation on a cluster "
                                         "(default: this machine, every core)")
     p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP + " (the same files, options and seed give the same model file)")
-    p.add_argument("--novelty", choices=("far", "combined", "ratio", "distance"), default="far",
-                   help="how a slide is judged unlike every taught surface (label null, reason unknown_surface): far (the default), "
+    p.add_argument("--novelty", choices=("spectrum", "far", "combined", "ratio", "distance"), default="spectrum",
+                   help="how a slide is judged unlike every taught surface (label null, reason unknown_surface): spectrum (the default), "
+                        "the distance from the shape of its spectrum (per film, log band powers less their mean) to the nearest taught "
+                        "surface, beyond what 95 %% of slides of another recording of a known surface reach (computed whatever the "
+                        "classifier reads); the others measure the classifier's own features: far, "
                         "its distance to the nearest surface beyond the step between taught surfaces (keeps labelling on another "
                         "unit of the sensor or a new sheet of a known grade); combined, that or its distance to the nearest surface "
                         "over that to the next, where cross-validation says it pays (also flags an untaught surface between two "
@@ -201,7 +208,7 @@ def add_commands(sub: Sub) -> None:
                         "alone; distance, its distance to the nearest training slides (flags more untaught surfaces between "
                         "taught grades, but also most slides of another unit)")
     p.add_argument("--untaught-share", type=c.number_in(0.01, 0.99, "share"), default=None,
-                   help="with --novelty combined, ratio or distance (far has no threshold to weigh): the share of slides you expect "
+                   help="with --novelty combined, ratio or distance (spectrum and far have no threshold to weigh): the share of slides you expect "
                         "on surfaces the model is not taught; the threshold calls known slides unknown (at most 5 %% of them by "
                         "cross-validation) only where the untaught slides it catches are worth it at this share; 0.5 weighs a caught "
                         "untaught slide and a rejected known one alike (default: 0.1)")

@@ -235,6 +235,23 @@ def classifier_inputs(x: npt.NDArray[np.float64], names: Sequence[str]) -> npt.N
     return out
 
 
+def spectral_shape(powers: npt.NDArray[np.float64], names: Sequence[str]) -> npt.NDArray[np.float64]:
+    """The shape of each channel's spectrum (n, B): log10 band powers (V², :func:`classifier_inputs`) of psd features
+    ``powers`` (n, B) named ``names`` (``film<c>.psd.…``), less the mean over that channel's bands. A film's gain, which
+    moves every band of its channel alike, leaves it unchanged; a silent channel (every band at the 1e-30 floor) is 0 (to rounding).
+    Each row bit for bit that of the row alone (each channel's mean summed band by band: numpy sums the rows of a block in
+    another order than one row)."""
+    out = classifier_inputs(powers, names)
+    channels = [_channel(n) for n in names]
+    for c in sorted(set(channels)):
+        mine = [j for j, k in enumerate(channels) if k == c]
+        total = np.zeros(out.shape[0])
+        for j in mine:
+            total += out[:, j]
+        out[:, mine] -= (total / len(mine))[:, None]
+    return out
+
+
 def raw_features(inputs: npt.NDArray[np.float64], names: Sequence[str]) -> npt.NDArray[np.float64]:
     """The inverse of :func:`classifier_inputs`: raw features (n, F) whose classifier inputs are ``inputs`` (n, F)."""
     out = np.array(inputs, dtype=np.float64, copy=True)

@@ -81,15 +81,14 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
         p = old.partner
         p_pipe, p_refit, p_params = _grown(p, slides if p.settings.fusion == "features" else ws, old.names)
         new.partner = replace(p, params=p_params, classes=new.classes, pipeline=p_pipe, refit=p_refit)
-    new_x = new.own(slides.x[labelled])
-    z = new.standardise(np.vstack([old.unstandardise(old.novelty_x), new_x]))
+    rows = np.vstack([old.novelty_unstandardise(old.novelty_x), new.novelty_features(slides.x[labelled])])
     groups = np.concatenate([old.novelty_groups, slides.groups[labelled] + int(old.novelty_groups.max(initial=-1)) + 1])
     labels = np.concatenate([old.novelty_y, slides.y[labelled]]).astype(np.str_)
     new.novelty_k, new.early_calibration = old.novelty_k, old.early_calibration
     # the tests and the share of untaught slides the model was trained with (the summary says "far" where the model file says
     # "combined" without a ratio threshold; a model from before the share: Youden's J, 0.5)
     trained = old.summary.get("novelty", {})
-    fit_model_novelty(new, z, labels, groups, str(trained.get("score", old.novelty_score)), float(trained.get("untaught", 0.5)))
+    fit_model_novelty(new, rows, labels, groups, str(trained.get("score", old.novelty_score)), float(trained.get("untaught", 0.5)))
     return Enrolled(new, added, files, [k for k in added if k not in old.classes])
 
 

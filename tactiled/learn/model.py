@@ -66,6 +66,14 @@ synthetic noise through the whole analysis and the classifier, which must give a
 probability), and refuses anything wrong with one line naming file and part: a model that
 loads cannot crash the daemon at the first slide.
 
+Format 8 (``train``'s default unknown-surface test, ``spectrum``): the novelty reads the shape of the slide's spectrum,
+not the classifier's features. ``header.novelty.inputs`` names psd columns of ``settings.names`` (computed by the one
+analysis whatever the classifier reads); a slide's novelty features are
+:func:`~tactiled.core.features.spectral_shape` of their slide means (per channel, log10 band powers less their mean),
+standardised by the arrays ``novelty_center`` and ``novelty_scale`` (B,); ``novelty_x`` (n, B) holds the training
+slides' so. ``header.inputs`` names the classifier's own columns (an ensemble's first member's are
+``header.ensemble.member.names``, as in format 7); ``settings.names`` is the union of every part's columns.
+
 Format 7 (an ensemble; a model of one classifier is still written as format 6, byte for byte as before): the header's
 ``settings.names`` are both members' features and ``ensemble`` holds ``member`` (``names``: the first classifier's
 columns, whose F' sizes ``scaler_*``, ``train_x`` and ``novelty_x``; ``temperature``: T1) and ``partner`` (``method``,
@@ -90,7 +98,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.core.analysis import Analyser, AnalysisSettings
-from tactiled.core.features import FeaturePlan, classifier_inputs, raw_features, rowwise_matmul
+from tactiled.core.features import FeaturePlan, classifier_inputs, name_family, raw_features, spectral_shape
 from tactiled.errors import ModelError
 from tactiled.files.npzio import NpzError, NpzReader, load_json_bounded
 from tactiled.files.recording import atomic_savez
@@ -98,10 +106,13 @@ from tactiled.learn.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, log_pr
 from tactiled.readable import MISSING
 
 FORMAT = "tactiled-model"
-FORMAT_VERSION = 7  # written for an ensemble (a second member, :attr:`Model.partner`); a single-member model is written as format 6
-SINGLE_VERSION = 6
-READ_VERSIONS = (2, 3, 4, 5, 6, 7)  # format 2 (before calibration and novelty) still loads: confidence uncalibrated, novelty None; 3: no enrolment
+FORMAT_VERSION = 8  # written for a model whose novelty reads the slide's spectral shape (:attr:`Model.novelty_names`), with or without a partner
+ENSEMBLE_VERSION = 7  # an ensemble (a second member, :attr:`Model.partner`) whose novelty reads its first member's features
+SINGLE_VERSION = 6  # a single classifier whose novelty reads its own features
+READ_VERSIONS = (2, 3, 4, 5, 6, 7, 8)  # format 2 (before calibration and novelty) still loads: confidence uncalibrated, novelty None; 3: no enrolment
 TRUST_ARRAYS = ("calibration", "novelty_x")
+SHAPE_ARRAYS = ("novelty_center", "novelty_scale")  # format 8: the standardisation of the spectral shapes novelty_x holds
+SHAPE_SCALE_FLOOR = 0.01  # log10 units (0.1 dB): a band level no slide moved is not a ruler that calls every new slide far
 ENROL_ARRAYS = ("train_x", "train_y", "novelty_y", "novelty_groups")  # format 4: what tactiled enrol refits on
 CLASSIFIERS = ("elm", "knn", "svm", "linear")
 MAX_REFIT_ROWS = 20_000
@@ -332,6 +343,9 @@ class Model:
     novelty_groups: npt.NDArray[np.int64] | None = None  # (n,): the recording of each novelty_x row, numbered from 0
     novelty_score: str = "ratio"  # how novelty_parts measures a slide against novelty_x (NOVELTY_SCORES); files before format 5: distance
     novelty_distance_threshold: float = math.inf  # score "combined" (format 6): the nearest surface's distance above which a slide is unknown
+    novelty_names: tuple[str, ...] | None = None  # format 8: the psd columns whose spectral shape novelty_x holds; None: this classifier's inputs
+    novelty_center: FloatArray | None = None  # format 8: (B,) the mean of the training slides' spectral shapes ...
+    novelty_scale: FloatArray | None = None  # ... and (B,) their standard deviation (floored at SHAPE_SCALE_FLOOR): novelty_x's standardisation
     partner: Model | None = None  # an ensemble's second member (format 7); None: a single classifier
     member_names: tuple[str, ...] | None = None  # an ensemble: this classifier's columns (a subset of settings.names); None: all of them
     member_temperature: float = 1.0  # an ensemble: the temperature of this classifier's own probabilities (``temperature`` is the ensemble's)
@@ -427,12 +441,35 @@ class Model:
         each bit for bit (each slide's mean a row alone), in one pass over the training slides."""
         if self.novelty_x is None or not len(self.novelty_x):
             return [None] * len(rows)
-        z = self.standardise(slice_means(self.own(x), rows))
+        z = self.novelty_standardise(self.novelty_features(slice_means(x, rows)))
         if self.novelty_y is not None and (self._groups is None or self._groups[0] is not self.novelty_y):
             self._groups = (self.novelty_y, surface_groups(self.novelty_y))
         parts = novelty_parts(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_score, alone=True,
                               groups=None if self._groups is None else self._groups[1])
         return [float(v) for v in over_thresholds(parts, self.novelty_threshold, self.novelty_distance_threshold)]
+
+    def novelty_features(self, means: FloatArray) -> FloatArray:
+        """The novelty features (q, F'') of q slides whose mean raw features are ``means`` (q, F), before standardisation: the
+        :func:`~tactiled.core.features.spectral_shape` of the :attr:`novelty_names` columns (format 8), else this classifier's
+        own raw columns (:meth:`own`)."""
+        if self.novelty_names is None:
+            return self.own(means)
+        return spectral_shape(take_columns(means, self.names, self.novelty_names), self.novelty_names)
+
+    def novelty_standardise(self, rows: FloatArray) -> FloatArray:
+        """The rows (q, F'') :attr:`novelty_x` holds for :meth:`novelty_features` ``rows``: standardised by ``novelty_center``
+        and ``novelty_scale`` (format 8), else as the classifier sees them (:meth:`standardise`)."""
+        if self.novelty_names is None or self.novelty_center is None or self.novelty_scale is None:
+            return self.standardise(rows)
+        out: FloatArray = (rows - self.novelty_center) / self.novelty_scale
+        return out
+
+    def novelty_unstandardise(self, z: FloatArray) -> FloatArray:
+        """The inverse of :meth:`novelty_standardise`: novelty features (q, F'') of rows ``z`` (q, F'') of :attr:`novelty_x`."""
+        if self.novelty_names is None or self.novelty_center is None or self.novelty_scale is None:
+            return self.unstandardise(z)
+        out: FloatArray = z * self.novelty_scale + self.novelty_center
+        return out
 
     def early_confidence(self, p_top: float, windows: int) -> float:
         """The probability that a label from the first ``windows`` windows of a slide is right (a provisional label), from its top
@@ -501,12 +538,14 @@ class Model:
         if isinstance(cv, dict) and cv.get("inner_grouped_by") == "none":
             acc += ", optimistic (one slide of a surface in a fold: no choice inside it)"
         s = self.settings
-        what = f"{self.kind} on {len(self.names)} features"
+        what = f"{self.kind} on {len(self.inputs)} features"
         if self.partner is not None:
             ens = self.summary.get("ensemble")
             cv_ens = f" (CV accuracy {100 * ens['mean']:.1f} %)" if isinstance(ens, dict) and _is_number(ens.get("mean")) else ""
             what = (f"ensemble{cv_ens} of {self.kind} on {len(self.inputs)} features ({self.settings.fusion} fusion) and {self.partner.kind} "
-                    f"on {len(self.partner.names)} ({self.partner.settings.fusion} fusion), {len(self.names)} features in all")
+                    f"on {len(self.partner.names)} ({self.partner.settings.fusion} fusion)")
+        if self.novelty_names is not None:
+            what += f", unknown surfaces from the shape of {len(self.novelty_names)} band levels"
         return (f"{self.method}: {what}, windows {s.duration_s:g} s every {s.hop():g} s from "
                 f"{s.start_s:g} s{' (at most ' + str(s.max_windows) + ')' if s.max_windows else ''}, {len(self.classes)} classes{acc}")
 
@@ -520,8 +559,8 @@ class Model:
         return arrays
 
     def _member_arrays(self) -> dict[str, Any]:
-        if isinstance(self.pipeline, LeanPipeline):
-            return dict(self.pipeline.arrays)
+        if isinstance(self.pipeline, LeanPipeline):  # the file's arrays it loaded from, less the novelty's own (_trust_arrays)
+            return {k: v for k, v in self.pipeline.arrays.items() if k not in SHAPE_ARRAYS}
         scaler, clf = self.pipeline.named_steps["scale"], self.pipeline.named_steps["clf"]
         arrays: dict[str, Any] = {"classes": np.array(self.classes, dtype=np.str_), "scaler_mean": np.asarray(scaler.mean_, dtype=np.float64),
                                   "scaler_scale": np.asarray(scaler.scale_, dtype=np.float64)}
@@ -538,18 +577,25 @@ class Model:
 
     def _trust_arrays(self) -> dict[str, Any]:
         calibration = self.calibration if self.calibration is not None else np.array([[0.0, 1.0], [0.0, 1.0]])
-        novelty_x = self.novelty_x if self.novelty_x is not None else np.zeros((0, len(self.inputs)))
+        novelty_x = self.novelty_x if self.novelty_x is not None else np.zeros((0, len(self.novelty_names or self.inputs)))
         n = novelty_x.shape[0]
         novelty_y = self.novelty_y if self.novelty_y is not None and len(self.novelty_y) == n else np.full(n, "", dtype=np.str_)
         groups = self.novelty_groups if self.novelty_groups is not None and len(self.novelty_groups) == n else np.arange(n)
-        return {"calibration": np.asarray(calibration, dtype=np.float64), "novelty_x": np.asarray(novelty_x, dtype=np.float64),
-                "novelty_y": np.asarray(novelty_y, dtype=np.str_), "novelty_groups": np.asarray(groups, dtype=np.int64)}
+        arrays = {"calibration": np.asarray(calibration, dtype=np.float64), "novelty_x": np.asarray(novelty_x, dtype=np.float64),
+                  "novelty_y": np.asarray(novelty_y, dtype=np.str_), "novelty_groups": np.asarray(groups, dtype=np.int64)}
+        if self.novelty_names is not None:
+            arrays.update(novelty_center=np.asarray(self.novelty_center, dtype=np.float64),
+                          novelty_scale=np.asarray(self.novelty_scale, dtype=np.float64))
+        return arrays
 
     def _header(self) -> dict[str, Any]:
         header = self._single_header()
+        if self.novelty_names is not None:  # format 8: the classifier's own columns, and the novelty's
+            header.update(version=FORMAT_VERSION, inputs=list(self.inputs))
+            header["novelty"]["inputs"] = list(self.novelty_names)
         if self.partner is not None:
             p = self.partner
-            header.update(version=FORMAT_VERSION, ensemble={
+            header.update(version=FORMAT_VERSION if self.novelty_names is not None else ENSEMBLE_VERSION, ensemble={
                 "member": {"names": list(self.inputs), "temperature": self.member_temperature},
                 "partner": {"method": p.method, "classifier": p.kind, "params": p.params, "names": list(p.names), "fusion": p.settings.fusion,
                             "temperature": p.temperature}})
@@ -621,7 +667,8 @@ def prefix_fused(x: FloatArray, score: Callable[[FloatArray], FloatArray], fusio
 def take_columns(x: FloatArray, names: Sequence[str], wanted: Sequence[str]) -> FloatArray:
     """The columns (n, len(wanted)) of raw features ``x`` (n, len(names)) named ``wanted`` (each one of ``names``), in that order."""
     index = {n: i for i, n in enumerate(names)}
-    out: FloatArray = np.asarray(x, dtype=np.float64)[:, [index[n] for n in wanted]]
+    # C order: numpy gives a column selection in Fortran order, and the row-by-row products round by layout
+    out: FloatArray = np.ascontiguousarray(np.asarray(x, dtype=np.float64)[:, [index[n] for n in wanted]])
     return out
 
 
@@ -662,10 +709,12 @@ def load_model(path: str | Path | None = None, lean: bool = True) -> Model:
             kind = header.get("classifier")
             _need(kind in CLASSIFIERS, path, f"header.classifier: unknown {kind!r}")
             version = header.get("version")
-            trust = (*TRUST_ARRAYS, *ENROL_ARRAYS) if version in (4, 5, 6, 7) else TRUST_ARRAYS if version == 3 else ()
+            nov = header.get("novelty")
+            shape = SHAPE_ARRAYS if version == FORMAT_VERSION and isinstance(nov, dict) and nov.get("inputs") is not None else ()
+            trust: tuple[str, ...] = (*TRUST_ARRAYS, *ENROL_ARRAYS, *shape) if version in (4, 5, 6, 7, 8) else TRUST_ARRAYS if version == 3 else ()
             keys = _member_keys(kind, set(reader.keys()), "", trust)
             partner = _partner_kind(path, header)
-            if partner is not None:  # format 7: the second member's arrays, each under the prefix, and its training rows
+            if partner is not None:  # formats 7 and 8: the second member's arrays, each under the prefix, and its training rows
                 keys += _member_keys(partner, set(reader.keys()), PARTNER, ENROL_ARRAYS[:2])
             missing, extra = [k for k in keys if k not in reader], sorted(set(reader.keys()) - {"header", *keys})
             _need(not missing, path, f"{', '.join(missing)}: missing")
@@ -691,8 +740,8 @@ def _member_keys(kind: str, present: set[str], prefix: str, extra: Sequence[str]
 
 
 def _partner_kind(path: Path, header: dict[str, Any]) -> str | None:
-    """The classifier of a format-7 file's second member (``header.ensemble.partner.classifier``), None without one."""
-    ens = header.get("ensemble") if header.get("version") == FORMAT_VERSION else None
+    """The classifier of a format-7 or -8 file's second member (``header.ensemble.partner.classifier``), None without one."""
+    ens = header.get("ensemble") if header.get("version") in (ENSEMBLE_VERSION, FORMAT_VERSION) else None
     if ens is None:
         return None
     _need(isinstance(ens, dict) and isinstance(ens.get("member"), dict) and isinstance(ens.get("partner"), dict), path,
@@ -779,16 +828,24 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
     _need(isinstance(summary, dict) and (cv is None or (isinstance(cv, dict) and _is_number(cv.get("mean")) and _is_number(cv.get("sd")))),
           path, "header.summary: must be an object, its cv_accuracy mean and sd numbers")
     ensemble = header["ensemble"] if _partner_kind(path, header) is not None else None
-    names = _subset(path, ensemble["member"].get("names"), settings.names, "header.ensemble.member.names") if ensemble else settings.names
+    if ensemble:
+        names = _subset(path, ensemble["member"].get("names"), settings.names, "header.ensemble.member.names")
+    elif header.get("version") == FORMAT_VERSION:  # format 8: the classifier's columns, beside the novelty's
+        names = _subset(path, header.get("inputs"), settings.names, "header.inputs")
+    else:
+        names = settings.names
     own = {k: v for k, v in arrays.items() if not k.startswith(PARTNER)}
     pipe, refit = _member(path, "", kind, params, seed, names, classes, own, lean)
     model = Model(str(header.get("method", kind)), kind, params, classes, settings, fs, channels, pipe, temperature, seed,
                   dict(summary), fingerprint or "", refit)
-    if ensemble is not None:
+    if ensemble is not None or names != settings.names:
         model.member_names = names
+    if ensemble is not None:
         _attach_partner(path, model, ensemble, {k[len(PARTNER):]: v for k, v in arrays.items() if k.startswith(PARTNER)}, lean)
     if "calibration" in arrays:
         _check_trust(path, model, header, arrays)
+    read = {*model.inputs, *(model.partner.names if model.partner is not None else ()), *(model.novelty_names or ())}
+    _need(read == set(model.names), path, "settings.names: must be the union of the classifiers' and the novelty's names")
     _probe(path, model)
     return model
 
@@ -800,7 +857,8 @@ def _temperature(path: Path, value: Any, where: str) -> float:
 
 
 def _subset(path: Path, names: Any, union: tuple[str, ...], where: str) -> tuple[str, ...]:
-    """An ensemble member's feature names: a non-empty list of distinct names, each one of the analysis's ``union``."""
+    """The feature names a part of the model reads (a member's classifier, the novelty): a non-empty list of distinct names,
+    each one of the analysis's ``union``."""
     _need(isinstance(names, list) and 0 < len(names) <= len(union) and all(isinstance(n, str) for n in names) and len(set(names)) == len(names)
           and set(names) <= set(union), path, f"{where}: must be distinct feature names of settings.names")
     return tuple(names)
@@ -810,7 +868,6 @@ def _attach_partner(path: Path, model: Model, ensemble: dict[str, Any], arrays: 
     """Check a format-7 file's second member (``header.ensemble``; its arrays without the :data:`PARTNER` prefix) and attach it."""
     head, where = ensemble["partner"], "header.ensemble.partner"
     names = _subset(path, head.get("names"), model.names, f"{where}.names")
-    _need(set(names) | set(model.inputs) == set(model.names), path, "settings.names: must be the union of the members' names")
     _need(head.get("fusion") in ("scores", "features"), path, f"{where}.fusion: must be scores or features")
     _need(isinstance(head.get("params"), dict) and isinstance(head.get("method", ""), str), path, f"{where}: params must be an object, method a string")
     kind, params = str(head["classifier"]), dict(head["params"])
@@ -875,11 +932,19 @@ def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[
     _need(cal.ndim == 2 and cal.shape[0] == 2 and 2 <= cal.shape[1] <= 10_000 and _finite(cal), path,
           "calibration: must be (2, m) finite floats, 2 <= m <= 10000")
     _need(bool(np.all((cal >= 0) & (cal <= 1)) and np.all(np.diff(cal, axis=1) >= 0)), path, "calibration: knots must be nondecreasing in [0, 1]")
-    width = model.standardise(np.zeros((1, len(model.inputs)))).shape[1]
+    nov: Any = header.get("novelty")
+    _need(isinstance(nov, dict), path, "header.novelty: must be an object")
+    if nov.get("inputs") is not None and header.get("version") == FORMAT_VERSION:  # format 8: the spectral shape of psd columns
+        shape = _subset(path, nov["inputs"], model.names, "header.novelty.inputs")
+        _need(all(name_family(n) == "psd" for n in shape), path, "header.novelty.inputs: must be psd features")
+        center, scale = arrays["novelty_center"], arrays["novelty_scale"]
+        _need(center.shape == (len(shape),) and scale.shape == (len(shape),) and _finite(center) and _finite(scale) and bool(np.all(scale > 0)),
+              path, f"novelty_center, novelty_scale: must be ({len(shape)},) finite floats, the scale > 0")
+        model.novelty_names, model.novelty_center, model.novelty_scale = shape, center, scale
+    width = len(model.novelty_names) if model.novelty_names is not None else model.standardise(np.zeros((1, len(model.inputs)))).shape[1]
     _need(nx.ndim == 2 and nx.shape[1] == width and nx.shape[0] <= MAX_REFIT_ROWS and (nx.size == 0 or _finite(nx)), path,
           f"novelty_x: must be (n, {width}) finite floats, at most {MAX_REFIT_ROWS} rows")
-    nov: Any = header.get("novelty")
-    _need(isinstance(nov, dict) and isinstance(nov.get("k"), int) and not isinstance(nov.get("k"), bool) and 1 <= nov["k"] <= 100, path,
+    _need(isinstance(nov.get("k"), int) and not isinstance(nov.get("k"), bool) and 1 <= nov["k"] <= 100, path,
           "header.novelty.k: must be an integer in 1..100")
     threshold = nov.get("threshold")
     _need(threshold is None or (_is_number(threshold) and threshold > 0), path, "header.novelty.threshold: must be a number > 0 or null")
@@ -917,8 +982,14 @@ def early_probability(coef: Sequence[float], p_top: float, windows: int) -> floa
 
 def _distances(z: FloatArray, train: FloatArray, alone: bool = False) -> FloatArray:
     """(q, n) Euclidean distances between the rows of ``z`` (q, F) and of ``train`` (n, F); ``alone``: each row bit for bit
-    that of the row alone (:func:`rowwise_matmul`)."""
-    d2 = (z * z).sum(axis=1)[:, None] - (rowwise_matmul if alone else np.matmul)(2.0 * z, train.T) + (train * train).sum(axis=1)[None, :]
+    that of the row alone (the squared differences summed column by column; else one matrix product)."""
+    if alone:  # column by column: each sum in one order whatever the rows beside it (numpy sums the rows of a block differently)
+        d2 = np.zeros((z.shape[0], train.shape[0]))
+        for j in range(z.shape[1]):
+            diff = z[:, j, None] - train[None, :, j]
+            d2 += diff * diff
+        return np.sqrt(d2)
+    d2 = (z * z).sum(axis=1)[:, None] - np.matmul(2.0 * z, train.T) + (train * train).sum(axis=1)[None, :]
     return np.sqrt(np.maximum(d2, 0.0))
 
 
@@ -950,7 +1021,7 @@ def novelty_parts(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | N
     Unlike a distance, the ratio takes its scale from how far apart the surfaces are, not from how close recordings of
     one surface were in training, so a sensor that is shifted as a whole (another unit, a new sheet of a grade) keeps
     the slides it can still tell apart. With fewer than two surfaces in ``labels`` (or none given), the distance.
-    ``alone``: each row bit for bit that of the row alone (:func:`rowwise_matmul`; else one matrix product, the same to rounding);
+    ``alone``: each row bit for bit that of the row alone (:func:`_distances`; else one matrix product, the same to rounding);
     ``groups``: :func:`surface_groups` of ``labels``, when the caller keeps it.
     """
     if labels is None or score == "distance":

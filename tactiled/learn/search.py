@@ -24,10 +24,12 @@ files (where a surface has a single file in an outer fold's training part, as wi
 inner folds there split by slide: grouped by file they could test nothing; where it has a single slide, that fold
 scores the winner itself; the outer folds stay grouped). The winner is refitted on every recording; its temperature and its confidence
 calibration (:func:`fit_calibration`) are fitted on its out-of-fold slide scores, and its
-unknown-surface thresholds (:func:`fit_novelty`): by default (``far``) a distance threshold on the slides' distances to
-the nearest other surface, beyond the step between taught surfaces; with ``combined`` also one on the distance ratios
-of slides to other recordings' slides, weighing a caught untaught slide by the share of them expected (``untaught``,
-:data:`UNTAUGHT_SHARE`) against a rejected known one.
+unknown-surface thresholds (:func:`fit_novelty`): by default (``spectrum``) a distance threshold on the shape of the
+slide's spectrum (per channel, log band powers less their mean, whatever features the classifier reads), which 95 % of
+the slides of *other recordings* of their own surface stay within; ``far``, on the classifier's standardised features,
+beyond the step between taught surfaces; ``combined`` also one on the distance ratios of slides to other recordings'
+slides, weighing a caught untaught slide by the share of them expected (``untaught``, :data:`UNTAUGHT_SHARE`) against a
+rejected known one.
 
 ``ensemble`` (``train --ensemble``, off by default: docs/evaluation.md measured it on every scene and it cost some
 scenes 6 of 90 slides): when the winner shares :data:`SPECTRUM`'s windows, the model multiplies the winner's
@@ -60,6 +62,7 @@ from tactiled.files.recording import Recording
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, collect_windows, find_slides
 from tactiled.learn.model import (
     NOVELTY_SCORES,
+    SHAPE_SCALE_FLOOR,
     Model,
     decision_scores,
     ensemble_scores,
@@ -90,12 +93,16 @@ ENSEMBLE_DEFAULT = "off"
 # train --untaught-share: the share of slides expected on surfaces a model was never taught; a novelty threshold is worth
 # what it catches of them, weighed by this, less the known slides it rejects, weighed by the rest (novelty_threshold)
 UNTAUGHT_SHARE = 0.1
-# train --novelty: the unknown-surface tests a model gets. "far" (the default): only the distance test of "combined" (a
-# slide farther from every taught surface than they are from one another), never the distance ratio (a slide between two
-# taught surfaces), whose cost on another unit of the sensor cross-validation on one unit cannot see (docs/evaluation.md);
-# the model stores it as "combined" with no ratio threshold. The others: tactiled.learn.model.NOVELTY_SCORES.
-NOVELTY_TESTS = ("far", *NOVELTY_SCORES)
-NOVELTY_DEFAULT = "far"
+# train --novelty: the unknown-surface tests a model gets. "spectrum" (the default): the distance from the slide's
+# spectral shape (tactiled.core.features.spectral_shape of the psd bands, which the model computes whatever its classifier
+# reads; model format 8) to the nearest taught surface, over the distance that 95 % of other recordings' slides of known
+# surfaces stay within. The classifier's features are picked to tell the taught surfaces apart, and what a new surface
+# differs in may not be among them. "far": on the classifier's standardised features, only the distance test of
+# "combined" (a slide farther from every taught surface than they are from one another), never the distance ratio (a
+# slide between two taught surfaces), whose cost on another unit of the sensor cross-validation on one unit cannot see
+# (docs/evaluation.md). Both are stored as "combined" with no ratio threshold. The others: tactiled.learn.model.NOVELTY_SCORES.
+NOVELTY_TESTS = ("spectrum", "far", *NOVELTY_SCORES)
+NOVELTY_DEFAULT = "spectrum"
 # named feature sets: "spectrum" is the plain whole-slide spectral classifier's input (log band energies of the
 # Welch PSD, log spectral centroid, kurtosis of each channel); "tex.<name>" is one texture descriptor
 ALIASES: dict[str, tuple[str, ...]] = {"spectrum": ("psd", "tex.centroid", "tex.kurtosis")}
@@ -409,9 +416,11 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         fams = sorted({f for w in wanted if w.placement == c.placement for f in base_families(w.families)})
         full = (*c.placement, tuple(fams))
         if full not in sets:
-            st = window_settings(config, channels, fs, c.duration_s, fams, start_s=c.start_s, max_windows=c.max_windows)
-            if st is None and "dwt" in fams:  # the DWT does not fit such windows: the other families alone
-                st = window_settings(config, channels, fs, c.duration_s, [f for f in fams if f != "dwt"], c.start_s, c.max_windows)
+            # the spectrum test reads the psd bands whatever the candidates read; the DWT may not fit such windows: without it
+            tries = [sorted({*fams, "psd"})] if novelty == "spectrum" else []
+            tries += [fams, [f for f in fams if f != "dwt"]]
+            st = next((st for st in (window_settings(config, channels, fs, c.duration_s, fam, c.start_s, c.max_windows) for fam in tries)
+                       if st is not None), None)
             if st is not None:
                 say(f"features of {c.duration_s:g} s windows from {c.start_s:g} s ({len(st.names)} features)")
                 sets[full] = (st, collect_windows(recs, config, st, progress, found=found, jobs=None))
@@ -543,7 +552,7 @@ def ensemble_of(first: Model, first_temperature: float, partner: Model, oof: Flo
     features is what it was before the partner was added.
     """
     names = tuple(n for n in order if n in set(first.names) | set(partner.names))
-    model = replace(first, settings=replace(first.settings, names=names), member_names=first.names, member_temperature=first_temperature,
+    model = replace(first, settings=replace(first.settings, names=names), member_names=first.inputs, member_temperature=first_temperature,
                     partner=partner, fingerprint="", summary=dict(first.summary))
     calibrate(model, oof, y_idx)
     return model
@@ -553,7 +562,8 @@ def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: C
            classes: list[str], config: Config, fs: float, channels: int, seed: int, inner_folds: int, method: str,
            summary: dict[str, Any], novelty: str = NOVELTY_DEFAULT, untaught: float = UNTAUGHT_SHARE) -> Model:
     """Candidate ``c`` fitted on every labelled slide (:func:`_fit_member`), its temperature and calibration fitted on its
-    out-of-fold slide scores ``oof`` (:func:`calibrate`), its novelty on its standardised slide-mean features."""
+    out-of-fold slide scores ``oof`` (:func:`calibrate`), its novelty on its slides' mean features (the ``spectrum`` test:
+    the spectral shape of the window set's psd columns, added to the model's analysis; ``far`` where the set has none)."""
     model = _fit_member(sets, c, oof, y_idx, classes, config, fs, channels, seed, inner_folds, method)
     ws = sets[_key(c)][1]
     model.summary = {**summary, "slides": len(ws.slides), "windows": int(np.sum(ws.y != "")), "classes": classes,
@@ -561,8 +571,17 @@ def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: C
     calibrate(model, oof, y_idx)
     slides = ws if c.fusion == "features" else ws.averaged()  # one row per slide: the mean of its windows' raw features
     labelled = np.flatnonzero(slides.y != "")
-    fit_model_novelty(model, model.standardise(take_columns(slides.x[labelled], slides.names, model.names)), slides.y[labelled],
-                      slides.groups[labelled], novelty, untaught)
+    shape = tuple(n for n in slides.names if name_family(n) == "psd") if novelty == "spectrum" else ()
+    if shape:
+        names = model.names + tuple(n for n in shape if n not in model.names)
+        model.member_names = model.names if names != model.names else None
+        model.settings, model.novelty_names = replace(model.settings, names=names), shape
+    elif novelty == "spectrum":
+        novelty = "far"
+        model.summary = {**model.summary, "notes": [*model.summary.get("notes", []),
+                                                    "no psd band fits these windows: unknown surfaces by the far test on the classifier's features"]}
+    means = take_columns(slides.x[labelled], slides.names, model.names)
+    fit_model_novelty(model, model.novelty_features(means), slides.y[labelled], slides.groups[labelled], novelty, untaught)
     return model
 
 
@@ -582,13 +601,19 @@ def _fit_member(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]],
                  {}, "", refit)
 
 
-def fit_model_novelty(model: Model, z: FloatArray, labels: npt.NDArray[Any], groups: npt.NDArray[Any], score: str,
+def fit_model_novelty(model: Model, rows: FloatArray, labels: npt.NDArray[Any], groups: npt.NDArray[Any], score: str,
                       untaught: float = UNTAUGHT_SHARE) -> None:
-    """Give ``model`` its novelty data: the standardised slides ``z`` (n, F') of surfaces ``labels`` and recordings ``groups``
-    (n,), the tests (:data:`NOVELTY_TESTS`; ``far`` is stored as ``combined`` without its ratio threshold) and their
+    """Give ``model`` its novelty data: the novelty features (:meth:`~tactiled.learn.model.Model.novelty_features`) ``rows``
+    (n, F'') of slides of surfaces ``labels`` and recordings ``groups`` (n,), standardised (a spectral shape, by its mean and
+    standard deviation over these slides, floored at :data:`~tactiled.learn.model.SHAPE_SCALE_FLOOR`); the tests
+    (:data:`NOVELTY_TESTS`; ``spectrum`` and ``far`` are stored as ``combined`` without its ratio threshold) and their
     thresholds (:func:`fit_novelty` at the share ``untaught`` of untaught slides, in ``summary``)."""
+    if model.novelty_names is not None:
+        model.novelty_center = rows.mean(axis=0)
+        model.novelty_scale = np.maximum(rows.std(axis=0), SHAPE_SCALE_FLOOR)
+    z = model.novelty_standardise(rows)
     model.novelty_x, model.novelty_y, model.novelty_groups = z, labels, groups
-    model.novelty_score = "combined" if score == "far" else score
+    model.novelty_score = "combined" if score in ("far", "spectrum") else score
     model.novelty_threshold, info = fit_novelty(z, groups, labels, model.novelty_k, score=score, untaught=untaught)
     far = info.get("distance_threshold")
     model.novelty_distance_threshold = float(far) if far is not None else math.inf
@@ -715,7 +740,9 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     says how many of each it does. A threshold of
     inf (never unknown) when no slide has another recording to compare with.
 
-    ``far``: ``combined`` without the ratio's threshold (inf), only the distance test below. ``combined``: the threshold is
+    ``spectrum``: only a threshold on the distance to the nearest surface (``info["distance_threshold"]``), the
+    (1 - ``reject``) quantile of the known slides' distances: at most ``reject`` of a new recording's slides of a known
+    surface are called unknown. ``far``: ``combined`` without the ratio's threshold (inf), only the distance test below. ``combined``: the threshold is
     the ratio's, and ``info["distance_threshold"]`` a second one on the distance to the
     nearest surface (the ratio's numerator): the (1 - ``reject``) quantile of the left-out surfaces' distances, the
     distance from a taught slide to the nearest *other* surface (a step between taught surfaces), and never below the
@@ -724,7 +751,7 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     smaller than that step, is not. None (no distance gate) with fewer than two surfaces.
     """
     n = len(z)
-    parts_of = "combined" if score == "far" else score
+    parts_of = "combined" if score in ("far", "spectrum") else score
     known = np.full((n, 2), np.nan)  # novelty_parts per slide: (score, distance to the nearest surface)
     unseen = np.full((n, 2), np.nan)
     for i in range(n):
@@ -738,9 +765,12 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
         info["distance_threshold"] = None
     if not len(have):
         return math.inf, info
-    threshold = math.inf if score == "far" else max(novelty_threshold(have[:, 0], flagged[:, 0], reject, untaught), 1e-9)
+    threshold = math.inf if score in ("far", "spectrum") else max(novelty_threshold(have[:, 0], flagged[:, 0], reject, untaught), 1e-9)
     far = math.inf
-    if parts_of == "combined" and len(flagged) and len(np.unique(labels)) >= 2:
+    if score == "spectrum":
+        far = max(float(np.quantile(have[:, 1], 1.0 - reject, method="higher")), 1e-9)
+        info["distance_threshold"] = far
+    elif parts_of == "combined" and len(flagged) and len(np.unique(labels)) >= 2:
         q = 1.0 - reject
         far = max(float(np.quantile(flagged[:, 1], q, method="higher")), float(np.quantile(have[:, 1], q, method="higher")), 1e-9)
         info["distance_threshold"] = far

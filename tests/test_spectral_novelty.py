@@ -1,0 +1,141 @@
+"""train's default unknown-surface test (``--novelty spectrum``, model format 8): the distance from the shape of a slide's
+spectrum to the nearest taught surface, whatever features the classifier reads."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from tactiled.core.features import family_names, spectral_shape
+from tactiled.errors import ModelError
+from tactiled.learn.model import default_model_path, load_model, nearest_surface_distances
+from tactiled.learn.search import fit_novelty
+from tests.conftest import run_cli
+
+NAMES = family_names("psd", 2, 20_000.0)
+
+
+def test_spectral_shape_ignores_a_films_gain_and_stays_finite_on_silence() -> None:
+    rng = np.random.default_rng(3)
+    powers = 10.0 ** rng.normal(-6.0, 1.5, (5, len(NAMES)))
+    shape = spectral_shape(powers, NAMES)
+    assert shape.shape == powers.shape
+    for c in (0, 1):  # each film's band levels average to 0
+        mine = [j for j, n in enumerate(NAMES) if n.startswith(f"film{c + 1}.")]
+        np.testing.assert_allclose(shape[:, mine].mean(axis=1), 0.0, atol=1e-12)
+    louder = powers.copy()
+    louder[:, : len(NAMES) // 2] *= 49.0  # film 1's gain 7 times: its powers 49 times, its shape the same
+    np.testing.assert_allclose(spectral_shape(louder, NAMES), shape, rtol=0, atol=1e-12)
+    silent = spectral_shape(np.zeros((2, len(NAMES))), NAMES)
+    assert np.all(np.isfinite(silent)) and np.abs(silent).max() < 1e-12
+    assert all(np.array_equal(spectral_shape(powers[i:i + 1], NAMES)[0], shape[i]) for i in range(len(powers)))  # each row as alone
+
+
+def test_the_spectrum_threshold_keeps_95_percent_of_other_recordings_and_has_no_ratio_test() -> None:
+    rng = np.random.default_rng(8)
+    labels = np.repeat(np.arange(6), 12)
+    files = np.repeat(np.arange(24), 3)  # 4 recordings of 3 slides per surface
+    z = 4.0 * labels[:, None] * np.array([[1.0, 0.5, 0.0]]) + rng.standard_normal((len(labels), 3))
+    threshold, info = fit_novelty(z, files, labels, 3, score="spectrum")
+    assert threshold == math.inf and info["threshold"] is None and info["score"] == "spectrum"
+    known = np.array([nearest_surface_distances(z[i:i + 1], z[files != files[i]], labels[files != files[i]], 3)[0, 0] for i in range(len(z))])
+    assert info["distance_threshold"] == float(np.quantile(known, 0.95, method="higher"))
+    assert info["known_rejected"] <= 0.05 and info["unseen_flagged"] is not None
+    threshold, info = fit_novelty(z, np.arange(len(z)), np.zeros(len(z), dtype=int), 3, score="spectrum")  # one surface: still a threshold
+    assert threshold == math.inf and info["distance_threshold"] is not None and math.isfinite(info["distance_threshold"])
+
+
+@pytest.fixture(scope="module")
+def grades_and_gratings(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path, Path]:
+    """A model trained with train's defaults (quick) on three robot grades; new recordings of them, and of a grating."""
+    root = tmp_path_factory.mktemp("spectral")
+    sets = {"train": ("robot", "Ra0.44,Ra1.40,Ra4.43", "1", "3"), "known": ("robot", "Ra0.44,Ra1.40,Ra4.43", "2", "1"),
+            "grating": ("robot,grating", "G1.00mm", "3", "1")}
+    for name, (scene, surfaces, seed, files) in sets.items():
+        res = run_cli("simulate", "dataset", "--out", str(root / name), "--scene", scene, "--surfaces", surfaces, "--seed", seed,
+                      "--files-per-surface", files, "--slides-per-file", "3")
+        assert res.returncode == 0, res.stderr
+    res = run_cli("train", *map(str, sorted((root / "train").glob("*.npz"))), "-o", str(root / "m.npz"), "--method", "quick", "--folds", "3")
+    assert res.returncode == 0, res.stderr
+    assert "whose spectral shape is farther from every taught surface" in res.stdout
+    return root / "m.npz", root / "train", root / "known", root / "grating"
+
+
+def _finals(model: Path, folder: Path) -> list[dict[str, Any]]:
+    res = run_cli("replay", "--json", "--model", str(model), *map(str, sorted(folder.glob("*.npz"))))
+    assert res.returncode == 0, res.stderr
+    return [m for m in map(json.loads, res.stdout.splitlines()) if m.get("final")]
+
+
+def test_a_grating_comes_out_unknown_and_new_recordings_of_taught_grades_keep_their_labels(grades_and_gratings: tuple[Path, ...]) -> None:
+    """End to end: a model of three grades, with train's defaults, replayed on a surface of another family (a 1 mm grating,
+    whose spectrum has lines no grade has; a fine one, 0.1 mm, has the shape of a grade here and is not caught) and on new
+    recordings of its own; every message carries the novelty."""
+    model, _, known, grating = grades_and_gratings
+    loaded = load_model(model)
+    assert loaded.novelty_names is not None and loaded.summary["novelty"]["score"] == "spectrum"
+    assert set(loaded.inputs) | set(loaded.novelty_names) == set(loaded.names)
+    far, near = _finals(model, grating), _finals(model, known)
+    assert len(far) == 3 and len(near) == 9 and all(m["novelty"] is not None and math.isfinite(m["novelty"]) for m in far + near)
+    assert all(m["label"] is None and m["reason"] == "unknown_surface" and m["novelty"] > 1 for m in far)
+    assert sum(m["reason"] == "unknown_surface" for m in near) <= 1 and sum(m["label"] is not None for m in near) >= 8
+
+
+def _rewritten(src: Path, dst: Path, change: Callable[[dict[str, Any], dict[str, Any]], None]) -> Path:
+    """``src`` with its header and arrays changed by ``change(header, arrays)``, fingerprinted again."""
+    from tactiled.files.recording import atomic_savez
+    from tactiled.learn.model import _fingerprint
+
+    with np.load(src) as f:
+        arrays = {k: f[k] for k in f.files if k != "header"}
+        header = json.loads(f["header"].item())
+    header.pop("fingerprint")
+    change(header, arrays)
+    header["fingerprint"] = _fingerprint(header, arrays)
+    atomic_savez(dst, {"header": np.str_(json.dumps(header, sort_keys=True)), **arrays})
+    return dst
+
+
+def _set(key: str, value: Any) -> Callable[[dict[str, Any], dict[str, Any]], None]:
+    def change(header: dict[str, Any], arrays: dict[str, Any]) -> None:
+        if value is None:
+            del arrays[key]
+        else:
+            arrays[key] = value(arrays[key])
+    return change
+
+
+def _novelty_inputs(pick: Callable[[dict[str, Any]], Any]) -> Callable[[dict[str, Any], dict[str, Any]], None]:
+    def change(header: dict[str, Any], arrays: dict[str, Any]) -> None:
+        header["novelty"]["inputs"] = pick(header)
+    return change
+
+
+def _extra_column(header: dict[str, Any], arrays: dict[str, Any]) -> None:
+    header["settings"]["names"] = [*header["settings"]["names"], "film1.time.A1.mean"]
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    (_set("novelty_scale", np.zeros_like), "novelty_center, novelty_scale: must be"),
+    (_set("novelty_center", lambda a: np.full_like(a, np.nan)), "novelty_center, novelty_scale: must be"),
+    (_set("novelty_center", lambda a: a[1:]), "novelty_center, novelty_scale: must be"),
+    (_set("novelty_scale", None), "novelty_scale: missing"),
+    (_novelty_inputs(lambda h: h["inputs"]), "header.novelty.inputs: must be psd features"),
+    (_novelty_inputs(lambda h: ["film9.psd.1-2Hz.power"]), "header.novelty.inputs: must be distinct feature names of settings.names"),
+    (_novelty_inputs(lambda h: None), "novelty_center, novelty_scale: not an array of a svm model"),
+    (_extra_column, "settings.names: must be the union of the classifiers' and the novelty's names"),
+])
+def test_a_bad_spectral_novelty_is_refused_in_one_line(change: Callable[[dict[str, Any], dict[str, Any]], None], message: str,
+                                                       tmp_path: Path) -> None:
+    shipped = load_model()
+    assert shipped.novelty_names is not None and shipped.kind == "svm"
+    bad = _rewritten(default_model_path(), tmp_path / "bad.npz", change)
+    with pytest.raises(ModelError, match=message.replace("(", r"\(").replace(")", r"\)")) as info:
+        load_model(bad)
+    assert "\n" not in str(info.value) and "bad.npz" in str(info.value)
