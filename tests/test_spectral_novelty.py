@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -87,6 +88,29 @@ def test_a_grating_comes_out_unknown_and_new_recordings_of_taught_grades_keep_th
     assert sum(m["reason"] == "unknown_surface" for m in near) <= 1 and sum(m["label"] is not None for m in near) >= 8
 
 
+def test_a_provisional_label_is_judged_against_the_threshold_of_as_many_windows(grades_and_gratings: tuple[Path, ...]) -> None:
+    """The first windows of a slide estimate its spectrum less well than the whole slide: a provisional label's novelty is
+    the distance over that many windows' threshold (fitted in training on the training slides' first windows), never a
+    stricter one than the final label's."""
+    from tactiled.core.analysis import Analyser
+    from tactiled.files.recording import load_recording
+
+    model, _, known, _ = grades_and_gratings
+    m = load_model(model)
+    assert m.novelty_prefix and all(f >= 1.0 for f in m.novelty_prefix)
+    m.novelty_prefix = (3.0, 2.0)  # as fitted on a larger set: the first window's threshold 3 times the final one's
+    rec = load_recording(sorted(known.glob("*.npz"))[0])
+    start, stop, _ = rec.slides()[0]
+    analyser = Analyser(m.settings, m.fs, rec.volts_per_count, integer=True)
+    x = np.stack([r.features for r in analyser.analyse_many(np.stack([rec.samples[a:b] for a, b in m.settings.spans(start, stop, m.fs)]))
+                  if r.features is not None])
+    for w in (1, 2, len(x)):
+        final, early = m.assess(x[:w])[2], m.assess(x[:w], final=False)[2]
+        assert final is not None and early is not None
+        factor = m.novelty_prefix[min(w, len(m.novelty_prefix)) - 1]
+        assert early == pytest.approx(final / factor, rel=1e-12)
+
+
 def _rewritten(src: Path, dst: Path, change: Callable[[dict[str, Any], dict[str, Any]], None]) -> Path:
     """``src`` with its header and arrays changed by ``change(header, arrays)``, fingerprinted again."""
     from tactiled.files.recording import atomic_savez
@@ -130,12 +154,13 @@ def _extra_column(header: dict[str, Any], arrays: dict[str, Any]) -> None:
     (_novelty_inputs(lambda h: ["film9.psd.1-2Hz.power"]), "header.novelty.inputs: must be distinct feature names of settings.names"),
     (_novelty_inputs(lambda h: None), "novelty_center, novelty_scale: not an array of a svm model"),
     (_extra_column, "settings.names: must be the union of the classifiers' and the novelty's names"),
+    (lambda h, a: h["novelty"].update(prefix=[0.5]), "header.novelty.prefix: must be a list of at most 1000 numbers in [1, 1e6]"),
 ])
 def test_a_bad_spectral_novelty_is_refused_in_one_line(change: Callable[[dict[str, Any], dict[str, Any]], None], message: str,
                                                        tmp_path: Path) -> None:
     shipped = load_model()
     assert shipped.novelty_names is not None and shipped.kind == "svm"
     bad = _rewritten(default_model_path(), tmp_path / "bad.npz", change)
-    with pytest.raises(ModelError, match=message.replace("(", r"\(").replace(")", r"\)")) as info:
+    with pytest.raises(ModelError, match=re.escape(message)) as info:
         load_model(bad)
     assert "\n" not in str(info.value) and "bad.npz" in str(info.value)

@@ -3,7 +3,8 @@
 The search is not run again: the model keeps its features, windows, classifier and parameters. Its file keeps the
 standardised rows its classifier was fitted on (format 4), so enrolment maps them back to raw features, adds the
 new slides' rows (analysed exactly as the daemon analyses them), and fits the same classifier on the union; the
-novelty data gets the new slides and its threshold is fitted again by the same grouped rule as in training. The
+novelty data gets the new slides and its threshold is fitted again by the same grouped rule as in training (a spectrum
+test keeps its provisional labels' thresholds as the same multiples of the new one). The
 confidence keeps the original model's calibration (fitted on its out-of-fold scores; enrolment has none of its own).
 An ensemble (format 7) refits both members on the new slides, each on its own columns of the one analysis and with
 its own fusion; the members' and the ensemble's temperatures are kept with the calibration.

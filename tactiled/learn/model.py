@@ -71,7 +71,9 @@ not the classifier's features. ``header.novelty.inputs`` names psd columns of ``
 analysis whatever the classifier reads); a slide's novelty features are
 :func:`~tactiled.core.features.spectral_shape` of their slide means (per channel, log10 band powers less their mean),
 standardised by the arrays ``novelty_center`` and ``novelty_scale`` (B,); ``novelty_x`` (n, B) holds the training
-slides' so. ``header.inputs`` names the classifier's own columns (an ensemble's first member's are
+slides' so. ``header.novelty.prefix`` lists the distance thresholds of provisional labels from the first 1, 2, ...
+windows of a slide, as multiples (>= 1) of the final one (the last one holds beyond them; empty: the final one).
+``header.inputs`` names the classifier's own columns (an ensemble's first member's are
 ``header.ensemble.member.names``, as in format 7); ``settings.names`` is the union of every part's columns.
 
 Format 7 (an ensemble; a model of one classifier is still written as format 6, byte for byte as before): the header's
@@ -346,6 +348,7 @@ class Model:
     novelty_names: tuple[str, ...] | None = None  # format 8: the psd columns whose spectral shape novelty_x holds; None: this classifier's inputs
     novelty_center: FloatArray | None = None  # format 8: (B,) the mean of the training slides' spectral shapes ...
     novelty_scale: FloatArray | None = None  # ... and (B,) their standard deviation (floored at SHAPE_SCALE_FLOOR): novelty_x's standardisation
+    novelty_prefix: tuple[float, ...] = ()  # format 8: the distance threshold of a provisional label from 1, 2, ... windows, times the final one
     partner: Model | None = None  # an ensemble's second member (format 7); None: a single classifier
     member_names: tuple[str, ...] | None = None  # an ensemble: this classifier's columns (a subset of settings.names); None: all of them
     member_temperature: float = 1.0  # an ensemble: the temperature of this classifier's own probabilities (``temperature`` is the ensemble's)
@@ -436,17 +439,23 @@ class Model:
         x = np.asarray(features, dtype=np.float64).reshape(-1, len(self.names))
         return self.novelty_many(x, [(0, x.shape[0])])[0]
 
-    def novelty_many(self, x: FloatArray, rows: Sequence[tuple[int, int]]) -> list[float | None]:
+    def novelty_many(self, x: FloatArray, rows: Sequence[tuple[int, int]], final: bool = True) -> list[float | None]:
         """:meth:`novelty` of q slides, slide i the windows ``x[lo:hi]`` ((lo, hi) = ``rows[i]``) of raw features x (n, F),
-        each bit for bit (each slide's mean a row alone), in one pass over the training slides."""
+        each bit for bit (each slide's mean a row alone), in one pass over the training slides. Not ``final`` (the first
+        windows of a slide that goes on): the distance threshold of that many windows (:attr:`novelty_prefix`, the last one
+        beyond them), where the model has them."""
         if self.novelty_x is None or not len(self.novelty_x):
             return [None] * len(rows)
+        limit: float | FloatArray = self.novelty_distance_threshold
+        if not final and self.novelty_prefix:
+            last = len(self.novelty_prefix)
+            limit = limit * np.array([self.novelty_prefix[min(hi - lo, last) - 1] for lo, hi in rows])
         z = self.novelty_standardise(self.novelty_features(slice_means(x, rows)))
         if self.novelty_y is not None and (self._groups is None or self._groups[0] is not self.novelty_y):
             self._groups = (self.novelty_y, surface_groups(self.novelty_y))
         parts = novelty_parts(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_score, alone=True,
                               groups=None if self._groups is None else self._groups[1])
-        return [float(v) for v in over_thresholds(parts, self.novelty_threshold, self.novelty_distance_threshold)]
+        return [float(v) for v in over_thresholds(parts, self.novelty_threshold, limit)]
 
     def novelty_features(self, means: FloatArray) -> FloatArray:
         """The novelty features (q, F'') of q slides whose mean raw features are ``means`` (q, F), before standardisation: the
@@ -496,7 +505,7 @@ class Model:
         proba = softmax(self._combined(x, lambda m, cols: m.fused_many(cols, rows)), self.temperature)
         tops = cast(list[float], proba.max(axis=1).tolist())
         confidence = [self.confidence(p) if final else self.early_confidence(p, hi - lo) for p, (lo, hi) in zip(tops, rows, strict=True)]
-        return proba, confidence, self.novelty_many(x, rows)
+        return proba, confidence, self.novelty_many(x, rows, final)
 
     def standardise(self, x: FloatArray) -> FloatArray:
         """Classifier inputs (n, F') of raw features (n, F') of :attr:`inputs` (:meth:`own` of the full columns): log of
@@ -592,7 +601,7 @@ class Model:
         header = self._single_header()
         if self.novelty_names is not None:  # format 8: the classifier's own columns, and the novelty's
             header.update(version=FORMAT_VERSION, inputs=list(self.inputs))
-            header["novelty"]["inputs"] = list(self.novelty_names)
+            header["novelty"].update(inputs=list(self.novelty_names), prefix=list(self.novelty_prefix))
         if self.partner is not None:
             p = self.partner
             header.update(version=FORMAT_VERSION if self.novelty_names is not None else ENSEMBLE_VERSION, ensemble={
@@ -940,7 +949,10 @@ def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[
         center, scale = arrays["novelty_center"], arrays["novelty_scale"]
         _need(center.shape == (len(shape),) and scale.shape == (len(shape),) and _finite(center) and _finite(scale) and bool(np.all(scale > 0)),
               path, f"novelty_center, novelty_scale: must be ({len(shape)},) finite floats, the scale > 0")
-        model.novelty_names, model.novelty_center, model.novelty_scale = shape, center, scale
+        prefix = nov.get("prefix", [])
+        _need(isinstance(prefix, list) and len(prefix) <= 1000 and all(_is_number(v) and 1.0 <= v <= 1e6 for v in prefix), path,
+              "header.novelty.prefix: must be a list of at most 1000 numbers in [1, 1e6]")
+        model.novelty_names, model.novelty_center, model.novelty_scale, model.novelty_prefix = shape, center, scale, tuple(map(float, prefix))
     width = len(model.novelty_names) if model.novelty_names is not None else model.standardise(np.zeros((1, len(model.inputs)))).shape[1]
     _need(nx.ndim == 2 and nx.shape[1] == width and nx.shape[0] <= MAX_REFIT_ROWS and (nx.size == 0 or _finite(nx)), path,
           f"novelty_x: must be (n, {width}) finite floats, at most {MAX_REFIT_ROWS} rows")
@@ -1038,11 +1050,12 @@ def novelty_scores(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | 
     return out
 
 
-def over_thresholds(parts: FloatArray, threshold: float, distance_threshold: float = math.inf) -> FloatArray:
+def over_thresholds(parts: FloatArray, threshold: float, distance_threshold: float | FloatArray = math.inf) -> FloatArray:
     """(q,) the novelty of :func:`novelty_parts` rows (q, 2), above 1: unknown. The larger of the score over ``threshold``
     and the distance to the nearest surface over ``distance_threshold`` (``combined``): a slide is unknown when it lies
     between taught surfaces (ratio near 1) or farther from every taught surface than they lie from one another (the ratio
-    alone misses that when one surface is much nearer than the next). An infinite threshold contributes 0."""
+    alone misses that when one surface is much nearer than the next). ``distance_threshold``: one, or one per row (q,). An
+    infinite threshold contributes 0."""
     out: FloatArray = np.maximum(parts[:, 0] / threshold, parts[:, 1] / distance_threshold)
     return out
 

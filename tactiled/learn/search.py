@@ -68,6 +68,7 @@ from tactiled.learn.model import (
     ensemble_scores,
     fit_pipeline,
     fit_temperature,
+    nearest_surface_distances,
     novelty_parts,
     over_thresholds,
     prefix_fused,
@@ -496,7 +497,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
               **({"inner_grouped_by": "none" if "none" in grouping else "slide"} if set(grouping) - {"file"} else {})}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
     summary: dict[str, Any] = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs)}
-    alone = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty, untaught)
+    alone = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty, untaught,
+                   windows_of[_key(best)])
     model, members, scores = alone, [(best, alone.temperature)], oof[best.name]
     if ensemble != "off" and can_partner(best, usable):
         own_t = fit_temperature(oof[best.name], y_idx)  # the winner's temperature as a member (label-smoothed, as the partner's)
@@ -529,7 +531,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
                           time.perf_counter() - t0, oof=(scores, y_idx, files))
     if keep_models:
         result.models = {c.name: alone if c == best else _refit(sets, c, oof[c.name], y_idx, classes, config, fs, channels, seed,
-                                                                   inner_folds, method, summary, novelty, untaught) for c in usable}
+                                                                   inner_folds, method, summary, novelty, untaught, windows_of[_key(c)])
+                         for c in usable}
     return result
 
 
@@ -560,10 +563,11 @@ def ensemble_of(first: Model, first_temperature: float, partner: Model, oof: Flo
 
 def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: Candidate, oof: FloatArray, y_idx: npt.NDArray[np.intp],
            classes: list[str], config: Config, fs: float, channels: int, seed: int, inner_folds: int, method: str,
-           summary: dict[str, Any], novelty: str = NOVELTY_DEFAULT, untaught: float = UNTAUGHT_SHARE) -> Model:
+           summary: dict[str, Any], novelty: str = NOVELTY_DEFAULT, untaught: float = UNTAUGHT_SHARE, windows: WindowSet | None = None) -> Model:
     """Candidate ``c`` fitted on every labelled slide (:func:`_fit_member`), its temperature and calibration fitted on its
     out-of-fold slide scores ``oof`` (:func:`calibrate`), its novelty on its slides' mean features (the ``spectrum`` test:
-    the spectral shape of the window set's psd columns, added to the model's analysis; ``far`` where the set has none)."""
+    the spectral shape of the window set's psd columns, added to the model's analysis; ``far`` where the set has none;
+    with the slides' ``windows``, one row per window, its provisional labels' thresholds: :func:`fit_prefix_novelty`)."""
     model = _fit_member(sets, c, oof, y_idx, classes, config, fs, channels, seed, inner_folds, method)
     ws = sets[_key(c)][1]
     model.summary = {**summary, "slides": len(ws.slides), "windows": int(np.sum(ws.y != "")), "classes": classes,
@@ -582,7 +586,41 @@ def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: C
                                                     "no psd band fits these windows: unknown surfaces by the far test on the classifier's features"]}
     means = take_columns(slides.x[labelled], slides.names, model.names)
     fit_model_novelty(model, model.novelty_features(means), slides.y[labelled], slides.groups[labelled], novelty, untaught)
+    if shape and windows is not None:
+        fit_prefix_novelty(model, windows)
     return model
+
+
+def fit_prefix_novelty(model: Model, windows: WindowSet, reject: float = 0.05, most: int = 40, fewest: int = 20) -> None:
+    """The novelty thresholds of provisional labels (``model.novelty_prefix``), for a spectrum-test model whose novelty is
+    fitted: a slide's first w windows estimate its spectrum less well than all of them, so their distance to the taught
+    surfaces runs larger. For w = 1, 2, ... (at most ``most``, while ``fewest`` slides have w windows), the (1 - ``reject``)
+    quantile of the distances from the first w windows of each training slide (``windows``: one row per window, in time
+    order within each slide) to the other recordings' slides, as a multiple (at least 1) of the whole-slide threshold."""
+    if model.novelty_x is None or model.novelty_y is None or model.novelty_groups is None or not math.isfinite(model.novelty_distance_threshold):
+        return
+    keep = windows.y != ""
+    x, slide, group = take_columns(windows.x[keep], windows.names, model.names), windows.slide[keep], windows.groups[keep]
+    starts = np.flatnonzero(np.r_[True, slide[1:] != slide[:-1]])
+    lengths = np.diff(np.r_[starts, len(slide)])
+    sums = np.zeros((len(starts), x.shape[1]))
+    factors: list[float] = []
+    for w in range(1, most + 1):
+        have = lengths >= w
+        if have.sum() < fewest:
+            break
+        sums[have] += x[starts[have] + w - 1]
+        z = model.novelty_standardise(model.novelty_features(sums[have] / w))
+        groups = group[starts[have]]
+        dist = np.empty(len(z))
+        for g in np.unique(groups):
+            mine, other = groups == g, model.novelty_groups != g
+            if other.any():
+                dist[mine] = nearest_surface_distances(z[mine], model.novelty_x[other], model.novelty_y[other], model.novelty_k)[:, 0]
+            else:
+                dist[mine] = 0.0
+        factors.append(max(float(np.quantile(dist, 1.0 - reject, method="higher")) / model.novelty_distance_threshold, 1.0))
+    model.novelty_prefix = tuple(factors)
 
 
 def _fit_member(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: Candidate, oof: FloatArray, y_idx: npt.NDArray[np.intp],
