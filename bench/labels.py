@@ -12,7 +12,8 @@ candidate of the default search is refitted and scored on the same-unit test, be
 accuracy. The default model also meets the 15 gratings of the other surface family (``<scene>,grating``, same
 kinematics and fingertip, 1 file x 3 slides each, seed 400; far from every grade): how many of their 45 slides come
 out unknown (``--no-gratings`` skips it). Then three of the fifteen surfaces are left out of training: how many of
-their test slides come out unknown, and how many of the known ones.
+their test slides come out unknown, and how many of the known ones, on the same unit and on the other units (with
+``--mixed``, of the far-apart set).
 
 The plain baseline, outside tactiled's code: for each true slide, the Welch PSD of each channel over the
 whole slide (segments of 1024 samples at 20 kHz, scaled to the rate), the log energy in 24 log-spaced bands
@@ -152,15 +153,18 @@ def unknown_share(recs: list[tuple[str, Recording]], config: Config, model: Any)
     return flagged, total
 
 
-def leave_out(spec: str, tr: list[Path], test: list[tuple[str, Recording]], config: Config, novelty: str | None = None) -> dict[str, Any]:
-    """Train on 12 of 15 surfaces; the unknown rate on test slides of the 3 left out and of the 12 known."""
+def leave_out(spec: str, tr: list[Path], test: list[tuple[str, Recording]], config: Config, novelty: str | None = None,
+              others: dict[int, list[tuple[str, Recording]]] | None = None) -> dict[str, Any]:
+    """Train on 12 of 15 surfaces; the unknown rate on test slides of the 3 left out and of the 12 known, on the same unit
+    and on each of ``others`` (unit: its test recordings)."""
     surfaces = sorted({s for _, r in test for _, _, s in r.slides()}, key=ra)
     gone = {surfaces[i] for i in LEAVE_OUT if i < len(surfaces)}
     keep = [p for p in tr if not any(f"_{g}_" in p.name for g in gone)]
     res = train(keep, config, progress=lambda m: None, **({"novelty": novelty} if novelty else {}))
     shares = left_out_share(test, config, res.model, gone)
     return {"scene": spec, "left_out": sorted(gone), "unseen_unknown": shares["unseen"], "known_unknown": shares["known"],
-            "unseen_slides": shares["unseen_slides"], "known_slides": shares["known_slides"], "cv_estimate": res.model.summary.get("novelty")}
+            "unseen_slides": shares["unseen_slides"], "known_slides": shares["known_slides"], "cv_estimate": res.model.summary.get("novelty"),
+            "units": {u: left_out_share(recs, config, res.model, gone) for u, recs in (others or {}).items()}}
 
 
 def left_out_share(recs: list[tuple[str, Recording]], config: Config, model: Any, gone: set[str]) -> dict[str, float]:
@@ -273,7 +277,7 @@ def main() -> None:
           "| papers' method: same / other units | ECE same / other units | a calibrated model's ECE, same unit: median / 95 % "
           "| Brier same | unknown on known (same / other units) | provisional: median / p90 s, wrong, ECE | train s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|", flush=True)
-    for spec in args.scenes.split(";"):
+    for spec in [s for s in args.scenes.split(";") if s]:
         name = spec.replace(",", "+")
         tr = dataset(root / name / "train", spec, 100, args.files, args.slides, args.mixed)
         same = load_recordings(dataset(root / name / "same", spec, 200, args.test_files, args.slides, args.mixed))
@@ -334,13 +338,15 @@ def main() -> None:
     leave = []
     for spec in [s for s in args.leave_out_scenes.split(";") if s]:
         name = "leave-" + spec.replace(",", "+")
-        tr = write_dataset(root / name / "train", scene=spec, seed=100, files_per_surface=args.files, slides_per_file=args.slides)
-        test = load_recordings(write_dataset(root / name / "test", scene=spec, seed=200, files_per_surface=args.test_files,
-                                             slides_per_file=args.slides))
-        leave.append(leave_out(spec, tr, test, config, args.novelty))
+        tr = dataset(root / name / "train", spec, 100, args.files, args.slides, args.mixed)
+        test = load_recordings(dataset(root / name / "test", spec, 200, args.test_files, args.slides, args.mixed))
+        others = {u: load_recordings(dataset(root / name / f"unit{u}", spec, 200 + 100 * u, args.test_files, args.slides, args.mixed,
+                                             unit=u, specimen=u)) for u in units}
+        leave.append(leave_out(spec, tr, test, config, args.novelty, others))
         lo = leave[-1]
         print(f"leave out {', '.join(lo['left_out'])} ({spec}): {100 * lo['unseen_unknown']:.1f} % of their {lo['unseen_slides']} slides unknown, "
-              f"{100 * lo['known_unknown']:.1f} % of {lo['known_slides']} known ones", flush=True)
+              f"{100 * lo['known_unknown']:.1f} % of {lo['known_slides']} known ones"
+              + "".join(f"; unit {u}: {100 * o['unseen']:.1f} % / {100 * o['known']:.1f} %" for u, o in lo["units"].items()), flush=True)
         if args.json:
             Path(args.json).write_text(json.dumps({"scenes": rows, "leave_out": leave}, indent=1, default=float))
 

@@ -262,3 +262,24 @@ def test_a_dwt_level_of_all_rows_at_once_is_pywavelets_row_by_row(m: int) -> Non
     for part in ("a", "d"):
         expected = np.stack([pywt.downcoef(part, row, plan.wavelet, mode=plan.mode, level=1) for row in a])
         assert plan._downcoef(part, a).tobytes() == expected.tobytes(), part
+
+
+@pytest.mark.parametrize("fs", [20_000.0, 2200.0, 44_100.0])
+def test_band_powers_of_many_rows_are_np_interp_of_each_row(fs: float) -> None:
+    """band_powers integrates every PSD row at once with np.interp's formula: each row bit for bit np.interp of that row, on
+    random, silent and tiny spectra, with bands at the ends of the range and beyond the bins."""
+    from tactiled.core.features import band_powers, psd_bands, psd_of
+
+    rng = np.random.default_rng(int(fs))
+    bands = [*psd_bands(fs), (0.0, 5.0), (fs / 2 - 1.0, fs / 2), (0.0, fs / 2)]
+    for n in (64, 5000):
+        x = rng.standard_normal((6, n)) * 10.0 ** rng.uniform(-150, 3, (6, 1))
+        x[0] = 0.0
+        f, p = psd_of(x, fs)
+        df = f[1] - f[0]
+        edges = np.concatenate((f - df / 2, [f[-1] + df / 2])).clip(min=0.0)
+        for row, got in zip(p, band_powers(f, p, bands), strict=True):
+            cum = np.concatenate(([0.0], np.cumsum(row) * df))
+            want = np.maximum(np.interp([b[1] for b in bands], edges, cum) - np.interp([b[0] for b in bands], edges, cum), 0.0)
+            assert np.array_equal(got, want)
+        assert np.array_equal(band_powers(f, p[1], bands), band_powers(f, p[1:2], bands)[0])

@@ -323,13 +323,28 @@ def psd_of(x: npt.NDArray[np.float64], fs: float) -> tuple[npt.NDArray[np.float6
 
 
 def band_powers(f: npt.NDArray[np.float64], p: npt.NDArray[np.float64], bands: Sequence[tuple[float, float]]) -> npt.NDArray[np.float64]:
-    """Power (V²) of each [lo, hi) band: the integral of the PSD, linear between bins (fractional bins at the edges)."""
+    """Power (V²) of each [lo, hi) band (..., B) of PSDs ``p`` (..., m) at frequencies ``f`` (m,): the integral of the PSD,
+    linear between bins (fractional bins at the edges). Every row at once, each the values ``np.interp`` gives for that row
+    alone (its formula, :func:`_interp_rows`)."""
     df = f[1] - f[0] if f.size > 1 else 1.0
-    cum = np.concatenate(([0.0], np.cumsum(p) * df))  # power below each bin's upper edge
+    rows = np.asarray(p, dtype=np.float64).reshape(-1, p.shape[-1])
+    cum = np.concatenate((np.zeros((rows.shape[0], 1)), np.cumsum(rows, axis=1) * df), axis=1)  # power below each bin's upper edge
     edges = np.concatenate((f - df / 2, [f[-1] + df / 2])).clip(min=0.0)
-    lo = np.interp([b[0] for b in bands], edges, cum)
-    hi = np.interp([b[1] for b in bands], edges, cum)
-    return np.maximum(hi - lo, 0.0)
+    lo = _interp_rows(np.array([b[0] for b in bands], dtype=np.float64), edges, cum)
+    hi = _interp_rows(np.array([b[1] for b in bands], dtype=np.float64), edges, cum)
+    out: npt.NDArray[np.float64] = np.maximum(hi - lo, 0.0).reshape(*p.shape[:-1], len(bands))
+    return out
+
+
+def _interp_rows(x: npt.NDArray[np.float64], xp: npt.NDArray[np.float64], fp: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """(n, k) ``np.interp(x, xp, fp[i])`` for every row i of ``fp`` (n, m) at the points ``x`` (k,) (``xp`` (m,) increasing),
+    with numpy's formula: ``fp[j]`` at ``xp[j]``, the end values beyond the ends, else ``slope * (x - xp[j]) + fp[j]``."""
+    j = np.clip(np.searchsorted(xp, x, side="right") - 1, 0, len(xp) - 2)
+    slope = (fp[:, j + 1] - fp[:, j]) / (xp[j + 1] - xp[j])
+    out: npt.NDArray[np.float64] = slope * (x - xp[j]) + fp[:, j]
+    out = np.where(x == xp[j], fp[:, j], out)
+    out = np.where(x >= xp[-1], fp[:, -1:], out)
+    return np.where(x < xp[0], fp[:, :1], out)
 
 
 def texture(x: npt.NDArray[np.float64], f: npt.NDArray[np.float64], p: npt.NDArray[np.float64], fs: float,
@@ -487,7 +502,7 @@ class FeaturePlan:
             f, p = psd_of(xt[:, channel], self.fs)
             if channel in self._psd:
                 bands = self._psd[channel]
-                powers = np.array([band_powers(f, row, [(lo, hi) for _, lo, hi in bands]) for row in p])
+                powers = band_powers(f, p, [(lo, hi) for _, lo, hi in bands])
                 for i, (name, _, _) in enumerate(bands):
                     values[name] = powers[:, i]
             if channel in self._tex:
