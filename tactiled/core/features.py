@@ -242,14 +242,20 @@ def spectral_shape(powers: npt.NDArray[np.float64], names: Sequence[str]) -> npt
     Each row bit for bit that of the row alone (each channel's mean summed band by band: numpy sums the rows of a block in
     another order than one row)."""
     out = classifier_inputs(powers, names)
-    channels = [_channel(n) for n in names]
-    for c in sorted(set(channels)):
-        mine = [j for j, k in enumerate(channels) if k == c]
-        total = np.zeros(out.shape[0])
-        for j in mine:
+    for mine in channel_columns(tuple(names)):
+        total = out[:, mine[0]].copy()
+        for j in mine[1:]:
             total += out[:, j]
         out[:, mine] -= (total / len(mine))[:, None]
     return out
+
+
+@functools.lru_cache(maxsize=64)
+def channel_columns(names: tuple[str, ...]) -> tuple[list[int], ...]:
+    """The columns of each channel among feature ``names`` (``film<c>.…``), channels in order (cached: a model asks for
+    the same names for every slide)."""
+    channels = [_channel(n) for n in names]
+    return tuple([j for j, k in enumerate(channels) if k == c] for c in sorted(set(channels)))
 
 
 def raw_features(inputs: npt.NDArray[np.float64], names: Sequence[str]) -> npt.NDArray[np.float64]:
@@ -312,39 +318,73 @@ def psd_of(x: npt.NDArray[np.float64], fs: float) -> tuple[npt.NDArray[np.float6
     The same values as ``scipy.signal.welch(x, fs, "hann", nper, nper // 2, detrend="constant")`` (to rounding), in numpy;
     each signal's the same as alone.
     """
+    x = np.asarray(x, dtype=np.float64)
     nper = welch_segment(fs, x.shape[-1])
     step = nper - nper // 2
-    segments = np.lib.stride_tricks.sliding_window_view(np.asarray(x, dtype=np.float64), nper, axis=-1)[..., ::step, :]
-    window = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(nper) / nper)  # periodic Hann, as scipy.signal.welch's "hann"
+    # the segments as a view, every step-th of sliding_window_view(x, nper)'s (as_strided directly: a tenth of its cost)
+    last = x.strides[-1]
+    segments = np.lib.stride_tricks.as_strided(x, (*x.shape[:-1], (x.shape[-1] - nper) // step + 1, nper),
+                                               (*x.strides[:-1], step * last, last), writeable=False)
+    f, window, scale = _welch_constants(nper, fs)
     spec = np.fft.rfft((segments - segments.mean(axis=-1, keepdims=True)) * window, axis=-1)
-    p = (spec.real**2 + spec.imag**2).mean(axis=-2) / (fs * float(np.dot(window, window)))
+    p = (spec.real**2 + spec.imag**2).mean(axis=-2) / scale
     p[..., 1:-1 if nper % 2 == 0 else None] *= 2  # one-sided: every bin but DC (and Nyquist) holds both signs
-    return np.asarray(np.fft.rfftfreq(nper, 1.0 / fs), dtype=np.float64), np.asarray(p, dtype=np.float64)
+    return f, np.asarray(p, dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=64)
+def _welch_constants(nper: int, fs: float) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], float]:
+    """(frequencies (m,) Hz, periodic Hann window (nper,), as scipy.signal.welch's "hann", and the PSD's scale fs·Σw²) of
+    :func:`psd_of`'s segments of ``nper`` samples (cached, read-only: every window of a stream has the same)."""
+    window = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(nper) / nper)
+    f = np.asarray(np.fft.rfftfreq(nper, 1.0 / fs), dtype=np.float64)
+    window.setflags(write=False)
+    f.setflags(write=False)
+    return f, window, fs * float(np.dot(window, window))
 
 
 def band_powers(f: npt.NDArray[np.float64], p: npt.NDArray[np.float64], bands: Sequence[tuple[float, float]]) -> npt.NDArray[np.float64]:
-    """Power (V²) of each [lo, hi) band (..., B) of PSDs ``p`` (..., m) at frequencies ``f`` (m,): the integral of the PSD,
-    linear between bins (fractional bins at the edges). Every row at once, each the values ``np.interp`` gives for that row
-    alone (its formula, :func:`_interp_rows`)."""
-    df = f[1] - f[0] if f.size > 1 else 1.0
+    """Power (V²) of each [lo, hi) band (..., B) of PSDs ``p`` (..., m) at frequencies ``f`` (m,), evenly spaced from 0: the
+    integral of the PSD, linear between bins (fractional bins at the edges). Every row at once, each the values
+    ``np.interp`` gives for that row alone (its formula, :func:`_interp_plan`)."""
+    df = float(f[1] - f[0]) if f.size > 1 else 1.0
     rows = np.asarray(p, dtype=np.float64).reshape(-1, p.shape[-1])
     cum = np.concatenate((np.zeros((rows.shape[0], 1)), np.cumsum(rows, axis=1) * df), axis=1)  # power below each bin's upper edge
-    edges = np.concatenate((f - df / 2, [f[-1] + df / 2])).clip(min=0.0)
-    lo = _interp_rows(np.array([b[0] for b in bands], dtype=np.float64), edges, cum)
-    hi = _interp_rows(np.array([b[1] for b in bands], dtype=np.float64), edges, cum)
-    out: npt.NDArray[np.float64] = np.maximum(hi - lo, 0.0).reshape(*p.shape[:-1], len(bands))
+    lo, hi = _interp_plan(f.size, df, float(f[-1]), tuple(float(b[0]) for b in bands), tuple(float(b[1]) for b in bands))
+    out: npt.NDArray[np.float64] = np.maximum(_interpolate(cum, hi) - _interpolate(cum, lo), 0.0).reshape(*p.shape[:-1], len(bands))
     return out
 
 
-def _interp_rows(x: npt.NDArray[np.float64], xp: npt.NDArray[np.float64], fp: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """(n, k) ``np.interp(x, xp, fp[i])`` for every row i of ``fp`` (n, m) at the points ``x`` (k,) (``xp`` (m,) increasing),
-    with numpy's formula: ``fp[j]`` at ``xp[j]``, the end values beyond the ends, else ``slope * (x - xp[j]) + fp[j]``."""
-    j = np.clip(np.searchsorted(xp, x, side="right") - 1, 0, len(xp) - 2)
-    slope = (fp[:, j + 1] - fp[:, j]) / (xp[j + 1] - xp[j])
-    out: npt.NDArray[np.float64] = slope * (x - xp[j]) + fp[:, j]
-    out = np.where(x == xp[j], fp[:, j], out)
-    out = np.where(x >= xp[-1], fp[:, -1:], out)
-    return np.where(x < xp[0], fp[:, :1], out)
+InterpPlan = tuple[npt.NDArray[np.intp], npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.intp], npt.NDArray[np.intp]]
+
+
+@functools.lru_cache(maxsize=256)
+def _interp_plan(m: int, df: float, f_last: float, *points: tuple[float, ...]) -> tuple[InterpPlan, ...]:
+    """For each tuple of ``points`` (k,): where ``np.interp`` finds them on the bin edges of m bins ``df`` apart (the edges
+    ``f - df / 2`` and ``f[-1] + df / 2``, floored at 0, ``f`` from 0): the interval j (k,), the point's offset from its
+    start ``x - xp[j]`` and its width ``xp[j + 1] - xp[j]`` (k,) (numpy's formula: ``slope * (x - xp[j]) + fp[j]``), and the
+    points that take an edge's value as it is: (point, edge) pairs (k',), (k',) (at an edge, beyond the ends). Cached: a
+    model asks for the same bands at the same resolution for every window."""
+    f = np.arange(m, dtype=np.float64) * df if m > 1 else np.zeros(1)
+    f[-1] = f_last
+    xp = np.concatenate((f - df / 2, [f_last + df / 2])).clip(min=0.0)
+    plans = []
+    for pts in points:
+        x = np.asarray(pts, dtype=np.float64)
+        j = np.clip(np.searchsorted(xp, x, side="right") - 1, 0, len(xp) - 2)
+        edge = np.where(x < xp[0], 0, np.where(x >= xp[-1], len(xp) - 1, np.where(x == xp[j], j, -1)))
+        taken = np.flatnonzero(edge >= 0)
+        plans.append((j, x - xp[j], xp[j + 1] - xp[j], taken, edge[taken]))
+    return tuple(plans)
+
+
+def _interpolate(fp: npt.NDArray[np.float64], plan: InterpPlan) -> npt.NDArray[np.float64]:
+    """(n, k) ``np.interp`` of every row of ``fp`` (n, m + 1) at the points of ``plan`` (:func:`_interp_plan`)."""
+    j, offset, width, taken, edge = plan
+    out: npt.NDArray[np.float64] = (fp[:, j + 1] - fp[:, j]) / width * offset + fp[:, j]
+    if len(taken):
+        out[:, taken] = fp[:, edge]
+    return out
 
 
 def texture(x: npt.NDArray[np.float64], f: npt.NDArray[np.float64], p: npt.NDArray[np.float64], fs: float,
@@ -398,19 +438,23 @@ class FeaturePlan:
         # dwt: (channel, domain) -> max level needed; (channel, domain, band) -> stats
         self._levels: dict[tuple[int, str], int] = {}
         self._stats: dict[tuple[int, str, str], list[str]] = {}
-        self._psd: dict[int, list[tuple[str, float, float]]] = {}  # channel -> (name, lo, hi)
+        self._psd: dict[int, list[tuple[float, float]]] = {}  # channel -> its bands (lo, hi), Hz
+        self._psd_at: dict[int, list[int]] = {}  # channel -> the column of each of its bands
         self._tex: dict[int, list[str]] = {}  # channel -> descriptors
+        self._other_at: list[tuple[int, str]] = []  # (column, name) of every dwt and tex feature
         channels = []
-        for n in self.names:
+        for i, n in enumerate(self.names):
             fam = name_family(n)
             if fam == "psd":
                 c, lo, hi = parse_psd(n, fs)
-                self._psd.setdefault(c, []).append((n, lo, hi))
+                self._psd.setdefault(c, []).append((lo, hi))
+                self._psd_at.setdefault(c, []).append(i)
             elif fam == "tex":
                 c, last = _channel(n), n.split(".")
                 if len(last) != 3 or last[2] not in TEX_NAMES:
                     raise ValueError(f"feature {n!r}: expected film<c>.tex.<one of {', '.join(TEX_NAMES)}>")
                 self._tex.setdefault(c, []).append(last[2])
+                self._other_at.append((i, n))
             else:
                 p = parse_name(n)
                 c = p.channel
@@ -419,6 +463,7 @@ class FeaturePlan:
                 stats = self._stats.setdefault((p.channel, p.domain, f"{p.kind}{p.level}"), [])
                 if p.stat not in stats:
                     stats.append(p.stat)
+                self._other_at.append((i, n))
             channels.append(c)
         self.channels_needed = 1 + max(channels, default=-1)
         self._degrees = np.array([feature_degree(n) for n in self.names], dtype=np.int64)
@@ -470,7 +515,8 @@ class FeaturePlan:
         xt = x.transpose(0, 2, 1)  # (W, C, n): each channel's samples contiguous (free after remove_spikes_many)
         if not xt.flags.c_contiguous:
             xt = np.ascontiguousarray(xt)
-        values: dict[str, npt.NDArray[np.float64]] = {}
+        out = np.empty((x.shape[0], len(self.names)))
+        values: dict[str, npt.NDArray[np.float64]] = {}  # the dwt and tex features by name
         for (channel, domain), level in self._levels.items():
             sig = xt[:, channel]
             if domain == "freq":
@@ -501,15 +547,13 @@ class FeaturePlan:
         for channel in sorted(set(self._psd) | set(self._tex)):
             f, p = psd_of(xt[:, channel], self.fs)
             if channel in self._psd:
-                bands = self._psd[channel]
-                powers = band_powers(f, p, [(lo, hi) for _, lo, hi in bands])
-                for i, (name, _, _) in enumerate(bands):
-                    values[name] = powers[:, i]
+                out[:, self._psd_at[channel]] = band_powers(f, p, self._psd[channel])
             if channel in self._tex:
                 rows = [texture(xt[w, channel], f, p[w], self.fs, self._tex[channel], self._slope_range) for w in range(x.shape[0])]
                 for t in self._tex[channel]:
                     values[f"film{channel + 1}.tex.{t}"] = np.array([r[t] for r in rows])
-        out = np.stack([values[n] for n in self.names], axis=1) if self.names else np.zeros((x.shape[0], 0))
+        for i, name in self._other_at:
+            out[:, i] = values[name]
         if k.any():  # back to each window's own scale; a feature beyond float64 (energy of samples near 1e307) becomes inf
             with np.errstate(over="ignore"):
                 out = np.ldexp(out, k[:, None] * self._degrees[None, :])

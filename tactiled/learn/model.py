@@ -100,7 +100,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.core.analysis import Analyser, AnalysisSettings
-from tactiled.core.features import FeaturePlan, classifier_inputs, name_family, raw_features, spectral_shape
+from tactiled.core.features import FeaturePlan, classifier_inputs, name_family, raw_features, row_dots, rowwise_matmul, spectral_shape
 from tactiled.errors import ModelError
 from tactiled.files.npzio import NpzError, NpzReader, load_json_bounded
 from tactiled.files.recording import atomic_savez
@@ -994,14 +994,9 @@ def early_probability(coef: Sequence[float], p_top: float, windows: int) -> floa
 
 def _distances(z: FloatArray, train: FloatArray, alone: bool = False) -> FloatArray:
     """(q, n) Euclidean distances between the rows of ``z`` (q, F) and of ``train`` (n, F); ``alone``: each row bit for bit
-    that of the row alone (the squared differences summed column by column; else one matrix product)."""
-    if alone:  # column by column: each sum in one order whatever the rows beside it (numpy sums the rows of a block differently)
-        d2 = np.zeros((z.shape[0], train.shape[0]))
-        for j in range(z.shape[1]):
-            diff = z[:, j, None] - train[None, :, j]
-            d2 += diff * diff
-        return np.sqrt(d2)
-    d2 = (z * z).sum(axis=1)[:, None] - np.matmul(2.0 * z, train.T) + (train * train).sum(axis=1)[None, :]
+    that of the row alone (:func:`row_dots`, :func:`rowwise_matmul`; else one matrix product)."""
+    zz = row_dots(z, z) if alone else (z * z).sum(axis=1)  # numpy sums the rows of a block in another order than one row
+    d2 = zz[:, None] - (rowwise_matmul if alone else np.matmul)(2.0 * z, train.T) + (train * train).sum(axis=1)[None, :]
     return np.sqrt(np.maximum(d2, 0.0))
 
 
@@ -1033,7 +1028,7 @@ def novelty_parts(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | N
     Unlike a distance, the ratio takes its scale from how far apart the surfaces are, not from how close recordings of
     one surface were in training, so a sensor that is shifted as a whole (another unit, a new sheet of a grade) keeps
     the slides it can still tell apart. With fewer than two surfaces in ``labels`` (or none given), the distance.
-    ``alone``: each row bit for bit that of the row alone (:func:`_distances`; else one matrix product, the same to rounding);
+    ``alone``: each row bit for bit that of the row alone (:func:`rowwise_matmul`; else one matrix product, the same to rounding);
     ``groups``: :func:`surface_groups` of ``labels``, when the caller keeps it.
     """
     if labels is None or score == "distance":
