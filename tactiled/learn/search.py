@@ -595,11 +595,12 @@ def fit_prefix_novelty(model: Model, windows: WindowSet, reject: float = 0.05, m
     """The novelty thresholds of provisional labels (``model.novelty_prefix``), for a spectrum-test model whose novelty is
     fitted: a slide's first w windows estimate its spectrum less well than all of them, so their distance to the taught
     surfaces runs larger. For w = 1, 2, ... (at most ``most``, while ``fewest`` slides have w windows), the (1 - ``reject``)
-    quantile of the distances from the first w windows of each training slide (``windows``: one row per window, in time
-    order within each slide) to the other recordings' slides, as a multiple (at least 1) of the whole-slide threshold."""
+    quantile of the distances from the first w windows of each training slide (``windows``: one row per window) to the
+    other recordings' slides, as a multiple (at least 1) of the whole-slide threshold."""
     if model.novelty_x is None or model.novelty_y is None or model.novelty_groups is None or not math.isfinite(model.novelty_distance_threshold):
         return
-    keep = windows.y != ""
+    keep = np.flatnonzero(windows.y != "")
+    keep = keep[np.lexsort((windows.spans[keep, 0], windows.slide[keep]))]  # each slide's windows together, in time order
     x, slide, group = take_columns(windows.x[keep], windows.names, model.names), windows.slide[keep], windows.groups[keep]
     starts = np.flatnonzero(np.r_[True, slide[1:] != slide[:-1]])
     lengths = np.diff(np.r_[starts, len(slide)])
