@@ -52,6 +52,26 @@ def test_the_spectrum_threshold_keeps_95_percent_of_other_recordings_and_has_no_
     assert threshold == math.inf and info["distance_threshold"] is not None and math.isfinite(info["distance_threshold"])
 
 
+def test_a_surface_whose_recordings_lie_far_apart_is_measured_on_its_own_scale() -> None:
+    """Eight tight surfaces and one whose four recordings lie a step apart (as a grating's lines move with the sliding
+    speed): that one gets its own distance scale, so that a new recording one step on is known; a slide as far from the
+    tight surfaces is not."""
+    from tactiled.learn.model import novelty_parts, over_thresholds, surface_scale_for
+
+    rng = np.random.default_rng(4)  # eight tight surfaces of 4 recordings x 3 slides; the ninth of 4 one-slide recordings
+    z = np.vstack([np.array([10.0 * s, 0.0]) + 0.3 * rng.standard_normal((12, 2)) for s in range(8)]
+                  + [np.array([[3.0 * r, 30.0] for r in range(4)]) + 0.3 * rng.standard_normal((4, 2))])
+    labels, files = np.r_[np.repeat(np.arange(8), 12), np.full(4, 8)], np.r_[np.repeat(np.arange(32), 3), np.arange(32, 36)]
+    threshold, info = fit_novelty(z, files, labels, 3, score="spectrum")
+    scale = np.array(info["surface_scale"])
+    assert np.all(scale[:8] == 1.0) and scale[8] > 2.0 and info["known_rejected"] <= 0.05
+    slides = np.array([[12.0, 30.0], [20.0, 3.0]])  # a new recording of the spread surface one step on; as far from a tight one
+    own = over_thresholds(novelty_parts(slides, z, labels, 3, "combined", scale=surface_scale_for(np.arange(9), scale, labels)),
+                          threshold, info["distance_threshold"])
+    plain = over_thresholds(novelty_parts(slides, z, labels, 3, "combined"), threshold, info["distance_threshold"])
+    assert own[0] < 1.0 < plain[0] and own[1] > 1.0 and plain[1] > 1.0
+
+
 @pytest.fixture(scope="module")
 def grades_and_gratings(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path, Path]:
     """A model trained with train's defaults (quick) on three robot grades; new recordings of them, and of a grating."""
@@ -152,7 +172,9 @@ def _extra_column(header: dict[str, Any], arrays: dict[str, Any]) -> None:
     (_set("novelty_scale", None), "novelty_scale: missing"),
     (_novelty_inputs(lambda h: h["inputs"]), "header.novelty.inputs: must be psd features"),
     (_novelty_inputs(lambda h: ["film9.psd.1-2Hz.power"]), "header.novelty.inputs: must be distinct feature names of settings.names"),
-    (_novelty_inputs(lambda h: None), "novelty_center, novelty_scale: not an array of a svm model"),
+    (_novelty_inputs(lambda h: None), "novelty_center, novelty_scale, novelty_surface_scale: not an array of a svm model"),
+    (_set("novelty_surface_scale", lambda a: a * 0.5), "novelty_surface_scale: must be (15,) finite floats >= 1, one per surface"),
+    (_set("novelty_surface_scale", lambda a: a[1:]), "novelty_surface_scale: must be (15,) finite floats >= 1, one per surface"),
     (_extra_column, "settings.names: must be the union of the classifiers' and the novelty's names"),
     (lambda h, a: h["novelty"].update(prefix=[0.5]), "header.novelty.prefix: must be a list of at most 1000 numbers in [1, 1e6]"),
 ])

@@ -71,8 +71,10 @@ not the classifier's features. ``header.novelty.inputs`` names psd columns of ``
 analysis whatever the classifier reads); a slide's novelty features are
 :func:`~tactiled.core.features.spectral_shape` of their slide means (per channel, log10 band powers less their mean),
 standardised by the arrays ``novelty_center`` and ``novelty_scale`` (B,); ``novelty_x`` (n, B) holds the training
-slides' so. ``header.novelty.prefix`` lists the distance thresholds of provisional labels from the first 1, 2, ...
-windows of a slide, as multiples (>= 1) of the final one (the last one holds beyond them; empty: the final one).
+slides' so; ``novelty_surface_scale`` (S,) >= 1 divides each surface's distances (its surfaces in sorted order): a
+surface whose own recordings lie farther apart than the threshold is measured on its own scale.
+``header.novelty.prefix`` lists the distance thresholds of provisional labels from the first 1, 2, ... windows of a
+slide, as multiples (>= 1) of the final one (the last one holds beyond them; empty: the final one).
 ``header.inputs`` names the classifier's own columns (an ensemble's first member's are
 ``header.ensemble.member.names``, as in format 7); ``settings.names`` is the union of every part's columns.
 
@@ -113,7 +115,7 @@ ENSEMBLE_VERSION = 7  # an ensemble (a second member, :attr:`Model.partner`) who
 SINGLE_VERSION = 6  # a single classifier whose novelty reads its own features
 READ_VERSIONS = (2, 3, 4, 5, 6, 7, 8)  # format 2 (before calibration and novelty) still loads: confidence uncalibrated, novelty None; 3: no enrolment
 TRUST_ARRAYS = ("calibration", "novelty_x")
-SHAPE_ARRAYS = ("novelty_center", "novelty_scale")  # format 8: the standardisation of the spectral shapes novelty_x holds
+SHAPE_ARRAYS = ("novelty_center", "novelty_scale", "novelty_surface_scale")  # format 8: the spectral shapes' standardisation, each surface's own distance scale
 SHAPE_SCALE_FLOOR = 0.01  # log10 units (0.1 dB): a band level no slide moved is not a ruler that calls every new slide far
 ENROL_ARRAYS = ("train_x", "train_y", "novelty_y", "novelty_groups")  # format 4: what tactiled enrol refits on
 CLASSIFIERS = ("elm", "knn", "svm", "linear")
@@ -349,6 +351,7 @@ class Model:
     novelty_center: FloatArray | None = None  # format 8: (B,) the mean of the training slides' spectral shapes ...
     novelty_scale: FloatArray | None = None  # ... and (B,) their standard deviation (floored at SHAPE_SCALE_FLOOR): novelty_x's standardisation
     novelty_prefix: tuple[float, ...] = ()  # format 8: the distance threshold of a provisional label from 1, 2, ... windows, times the final one
+    novelty_surface_scale: FloatArray | None = None  # format 8: (S,) >= 1, each surface's distances divided by it (surfaces sorted)
     partner: Model | None = None  # an ensemble's second member (format 7); None: a single classifier
     member_names: tuple[str, ...] | None = None  # an ensemble: this classifier's columns (a subset of settings.names); None: all of them
     member_temperature: float = 1.0  # an ensemble: the temperature of this classifier's own probabilities (``temperature`` is the ensemble's)
@@ -454,7 +457,7 @@ class Model:
         if self.novelty_y is not None and (self._groups is None or self._groups[0] is not self.novelty_y):
             self._groups = (self.novelty_y, surface_groups(self.novelty_y))
         parts = novelty_parts(z, self.novelty_x, self.novelty_y, self.novelty_k, self.novelty_score, alone=True,
-                              groups=None if self._groups is None else self._groups[1])
+                              groups=None if self._groups is None else self._groups[1], scale=self.novelty_surface_scale)
         return [float(v) for v in over_thresholds(parts, self.novelty_threshold, limit)]
 
     def novelty_features(self, means: FloatArray) -> FloatArray:
@@ -593,8 +596,11 @@ class Model:
         arrays = {"calibration": np.asarray(calibration, dtype=np.float64), "novelty_x": np.asarray(novelty_x, dtype=np.float64),
                   "novelty_y": np.asarray(novelty_y, dtype=np.str_), "novelty_groups": np.asarray(groups, dtype=np.int64)}
         if self.novelty_names is not None:
+            surfaces = len(np.unique(novelty_y)) if n else 0
             arrays.update(novelty_center=np.asarray(self.novelty_center, dtype=np.float64),
-                          novelty_scale=np.asarray(self.novelty_scale, dtype=np.float64))
+                          novelty_scale=np.asarray(self.novelty_scale, dtype=np.float64),
+                          novelty_surface_scale=np.asarray(self.novelty_surface_scale if self.novelty_surface_scale is not None
+                                                           else np.ones(surfaces), dtype=np.float64))
         return arrays
 
     def _header(self) -> dict[str, Any]:
@@ -953,6 +959,11 @@ def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[
         _need(isinstance(prefix, list) and len(prefix) <= 1000 and all(_is_number(v) and 1.0 <= v <= 1e6 for v in prefix), path,
               "header.novelty.prefix: must be a list of at most 1000 numbers in [1, 1e6]")
         model.novelty_names, model.novelty_center, model.novelty_scale, model.novelty_prefix = shape, center, scale, tuple(map(float, prefix))
+        own = arrays["novelty_surface_scale"]
+        surfaces = len(np.unique(arrays["novelty_y"])) if arrays["novelty_y"].size else 0
+        _need(own.shape == (surfaces,) and _finite(own) and bool(np.all(own >= 1.0)), path,
+              f"novelty_surface_scale: must be ({surfaces},) finite floats >= 1, one per surface of novelty_y")
+        model.novelty_surface_scale = own
     width = len(model.novelty_names) if model.novelty_names is not None else model.standardise(np.zeros((1, len(model.inputs)))).shape[1]
     _need(nx.ndim == 2 and nx.shape[1] == width and nx.shape[0] <= MAX_REFIT_ROWS and (nx.size == 0 or _finite(nx)), path,
           f"novelty_x: must be (n, {width}) finite floats, at most {MAX_REFIT_ROWS} rows")
@@ -1017,7 +1028,7 @@ NOVELTY_SCORES = ("ratio", "distance", "combined")
 
 
 def novelty_parts(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | None, k: int, score: str = "ratio",
-                  alone: bool = False, groups: SurfaceGroups | None = None) -> FloatArray:
+                  alone: bool = False, groups: SurfaceGroups | None = None, scale: FloatArray | None = None) -> FloatArray:
     """(q, 2) how unlike the training rows ``train`` (n, F) (surfaces ``labels`` (n,)) each row of ``z`` (q, F) is: the
     score, and the distance to the nearest taught surface (mean over its ``k`` nearest rows).
 
@@ -1029,12 +1040,13 @@ def novelty_parts(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any] | N
     one surface were in training, so a sensor that is shifted as a whole (another unit, a new sheet of a grade) keeps
     the slides it can still tell apart. With fewer than two surfaces in ``labels`` (or none given), the distance.
     ``alone``: each row bit for bit that of the row alone (:func:`rowwise_matmul`; else one matrix product, the same to rounding);
-    ``groups``: :func:`surface_groups` of ``labels``, when the caller keeps it.
+    ``groups``: :func:`surface_groups` of ``labels``, when the caller keeps it; ``scale``: each surface's distances over its
+    own (:func:`nearest_surface_distances`).
     """
     if labels is None or score == "distance":
         d = knn_distance(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64), k, alone)
         return np.column_stack([d, d])
-    per = nearest_surface_distances(z, train, labels, k, alone, groups)
+    per = nearest_surface_distances(z, train, labels, k, alone, groups, scale)
     ratio = np.where(np.isfinite(per[:, 1]), per[:, 0] / np.maximum(per[:, 1], 1e-300), per[:, 0])
     return np.column_stack([ratio, per[:, 0]])
 
@@ -1055,6 +1067,12 @@ def over_thresholds(parts: FloatArray, threshold: float, distance_threshold: flo
     return out
 
 
+def surface_scale_for(surfaces: npt.NDArray[Any], scale: FloatArray, labels: npt.NDArray[Any]) -> FloatArray:
+    """(S',) the ``scale`` of ``surfaces`` (S,) (sorted) for the surfaces of ``labels`` in sorted order (a subset of them)."""
+    out: FloatArray = scale[np.searchsorted(surfaces, np.unique(labels))]
+    return out
+
+
 def surface_groups(labels: npt.NDArray[Any]) -> SurfaceGroups:
     """The training rows of each of the S surfaces of ``labels`` (n,), in sorted surface order: (columns (S, m): each surface's
     row numbers in order, padded with n, m its largest count; counts (S,))."""
@@ -1068,13 +1086,15 @@ def surface_groups(labels: npt.NDArray[Any]) -> SurfaceGroups:
 
 
 def nearest_surface_distances(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any], k: int, alone: bool = False,
-                              groups: SurfaceGroups | None = None) -> FloatArray:
+                              groups: SurfaceGroups | None = None, scale: FloatArray | None = None) -> FloatArray:
     """(q, 2) for each row of ``z`` (q, F): the mean distance to the ``k`` nearest training rows (``train`` (n, F)) of the
     nearest surface (``labels`` (n,)), and the same for the next nearest surface (inf with a single surface); ``alone``:
-    each row bit for bit that of the row alone; ``groups``: :func:`surface_groups` of ``labels``, when the caller keeps it."""
+    each row bit for bit that of the row alone; ``groups``: :func:`surface_groups` of ``labels``, when the caller keeps it;
+    ``scale`` (S,): each surface's distances divided by its own (the surfaces in sorted order, :func:`surface_scale_for`)."""
     d = _distances(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64), alone)
     columns, counts = groups if groups is not None else surface_groups(labels)
-    per = np.sort(_nearest_per_surface(d, columns, counts, k), axis=1)
+    per = _nearest_per_surface(d, columns, counts, k)
+    per = np.sort(per / scale[None, :] if scale is not None else per, axis=1)
     out: FloatArray = np.column_stack([per[:, 0], per[:, 1] if len(counts) > 1 else np.full(len(d), np.inf)])
     return out
 

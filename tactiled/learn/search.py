@@ -73,6 +73,7 @@ from tactiled.learn.model import (
     over_thresholds,
     prefix_fused,
     softmax,
+    surface_scale_for,
     take_columns,
 )
 from tactiled.learn.score import recording_interval
@@ -614,10 +615,13 @@ def fit_prefix_novelty(model: Model, windows: WindowSet, reject: float = 0.05, m
         z = model.novelty_standardise(model.novelty_features(sums[have] / w))
         groups = group[starts[have]]
         dist = np.empty(len(z))
+        surfaces = np.unique(model.novelty_y)
+        own = model.novelty_surface_scale if model.novelty_surface_scale is not None else np.ones(len(surfaces))
         for g in np.unique(groups):
             mine, other = groups == g, model.novelty_groups != g
             if other.any():
-                dist[mine] = nearest_surface_distances(z[mine], model.novelty_x[other], model.novelty_y[other], model.novelty_k)[:, 0]
+                dist[mine] = nearest_surface_distances(z[mine], model.novelty_x[other], model.novelty_y[other], model.novelty_k,
+                                                       scale=surface_scale_for(surfaces, own, model.novelty_y[other]))[:, 0]
             else:
                 dist[mine] = 0.0
         factors.append(max(float(np.quantile(dist, 1.0 - reject, method="higher")) / model.novelty_distance_threshold, 1.0))
@@ -654,6 +658,8 @@ def fit_model_novelty(model: Model, rows: FloatArray, labels: npt.NDArray[Any], 
     model.novelty_x, model.novelty_y, model.novelty_groups = z, labels, groups
     model.novelty_score = "combined" if score in ("far", "spectrum") else score
     model.novelty_threshold, info = fit_novelty(z, groups, labels, model.novelty_k, score=score, untaught=untaught)
+    scale = info.pop("surface_scale", None)
+    model.novelty_surface_scale = np.asarray(scale, dtype=np.float64) if scale is not None else None
     far = info.get("distance_threshold")
     model.novelty_distance_threshold = float(far) if far is not None else math.inf
     model.summary = {**model.summary, "novelty": info}
@@ -809,6 +815,16 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     if score == "spectrum":
         far = max(float(np.quantile(have[:, 1], 1.0 - reject, method="higher")), 1e-9)
         info["distance_threshold"] = far
+        scale = own_scales(z, files, labels, k, far, reject)
+        info["surface_scale"] = scale.tolist()
+        surfaces = np.unique(labels)
+        for rows, keep_of in ((known, lambda i: files != files[i]), (unseen, lambda i: labels != labels[i])):
+            for i in range(n):  # the distances again, each surface's over its own scale
+                keep = keep_of(i)
+                if keep.any():
+                    rows[i, 1] = nearest_surface_distances(z[i:i + 1], z[keep], labels[keep], k,
+                                                           scale=surface_scale_for(surfaces, scale, labels[keep]))[0, 0]
+        have, flagged = known[np.isfinite(known[:, 0])], unseen[np.isfinite(unseen[:, 0])]
     elif parts_of == "combined" and len(flagged) and len(np.unique(labels)) >= 2:
         q = 1.0 - reject
         far = max(float(np.quantile(flagged[:, 1], q, method="higher")), float(np.quantile(have[:, 1], q, method="higher")), 1e-9)
@@ -816,6 +832,23 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     info.update(threshold=threshold if math.isfinite(threshold) else None, known_rejected=float(np.mean(over_thresholds(have, threshold, far) > 1.0)),
                 unseen_flagged=float(np.mean(over_thresholds(flagged, threshold, far) > 1.0)) if len(flagged) else None)
     return threshold, info
+
+
+def own_scales(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any], k: int, threshold: float, reject: float = 0.05) -> FloatArray:
+    """(S,) each surface's own distance scale (surfaces sorted), at least 1: the (1 - ``reject``) quantile of the distances
+    from each of its slides (``z`` (n, F), recordings ``files``) to its *own* other recordings' slides, over ``threshold``.
+    A surface whose recordings lie farther apart than the threshold (a grating whose lines move with the sliding speed, a
+    surface taught from a few one-slide recordings) is measured on its own scale, so that a new recording of it is not
+    called unknown for being as far from the others as they are from each other. 1 for a surface of one recording."""
+    surfaces = np.unique(labels)
+    out = np.ones(len(surfaces))
+    for j, surface in enumerate(surfaces):
+        mine = np.flatnonzero(labels == surface)
+        own = [nearest_surface_distances(z[i:i + 1], z[mine[files[mine] != files[i]]], labels[mine[files[mine] != files[i]]], k)[0, 0]
+               for i in mine if np.any(files[mine] != files[i])]
+        if own:
+            out[j] = max(float(np.quantile(own, 1.0 - reject, method="higher")) / threshold, 1.0)
+    return out
 
 
 def novelty_threshold(known: FloatArray, unseen: FloatArray, reject: float = 0.05, untaught: float = UNTAUGHT_SHARE) -> float:
