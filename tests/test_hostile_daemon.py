@@ -269,8 +269,9 @@ def test_a_board_at_another_rate_than_configured_is_said_once(tmp_path: Path) ->
     measured the rate for a few seconds, the daemon says so once, naming both rates, however long it goes on."""
     with board_and_daemon(tmp_path, "--no-model", speed=3.0) as live, \
             BlockingSubscriber(live.endpoint, topics=["status"], timeout=30) as sub:
-        fast = status_where(sub, lambda m: m.uptime_s > 6.0 and m.fs_clock > 1.5 * m.fs_nominal, 60, "the rate measured")
-        status_where(sub, lambda m: m.uptime_s > fast.uptime_s + 2.0, 30, "two more seconds of it")
+        fast = status_where(sub, lambda m: m.fs_clock > 1.5 * m.fs_nominal, 60, "the rate measured")
+        # the daemon says it after RATE_INTERVALS status intervals running off (5 s): a loaded host may measure it late
+        status_where(sub, lambda m: m.uptime_s > fast.uptime_s + 6.0, 30, "six more seconds of it")
         err = live.stop()
     said = [line for line in err.splitlines() if "samples arrive at about" in line]
     assert len(said) == 1 and "sensor.fs is 20000 Hz" in said[0], err
