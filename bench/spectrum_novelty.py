@@ -1,5 +1,5 @@
-"""A measurement for a possible unknown-surface test: the far-surface distance on the whole-slide spectrum, not on the
-classifier's features.
+"""The measurement that led to ``train --novelty spectrum`` (built since, with each surface on its own scale): the
+far-surface distance on the whole-slide spectrum, not on the classifier's features, computed here outside the product.
 
 ``train``'s unknown-surface tests measure a slide's distance to the taught surfaces in the chosen classifier's own
 standardised features: 4 to 8 of them on most scenes, picked to tell the *taught* surfaces apart. This script measures

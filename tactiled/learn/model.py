@@ -1091,12 +1091,19 @@ def nearest_surface_distances(z: FloatArray, train: FloatArray, labels: npt.NDAr
     nearest surface (``labels`` (n,)), and the same for the next nearest surface (inf with a single surface); ``alone``:
     each row bit for bit that of the row alone; ``groups``: :func:`surface_groups` of ``labels``, when the caller keeps it;
     ``scale`` (S,): each surface's distances divided by its own (the surfaces in sorted order, :func:`surface_scale_for`)."""
+    per = surface_distances(z, train, labels, k, alone, groups)
+    per = np.sort(per / scale[None, :] if scale is not None else per, axis=1)
+    out: FloatArray = np.column_stack([per[:, 0], per[:, 1] if per.shape[1] > 1 else np.full(len(per), np.inf)])
+    return out
+
+
+def surface_distances(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any], k: int, alone: bool = False,
+                      groups: SurfaceGroups | None = None) -> FloatArray:
+    """(q, S) for each row of ``z`` (q, F), the mean distance to the ``k`` nearest training rows (``train`` (n, F)) of each
+    of the S surfaces of ``labels`` (n,), in sorted order; ``alone`` and ``groups`` as :func:`nearest_surface_distances`."""
     d = _distances(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64), alone)
     columns, counts = groups if groups is not None else surface_groups(labels)
-    per = _nearest_per_surface(d, columns, counts, k)
-    per = np.sort(per / scale[None, :] if scale is not None else per, axis=1)
-    out: FloatArray = np.column_stack([per[:, 0], per[:, 1] if len(counts) > 1 else np.full(len(d), np.inf)])
-    return out
+    return _nearest_per_surface(d, columns, counts, k)
 
 
 def _nearest_per_surface(d: FloatArray, columns: npt.NDArray[np.intp], counts: npt.NDArray[np.intp], k: int) -> FloatArray:

@@ -73,6 +73,7 @@ from tactiled.learn.model import (
     over_thresholds,
     prefix_fused,
     softmax,
+    surface_distances,
     surface_scale_for,
     take_columns,
 )
@@ -606,6 +607,8 @@ def fit_prefix_novelty(model: Model, windows: WindowSet, reject: float = 0.05, m
     starts = np.flatnonzero(np.r_[True, slide[1:] != slide[:-1]])
     lengths = np.diff(np.r_[starts, len(slide)])
     sums = np.zeros((len(starts), x.shape[1]))
+    surfaces = np.unique(model.novelty_y)
+    own = model.novelty_surface_scale if model.novelty_surface_scale is not None else np.ones(len(surfaces))
     factors: list[float] = []
     for w in range(1, most + 1):
         have = lengths >= w
@@ -615,8 +618,6 @@ def fit_prefix_novelty(model: Model, windows: WindowSet, reject: float = 0.05, m
         z = model.novelty_standardise(model.novelty_features(sums[have] / w))
         groups = group[starts[have]]
         dist = np.empty(len(z))
-        surfaces = np.unique(model.novelty_y)
-        own = model.novelty_surface_scale if model.novelty_surface_scale is not None else np.ones(len(surfaces))
         for g in np.unique(groups):
             mine, other = groups == g, model.novelty_groups != g
             if other.any():
@@ -799,10 +800,18 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     parts_of = "combined" if score in ("far", "spectrum") else score
     known = np.full((n, 2), np.nan)  # novelty_parts per slide: (score, distance to the nearest surface)
     unseen = np.full((n, 2), np.nan)
+    surfaces = np.unique(labels)
+    per_known = np.full((n, len(surfaces)), np.inf)  # spectrum: each slide's distance to every surface (other recordings)
+    per_unseen = np.full((n, len(surfaces)), np.inf)  # ... and to every other surface
     for i in range(n):
         other_file, other_surface = files != files[i], labels != labels[i]
-        for out, keep in ((known, other_file), (unseen, other_surface)):
-            if keep.any():
+        for out, per, keep in ((known, per_known, other_file), (unseen, per_unseen, other_surface)):
+            if not keep.any():
+                continue
+            if score == "spectrum":
+                per[i, np.searchsorted(surfaces, np.unique(labels[keep]))] = surface_distances(z[i:i + 1], z[keep], labels[keep], k)[0]
+                out[i] = (0.0, per[i].min())
+            else:
                 out[i] = novelty_parts(z[i:i + 1], z[keep], labels[keep], k, parts_of)[0]
     have, flagged = known[np.isfinite(known[:, 0])], unseen[np.isfinite(unseen[:, 0])]
     info: dict[str, Any] = {"k": k, "score": score, "untaught": untaught, "threshold": None, "known_rejected": None, "unseen_flagged": None}
@@ -815,15 +824,9 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     if score == "spectrum":
         far = max(float(np.quantile(have[:, 1], 1.0 - reject, method="higher")), 1e-9)
         info["distance_threshold"] = far
-        scale = own_scales(z, files, labels, k, far, reject)
+        scale = own_scales(per_known, labels, far, reject)
         info["surface_scale"] = scale.tolist()
-        surfaces = np.unique(labels)
-        for rows, keep_of in ((known, lambda i: files != files[i]), (unseen, lambda i: labels != labels[i])):
-            for i in range(n):  # the distances again, each surface's over its own scale
-                keep = keep_of(i)
-                if keep.any():
-                    rows[i, 1] = nearest_surface_distances(z[i:i + 1], z[keep], labels[keep], k,
-                                                           scale=surface_scale_for(surfaces, scale, labels[keep]))[0, 0]
+        known[:, 1], unseen[:, 1] = (per_known / scale).min(axis=1), (per_unseen / scale).min(axis=1)  # each over its own scale
         have, flagged = known[np.isfinite(known[:, 0])], unseen[np.isfinite(unseen[:, 0])]
     elif parts_of == "combined" and len(flagged) and len(np.unique(labels)) >= 2:
         q = 1.0 - reject
@@ -834,20 +837,20 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     return threshold, info
 
 
-def own_scales(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any], k: int, threshold: float, reject: float = 0.05) -> FloatArray:
+def own_scales(per_known: FloatArray, labels: npt.NDArray[Any], threshold: float, reject: float = 0.05) -> FloatArray:
     """(S,) each surface's own distance scale (surfaces sorted), at least 1: the (1 - ``reject``) quantile of the distances
-    from each of its slides (``z`` (n, F), recordings ``files``) to its *own* other recordings' slides, over ``threshold``.
+    from each of its slides to its *own* other recordings' slides (``per_known`` (n, S): each slide's distance to every
+    surface's slides of other recordings, inf where there are none), over ``threshold``.
     A surface whose recordings lie farther apart than the threshold (a grating whose lines move with the sliding speed, a
     surface taught from a few one-slide recordings) is measured on its own scale, so that a new recording of it is not
     called unknown for being as far from the others as they are from each other. 1 for a surface of one recording."""
-    surfaces = np.unique(labels)
+    surfaces, which = np.unique(labels, return_inverse=True)
+    own = per_known[np.arange(len(labels)), which.reshape(-1)]
     out = np.ones(len(surfaces))
-    for j, surface in enumerate(surfaces):
-        mine = np.flatnonzero(labels == surface)
-        own = [nearest_surface_distances(z[i:i + 1], z[mine[files[mine] != files[i]]], labels[mine[files[mine] != files[i]]], k)[0, 0]
-               for i in mine if np.any(files[mine] != files[i])]
-        if own:
-            out[j] = max(float(np.quantile(own, 1.0 - reject, method="higher")) / threshold, 1.0)
+    for j in range(len(surfaces)):
+        mine = own[(which.reshape(-1) == j) & np.isfinite(own)]
+        if len(mine):
+            out[j] = max(float(np.quantile(mine, 1.0 - reject, method="higher")) / threshold, 1.0)
     return out
 
 
