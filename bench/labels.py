@@ -21,7 +21,7 @@ from 20 Hz to 0.45 fs, the log spectral centroid and the kurtosis; StandardScale
 
 Usage: python bench/labels.py [--scenes "hand;robot;..."] [--files 3] [--test-files 2] [--slides 3] [--out DIR] [--json FILE]
        [--other-units 1,2] [--no-paper] [--leave-out-scenes "hand;robot;one-channel"] [--novelty far|combined|ratio|distance]
-       [--no-gratings] [--ensemble off|always|guarded] [--candidates-on-units] [--mixed]
+       [--no-gratings] [--ensemble off|always|guarded] [--candidates-on-units] [--mixed] [--speed-copies PCT]
 
 ``--mixed``: each scene's surfaces are 8 grades spread over the range and 7 gratings (:func:`dataset`), far apart as most
 labs' sets are, instead of 15 neighbouring grades; the far-surface test (the gratings) is then left out.
@@ -153,14 +153,14 @@ def unknown_share(recs: list[tuple[str, Recording]], config: Config, model: Any)
     return flagged, total
 
 
-def leave_out(spec: str, tr: list[Path], test: list[tuple[str, Recording]], config: Config, novelty: str | None = None,
+def leave_out(spec: str, tr: list[Path], test: list[tuple[str, Recording]], config: Config, opts: dict[str, Any] | None = None,
               others: dict[int, list[tuple[str, Recording]]] | None = None) -> dict[str, Any]:
-    """Train on 12 of 15 surfaces; the unknown rate on test slides of the 3 left out and of the 12 known, on the same unit
-    and on each of ``others`` (unit: its test recordings)."""
+    """Train on 12 of 15 surfaces (``opts``: train's options); the unknown rate on test slides of the 3 left out and of the 12
+    known, on the same unit and on each of ``others`` (unit: its test recordings)."""
     surfaces = sorted({s for _, r in test for _, _, s in r.slides()}, key=ra)
     gone = {surfaces[i] for i in LEAVE_OUT if i < len(surfaces)}
     keep = [p for p in tr if not any(f"_{g}_" in p.name for g in gone)]
-    res = train(keep, config, progress=lambda m: None, **({"novelty": novelty} if novelty else {}))
+    res = train(keep, config, progress=lambda m: None, **(opts or {}))
     shares = left_out_share(test, config, res.model, gone)
     return {"scene": spec, "left_out": sorted(gone), "unseen_unknown": shares["unseen"], "known_unknown": shares["known"],
             "unseen_slides": shares["unseen_slides"], "known_slides": shares["known_slides"], "cv_estimate": res.model.summary.get("novelty"),
@@ -266,8 +266,11 @@ def main() -> None:
                     "table of each candidate's means over the scenes")
     ap.add_argument("--mixed", action="store_true", help="each scene's surfaces are 8 grades spread over the range and 7 gratings (far "
                     "apart, as most labs' sets are) instead of 15 neighbouring grades; no far-surface test")
+    ap.add_argument("--speed-copies", type=float, default=None, help="train --speed-copies for every model (default: train's)")
     args = ap.parse_args()
     opts: dict[str, Any] = {"novelty": args.novelty} if args.novelty else {}
+    if args.speed_copies is not None:
+        opts["speed"] = args.speed_copies
     ens_opts: dict[str, Any] = {"ensemble": args.ensemble} if args.ensemble else {}
     config = Config()
     units = [int(u) for u in args.other_units.split(",") if u]
@@ -342,7 +345,7 @@ def main() -> None:
         test = load_recordings(dataset(root / name / "test", spec, 200, args.test_files, args.slides, args.mixed))
         others = {u: load_recordings(dataset(root / name / f"unit{u}", spec, 200 + 100 * u, args.test_files, args.slides, args.mixed,
                                              unit=u, specimen=u)) for u in units}
-        leave.append(leave_out(spec, tr, test, config, args.novelty, others))
+        leave.append(leave_out(spec, tr, test, config, opts, others))
         lo = leave[-1]
         print(f"leave out {', '.join(lo['left_out'])} ({spec}): {100 * lo['unseen_unknown']:.1f} % of their {lo['unseen_slides']} slides unknown, "
               f"{100 * lo['known_unknown']:.1f} % of {lo['known_slides']} known ones"

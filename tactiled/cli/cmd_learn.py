@@ -51,7 +51,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     check_output(args.output, args.force, (".npz",))  # before minutes of search, not after
     result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
                    scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by,
-                   novelty=args.novelty, ensemble=args.ensemble,
+                   novelty=args.novelty, ensemble=args.ensemble, speed=args.speed_copies,
                    **({} if args.untaught_share is None else {"untaught": args.untaught_share}))
     print("leaderboard (slide accuracy, grouped by file: mean ± sd over folds; * the choice, the simplest within one standard error of the best):")
     width = max(len(row["candidate"]) for row in result.leaderboard)
@@ -212,6 +212,12 @@ def add_commands(sub: Sub) -> None:
                         "on surfaces the model is not taught; the threshold calls known slides unknown (at most 5 %% of them by "
                         "cross-validation) only where the untaught slides it catches are worth it at this share; 0.5 weighs a caught "
                         "untaught slide and a rejected known one alike (default: 0.1)")
+    p.add_argument("--speed-copies", type=c.number_in(0, 30, "per cent"), default=0.0,
+                   help="also learn from two copies of each training slide resampled as if slid this many per cent slower and "
+                        "faster (its spectrum that much lower and higher), e.g. 5; copies are never scored, and the unknown-surface "
+                        "test and calibration read the slides as recorded; about twice the training time; never with --method "
+                        "paper. Measured: whole-slide spectral candidates gain on new recordings, the default's choice does not "
+                        "(docs/evaluation.md) (default: 0, none)")
     p.add_argument("--ensemble", choices=("off", "always", "guarded"), default="off",
                    help="whether the chosen candidate and the plain spectral one (spectrum / svm / 0.25 s / slide mean) make one model, "
                         "the normalised product of their probabilities, when the chosen one's windows are the spectral one's "

@@ -11,11 +11,18 @@ slide that label. A slide still running at the end of a file is analysed as far 
 Each slide is cut into windows (:meth:`tactiled.core.analysis.AnalysisSettings.spans`); each
 window becomes one feature row. Slides without a usable window stay in the slide table
 (so that scores count them) with the reason.
+
+Training may also learn from speed-perturbed copies of each slide (``speeds``): the slide resampled
+by a factor near 1, as if slid a few per cent faster or slower, so that its spectrum sits a few per
+cent higher or lower (speech recognition's speed perturbation against speaking rate; here against the
+sliding speed and another unit's film resonances). A copy's windows carry their slide's index and a
+copy number above 0 (:attr:`WindowSet.copy`): they are training rows only, never scored.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -132,7 +139,9 @@ class WindowSet:
 
     ``x`` (w, F) raw features in ``names`` order; per window: ``y`` label, ``groups`` file
     number, ``slide`` index into ``slides``, ``spans`` (w, 2) positions. ``reasons`` (per
-    slide) says why a slide has no usable window (None if it has one).
+    slide) says why a slide has no usable window (None if it has one). ``copy`` (w,): 0 for a
+    window of the slide as recorded, k > 0 for one of its k-th speed-perturbed copy (None: no
+    copies); a copy's spans are its own sample positions from its slide's start.
     """
 
     x: npt.NDArray[np.float64]
@@ -146,6 +155,11 @@ class WindowSet:
     reasons: list[str | None]
     counts: SlideCounts
     skipped: dict[str, int]
+    copy: npt.NDArray[np.int8] | None = None
+
+    def originals(self) -> npt.NDArray[np.bool_]:
+        """(w,) whether each row is of a slide as recorded (not a speed-perturbed copy): the rows to score and to measure."""
+        return np.ones(len(self.y), dtype=bool) if self.copy is None else self.copy == 0
 
     def slide_labels(self) -> npt.NDArray[np.str_]:
         """(s,) surface of every slide in ``slides`` order, "" when unknown."""
@@ -164,33 +178,86 @@ class WindowSet:
         return dict(sorted(out.items()))
 
     def averaged(self) -> WindowSet:
-        """One row per slide with windows: the mean of its windows' raw features (a whole-slide representation)."""
-        order = np.unique(self.slide)
-        counts = np.bincount(self.slide, minlength=len(self.slides))[order]
-        sums = np.zeros((len(self.slides), self.x.shape[1]))
-        np.add.at(sums, self.slide, self.x)
-        first = {int(k): int(i) for i, k in reversed(list(enumerate(self.slide)))}
-        last = {int(k): int(i) for i, k in enumerate(self.slide)}
-        spans = np.array([[self.spans[first[k], 0], self.spans[last[k], 1]] for k in order], dtype=np.int64).reshape(-1, 2)
-        return WindowSet(sums[order] / counts[:, None], self.y[[first[k] for k in order]], self.groups[[first[k] for k in order]],
-                         order.astype(np.int64), spans, self.names, self.files, self.slides, self.reasons, self.counts, self.skipped)
+        """One row per slide with windows (and per copy of it): the mean of its windows' raw features (a whole-slide
+        representation), in slide order, each slide's copies after it."""
+        copies = 1 + (int(self.copy.max(initial=0)) if self.copy is not None else 0)
+        key = self.slide * copies + (self.copy if self.copy is not None else 0)
+        order, at = np.unique(key, return_inverse=True)
+        counts = np.bincount(at, minlength=len(order))
+        sums = np.zeros((len(order), self.x.shape[1]))
+        np.add.at(sums, at, self.x)
+        rows = np.arange(len(key))
+        first, last = np.full(len(order), len(key)), np.full(len(order), -1)
+        np.minimum.at(first, at, rows)
+        np.maximum.at(last, at, rows)
+        spans = np.column_stack([self.spans[first, 0], self.spans[last, 1]]).astype(np.int64).reshape(-1, 2)
+        copy = None if self.copy is None else (order % copies).astype(np.int8)
+        return WindowSet(sums / counts[:, None], self.y[first], self.groups[first], (order // copies).astype(np.int64), spans, self.names,
+                         self.files, self.slides, self.reasons, self.counts, self.skipped, copy)
 
 
 def analyse_slide(analyser: Analyser, rec: Recording, valid: npt.NDArray[np.bool_],
                   slide: LabelledSlide) -> tuple[list[tuple[int, int]], list[Any], str | None]:
     """(spans, feature vectors, reason) of one slide: the windows that could be analysed and, if none, why."""
-    spans = analyser.settings.spans(slide.start, min(slide.stop, rec.samples.shape[0]), rec.fs, analyser.plan.min_samples())
+    return analyse_span(analyser, rec.samples, valid, slide.start, min(slide.stop, rec.samples.shape[0]), rec.fs)
+
+
+def analyse_span(analyser: Analyser, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None, start: int, stop: int,
+                 fs: float) -> tuple[list[tuple[int, int]], list[Any], str | None]:
+    """(spans, feature vectors, reason) of the slide [start, stop) of ``samples`` (n, C) at ``fs`` Hz (``valid`` (n,), None: all
+    valid): the windows that could be analysed and, if none, why."""
+    spans = analyser.settings.spans(start, stop, fs, analyser.plan.min_samples())
     if not spans:
         return [], [], "window_too_short"
     good_spans, rows, reasons = [], [], []
     for lo, hi in spans:
-        res = analyser.analyse(rec.samples[lo:hi], valid[lo:hi])
+        res = analyser.analyse(samples[lo:hi], None if valid is None else valid[lo:hi])
         if res.features is None:
             reasons.append(res.reason or "?")
             continue
         good_spans.append((lo, hi))
         rows.append(res.features)
     return good_spans, rows, None if rows else Counter(reasons).most_common(1)[0][0]
+
+
+def speed_ratios(percent: float) -> tuple[tuple[int, int], ...]:
+    """The (up, down) resampling ratios of the two speed-perturbed copies ``percent`` per cent slower and faster (0: none):
+    ``resample_poly(x, up, down)`` plays ``x`` at down/up of its speed (5: (20, 21) and (21, 20)). ValueError unless
+    0 <= percent <= 30 with at most one decimal."""
+    if not (math.isfinite(percent) and 0.0 <= percent <= 30.0) or abs(percent * 10 - round(percent * 10)) > 1e-9:
+        raise ValueError(f"must be between 0 and 30 per cent, in steps of 0.1, got {percent}")
+    if percent == 0:
+        return ()
+    step = round(percent * 10)
+    a, b = 1000, 1000 + step
+    g = math.gcd(a, b)
+    return ((a // g, b // g), (b // g, a // g))
+
+
+def speed_copies(analyser: Analyser, rec: Recording, valid: npt.NDArray[np.bool_], slide: LabelledSlide,
+                 speeds: Sequence[tuple[int, int]]) -> tuple[list[tuple[int, int]], list[Any], list[int]]:
+    """(spans, feature vectors, copy numbers 1, 2, ...) of the windows of the slide's speed-perturbed copies (``speeds``:
+    (up, down) ratios, :func:`speed_ratios`), each the slide in volts resampled by ``scipy.signal.resample_poly`` (its
+    anti-aliasing filter) and analysed as a slide of its own; none for a slide with lost samples (nothing to resample)."""
+    from scipy.signal import resample_poly
+
+    stop = min(slide.stop, rec.samples.shape[0])
+    if not speeds or stop - slide.start < 2 or not bool(valid[slide.start:stop].all()):
+        return [], [], []
+    volts = np.asarray(rec.samples[slide.start:stop], dtype=np.float64)
+    if rec.is_integer:
+        volts = volts * rec.volts_per_count
+    floats = Analyser(analyser.settings, rec.fs, 1.0, False, analyser.max_saturated, analyser.max_lost)
+    spans: list[tuple[int, int]] = []
+    rows: list[Any] = []
+    copies: list[int] = []
+    for k, (up, down) in enumerate(speeds, 1):
+        y = resample_poly(volts, up, down, axis=0)
+        s_spans, s_rows, _ = analyse_span(floats, y, None, 0, y.shape[0], rec.fs)
+        spans += [(slide.start + lo, slide.start + hi) for lo, hi in s_spans]
+        rows += s_rows
+        copies += [k] * len(s_rows)
+    return spans, rows, copies
 
 
 def find_slides(recs: Sequence[tuple[str, Recording]], config: Config) -> tuple[list[list[LabelledSlide]], SlideCounts]:
@@ -201,16 +268,17 @@ def find_slides(recs: Sequence[tuple[str, Recording]], config: Config) -> tuple[
 
 def collect_windows(recs: Sequence[tuple[str, Recording]], config: Config, settings: AnalysisSettings, progress: Progress | None = None,
                     require_labels: bool = True, found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None,
-                    jobs: int | None = 1) -> WindowSet:
+                    jobs: int | None = 1, speeds: Sequence[tuple[int, int]] = ()) -> WindowSet:
     """Analyse every window of every slide of ``recs`` with ``settings`` (all of ``settings.names``).
 
     ``found``: the slides from :func:`find_slides`, if already known (else they are found here). ``jobs``: worker
-    processes over the recordings (None or 0: every core; :func:`tactiled.run.pool.map_files`).
+    processes over the recordings (None or 0: every core; :func:`tactiled.run.pool.map_files`). ``speeds``: also the
+    windows of each labelled slide's speed-perturbed copies (:func:`speed_copies`; :attr:`WindowSet.copy` says which).
     """
     from tactiled.run.pool import map_files
 
     rows: list[Any] = []
-    labels, groups, slide_idx, spans = [], [], [], []
+    labels, groups, slide_idx, spans, copy = [], [], [], [], []
     slides: list[LabelledSlide] = []
     reasons: list[str | None] = []
     per_file, counts = found if found is not None else find_slides(recs, config)
@@ -220,12 +288,13 @@ def collect_windows(recs: Sequence[tuple[str, Recording]], config: Config, setti
         if progress and (g % 10 == 0 or g == n):
             progress(f"windows: {g}/{n} files")
 
-    tasks = [(rec, per_file[g], config, settings, require_labels) for g, (_name, rec) in enumerate(recs)]
+    tasks = [(rec, per_file[g], config, settings, require_labels, tuple(speeds)) for g, (_name, rec) in enumerate(recs)]
     for kept, per_slide, file_skipped in map_files(file_windows, tasks, jobs, done, signal_s=sum(rec.samples.shape[0] / rec.fs for _, rec in recs)):
-        for k, (slide, (s_spans, s_rows, why)) in enumerate(zip(kept, per_slide, strict=True), len(slides)):
+        for k, (slide, (s_spans, s_rows, why, s_copy)) in enumerate(zip(kept, per_slide, strict=True), len(slides)):
             reasons.append(why)
             rows += s_rows
             spans += s_spans
+            copy += s_copy
             labels += [slide.label or ""] * len(s_rows)
             groups += [slide.file] * len(s_rows)  # the group of the slide: its recording (or itself, train --group-by slide)
             slide_idx += [k] * len(s_rows)
@@ -233,32 +302,43 @@ def collect_windows(recs: Sequence[tuple[str, Recording]], config: Config, setti
         for why, c in file_skipped.items():
             skipped[why] = skipped.get(why, 0) + c
     if progress and recs:
-        progress(f"windows: {len(recs)} files, {len(slides)} slides, {len(rows)} windows")
+        made = sum(c > 0 for c in copy)
+        progress(f"windows: {len(recs)} files, {len(slides)} slides, {len(rows) - made} windows"
+                 + (f" (and {made} of {len(speeds)} speed-perturbed copies of each slide)" if speeds else ""))
     f = len(settings.names)
     return WindowSet(np.asarray(rows, dtype=np.float64).reshape(-1, f), np.asarray(labels, dtype=np.str_), np.asarray(groups, dtype=np.int64),
                      np.asarray(slide_idx, dtype=np.int64), np.asarray(spans, dtype=np.int64).reshape(-1, 2), list(settings.names),
-                     [n for n, _ in recs], slides, reasons, counts, skipped)
+                     [n for n, _ in recs], slides, reasons, counts, skipped, np.asarray(copy, dtype=np.int8) if speeds else None)
 
 
-def file_windows(task: tuple[Recording, list[LabelledSlide], Config, AnalysisSettings, bool]
-                 ) -> tuple[list[LabelledSlide], list[tuple[list[tuple[int, int]], list[Any], str | None]], dict[str, int]]:
-    """One recording's part of :func:`collect_windows`: (the slides kept, their :func:`analyse_slide`, what was skipped and why).
+SlideWindows = tuple[list[tuple[int, int]], list[Any], str | None, list[int]]
 
-    ``task``: (recording, its slides, config, settings, whether unlabelled slides are skipped).
+
+def file_windows(task: tuple[Recording, list[LabelledSlide], Config, AnalysisSettings, bool, tuple[tuple[int, int], ...]]
+                 ) -> tuple[list[LabelledSlide], list[SlideWindows], dict[str, int]]:
+    """One recording's part of :func:`collect_windows`: (the slides kept; per slide its :func:`analyse_slide`'s windows, then
+    its copies' (:func:`speed_copies`, labelled slides with a usable window only), with each window's copy number; what was
+    skipped and why).
+
+    ``task``: (recording, its slides, config, settings, whether unlabelled slides are skipped, speed ratios).
     """
-    rec, file_slides, config, settings, require_labels = task
+    rec, file_slides, config, settings, require_labels, speeds = task
     analyser = Analyser(settings, rec.fs, rec.volts_per_count, rec.is_integer, config.classifier.max_saturated, config.classifier.max_lost)
     valid = rec.valid_mask()
     kept: list[LabelledSlide] = []
-    per_slide: list[tuple[list[tuple[int, int]], list[Any], str | None]] = []
+    per_slide: list[SlideWindows] = []
     skipped: dict[str, int] = {}
     for slide in file_slides:
         if require_labels and slide.label is None:
             skipped["unlabelled"] = skipped.get("unlabelled", 0) + 1
             continue
-        result = analyse_slide(analyser, rec, valid, slide)
-        if result[2] is not None:
-            skipped[result[2]] = skipped.get(result[2], 0) + 1
+        spans, rows, why = analyse_slide(analyser, rec, valid, slide)
+        if why is not None:
+            skipped[why] = skipped.get(why, 0) + 1
+        copy = [0] * len(rows)
+        if speeds and why is None and slide.label is not None:
+            c_spans, c_rows, c_copy = speed_copies(analyser, rec, valid, slide, speeds)
+            spans, rows, copy = spans + c_spans, rows + c_rows, copy + c_copy
         kept.append(slide)
-        per_slide.append(result)
+        per_slide.append((spans, rows, why, copy))
     return kept, per_slide, skipped

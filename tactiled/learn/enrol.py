@@ -26,7 +26,7 @@ import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.errors import ModelError, TactiledError
-from tactiled.learn.dataset import Progress, WindowSet, check_distinct, collect_windows, find_slides, load_recordings
+from tactiled.learn.dataset import Progress, WindowSet, check_distinct, collect_windows, find_slides, load_recordings, speed_ratios
 from tactiled.learn.model import FloatArray, Model, fit_pipeline, load_model, take_columns
 from tactiled.learn.search import PARAMS, fit_model_novelty
 
@@ -64,9 +64,14 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     per_file, counts = find_slides(recs, config)
     if label is not None:
         per_file = [[replace(s, label=label) for s in slides] for slides in per_file]
-    ws = collect_windows(recs, config, old.settings, found=(per_file, counts))
-    slides = ws.averaged()  # one row per slide with a usable window
-    labelled = slides.y != ""
+    # the classifier learns the new slides as train did: with their speed-perturbed copies, if it learnt from copies
+    try:
+        speeds = speed_ratios(float(old.summary.get("speed_copies", 0.0)))
+    except (TypeError, ValueError) as exc:
+        raise ModelError(f"{where}: summary speed_copies: {exc}") from None
+    ws = collect_windows(recs, config, old.settings, found=(per_file, counts), speeds=speeds)
+    slides = ws.averaged()  # one row per slide with a usable window (and per copy of it)
+    labelled = (slides.y != "") & slides.originals()
     if not labelled.any():
         raise TactiledError("the recordings carry no labels (per-slide ground truth or a file label): pass --label NAME")
     added = dict(sorted(Counter(str(y) for y in slides.y[labelled]).items()))

@@ -31,6 +31,11 @@ beyond the step between taught surfaces; ``combined`` also one on the distance r
 slides, weighing a caught untaught slide by the share of them expected (``untaught``, :data:`UNTAUGHT_SHARE`) against a
 rejected known one.
 
+``speed`` (``train --speed-copies``, off by default): every candidate also learns from two speed-perturbed copies of each
+training slide, resampled as if slid that much slower and faster (:func:`~tactiled.learn.dataset.speed_copies`); the copies
+follow their slide into its training folds and are never scored, and the novelty and calibration are fitted on the slides
+as recorded (docs/evaluation.md measured it on the same unit and on other units of the sensor).
+
 ``ensemble`` (``train --ensemble``, off by default: docs/evaluation.md measured it on every scene and it cost some
 scenes 6 of 90 slides): when the winner shares :data:`SPECTRUM`'s windows, the model multiplies the winner's
 probabilities by SPECTRUM's (:func:`ensemble_of`; its temperature and calibration fitted on the two candidates'
@@ -59,7 +64,7 @@ from tactiled.core.analysis import AnalysisSettings, window_settings
 from tactiled.core.features import name_family
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
-from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, collect_windows, find_slides
+from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, collect_windows, find_slides, speed_ratios
 from tactiled.learn.model import (
     NOVELTY_SCORES,
     SHAPE_SCALE_FLOOR,
@@ -106,6 +111,10 @@ UNTAUGHT_SHARE = 0.1
 # (docs/evaluation.md). Both are stored as "combined" with no ratio threshold. The others: tactiled.learn.model.NOVELTY_SCORES.
 NOVELTY_TESTS = ("spectrum", "far", *NOVELTY_SCORES)
 NOVELTY_DEFAULT = "spectrum"
+# train --speed-copies: per cent slower and faster of the two resampled copies of each training slide (0, the default: none;
+# docs/evaluation.md measured 5 %: the plain spectral candidates gain on new recordings of the same unit, train's choice
+# does not, on the same unit or another)
+SPEED_DEFAULT = 0.0
 # named feature sets: "spectrum" is the plain whole-slide spectral classifier's input (log band energies of the
 # Welch PSD, log spectral centroid, kurtosis of each channel); "tex.<name>" is one texture descriptor
 ALIASES: dict[str, tuple[str, ...]] = {"spectrum": ("psd", "tex.centroid", "tex.kurtosis")}
@@ -261,7 +270,13 @@ def slide_folds(ws: WindowSet, n_splits: int, seed: int) -> list[tuple[npt.NDArr
 
 
 def _window_rows(ws: WindowSet, slides: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
+    """The rows of the slides ``slides`` to train on: their windows and their speed-perturbed copies'."""
     return np.flatnonzero(np.isin(ws.slide, slides))
+
+
+def _scored_rows(ws: WindowSet, slides: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
+    """The rows of the slides ``slides`` to score: their windows as recorded, never a copy's."""
+    return np.flatnonzero(np.isin(ws.slide, slides) & ws.originals())
 
 
 def slide_scores(ws: WindowSet, pipe: Any, cols: Sequence[int], test: npt.NDArray[np.intp], classes: list[str]) -> FloatArray:
@@ -270,7 +285,7 @@ def slide_scores(ws: WindowSet, pipe: Any, cols: Sequence[int], test: npt.NDArra
     Columns follow ``classes``; classes the pipeline never saw and slides without windows get -inf.
     """
     out = np.full((len(test), len(classes)), -np.inf)
-    te = _window_rows(ws, test)
+    te = _scored_rows(ws, test)
     if not len(te):
         return out
     raw = decision_scores(pipe[-1], pipe[:-1].transform(ws.x[te][:, cols]))
@@ -393,7 +408,8 @@ def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, li
 def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
            candidates: Sequence[Candidate] | None = None, progress: Progress | None = None, scheduler: str | None = None,
            found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False,
-           novelty: str = NOVELTY_DEFAULT, ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE) -> SearchResult:
+           novelty: str = NOVELTY_DEFAULT, ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE,
+           speed: float = SPEED_DEFAULT) -> SearchResult:
     """Score every candidate, pick and refit the winner (see the module docstring).
 
     ``keep_models``: also refit every other candidate (``SearchResult.models``, by name; the winner alone under its name
@@ -403,9 +419,15 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     ``ensemble`` (:data:`ENSEMBLE_MODES`): whether the winner and :data:`SPECTRUM` make one model (:func:`ensemble_of`) when the
     winner may have a partner (:func:`can_partner`): ``off`` never, ``always``, or ``guarded``, only when the ensemble's
     out-of-fold accuracy is within one standard error of the winner's (:func:`within_one_se` on the same outer folds).
+    ``speed``: per cent slower and faster of the two speed-perturbed copies of each training slide every candidate also
+    learns from (:func:`~tactiled.learn.dataset.speed_ratios`; 0: none).
     """
     if ensemble not in ENSEMBLE_MODES:
         raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
+    try:
+        speeds = speed_ratios(speed)
+    except ValueError as exc:
+        raise TactiledError(f"--speed-copies: {exc}") from None
     say = progress or (lambda m: None)
     t0 = time.perf_counter()
     fs, channels = recs[0][1].fs, recs[0][1].channels
@@ -426,7 +448,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
                        if st is not None), None)
             if st is not None:
                 say(f"features of {c.duration_s:g} s windows from {c.start_s:g} s ({len(st.names)} features)")
-                sets[full] = (st, collect_windows(recs, config, st, progress, found=found, jobs=None))
+                sets[full] = (st, collect_windows(recs, config, st, progress, found=found, jobs=None, speeds=speeds))
         if full in sets and all(any(name_family(n) == f for n in sets[full][1].names) for f in base_families(c.families)):
             if c.fusion == "features":
                 key = (*key, "features")
@@ -498,7 +520,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks, "interval95": band,
               **({"inner_grouped_by": "none" if "none" in grouping else "slide"} if set(grouping) - {"file"} else {})}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
-    summary: dict[str, Any] = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs)}
+    summary: dict[str, Any] = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs),
+                               **({"speed_copies": speed} if speeds else {})}  # without copies, the model file as before them
     alone = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty, untaught,
                    windows_of[_key(best)])
     model, members, scores = alone, [(best, alone.temperature)], oof[best.name]
@@ -572,11 +595,11 @@ def _refit(sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]], c: C
     with the slides' ``windows``, one row per window, its provisional labels' thresholds: :func:`fit_prefix_novelty`)."""
     model = _fit_member(sets, c, oof, y_idx, classes, config, fs, channels, seed, inner_folds, method)
     ws = sets[_key(c)][1]
-    model.summary = {**summary, "slides": len(ws.slides), "windows": int(np.sum(ws.y != "")), "classes": classes,
+    model.summary = {**summary, "slides": len(ws.slides), "windows": int(np.sum((ws.y != "") & ws.originals())), "classes": classes,
                      "per_class": {k: list(v) for k, v in ws.per_class().items()}, "skipped": ws.skipped, "detector": _counts(ws)}
     calibrate(model, oof, y_idx)
     slides = ws if c.fusion == "features" else ws.averaged()  # one row per slide: the mean of its windows' raw features
-    labelled = np.flatnonzero(slides.y != "")
+    labelled = np.flatnonzero((slides.y != "") & slides.originals())  # the slides as recorded: a copy is no new recording
     shape = tuple(n for n in slides.names if name_family(n) == "psd") if novelty == "spectrum" else ()
     if shape:
         names = model.names + tuple(n for n in shape if n not in model.names)
@@ -601,7 +624,7 @@ def fit_prefix_novelty(model: Model, windows: WindowSet, reject: float = 0.05, m
     other recordings' slides, as a multiple (at least 1) of the whole-slide threshold."""
     if model.novelty_x is None or model.novelty_y is None or model.novelty_groups is None or not math.isfinite(model.novelty_distance_threshold):
         return
-    keep = np.flatnonzero(windows.y != "")
+    keep = np.flatnonzero((windows.y != "") & windows.originals())
     keep = keep[np.lexsort((windows.spans[keep, 0], windows.slide[keep]))]  # each slide's windows together, in time order
     x, slide, group = take_columns(windows.x[keep], windows.names, model.names), windows.slide[keep], windows.groups[keep]
     starts = np.flatnonzero(np.r_[True, slide[1:] != slide[:-1]])
@@ -726,7 +749,7 @@ def fit_early_calibration(ws: WindowSet, members: Sequence[tuple[Candidate, floa
             continue
         for sl in test:
             label = ws.slides[sl].label
-            w = np.flatnonzero(ws.slide == sl)
+            w = _scored_rows(ws, np.array([sl]))
             if label not in index or not len(w):
                 continue
             w = w[np.argsort(ws.spans[w, 0], kind="stable")]
@@ -1019,7 +1042,7 @@ def window_oof(ws: WindowSet, cols: npt.NDArray[np.intp], kind: str, params: dic
     out = np.full((len(ws.y), len(classes)), -np.inf)
     index = {c: i for i, c in enumerate(classes)}
     for train, test in folds:
-        tr, te = _window_rows(ws, train), _window_rows(ws, test)
+        tr, te = _window_rows(ws, train), _scored_rows(ws, test)
         if len(np.unique(ws.y[tr])) < 2 or not len(te):
             continue
         pipe, _ = fit_pipeline(ws.x[tr][:, cols], ws.y[tr], [ws.names[j] for j in cols], kind, params, seed)
@@ -1035,4 +1058,4 @@ def paper(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int =
           untaught: float = UNTAUGHT_SHARE) -> SearchResult:
     """The papers' DWT + SFS + ELM (:data:`PAPER`), cross-validated the same way as :func:`search`, then fitted on everything."""
     return search(recs, config, folds=folds, inner_folds=inner_folds, seed=seed, candidates=[PAPER], progress=progress, scheduler=scheduler,
-                  found=found, method="paper", novelty=novelty, untaught=untaught)
+                  found=found, method="paper", novelty=novelty, untaught=untaught, speed=0.0)

@@ -15,12 +15,13 @@ from typing import Any
 from tactiled.config import Config
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
-from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, check_distinct, find_slides, load_recordings
+from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, check_distinct, find_slides, load_recordings, speed_ratios
 from tactiled.learn.search import (
     ENSEMBLE_DEFAULT,
     ENSEMBLE_MODES,
     NOVELTY_DEFAULT,
     NOVELTY_TESTS,
+    SPEED_DEFAULT,
     UNTAUGHT_SHARE,
     Candidate,
     SearchResult,
@@ -73,7 +74,8 @@ def check_two_recordings(table: dict[str, tuple[int, int, int]], hint: str = "")
 def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
           drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None,
           candidates: Sequence[Candidate] | None = None, keep_models: bool = False, group_by: str = "file",
-          novelty: str = NOVELTY_DEFAULT, ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE) -> SearchResult:
+          novelty: str = NOVELTY_DEFAULT, ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE,
+          speed: float = SPEED_DEFAULT) -> SearchResult:
     """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save).
 
     ``candidates`` narrows the default search (``method="auto"``) to the given ones; ``keep_models``: see :func:`search`.
@@ -88,7 +90,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     threshold rejects known slides only where that catches enough untaught ones at this share
     (:func:`~tactiled.learn.search.novelty_threshold`). ``ensemble`` (:data:`~tactiled.learn.search.ENSEMBLE_MODES`):
     whether the winner of the search and the plain spectral candidate make one model (:func:`~tactiled.learn.search.search`);
-    ``quick`` and ``paper`` never do (their search has no spectral candidate).
+    ``quick`` and ``paper`` never do (their search has no spectral candidate). ``speed``: per cent slower and faster of the
+    two speed-perturbed copies of each training slide the search also learns from (0: none; ``paper`` never).
     """
     say = progress or (lambda m: None)
     if method not in METHODS:
@@ -107,6 +110,10 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         raise TactiledError(f"--untaught-share: must be in (0, 1), got {untaught}")
     if ensemble not in ENSEMBLE_MODES:
         raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
+    try:
+        speed_ratios(speed)
+    except ValueError as exc:
+        raise TactiledError(f"--speed-copies: {exc}") from None
     recs = load_recordings(paths, say)
     check_recordings(recs, len(paths))
     per_file, counts = find_slides(recs, config)
@@ -142,7 +149,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         if method == "quick" and candidates is None:
             candidates = quick_candidates()
         result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates,
-                        keep_models=keep_models, novelty=novelty, ensemble=ensemble, untaught=untaught)
+                        keep_models=keep_models, novelty=novelty, ensemble=ensemble, untaught=untaught, speed=speed)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
     result.model.summary["dropped"] = rare
     return result
