@@ -221,9 +221,9 @@ def analyse_span(analyser: Analyser, samples: npt.NDArray[Any], valid: npt.NDArr
 
 
 def speed_ratios(percent: float) -> tuple[tuple[int, int], ...]:
-    """The (up, down) resampling ratios of the two speed-perturbed copies ``percent`` per cent slower and faster (0: none):
-    ``resample_poly(x, up, down)`` plays ``x`` at down/up of its speed (5: (20, 21) and (21, 20)). ValueError unless
-    0 <= percent <= 30 with at most one decimal."""
+    """The (up, down) resampling ratios of the two speed-perturbed copies ``percent`` per cent faster and slower (0: none):
+    ``resample_poly(x, up, down)`` has up/down as many samples, so at the same rate it plays ``x`` at down/up of its speed
+    (5: (20, 21), 5 % faster, and (21, 20), 4.8 % slower). ValueError unless 0 <= percent <= 30 with at most one decimal."""
     if not (math.isfinite(percent) and 0.0 <= percent <= 30.0) or abs(percent * 10 - round(percent * 10)) > 1e-9:
         raise ValueError(f"must be between 0 and 30 per cent, in steps of 0.1, got {percent}")
     if percent == 0:
@@ -234,11 +234,12 @@ def speed_ratios(percent: float) -> tuple[tuple[int, int], ...]:
     return ((a // g, b // g), (b // g, a // g))
 
 
-def speed_copies(analyser: Analyser, rec: Recording, valid: npt.NDArray[np.bool_], slide: LabelledSlide,
+def speed_copies(floats: Analyser, rec: Recording, valid: npt.NDArray[np.bool_], slide: LabelledSlide,
                  speeds: Sequence[tuple[int, int]]) -> tuple[list[tuple[int, int]], list[Any], list[int]]:
     """(spans, feature vectors, copy numbers 1, 2, ...) of the windows of the slide's speed-perturbed copies (``speeds``:
     (up, down) ratios, :func:`speed_ratios`), each the slide in volts resampled by ``scipy.signal.resample_poly`` (its
-    anti-aliasing filter) and analysed as a slide of its own; none for a slide with lost samples (nothing to resample)."""
+    anti-aliasing filter) and analysed by ``floats`` (an analyser of volts, not counts) as a slide of its own; none for a
+    slide with lost samples (nothing to resample)."""
     from scipy.signal import resample_poly
 
     stop = min(slide.stop, rec.samples.shape[0])
@@ -247,7 +248,6 @@ def speed_copies(analyser: Analyser, rec: Recording, valid: npt.NDArray[np.bool_
     volts = np.asarray(rec.samples[slide.start:stop], dtype=np.float64)
     if rec.is_integer:
         volts = volts * rec.volts_per_count
-    floats = Analyser(analyser.settings, rec.fs, 1.0, False, analyser.max_saturated, analyser.max_lost)
     spans: list[tuple[int, int]] = []
     rows: list[Any] = []
     copies: list[int] = []
@@ -324,6 +324,7 @@ def file_windows(task: tuple[Recording, list[LabelledSlide], Config, AnalysisSet
     """
     rec, file_slides, config, settings, require_labels, speeds = task
     analyser = Analyser(settings, rec.fs, rec.volts_per_count, rec.is_integer, config.classifier.max_saturated, config.classifier.max_lost)
+    floats = Analyser(settings, rec.fs, 1.0, False, config.classifier.max_saturated, config.classifier.max_lost)  # the copies: volts
     valid = rec.valid_mask()
     kept: list[LabelledSlide] = []
     per_slide: list[SlideWindows] = []
@@ -337,7 +338,7 @@ def file_windows(task: tuple[Recording, list[LabelledSlide], Config, AnalysisSet
             skipped[why] = skipped.get(why, 0) + 1
         copy = [0] * len(rows)
         if speeds and why is None and slide.label is not None:
-            c_spans, c_rows, c_copy = speed_copies(analyser, rec, valid, slide, speeds)
+            c_spans, c_rows, c_copy = speed_copies(floats, rec, valid, slide, speeds)
             spans, rows, copy = spans + c_spans, rows + c_rows, copy + c_copy
         kept.append(slide)
         per_slide.append((spans, rows, why, copy))
