@@ -304,7 +304,7 @@ def collect_windows(recs: Sequence[tuple[str, Recording]], config: Config, setti
     if progress and recs:
         made = sum(c > 0 for c in copy)
         progress(f"windows: {len(recs)} files, {len(slides)} slides, {len(rows) - made} windows"
-                 + (f" (and {made} of {len(speeds)} speed-perturbed copies of each slide)" if speeds else ""))
+                 + (f" (and {made} windows of the {len(speeds)} speed-perturbed copies of each slide)" if speeds else ""))
     f = len(settings.names)
     return WindowSet(np.asarray(rows, dtype=np.float64).reshape(-1, f), np.asarray(labels, dtype=np.str_), np.asarray(groups, dtype=np.int64),
                      np.asarray(slide_idx, dtype=np.int64), np.asarray(spans, dtype=np.int64).reshape(-1, 2), list(settings.names),
