@@ -107,3 +107,28 @@ def test_train_refuses_a_speed_it_cannot_resample_in_one_line(robot: list[Path],
     assert res.returncode == 2 and res.stderr.strip().splitlines() == [one_line], res.stderr
     res = run_cli("train", *map(str, robot), "-o", str(tmp_path / "m.npz"), "--speed-copies", "40")
     assert res.returncode == 2 and "--speed-copies" in res.stderr and not (tmp_path / "m.npz").exists()
+
+
+def test_copies_skip_a_slide_with_lost_samples_and_stay_finite_on_silent_and_clipped_slides(robot: list[Path]) -> None:
+    from dataclasses import replace
+
+    from tactiled.core.analysis import Analyser
+    from tactiled.learn.dataset import LabelledSlide, speed_copies
+
+    (_, rec), config = load_recordings(robot[:1])[0], Config()
+    settings = window_settings(config, 2, rec.fs, 0.25, ["psd", "tex", "dwt"])
+    assert settings is not None
+    floats = Analyser(settings, rec.fs, 1.0, False)
+    a, b, surface = rec.slides()[0]
+    slide = LabelledSlide(0, a, b, surface, "truth")
+    valid = rec.valid_mask()
+    spans, rows, copies = speed_copies(floats, rec, valid, slide, speed_ratios(5))
+    assert rows and set(copies) == {1, 2} and len(spans) == len(rows) == len(copies)
+    lost = valid.copy()
+    lost[a + 100:a + 120] = False  # samples lost inside the slide: nothing to resample, no copy
+    assert speed_copies(floats, rec, lost, slide, speed_ratios(5)) == ([], [], [])
+    full = np.iinfo(np.int16)
+    rails = np.where(np.arange(rec.samples.shape[0]) % 2 == 0, full.max, full.min).astype(np.int16)
+    for samples in (np.zeros_like(rec.samples), np.column_stack([rails, rails])):
+        _, rows, _ = speed_copies(floats, replace(rec, samples=samples), valid, slide, speed_ratios(5))
+        assert rows and all(np.isfinite(r).all() for r in rows)  # silent and rail-to-rail slides: finite features
