@@ -274,6 +274,15 @@ def _window_rows(ws: WindowSet, slides: npt.NDArray[np.intp]) -> npt.NDArray[np.
     return np.flatnonzero(np.isin(ws.slide, slides))
 
 
+def speed_option(speed: float) -> tuple[tuple[int, int], ...]:
+    """The resampling ratios of ``train --speed-copies`` ``speed`` (:func:`~tactiled.learn.dataset.speed_ratios`), or a one-line
+    :class:`TactiledError` naming the option."""
+    try:
+        return speed_ratios(speed)
+    except ValueError as exc:
+        raise TactiledError(f"--speed-copies: {exc}") from None
+
+
 def _scored_rows(ws: WindowSet, slides: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
     """The rows of the slides ``slides`` to score: their windows as recorded, never a copy's."""
     return np.flatnonzero(np.isin(ws.slide, slides) & ws.originals())
@@ -424,10 +433,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     """
     if ensemble not in ENSEMBLE_MODES:
         raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
-    try:
-        speeds = speed_ratios(speed)
-    except ValueError as exc:
-        raise TactiledError(f"--speed-copies: {exc}") from None
+    speeds = speed_option(speed)
     say = progress or (lambda m: None)
     t0 = time.perf_counter()
     fs, channels = recs[0][1].fs, recs[0][1].channels
@@ -632,6 +638,9 @@ def fit_prefix_novelty(model: Model, windows: WindowSet, reject: float = 0.05, m
     sums = np.zeros((len(starts), x.shape[1]))
     surfaces = np.unique(model.novelty_y)
     own = model.novelty_surface_scale if model.novelty_surface_scale is not None else np.ones(len(surfaces))
+    # per recording: the other recordings' slides, their surfaces and those surfaces' scales (the same for every window count)
+    others = {g: (model.novelty_x[o], model.novelty_y[o], surface_scale_for(surfaces, own, model.novelty_y[o]))
+              for g in np.unique(group[starts]) for o in [model.novelty_groups != g] if o.any()}
     factors: list[float] = []
     for w in range(1, most + 1):
         have = lengths >= w
@@ -640,14 +649,11 @@ def fit_prefix_novelty(model: Model, windows: WindowSet, reject: float = 0.05, m
         sums[have] += x[starts[have] + w - 1]
         z = model.novelty_standardise(model.novelty_features(sums[have] / w))
         groups = group[starts[have]]
-        dist = np.empty(len(z))
+        dist = np.zeros(len(z))  # a recording with no other to compare with: 0
         for g in np.unique(groups):
-            mine, other = groups == g, model.novelty_groups != g
-            if other.any():
-                dist[mine] = nearest_surface_distances(z[mine], model.novelty_x[other], model.novelty_y[other], model.novelty_k,
-                                                       scale=surface_scale_for(surfaces, own, model.novelty_y[other]))[:, 0]
-            else:
-                dist[mine] = 0.0
+            if g in others:
+                mine, (ref, labels, scale) = groups == g, others[g]
+                dist[mine] = nearest_surface_distances(z[mine], ref, labels, model.novelty_k, scale=scale)[:, 0]
         factors.append(max(float(np.quantile(dist, 1.0 - reject, method="higher")) / model.novelty_distance_threshold, 1.0))
     model.novelty_prefix = tuple(factors)
 

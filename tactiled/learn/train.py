@@ -15,7 +15,7 @@ from typing import Any
 from tactiled.config import Config
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
-from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, check_distinct, find_slides, load_recordings, speed_ratios
+from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, check_distinct, find_slides, load_recordings
 from tactiled.learn.search import (
     ENSEMBLE_DEFAULT,
     ENSEMBLE_MODES,
@@ -28,6 +28,7 @@ from tactiled.learn.search import (
     paper,
     quick_candidates,
     search,
+    speed_option,
 )
 
 METHODS = ("auto", "quick", "paper")
@@ -110,10 +111,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         raise TactiledError(f"--untaught-share: must be in (0, 1), got {untaught}")
     if ensemble not in ENSEMBLE_MODES:
         raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
-    try:
-        speed_ratios(speed)
-    except ValueError as exc:
-        raise TactiledError(f"--speed-copies: {exc}") from None
+    speed_option(speed)  # before the recordings load
     recs = load_recordings(paths, say)
     check_recordings(recs, len(paths))
     per_file, counts = find_slides(recs, config)
