@@ -17,6 +17,13 @@ by a factor near 1, as if slid a few per cent faster or slower, so that its spec
 cent higher or lower (speech recognition's speed perturbation against speaking rate; here against the
 sliding speed and another unit's film resonances). A copy's windows carry their slide's index and a
 copy number above 0 (:attr:`WindowSet.copy`): they are training rows only, never scored.
+
+A whole-slide candidate learns one row per slide, the mean of its windows (:meth:`WindowSet.averaged`). A long slide
+(a recording that slides from its first sample to its last holds one) is also learnt as its pieces of
+:data:`PIECE_WINDOWS` windows: several looks at the surface rather than one, as a per-window candidate has. With one
+such slide per recording a surface otherwise gives a whole-slide classifier as many rows as it has recordings, and
+cross-validation, which holds one of them out, scores it on a third fewer rows than the final fit has (measured in
+docs/evaluation.md, *Long slides learnt in pieces*). Pieces are training rows only (copy number :data:`PIECE`).
 """
 
 from __future__ import annotations
@@ -100,6 +107,10 @@ class LabelledSlide:
     source: str  # detected | truth (the detector missed it) | label (detected, file-level label)
 
 
+PIECE_WINDOWS = 4  # a long slide's pieces, as whole-slide training rows: this many windows each (1 s of 0.25 s windows)
+PIECE = -1  # the copy number of a piece's row (:meth:`WindowSet.averaged`)
+
+
 @dataclass
 class SlideCounts:
     """What pairing detections with ground truth found, per file name."""
@@ -158,7 +169,8 @@ class WindowSet:
     copy: npt.NDArray[np.int8] | None = None
 
     def originals(self) -> npt.NDArray[np.bool_]:
-        """(w,) whether each row is of a slide as recorded (not a speed-perturbed copy): the rows to score and to measure."""
+        """(w,) whether each row is of a slide as recorded (not a speed-perturbed copy, nor a piece of a long slide): the rows
+        to score and to measure."""
         return np.ones(len(self.y), dtype=bool) if self.copy is None else self.copy == 0
 
     def slide_labels(self) -> npt.NDArray[np.str_]:
@@ -178,8 +190,10 @@ class WindowSet:
         return dict(sorted(out.items()))
 
     def averaged(self) -> WindowSet:
-        """One row per slide with windows (and per copy of it): the mean of its windows' raw features (a whole-slide
-        representation), in slide order, each slide's copies after it."""
+        """Of a set of windows: one row per slide with windows (and per copy of it), the mean of its windows' raw features (a
+        whole-slide representation), in slide order, each slide's copies after it; then, of each of those with at least
+        2·:data:`PIECE_WINDOWS` windows, the means of its pieces (its windows in time order, split into as many runs of at
+        least :data:`PIECE_WINDOWS` as they hold), training rows only (copy number :data:`PIECE`)."""
         copies = 1 + (int(self.copy.max(initial=0)) if self.copy is not None else 0)
         key = self.slide * copies + (self.copy if self.copy is not None else 0)
         order, at = np.unique(key, return_inverse=True)
@@ -192,8 +206,22 @@ class WindowSet:
         np.maximum.at(last, at, rows)
         spans = np.column_stack([self.spans[first, 0], self.spans[last, 1]]).astype(np.int64).reshape(-1, 2)
         copy = None if self.copy is None else (order % copies).astype(np.int8)
-        return WindowSet(sums / counts[:, None], self.y[first], self.groups[first], (order // copies).astype(np.int64), spans, self.names,
-                         self.files, self.slides, self.reasons, self.counts, self.skipped, copy)
+        whole = WindowSet(sums / counts[:, None], self.y[first], self.groups[first], (order // copies).astype(np.int64), spans, self.names,
+                          self.files, self.slides, self.reasons, self.counts, self.skipped, copy)
+        long = np.flatnonzero(counts >= 2 * PIECE_WINDOWS)
+        if not len(long):
+            return whole
+        in_time = np.lexsort((self.spans[:, 0], at))  # every group's windows together, in time order
+        bounds = np.r_[0, np.cumsum(counts)]
+        parts = [part for g in long for part in np.array_split(in_time[bounds[g]:bounds[g + 1]], counts[g] // PIECE_WINDOWS)]
+        x = np.stack([self.x[part].mean(axis=0) for part in parts])
+        ends = np.array([[self.spans[part, 0].min(), self.spans[part, 1].max()] for part in parts], dtype=np.int64)
+        heads = np.array([part[0] for part in parts])
+        return WindowSet(np.vstack([whole.x, x]), np.concatenate([whole.y, self.y[heads]]), np.concatenate([whole.groups, self.groups[heads]]),
+                         np.concatenate([whole.slide, self.slide[heads]]), np.vstack([whole.spans, ends]), self.names, self.files,
+                         self.slides, self.reasons, self.counts, self.skipped,
+                         np.concatenate([whole.copy if whole.copy is not None else np.zeros(len(whole.y), dtype=np.int8),
+                                         np.full(len(parts), PIECE, dtype=np.int8)]))
 
 
 def analyse_slide(analyser: Analyser, rec: Recording, valid: npt.NDArray[np.bool_],

@@ -1,0 +1,82 @@
+"""A long slide is learnt by whole-slide candidates as its pieces too: what the pieces are, that they only ever train,
+and how train and enrol take them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tactiled.config import Config
+from tactiled.learn.dataset import PIECE, PIECE_WINDOWS, SlideCounts, WindowSet
+from tactiled.learn.enrol import enrol
+from tactiled.learn.search import SPECTRUM
+from tactiled.learn.train import train
+from tactiled.sim.simulate import write_dataset
+
+
+def window_set(windows: list[int], copy: list[int] | None = None) -> WindowSet:
+    """Slide k holds windows[k] windows of 0.25 s at 20 kHz, its rows in reverse time order; feature = the window's index
+    within its slide (so a piece's mean says which windows it took) and the slide's number."""
+    x, slide, spans = [], [], []
+    for k, n in enumerate(windows):
+        for i in reversed(range(n)):
+            x.append([float(i), float(k)])
+            slide.append(k)
+            spans.append((i * 5000, (i + 1) * 5000))
+    w = len(x)
+    return WindowSet(np.array(x), np.array([f"S{k}" for k in slide], dtype=np.str_), np.array(slide, dtype=np.int64),
+                     np.array(slide, dtype=np.int64), np.array(spans, dtype=np.int64), ["i", "k"], [f"f{k}" for k in range(len(windows))],
+                     [], [None] * len(windows), SlideCounts(), {}, None if copy is None else np.array(copy, dtype=np.int8)[:w])
+
+
+def test_a_long_slide_adds_its_pieces_as_training_rows_and_a_short_one_does_not() -> None:
+    short, long = 2 * PIECE_WINDOWS - 1, 2 * PIECE_WINDOWS + 1
+    means = window_set([short, long]).averaged()
+    own = means.originals()
+    # the slides as recorded: one row each, their windows' mean, as before
+    assert own.tolist() == [True, True, False, False]
+    assert np.allclose(means.x[own], [[(short - 1) / 2, 0], [(long - 1) / 2, 1]])
+    assert np.array_equal(means.slide[own], [0, 1]) and means.copy is not None and set(means.copy[~own].tolist()) == {PIECE}
+    # the long slide's pieces: its windows in time order, split in two runs of at least PIECE_WINDOWS
+    first, second = np.arange(PIECE_WINDOWS + 1), np.arange(PIECE_WINDOWS + 1, long)
+    assert np.allclose(means.x[~own], [[first.mean(), 1], [second.mean(), 1]])
+    assert np.array_equal(means.spans[~own], [[0, len(first) * 5000], [len(first) * 5000, long * 5000]])
+    assert means.y[~own].tolist() == ["S1", "S1"] and means.groups[~own].tolist() == [1, 1] and means.slide[~own].tolist() == [1, 1]
+    # no slide long enough: the rows of before, and no copy numbers
+    plain = window_set([short, short]).averaged()
+    assert plain.copy is None and len(plain.y) == 2
+
+
+def test_pieces_of_speed_copies_and_how_many() -> None:
+    n = 3 * PIECE_WINDOWS + 2
+    rows = 2 * n
+    ws = window_set([rows])  # one slide: its first n rows as recorded, the next n a copy's
+    ws.copy = np.array([0] * n + [1] * n, dtype=np.int8)
+    ws.x[n:, 0] = ws.x[:n, 0]
+    ws.spans[n:] = ws.spans[:n]
+    means = ws.averaged()
+    assert means.copy is not None
+    assert means.copy.tolist() == [0, 1] + [PIECE] * 6  # the slide, its copy, then three pieces of each
+    assert means.originals().sum() == 1
+
+
+@pytest.fixture(scope="module")
+def continuous(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Three surfaces of the continuous scene: two recordings each, each one slide from its first sample to its last."""
+    return write_dataset(tmp_path_factory.mktemp("pieces"), scene="continuous", seed=3, surfaces="3", files_per_surface=2)
+
+
+def test_train_learns_long_slides_in_pieces_and_scores_them_whole(continuous: list[Path], tmp_path: Path) -> None:
+    config = Config()
+    res = train(continuous, config, candidates=[SPECTRUM], folds=2, group_by="file", progress=lambda m: None)
+    m = res.model
+    assert res.slides == 6 and res.oof is not None and res.oof[0].shape[0] == 6  # one out-of-fold score per slide
+    assert m.novelty_x is not None and m.novelty_x.shape[0] == 6  # the unknown-surface test: the slides as recorded
+    assert m.refit is not None and len(m.refit[1]) >= 6 * 3  # each slide of ~7 s also learnt as its pieces of ~1 s
+    path = tmp_path / "m.npz"
+    m.save(path)
+    done = enrol(path, continuous[:2], config, label="NEW", min_slides=2)
+    assert done.added == {"NEW": 2}  # slides counted as recorded, learnt with their pieces
+    assert done.model.refit is not None and list(done.model.refit[1]).count("NEW") >= 2 * 3
