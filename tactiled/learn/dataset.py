@@ -22,8 +22,9 @@ A whole-slide candidate learns one row per slide, the mean of its windows (:meth
 (a recording that slides from its first sample to its last holds one) is also learnt as its pieces of
 :data:`PIECE_WINDOWS` windows: several looks at the surface rather than one, as a per-window candidate has. With one
 such slide per recording a surface otherwise gives a whole-slide classifier as many rows as it has recordings, and
-cross-validation, which holds one of them out, scores it on a third fewer rows than the final fit has (measured in
-docs/evaluation.md, *Long slides learnt in pieces*). Pieces are training rows only (copy number :data:`PIECE`).
+cross-validation, which holds one of them out, trains it on one row fewer per surface than the final fit (with three
+recordings, a third fewer; measured in docs/evaluation.md, *Long slides learnt in pieces*). Pieces are training rows
+only (copy number :data:`PIECE`).
 """
 
 from __future__ import annotations
