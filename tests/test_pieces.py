@@ -51,15 +51,18 @@ def test_a_long_slide_adds_its_pieces_as_training_rows_and_a_short_one_does_not(
 
 def test_pieces_of_speed_copies_and_how_many() -> None:
     n = 3 * PIECE_WINDOWS + 2
-    rows = 2 * n
-    ws = window_set([rows])  # one slide: its first n rows as recorded, the next n a copy's
+    own = window_set([n])
+    ws = window_set([2 * n])  # one slide: its windows as recorded, then as many of its copy's (feature 0 above 100)
+    ws.x[:n], ws.spans[:n] = own.x, own.spans
+    ws.x[n:], ws.spans[n:] = own.x + np.array([100.0, 0.0]), own.spans
     ws.copy = np.array([0] * n + [1] * n, dtype=np.int8)
-    ws.x[n:, 0] = ws.x[:n, 0]
-    ws.spans[n:] = ws.spans[:n]
     means = ws.averaged()
     assert means.copy is not None
     assert means.copy.tolist() == [0, 1] + [PIECE] * 6  # the slide, its copy, then three pieces of each
-    assert means.originals().sum() == 1
+    assert means.originals().tolist() == [True] + [False] * 7
+    pieces = means.x[2:, 0]
+    assert np.all(pieces[:3] < 100) and np.all(pieces[3:] > 100)  # a piece never mixes a slide's windows with its copy's
+    assert np.allclose(pieces[:3], [2.0, 7.0, 11.5])  # windows 0-4, 5-9 and 10-13 of 14, in time order
 
 
 @pytest.fixture(scope="module")
