@@ -73,8 +73,11 @@ def continuous(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
 
 def test_train_learns_long_slides_in_pieces_and_scores_them_whole(continuous: list[Path], tmp_path: Path) -> None:
     config = Config()
-    res = train(continuous, config, candidates=[SPECTRUM], folds=2, group_by="file", progress=lambda m: None)
+    said: list[str] = []
+    res = train(continuous, config, candidates=[SPECTRUM], folds=2, group_by="file", progress=said.append)
     m = res.model
+    told = [line for line in said if "pieces" in line]
+    assert len(told) == 1 and "also learn the 6 slides of 8 windows or more as" in told[0], said  # train says what it did
     assert res.slides == 6 and res.oof is not None and res.oof[0].shape[0] == 6  # one out-of-fold score per slide
     assert m.novelty_x is not None and m.novelty_x.shape[0] == 6  # the unknown-surface test: the slides as recorded
     assert m.refit is not None and len(m.refit[1]) >= 6 * 3  # each slide of ~7 s also learnt as its pieces of ~1 s

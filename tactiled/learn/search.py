@@ -64,7 +64,17 @@ from tactiled.core.analysis import AnalysisSettings, window_settings
 from tactiled.core.features import name_family
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
-from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, collect_windows, find_slides, speed_ratios
+from tactiled.learn.dataset import (
+    PIECE,
+    PIECE_WINDOWS,
+    LabelledSlide,
+    Progress,
+    SlideCounts,
+    WindowSet,
+    collect_windows,
+    find_slides,
+    speed_ratios,
+)
 from tactiled.learn.model import (
     NOVELTY_SCORES,
     SHAPE_SCALE_FLOOR,
@@ -442,6 +452,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]] = {}
     windows_of: dict[tuple[Any, ...], WindowSet] = {}  # each candidate's windows, one row per window (a whole-slide one's before averaging)
     usable: list[Candidate] = []
+    told: set[tuple[float, float, int]] = set()  # placements whose whole-slide pieces were announced
     for c in wanted:
         key: tuple[Any, ...] = (*c.placement, c.families)
         fams = sorted({f for w in wanted if w.placement == c.placement for f in base_families(w.families)})
@@ -460,6 +471,12 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
                 key = (*key, "features")
                 if key not in sets:
                     sets[key] = (sets[full][0], sets[full][1].averaged())
+                    whole = sets[key][1]
+                    pieces = whole.slide[whole.copy == PIECE] if whole.copy is not None else np.array([], dtype=np.int64)
+                    if len(pieces) and c.placement not in told:  # once per placement: every family's rows have the same pieces
+                        told.add(c.placement)
+                        say(f"whole-slide candidates of {c.duration_s:g} s windows also learn the {len(np.unique(pieces))} slides of "
+                            f"{2 * PIECE_WINDOWS} windows or more as {len(pieces)} pieces of {PIECE_WINDOWS}")
             else:
                 sets[key] = sets[full]
             windows_of[key] = sets[full][1]
