@@ -353,7 +353,7 @@ def file_windows(task: tuple[Recording, list[LabelledSlide], Config, AnalysisSet
     """
     rec, file_slides, config, settings, require_labels, speeds = task
     analyser = Analyser(settings, rec.fs, rec.volts_per_count, rec.is_integer, config.classifier.max_saturated, config.classifier.max_lost)
-    floats = Analyser(settings, rec.fs, 1.0, False, config.classifier.max_saturated, config.classifier.max_lost)  # the copies: volts
+    floats = Analyser(settings, rec.fs, 1.0, False, config.classifier.max_saturated, config.classifier.max_lost) if speeds else None  # copies: volts
     valid = rec.valid_mask()
     kept: list[LabelledSlide] = []
     per_slide: list[SlideWindows] = []
@@ -366,7 +366,7 @@ def file_windows(task: tuple[Recording, list[LabelledSlide], Config, AnalysisSet
         if why is not None:
             skipped[why] = skipped.get(why, 0) + 1
         copy = [0] * len(rows)
-        if speeds and why is None and slide.label is not None:
+        if floats is not None and why is None and slide.label is not None:
             c_spans, c_rows, c_copy = speed_copies(floats, rec, valid, slide, speeds)
             spans, rows, copy = spans + c_spans, rows + c_rows, copy + c_copy
         kept.append(slide)

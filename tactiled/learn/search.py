@@ -452,7 +452,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     sets: dict[tuple[Any, ...], tuple[AnalysisSettings, WindowSet]] = {}
     windows_of: dict[tuple[Any, ...], WindowSet] = {}  # each candidate's windows, one row per window (a whole-slide one's before averaging)
     usable: list[Candidate] = []
-    told: set[tuple[float, float, int]] = set()  # placements whose whole-slide pieces were announced
+    slide_rows: dict[tuple[Any, ...], WindowSet] = {}  # each placement's whole-slide rows, averaged once for all its families
     for c in wanted:
         key: tuple[Any, ...] = (*c.placement, c.families)
         fams = sorted({f for w in wanted if w.placement == c.placement for f in base_families(w.families)})
@@ -469,14 +469,13 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         if full in sets and all(any(name_family(n) == f for n in sets[full][1].names) for f in base_families(c.families)):
             if c.fusion == "features":
                 key = (*key, "features")
-                if key not in sets:
-                    sets[key] = (sets[full][0], sets[full][1].averaged())
-                    whole = sets[key][1]
+                if full not in slide_rows:
+                    whole = slide_rows[full] = sets[full][1].averaged()
                     pieces = whole.slide[whole.copy == PIECE] if whole.copy is not None else np.array([], dtype=np.int64)
-                    if len(pieces) and c.placement not in told:  # once per placement: every family's rows have the same pieces
-                        told.add(c.placement)
+                    if len(pieces):
                         say(f"whole-slide candidates of {c.duration_s:g} s windows also learn the {len(np.unique(pieces))} slides of "
                             f"{2 * PIECE_WINDOWS} windows or more as {len(pieces)} pieces of {PIECE_WINDOWS}")
+                sets[key] = (sets[full][0], slide_rows[full])
             else:
                 sets[key] = sets[full]
             windows_of[key] = sets[full][1]
@@ -891,10 +890,11 @@ def own_scales(per_known: FloatArray, labels: npt.NDArray[Any], threshold: float
     surface taught from a few one-slide recordings) is measured on its own scale, so that a new recording of it is not
     called unknown for being as far from the others as they are from each other. 1 for a surface of one recording."""
     surfaces, which = np.unique(labels, return_inverse=True)
-    own = per_known[np.arange(len(labels)), which.reshape(-1)]
+    which = which.reshape(-1)
+    own = per_known[np.arange(len(labels)), which]
     out = np.ones(len(surfaces))
     for j in range(len(surfaces)):
-        mine = own[(which.reshape(-1) == j) & np.isfinite(own)]
+        mine = own[(which == j) & np.isfinite(own)]
         if len(mine):
             out[j] = max(float(np.quantile(mine, 1.0 - reject, method="higher")) / threshold, 1.0)
     return out
