@@ -3,17 +3,19 @@ and how train and enrol take them."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from tactiled.config import Config
-from tactiled.learn.dataset import PIECE, PIECE_WINDOWS, SlideCounts, WindowSet
+from tactiled.learn.dataset import PIECE, PIECE_WINDOWS, LabelledSlide, SlideCounts, WindowSet, cut_long_slides
 from tactiled.learn.enrol import enrol
 from tactiled.learn.search import SPECTRUM
 from tactiled.learn.train import train
 from tactiled.sim.simulate import write_dataset
+from tests.conftest import run_cli
 
 
 def window_set(windows: list[int], copy: list[int] | None = None) -> WindowSet:
@@ -86,3 +88,34 @@ def test_train_learns_long_slides_in_pieces_and_scores_them_whole(continuous: li
     done = enrol(path, continuous[:2], config, label="NEW", min_slides=2)
     assert done.added == {"NEW": 2}  # slides counted as recorded, learnt with their pieces
     assert done.model.refit is not None and list(done.model.refit[1]).count("NEW") >= 2 * 3
+
+
+def test_cut_long_slides_cuts_a_long_slide_into_consecutive_even_slides_and_keeps_short_ones() -> None:
+    long, short = LabelledSlide(0, 100, 190, "A", "label"), LabelledSlide(0, 500, 539, "B", "detected")  # 90 and 39 samples
+    out = cut_long_slides([long, short], 20)
+    assert out[-1] == short  # under twice the length: as it was
+    cut = out[:-1]
+    assert [(s.start, s.stop) for s in cut] == [(100, 122), (122, 145), (145, 167), (167, 190)]  # 4 of 22-23 samples, no gap
+    assert all(s.label == "A" and s.source == "label" and s.file == 0 for s in cut)
+    assert cut_long_slides([long], 45) == [LabelledSlide(0, 100, 145, "A", "label"), LabelledSlide(0, 145, 190, "A", "label")]
+    assert cut_long_slides([long], 46) == [long]
+
+
+def test_train_by_slide_cuts_one_long_recording_per_surface_into_slides_the_folds_can_split(continuous: list[Path], tmp_path: Path) -> None:
+    """A lab whose data are one long slide per surface: train by file stops (naming --group-by slide); by slide it trains,
+    saying how the slides were cut and that the estimate is optimistic, and the model labels a slide of another recording."""
+    one = [p for p in continuous if p.name.endswith("_00.npz")]  # one recording of each of the three surfaces
+    model = tmp_path / "m.npz"
+    res = run_cli("train", *map(str, one), "-o", str(model), "--method", "quick")
+    assert res.returncode == 2 and not model.exists()
+    assert "Ra" in res.stderr.strip().splitlines()[-1] and "--group-by slide" in res.stderr.strip().splitlines()[-1]
+    res = run_cli("train", *map(str, one), "-o", str(model), "--method", "quick", "--group-by", "slide")
+    assert res.returncode == 0, res.stderr
+    cut = [line for line in res.stderr.splitlines() if "are cut into slides of 2 to 4 s" in line]
+    assert len(cut) == 1 and "the 3 slide(s) of 4 s or more" in cut[0] and "where 3 were found" in cut[0], res.stderr
+    assert "optimistic" in res.stderr
+    other = [p for p in continuous if p.name.endswith("_01.npz")]
+    res = run_cli("replay", str(other[0]), "--model", str(model), "--json")
+    assert res.returncode == 0, res.stderr
+    finals = [m for m in map(json.loads, res.stdout.splitlines()) if m.get("final")]
+    assert len(finals) == 1 and finals[0]["label"] is not None  # the whole recording is one slide, labelled

@@ -192,7 +192,8 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--drop-rare", action="store_true", help="train without surfaces that have too few slides instead of stopping")
     p.add_argument("--group-by", choices=("file", "slide"), default="file",
                    help="what cross-validation folds keep together: file (every surface needs two recordings) or slide "
-                        "(allows one recording per surface; the estimates are then optimistic, and train says so)")
+                        "(allows one recording per surface, and cuts a slide of 4 s or more into slides of 2 to 4 s, so that a "
+                        "recording that is one long slide can be cross-validated; the estimates are then optimistic, and train says so)")
     p.add_argument("--scheduler", help="dask.distributed scheduler address (tcp://host:port) to run the cross-validation on a cluster "
                                         "(default: this machine, every core)")
     p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP + " (the same files, options and seed give the same model file)")

@@ -29,11 +29,12 @@ only (copy number :data:`PIECE`).
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -110,6 +111,23 @@ class LabelledSlide:
 
 PIECE_WINDOWS = 4  # a long slide's pieces, as whole-slide training rows: this many windows each (1 s of 0.25 s windows)
 PIECE = -1  # the copy number of a piece's row (:meth:`WindowSet.averaged`)
+GROUP_PIECE_S = 2.0  # train --group-by slide: a slide of at least twice this many seconds is cut into slides about this long
+
+
+def cut_long_slides(slides: Sequence[LabelledSlide], length: int) -> list[LabelledSlide]:
+    """``slides`` with each one of at least 2·``length`` samples cut into consecutive slides of ``length`` to under
+    2·``length`` samples (as even as the samples allow), each with its surface and source; shorter slides as they are.
+
+    For ``train --group-by slide``: a recording that is one long slide then gives cross-validation several groups."""
+    out: list[LabelledSlide] = []
+    for s in slides:
+        n = (s.stop - s.start) // max(1, length)
+        if n < 2:
+            out.append(s)
+            continue
+        edges = [s.start + (s.stop - s.start) * i // n for i in range(n + 1)]
+        out += [replace(s, start=a, stop=b) for a, b in itertools.pairwise(edges)]
+    return out
 
 
 @dataclass

@@ -15,7 +15,16 @@ from typing import Any
 from tactiled.config import Config
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
-from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, check_distinct, find_slides, load_recordings
+from tactiled.learn.dataset import (
+    GROUP_PIECE_S,
+    LabelledSlide,
+    Progress,
+    SlideCounts,
+    check_distinct,
+    cut_long_slides,
+    find_slides,
+    load_recordings,
+)
 from tactiled.learn.search import (
     ENSEMBLE_DEFAULT,
     ENSEMBLE_MODES,
@@ -115,11 +124,20 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     recs = load_recordings(paths, say)
     check_recordings(recs, len(paths))
     per_file, counts = find_slides(recs, config)
-    table = class_table(per_file)
     say(f"{len(recs)} files, {sum(len(s) for s in per_file)} slides ({counts.truth} in ground truth, {counts.detected} detected, "
         f"{sum(counts.missed.values())} missed by the detector, {sum(counts.false.values())} detections outside any true slide)")
     for name, n in counts.missed.items():
         say(f"  detector missed {n} true slide(s) in {name}: used at their true bounds")
+    if group_by == "slide":  # a recording that is one long slide gives cross-validation several groups
+        fs = recs[0][1].fs
+        cut = [cut_long_slides(slides, round(GROUP_PIECE_S * fs)) for slides in per_file]
+        n_long = sum(s.stop - s.start >= round(2 * GROUP_PIECE_S * fs) for slides in per_file for s in slides)
+        if n_long:
+            say(f"--group-by slide: the {n_long} slide(s) of {2 * GROUP_PIECE_S:g} s or more are cut into slides of {GROUP_PIECE_S:g} "
+                f"to {2 * GROUP_PIECE_S:g} s ({sum(map(len, cut))} slides where {sum(map(len, per_file))} were found), so that a "
+                "recording that is one long slide gives the folds several")
+        per_file = cut
+    table = class_table(per_file)
     say("slides per surface (slides, found by the detector, files):")
     for label, (n, det, files) in table.items():
         say(f"  {label}: {n}, {det}, {files}")
@@ -128,7 +146,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
                             "(tactiled record --label SURFACE, or docs/recordings.md)")
     rare = [k for k, (n, _, _) in table.items() if n < min_slides]
     if rare and not drop_rare:
-        raise TactiledError(f"too few slides (< {min_slides}) for surface(s) {', '.join(rare)}; record more, or pass --drop-rare to train without them")
+        raise TactiledError(f"too few slides (< {min_slides}) for surface(s) {', '.join(rare)}; record more, or pass --drop-rare to train without them"
+                            + (f" (or --group-by slide, if each is one slide of {2 * GROUP_PIECE_S:g} s or more)" if group_by == "file" else ""))
     if rare:
         say(f"training without {', '.join(rare)} (--drop-rare)")
         per_file = [[s for s in slides if s.label not in rare] for slides in per_file]
