@@ -29,7 +29,9 @@ class AnalysisSettings:
     make the slide's label (:meth:`tactiled.learn.model.Model.slide_proba`): ``scores`` averages the
     windows' class scores, ``features`` classifies the average of their features (a
     whole-slide spectrum, for the psd family). A slide too short
-    for one such window is analysed on its last ``duration_s`` (or all of it).
+    for one such window is analysed on its last ``duration_s`` (or all of it). ``centred``: the DWT
+    features read each window less its mean per channel (:class:`~tactiled.core.features.FeaturePlan`); every
+    model ``train`` writes since 2026-11-27 is, and a model file without the field (written before) is read as not.
     """
 
     start_s: float = 0.0
@@ -44,6 +46,7 @@ class AnalysisSettings:
     mode: str = "symmetric"
     names: tuple[str, ...] = field(default_factory=tuple)
     fusion: str = "scores"  # scores: average the windows' class scores; features: classify the average of their features
+    centred: bool = False  # the DWT of each window less its mean per channel (window_settings: True)
 
     @classmethod
     def from_config(cls, config: Config, channels: int, fs: float = 20_000.0) -> AnalysisSettings:
@@ -138,7 +141,7 @@ def window_settings(config: Config, channels: int, fs: float, duration_s: float,
                 return None
     s = config.spikes
     st = AnalysisSettings(start_s, duration_s, hop_s, max_windows, s.method, s.half_width, s.nsigma, config.features.wavelet, level,
-                          config.features.mode, tuple(names))
+                          config.features.mode, tuple(names), centred=True)
     plan = FeaturePlan(st.names, st.wavelet, st.mode, fs=fs)
     return st if plan.min_samples() <= round(duration_s * fs) else None
 
@@ -228,7 +231,7 @@ class Analyser:
                  max_lost: float = 0.02) -> None:
         self.settings = settings
         self.fs = fs
-        self.plan = FeaturePlan(settings.names, settings.wavelet, settings.mode, fs=fs)
+        self.plan = FeaturePlan(settings.names, settings.wavelet, settings.mode, fs=fs, centred=settings.centred)
         self.volts_per_count = volts_per_count
         self.integer = integer
         self.max_saturated = max_saturated

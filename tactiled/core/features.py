@@ -5,7 +5,9 @@ Three families; a feature's name says everything needed to compute it, and
 
 ``dwt``, the papers' statistics: ``film<c>.<domain>.<band>.<stat>``, e.g.
 ``film1.time.D3.energy``: ``c`` counts channels from 1; ``domain`` is ``time`` (the
-window's samples, V) or ``freq`` (the magnitude of its real FFT, V); ``band`` is a DWT
+window's samples, V) or ``freq`` (the magnitude of its real FFT, V), of the window less its
+mean per channel when the plan is ``centred`` (as models trained since 2026-11-27 are: a
+DC-coupled sensor's offset and drift belong to a recording, not to its surface); ``band`` is a DWT
 approximation ``A1``… or detail ``D1``… (coif5, 4 levels by default; A_j and D_j come
 from iterating ``pywt.dwt`` on A_{j-1}); ``stat`` is one of mean, sd (ddof 1), energy (Σc²),
 rms, skew, kurt (Pearson's, 3 for a Gaussian). A constant band has sd 0, skew 0 and kurt 0.
@@ -428,11 +430,13 @@ def texture(x: npt.NDArray[np.float64], f: npt.NDArray[np.float64], p: npt.NDArr
 class FeaturePlan:
     """What to compute for a list of feature names (any mix of families); :meth:`compute` returns them in that order."""
 
-    def __init__(self, names: Sequence[str], wavelet: str = "coif5", mode: str = "symmetric", fs: float = 20_000.0) -> None:
+    def __init__(self, names: Sequence[str], wavelet: str = "coif5", mode: str = "symmetric", fs: float = 20_000.0,
+                 centred: bool = False) -> None:
         if not (math.isfinite(fs) and fs > 0):
             raise ValueError(f"fs must be finite and > 0, got {fs}")
         self.fs = fs
         self.names = list(names)
+        self.centred = centred  # the dwt family of each window less its mean per channel (psd and tex are centred by definition)
         self.wavelet = pywt.Wavelet(wavelet)
         self.mode = mode
         # dwt: (channel, domain) -> max level needed; (channel, domain, band) -> stats
@@ -504,7 +508,7 @@ class FeaturePlan:
 
         A row with a feature beyond float64 (the energy of samples near 1e307) holds inf (:meth:`compute` raises ``non_finite``).
         Raises :class:`WindowError` (reason ``window_too_short``) when n < :meth:`min_samples`, and ValueError if x has fewer
-        channels than the names need.
+        channels than the names need. ``centred``: the dwt family reads each window less its mean per channel.
         """
         x = np.asarray(x, dtype=np.float64)
         if x.ndim != 3 or x.shape[2] < self.channels_needed:
@@ -513,7 +517,9 @@ class FeaturePlan:
             raise WindowError("window_too_short", f"window of {x.shape[1]} samples is shorter than the {self.min_samples()} the features need")
         x, k = (x, np.zeros(x.shape[0], dtype=np.int64)) if bounded else pow2_normalised(x)
         xt = x.transpose(0, 2, 1)  # (W, C, n): each channel's samples contiguous (free after remove_spikes_many)
-        if not xt.flags.c_contiguous:
+        if self.centred and self._levels:
+            xt = np.subtract(xt, xt.mean(axis=2, keepdims=True), order="C")  # a new contiguous array; the caller's windows untouched
+        elif not xt.flags.c_contiguous:
             xt = np.ascontiguousarray(xt)
         out = np.empty((x.shape[0], len(self.names)))
         values: dict[str, npt.NDArray[np.float64]] = {}  # the dwt and tex features by name

@@ -139,7 +139,7 @@ class Evaluator:
 
     def feature_ms(self, names: Sequence[str], st: AnalysisSettings, fs: float | None = None) -> float:
         """Median time to compute ``names`` on one window of ``st``, ms."""
-        plan = FeaturePlan(names, st.wavelet, st.mode, fs=fs or self.fs)
+        plan = FeaturePlan(names, st.wavelet, st.mode, fs=fs or self.fs, centred=st.centred)
         n = max(round(st.duration_s * (fs or self.fs)), plan.min_samples())
         x = np.random.default_rng(0).standard_normal((n, self.channels)) * 0.05
         times = []

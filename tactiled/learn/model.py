@@ -780,6 +780,7 @@ def _check_settings(path: Path, s: AnalysisSettings, fs: float, channels: int) -
           "settings: max_windows, half_width, level must be integers")
     _need(all(isinstance(v, str) for v in (s.spikes, s.wavelet, s.mode, s.fusion, *s.names)), path,
           "settings: spikes, wavelet, mode, fusion, names must be strings")
+    _need(isinstance(s.centred, bool), path, "settings.centred: must be true or false")
     _need(0 <= s.start_s <= 60 and 0 < s.duration_s <= 60 and 0 <= s.hop_s <= 60, path, "settings: start_s, duration_s, hop_s out of range")
     _need(0 <= s.max_windows <= 10_000, path, "settings.max_windows: out of range 0..10000")
     _need(s.fusion in ("scores", "features"), path, "settings.fusion: must be scores or features")
