@@ -43,7 +43,7 @@ def test_centred_dwt_features_ignore_an_offset_and_the_other_families_are_the_sa
 def test_a_constant_window_gives_finite_centred_features() -> None:
     for value in (0.0, 3.0, -1e6):
         f = FeaturePlan(DWT + OTHERS, fs=FS, centred=True).compute(np.full((5000, 2), value))
-        assert np.all(np.isfinite(f)) and np.all(f[: len(DWT)] == 0.0)
+        assert np.all(np.isfinite(f)) and np.all(np.abs(f[: len(DWT)]) <= 1e-9 * max(1.0, abs(value)))  # 0 but for the FFT's rounding
 
 
 @pytest.fixture(scope="module")

@@ -517,9 +517,7 @@ class FeaturePlan:
             raise WindowError("window_too_short", f"window of {x.shape[1]} samples is shorter than the {self.min_samples()} the features need")
         x, k = (x, np.zeros(x.shape[0], dtype=np.int64)) if bounded else pow2_normalised(x)
         xt = x.transpose(0, 2, 1)  # (W, C, n): each channel's samples contiguous (free after remove_spikes_many)
-        if self.centred and self._levels:
-            xt = np.subtract(xt, xt.mean(axis=2, keepdims=True), order="C")  # a new contiguous array; the caller's windows untouched
-        elif not xt.flags.c_contiguous:
+        if not xt.flags.c_contiguous:
             xt = np.ascontiguousarray(xt)
         out = np.empty((x.shape[0], len(self.names)))
         values: dict[str, npt.NDArray[np.float64]] = {}  # the dwt and tex features by name
@@ -527,6 +525,10 @@ class FeaturePlan:
             sig = xt[:, channel]
             if domain == "freq":
                 sig = np.abs(np.fft.rfft(sig, axis=1))
+                if self.centred:  # the spectrum of the window less its mean: the same but for the DC bin, which is 0
+                    sig[:, 0] = 0.0
+            elif self.centred:
+                sig = sig - sig.mean(axis=1, keepdims=True)
             approx = sig
             skipped = 0  # levels whose approximation is needed only for the next: taken with the next in one call
             for j in range(1, level + 1):
