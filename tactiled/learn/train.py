@@ -88,20 +88,24 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
           speed: float = SPEED_DEFAULT) -> SearchResult:
     """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save).
 
-    ``candidates`` narrows the default search (``method="auto"``) to the given ones; ``keep_models``: see :func:`search`.
-    ``group_by``: ``file`` (folds never split a recording; every surface needs two) or ``slide`` (allowed with one
-    recording per surface, with a warning that the estimates are optimistic). ``novelty``: the unknown-surface tests
-    (:data:`~tactiled.learn.search.NOVELTY_TESTS`): ``far``, the default, flags a slide farther from every taught surface
-    than they are from one another; ``combined`` adds the distance ratio, which flags a slide between two taught surfaces
-    where cross-validation says that pays, and also slides of another unit of the sensor that a shift puts there;
-    ``ratio`` is that test alone; ``distance`` flags slides far from the nearest training slides (more untaught surfaces
-    between taught grades, but also most slides of another unit or a new sheet of a known one). ``untaught``: the share of
-    slides expected on surfaces the model was not taught, in (0, 1); with ``combined``, ``ratio`` and ``distance``, their
-    threshold rejects known slides only where that catches enough untaught ones at this share
+    ``candidates`` narrows the default search (``method="auto"``) to the given ones; ``keep_models``: see
+    :func:`search`. ``group_by``: ``file`` (folds never split a recording; every surface needs two) or ``slide``
+    (allowed with one recording per surface, with a warning that the estimates are optimistic; a slide of
+    2·:data:`GROUP_PIECE_S` or more is cut into slides of :func:`cut_long_slides`, so a recording that is one long slide
+    gives the folds several). ``novelty``: the unknown-surface tests (:data:`~tactiled.learn.search.NOVELTY_TESTS`):
+    ``spectrum``, the default, flags a slide whose spectral shape is farther from every taught surface than another
+    recording of a taught surface is; ``far`` flags a slide farther from every taught surface than they are from one
+    another; ``combined`` adds the distance ratio, which flags a slide between two taught surfaces where
+    cross-validation says that pays, and also slides of another unit of the sensor that a shift puts there; ``ratio`` is
+    that test alone; ``distance`` flags slides far from the nearest training slides (more untaught surfaces between
+    taught grades, but also most slides of another unit or a new sheet of a known one). ``untaught``: the share of
+    slides expected on surfaces the model was not taught, in (0, 1); with ``combined``, ``ratio`` and ``distance``,
+    their threshold rejects known slides only where that catches enough untaught ones at this share
     (:func:`~tactiled.learn.search.novelty_threshold`). ``ensemble`` (:data:`~tactiled.learn.search.ENSEMBLE_MODES`):
-    whether the winner of the search and the plain spectral candidate make one model (:func:`~tactiled.learn.search.search`);
-    ``quick`` and ``paper`` never do (their search has no spectral candidate). ``speed``: per cent slower and faster of the
-    two speed-perturbed copies of each training slide the search also learns from (0: none; ``paper`` never).
+    whether the winner of the search and the plain spectral candidate make one model
+    (:func:`~tactiled.learn.search.search`); ``quick`` and ``paper`` never do (their search has no spectral candidate).
+    ``speed``: per cent slower and faster of the two speed-perturbed copies of each training slide the search also
+    learns from (0: none; ``paper`` never).
     """
     say = progress or (lambda m: None)
     if method not in METHODS:
@@ -129,9 +133,9 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     for name, n in counts.missed.items():
         say(f"  detector missed {n} true slide(s) in {name}: used at their true bounds")
     if group_by == "slide":  # a recording that is one long slide gives cross-validation several groups
-        fs = recs[0][1].fs
-        cut = [cut_long_slides(slides, round(GROUP_PIECE_S * fs)) for slides in per_file]
-        n_long = sum(s.stop - s.start >= round(2 * GROUP_PIECE_S * fs) for slides in per_file for s in slides)
+        length = round(GROUP_PIECE_S * recs[0][1].fs)
+        cut = [cut_long_slides(slides, length) for slides in per_file]
+        n_long = sum(s.stop - s.start >= 2 * length for slides in per_file for s in slides)
         if n_long:
             say(f"--group-by slide: the {n_long} slide(s) of {2 * GROUP_PIECE_S:g} s or more are cut into slides of {GROUP_PIECE_S:g} "
                 f"to {2 * GROUP_PIECE_S:g} s ({sum(map(len, cut))} slides where {sum(map(len, per_file))} were found), so that a "
