@@ -12,14 +12,15 @@ import pywt
 
 from tactiled.config import Config
 from tactiled.core.analysis import Analyser, AnalysisSettings
-from tactiled.core.detect import SlideDetector
-from tactiled.core.events import Offset
+from tactiled.core.detect import SlideDetector, rests_split
+from tactiled.core.events import Offset, Onset
 from tactiled.core.features import FeaturePlan, classifier_inputs, feature_names
 from tactiled.core.spikes import remove_spikes
 from tactiled.errors import WindowError
 from tactiled.files.recording import Recording, load_recording, save_recording
 from tactiled.run.replay import replay_recording
 from tactiled.sim.physics import SimParams, default_surfaces, simulate_file, with_mode
+from tactiled.sim.simulate import write_dataset
 from tests.conftest import run_cli
 
 NAMES = feature_names(2)
@@ -157,6 +158,44 @@ def test_a_lossy_link_from_the_start_still_finds_the_slides(hand_files: list[tup
         total += len(truth)
         found += sum(any(e.start < stop and e.stop > start for e in ends) for start, stop in truth)
     assert found / total >= 0.9
+
+def test_rests_split_cuts_a_span_at_runs_below_the_quiet_level_that_last_the_hold() -> None:
+    hops = [(i * 10, e) for i, e in enumerate([9, 9, 1, 1, 1, 9, 9, 1, 9, 1, 1, 1, 1])]  # hop 10; quiet below 2; hold 30
+    assert rests_split(hops, 0, 130, 10, 2.0, 30) == [(0, 20), (50, 90)]  # the run at 20-50 splits, 70-80 is a dip
+    assert rests_split(hops, 0, 130, 10, 2.0, 40) == [(0, 90)]  # no run of 40: one slide, up to the final quiet's start
+    assert rests_split(hops[:3] + hops[4:], 0, 130, 10, 2.0, 30) == [(0, 90)]  # a lost hop breaks the run: no rest there
+    assert rests_split([], 5, 50, 10, 2.0, 30) == [(5, 50)]  # hops no longer kept: the span whole
+
+
+def test_a_stream_that_begins_mid_slide_is_split_at_the_rests_the_quiet_after_it_shows(tmp_path: Path) -> None:
+    """The daemon started (or a recording cut) inside a slide, hand slides with rests of about 0.55 s: until a quiet long
+    enough shows the floor, the detector cannot tell a rest from a dip, and the first detection took in the next slide
+    or two (4 of these 24 cuts). When the quiet comes, the slides it saw are split at their rests, as they would have
+    been from rest: each first detection ended by a quiet spans one true slide, in 800-sample blocks as in one."""
+    paths = write_dataset(tmp_path, scene="hand", seed=1, surfaces="Ra0.44,Ra0.52,Ra0.61,Ra0.85", files_per_surface=2)
+    ended_by_quiet = 0
+    for path in paths:
+        rec = load_recording(path)
+        truth = [(a, b) for a, b, _ in rec.slides()]
+        for a, b in truth[:3]:
+            cut = a + (b - a) * 2 // 5
+            x = rec.volts()[cut:]
+            runs = []
+            for block in (800, len(x)):
+                det = SlideDetector(Config().detector, rec.fs, 2)
+                runs.append([e for i in range(0, len(x), block) for e in det.feed(i, x[i:i + block])] + det.finish())
+            assert runs[0] == runs[1]
+            onsets = [e for e in runs[0] if isinstance(e, Onset)]
+            ends = [e for e in runs[0] if isinstance(e, Offset)]
+            assert onsets and onsets[0].start == 0 and ends
+            if ends[0].reason != "quiet":  # no quiet long enough before the stream's end: the floor was never seen
+                continue
+            shifted = [(max(0, lo - cut), hi - cut) for lo, hi in truth if hi > cut]
+            spans = [t for t in shifted if min(ends[0].stop, t[1]) > max(ends[0].start, t[0])]
+            assert len(spans) == 1, (ends[0], shifted[:3])
+            ended_by_quiet += 1
+    assert ended_by_quiet >= 20  # of the 24 cuts
+
 
 def test_silent_recording_gives_no_slide() -> None:
     rec = Recording(np.zeros((40000, 2), dtype=np.int16), 20000.0, 5 / 32768)

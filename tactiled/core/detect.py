@@ -136,6 +136,33 @@ def _hop_validity(pending: npt.NDArray[np.bool_], valid: npt.NDArray[np.bool_] |
     return cast(list[bool], flags[: hops * hop].reshape(hops, hop).all(axis=1).tolist()), flags[hops * hop:]
 
 
+UNDECIDED_HISTORY_S = 120.0  # the undecided hops kept for splitting the slide the stream began in (s of stream)
+
+
+def rests_split(hops: list[tuple[int, float]], start: int, stop: int, hop: int, quiet: float, hold: int) -> list[tuple[int, int]]:
+    """The slides [a, b) of the span [start, stop) the stream began in, split at its rests: runs of consecutive hops (index,
+    envelope) ``hops`` whose envelope stays below ``quiet`` (off_factor × the floor the quiet after the span showed) for at
+    least ``hold`` samples (off_hold_s), as a slide ends once the floor is known. Hops before the first kept (a stream
+    longer than :data:`UNDECIDED_HISTORY_S`) leave their part of the span whole."""
+    spans: list[tuple[int, int]] = []
+    a, rest, last = start, None, None  # the slide's start, the rest run's first hop, the hop before this one
+    for i, e in hops:
+        if i < start or i >= stop:
+            continue
+        if rest is not None and (e >= quiet or (last is not None and i != last + hop)):  # the run ends
+            if last is not None and last + hop - rest >= hold and rest > a:
+                spans.append((a, rest))
+                a = i
+            rest = None
+        if e < quiet and rest is None:
+            rest = i
+        last = i
+    if rest is not None and last is not None and last + hop - rest >= hold and rest > a:  # a rest up to the quiet's start
+        stop = rest
+    spans.append((a, stop))
+    return spans
+
+
 def _median3(v: deque[float]) -> float:
     """Median of one to three floats (the mean of two), without numpy's overhead."""
     if len(v) == 3:
@@ -165,6 +192,9 @@ class SlideDetector:
         self._floor: float | None = None
         self._alpha = 1.0 - math.exp(-self.hop / (config.floor_tau_s * fs))
         self._initial: list[float] = []  # undecided: envelopes of the first initial_s
+        # undecided: (hop, envelope) of every valid hop since the first, so that a slide the stream began in can be split
+        # at its rests once the quiet after it shows the floor (at most UNDECIDED_HISTORY_S of them)
+        self._undecided_hops: deque[tuple[int, float]] = deque(maxlen=max(1, round(UNDECIDED_HISTORY_S * fs / self.hop)))
         self._initial_hops = max(1, round(config.initial_s * fs / self.hop))
         # a drop from a slide's own level (not yet from a noise floor) must last off_hold_s + initial_s to be its end:
         # a slide's level dips further below its own median than below a floor
@@ -361,6 +391,7 @@ class SlideDetector:
     def _undecided(self, at: int, env: float) -> list[DetectorEvent]:
         """Before the stream's initial level is known to be rest or slide (see the module docstring)."""
         c = self.c
+        self._undecided_hops.append((at, env))
         if len(self._initial) < self._initial_hops:
             self._initial.append(env)
             if len(self._initial) == self._initial_hops:
@@ -371,6 +402,7 @@ class SlideDetector:
         window = [e for _, e in list(self._recent)[-self._initial_hops:]]
         if len(window) == self._initial_hops and float(np.median(window)) > c.on_factor * ref:
             # the stream began at rest: a sustained rise (a slide's own level fluctuates hop to hop more than on_factor)
+            self._undecided_hops.clear()
             self._floor = ref
             self.floor = ref
             start = at
@@ -392,7 +424,14 @@ class SlideDetector:
                 self.floor = self._floor
                 stop = self._quiet_since
                 self._quiet_since = None
-                return [Onset(self._first), *self._finish_at(self._first, stop, "quiet")]
+                quiet = [e for i, e in self._undecided_hops if i >= stop]
+                spans = rests_split(list(self._undecided_hops), self._first, stop, self.hop, self.c.off_factor * float(np.median(quiet)),
+                                    round(self.c.off_hold_s * self.fs))
+                self._undecided_hops.clear()
+                events: list[DetectorEvent] = []
+                for a, b in spans:
+                    events += [Onset(a), *self._finish_at(a, b, "quiet")]
+                return events
         else:
             self._quiet_since = None
         return []
