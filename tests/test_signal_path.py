@@ -167,14 +167,19 @@ def test_rests_split_cuts_a_span_at_runs_below_the_quiet_level_that_last_the_hol
     assert rests_split([], 5, 50, 10, 2.0, 30) == [(5, 50)]  # hops no longer kept: the span whole
 
 
-def test_a_stream_that_begins_mid_slide_is_split_at_the_rests_the_quiet_after_it_shows(tmp_path: Path) -> None:
-    """The daemon started (or a recording cut) inside a slide, hand slides with rests of about 0.55 s: until a quiet long
-    enough shows the floor, the detector cannot tell a rest from a dip, and the first detection took in the next slide
-    or two (4 of these 24 cuts). When the quiet comes, the slides it saw are split at their rests, as they would have
-    been from rest: each first detection ended by a quiet spans one true slide, in 800-sample blocks as in one."""
-    paths = write_dataset(tmp_path, scene="hand", seed=1, surfaces="Ra0.44,Ra0.52,Ra0.61,Ra0.85", files_per_surface=2)
+@pytest.fixture(scope="module")
+def short_rests(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Hand slides with rests of about 0.55 s: 4 surfaces, 2 files of 5 slides each."""
+    return write_dataset(tmp_path_factory.mktemp("rests"), scene="hand", seed=1, surfaces="Ra0.44,Ra0.52,Ra0.61,Ra0.85", files_per_surface=2)
+
+
+def test_a_stream_that_begins_mid_slide_is_split_at_the_rests_the_quiet_after_it_shows(short_rests: list[Path]) -> None:
+    """The daemon started (or a recording cut) inside a slide: until a quiet long enough shows the floor, the detector
+    cannot tell a rest from a dip, and the first detection took in the next slide or two (4 of these 24 cuts). When the
+    quiet comes, the slides it saw are split at their rests, as they would have been from rest: each first detection
+    ended by a quiet spans one true slide, in 800-sample blocks as in one."""
     ended_by_quiet = 0
-    for path in paths:
+    for path in short_rests:
         rec = load_recording(path)
         truth = [(a, b) for a, b, _ in rec.slides()]
         for a, b in truth[:3]:
@@ -195,6 +200,26 @@ def test_a_stream_that_begins_mid_slide_is_split_at_the_rests_the_quiet_after_it
             assert len(spans) == 1, (ends[0], shifted[:3])
             ended_by_quiet += 1
     assert ended_by_quiet >= 20  # of the 24 cuts
+
+
+def test_the_slides_a_stream_began_in_read_no_window_past_their_end(short_rests: list[Path]) -> None:
+    """Those slides are reported with their ends, after the quiet: their provisional results (published at once with
+    the final) and their final take only windows inside them, not the quiet's or the next slide's (here one of the two
+    provisional results read past its slide's end before; over the 24 cuts, 40 of 172)."""
+    from tactiled.core.events import SlideResult
+    from tactiled.learn.model import load_model
+
+    model = load_model()
+    rec = load_recording(short_rests[0])
+    a, b, _ = rec.slides()[1]
+    cut = a + (b - a) * 2 // 5
+    results = [r for r in replay_recording(Recording(rec.samples[cut:], rec.fs, rec.volts_per_count), Config(), model)
+               if isinstance(r, SlideResult)]
+    finals = {r.start: r for r in results if r.final}
+    assert 0 in finals and finals[0].reason is None and len(finals) >= 2  # the first slide, split from the next
+    provisional = [r for r in results if not r.final and r.start == 0]
+    assert provisional and all(r.window[1] <= finals[0].stop for r in provisional)
+    assert finals[0].window[1] <= finals[0].stop
 
 
 def test_silent_recording_gives_no_slide() -> None:
