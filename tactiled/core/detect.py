@@ -28,8 +28,9 @@ or in the middle of a slide. Its reference is the 80th percentile of the envelop
 ``on_factor`` × the reference (a sustained rise: the level of a slide fluctuates from hop to
 hop by more than that), the stream began at rest: the reference becomes the noise floor and a slide starts. If it stays below
 reference / ``on_factor`` for ``off_hold_s`` + ``initial_s`` (longer than in a slide: the drop is
-measured against the slide's own level, which dips further than a floor), the stream began in a slide: a slide from the
-first sample to the drop is reported (a retroactive :class:`Onset`), and the low level
+measured against the slide's own level, which dips further than a floor), the stream began in a slide: the slides from
+the first sample to the drop are reported (retroactive :class:`Onset` and :class:`Offset` pairs), split at every rest the
+quiet's level shows there (:func:`rests_split`: a rest shorter than that hold went unseen until then), and the low level
 becomes the floor. If neither happens before :meth:`SlideDetector.finish`, the whole stream
 was one slide (reason ``end_of_stream``).
 
