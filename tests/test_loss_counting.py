@@ -111,11 +111,15 @@ def test_stale_bytes_in_the_port_at_start_are_discarded_not_lost_and_a_replug_ke
             with running(board):
                 wait_for(replugged, timeout=60, what="the daemon to read on after the replug")
             assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
-    before = [m for m in statuses if m.reconnects == 0]
-    assert any(m.samples > 0 for m in before) and all(m.samples_lost == 0 for m in before), before[-1:]
     st = statuses[-1]
     events = read_log(log_path)
     stale_end = next(k for k, e in enumerate(events) if e["event"] == "end")  # the end of the 2 s nobody read
+    # before the reopen no sample is lost but those the board itself could not write while the daemon read (none on a quiet
+    # machine; on a loaded one, a reader late by more than the pty's ~15 ms at 3x speed overruns it)
+    unplug = next(k for k, e in enumerate(events) if k > stale_end and e["event"] == "unplug")
+    overrun, _ = _logged_loss(events[stale_end + 1:unplug])
+    before = [m for m in statuses if m.reconnects == 0]
+    assert any(m.samples > 0 for m in before) and all(m.samples_lost <= overrun for m in before), (overrun, before[-1:])
     assert any(e["event"] == "overrun" for e in events[:stale_end])  # there was a gap after the stale frames
     logged, unread = _logged_loss([e for e in events[stale_end + 1:] if e.get("index", 0) < st.index])
     assert st.reconnects == 1 and st.discarded_at_start == first.discarded_at_start  # nothing discarded at the reopen
