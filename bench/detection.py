@@ -2,7 +2,10 @@
 early end (after ``detector.end_hold_s`` of quiet: the final label is published then) was withdrawn because the slide went on.
 
 Usage: python bench/detection.py [--scenes hand,robot,...] [--files-per-surface 2] [--slides-per-file 3] [--out DIR] [--reuse]
-Prints one row per scene (markdown). Recordings are simulated into --out (a temporary folder by default);
+                                 [--mid-slide]
+Prints one row per scene (markdown). ``--mid-slide``: instead, each recording is also detected from 40 % into each of its
+first three slides (a daemon started mid-slide), and the row counts how often the first slide, once a quiet ended it,
+took in more than one true slide. Recordings are simulated into --out (a temporary folder by default);
 ``--reuse`` takes the recordings already in --out (of an earlier run with the same arguments) instead.
 """
 
@@ -15,9 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from tactiled.config import Config
-from tactiled.core.events import Resume
+from tactiled.core.events import Offset, Resume
 from tactiled.core.matching import match_slides
-from tactiled.files.recording import load_recording
+from tactiled.files.recording import Recording, load_recording
 from tactiled.learn.dataset import detect_slides, detector_events
 from tactiled.sim.physics import SCENES
 from tactiled.sim.simulate import write_dataset
@@ -33,20 +36,29 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--out", default=None)
     ap.add_argument("--reuse", action="store_true", help="use the recordings an earlier run left in --out")
+    ap.add_argument("--mid-slide", action="store_true", help="detect from 40 %% into each of the first three slides of each recording")
     args = ap.parse_args()
     specs = [s for s in args.scenes.replace(";", "|").split("|")]
     specs = [x for s in specs for x in (s.split(",") if s == DEFAULT.split(";")[0] else [s])]
     config = Config()
     root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-detect-"))
-    print("| scene | true slides | detections | recall | precision | start error median / p90, s | end error median / p90, s "
-          "| early ends withdrawn |")
-    print("|---|---|---|---|---|---|---|---|")
+    if args.mid_slide:
+        print("| scene | starts mid-slide | first slide ended by a quiet | of those, taking in more than one true slide |")
+        print("|---|---|---|---|")
+    else:
+        print("| scene | true slides | detections | recall | precision | start error median / p90, s | end error median / p90, s "
+              "| early ends withdrawn |")
+        print("|---|---|---|---|---|---|---|---|")
     for spec in specs:
         folder = root / spec.replace(",", "+")
         paths = sorted(folder.glob("*.npz")) if args.reuse else []
         if not paths:
             paths = write_dataset(folder, scene=spec, seed=args.seed, files_per_surface=args.files_per_surface,
                                   slides_per_file=args.slides_per_file)
+        if args.mid_slide:
+            cuts, quiet, merged = mid_slide(paths, config)
+            print(f"| {spec} | {cuts} | {quiet} | {merged} |", flush=True)
+            continue
         n_true = n_det = paired = withdrawn = 0
         starts, ends = [], []
         for p in paths:
@@ -67,6 +79,24 @@ def main() -> None:
         print(f"| {spec} | {n_true} | {n_det} | {paired / n_true:.3f} | {paired / max(1, n_det):.3f} | "
               f"{np.median(s):.3f} / {np.percentile(s, 90):.3f} | {np.median(e):.3f} / {np.percentile(e, 90):.3f} | "
               f"{withdrawn} ({100 * withdrawn / max(1, n_det):.0f} % of detections) |", flush=True)
+
+
+def mid_slide(paths: list[Path], config: Config) -> tuple[int, int, int]:
+    """(streams cut 40 % into each of the first three slides of each recording, those whose first detected slide a quiet
+    ended (the others end with the stream), those of them whose first slide overlaps more than one true slide)."""
+    cuts = quiet = merged = 0
+    for p in paths:
+        rec = load_recording(p)
+        truth = [(a, b) for a, b, _ in rec.slides()]
+        for a, b in truth[:3]:
+            cut = a + (b - a) * 2 // 5
+            ends = [e for e in detector_events(Recording(rec.samples[cut:], rec.fs, rec.volts_per_count), config) if isinstance(e, Offset)]
+            cuts += 1
+            if not ends or ends[0].reason != "quiet":
+                continue
+            quiet += 1
+            merged += sum(min(ends[0].stop, hi - cut) > max(ends[0].start, lo - cut) for lo, hi in truth if hi > cut) > 1
+    return cuts, quiet, merged
 
 
 if __name__ == "__main__":
