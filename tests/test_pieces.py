@@ -113,7 +113,7 @@ def test_train_by_slide_cuts_one_long_recording_per_surface_into_slides_the_fold
     assert res.returncode == 0, res.stderr
     cut = [line for line in res.stderr.splitlines() if "are cut into slides of 2 to 4 s" in line]
     assert len(cut) == 1 and "the 3 slide(s) of 4 s or more" in cut[0] and "where 3 were found" in cut[0], res.stderr
-    assert "optimistic" in res.stderr
+    assert "optimistic" in res.stderr and "leaderboard (slide accuracy, grouped by slide:" in res.stdout
     other = [p for p in continuous if p.name.endswith("_01.npz")]
     res = run_cli("replay", str(other[0]), "--model", str(model), "--json")
     assert res.returncode == 0, res.stderr

@@ -53,7 +53,8 @@ def cmd_train(args: argparse.Namespace) -> int:
                    scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by,
                    novelty=args.novelty, ensemble=args.ensemble, speed=args.speed_copies,
                    **({} if args.untaught_share is None else {"untaught": args.untaught_share}))
-    print("leaderboard (slide accuracy, grouped by file: mean ± sd over folds; * the choice, the simplest within one standard error of the best):")
+    print(f"leaderboard (slide accuracy, grouped by {args.group_by}: mean ± sd over folds; * the choice, the simplest within one standard error "
+          "of the best):")
     width = max(len(row["candidate"]) for row in result.leaderboard)
     for row in result.leaderboard:
         mark = "*" if row.get("chosen") else " "
