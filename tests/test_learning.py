@@ -263,6 +263,10 @@ def test_training_on_a_local_dask_cluster(tmp_path: Path) -> None:
     assert len(fp) == 2 and fp[0] == fp[1]  # the same model, wherever the folds ran
     bad = run_cli("train", *files, "-o", str(tmp_path / "m3.npz"), "--scheduler", "tcp://127.0.0.1:1")
     assert bad.returncode == 2 and "cannot connect" in bad.stderr
+    for address in ("nonsense", "foo://127.0.0.1:1"):  # a traceback before: dask's ValueError
+        bad = run_cli("train", *files, "-o", str(tmp_path / "m3.npz"), "--scheduler", address)
+        line = bad.stderr.strip().splitlines()[-1]
+        assert bad.returncode == 2 and "not a scheduler address" in line and address in line and "Traceback" not in bad.stderr
 
 
 def test_headless_demo_prints_labels_with_the_truth_and_stops() -> None:

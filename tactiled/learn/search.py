@@ -367,6 +367,8 @@ def parallel_backend(scheduler: str | None) -> Iterator[None]:
         raise TactiledError("--scheduler needs dask.distributed: pip install 'tactiled[cluster]'") from None
     try:
         client = Client(scheduler, timeout="10s")
+    except ValueError as exc:  # not an address dask knows: no scheme://host:port
+        raise TactiledError(f"--scheduler {scheduler}: not a scheduler address (tcp://host:port): {exc}") from None
     except (OSError, TimeoutError) as exc:
         raise TactiledError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
     try:
