@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from typing import cast
 
@@ -140,7 +141,7 @@ def _hop_validity(pending: npt.NDArray[np.bool_], valid: npt.NDArray[np.bool_] |
 UNDECIDED_HISTORY_S = 120.0  # the undecided hops kept for splitting the slide the stream began in (s of stream)
 
 
-def rests_split(hops: list[tuple[int, float]], start: int, stop: int, hop: int, quiet: float, hold: int) -> list[tuple[int, int]]:
+def rests_split(hops: Iterable[tuple[int, float]], start: int, stop: int, hop: int, quiet: float, hold: int) -> list[tuple[int, int]]:
     """The slides [a, b) of the span [start, stop) the stream began in, split at its rests: runs of consecutive hops (index,
     envelope) ``hops`` whose envelope stays below ``quiet`` (off_factor × the floor the quiet after the span showed) for at
     least ``hold`` samples (off_hold_s), as a slide ends once the floor is known. Hops before the first kept (a stream
@@ -297,7 +298,7 @@ class SlideDetector:
                 self._floor, self.floor, self.envelope = floor, shown, envelope
                 evs = self._step(at, env, ok and at >= unsettled)
             if evs:
-                events += [replace(e, at=at + hop) for e in evs]
+                events += [e if e.at >= 0 else replace(e, at=at + hop) for e in evs]
             floor, sliding, paused, settle, holdoff = self._floor, self.sliding, self._paused, self._settle_until, self._holdoff_until
             shown, envelope = self.floor, self.envelope
             at += hop
@@ -426,12 +427,12 @@ class SlideDetector:
                 stop = self._quiet_since
                 self._quiet_since = None
                 quiet = [e for i, e in self._undecided_hops if i >= stop]
-                spans = rests_split(list(self._undecided_hops), self._first, stop, self.hop, self.c.off_factor * float(np.median(quiet)),
+                spans = rests_split(self._undecided_hops, self._first, stop, self.hop, self.c.off_factor * float(np.median(quiet)),
                                     round(self.c.off_hold_s * self.fs))
                 self._undecided_hops.clear()
                 events: list[DetectorEvent] = []
-                for a, b in spans:
-                    events += [Onset(a), *self._finish_at(a, b, "quiet")]
+                for a, b in spans:  # each known over at its end (Onset.at): no later window is its own
+                    events += [Onset(a, b), *(replace(e, at=b) for e in self._finish_at(a, b, "quiet"))]
                 return events
         else:
             self._quiet_since = None

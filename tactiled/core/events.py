@@ -24,7 +24,9 @@ import numpy.typing as npt
 class Onset:
     """The detector saw a slide begin at absolute index ``start`` (which may lie before the samples just fed: the
     onset is moved back over the rise that preceded the decision); ``at``: the index up to which it had seen samples
-    when it decided (-1: unknown). The pipeline turns it into :class:`SlideStarted`."""
+    when it decided (-1: unknown), the windows of the slide the pipeline reads before its end. A slide reported with its
+    end already past (the slides a stream began in, known only once the quiet after them showed the floor) has that end
+    as the ``at`` of its Onset and Offset: no window after it is its own. The pipeline turns it into :class:`SlideStarted`."""
 
     start: int
     at: int = -1

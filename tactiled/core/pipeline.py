@@ -134,9 +134,6 @@ class Pipeline:
         self._onset: int | None = None
         self._windows: list[_Window] = []
         self._next: tuple[int, int] | None = None  # the next window of the slide in progress
-        # the end of the slide in progress when the detector reported it already over (a stream that began in a slide:
-        # its slides come with their ends, after the quiet that showed them): no window past it is its own
-        self._ended: int | None = None
         self._provisional: str | None = None
         self._paused: SlideResult | None = None  # the final result published at a Pause, while the quiet lasts
 
@@ -299,7 +296,7 @@ class Pipeline:
 
     def _handle(self, detector_events: list[DetectorEvent]) -> list[PipelineEvent]:
         events: list[PipelineEvent] = []
-        for k, ev in enumerate(detector_events):
+        for ev in detector_events:
             # windows the ring held when the detector decided come first: the same order whatever the block size
             events += self._analyse_ready(until=ev.at if ev.at >= 0 else None)
             if isinstance(ev, Onset):
@@ -308,8 +305,6 @@ class Pipeline:
                 self._windows = []
                 self._provisional = None
                 self._next = self.settings.first_span(ev.start, self.fs)
-                own_end = next((e for e in detector_events[k + 1:] if isinstance(e, Offset)), None)
-                self._ended = own_end.stop if own_end is not None and own_end.stop < ev.at else None
                 events.append(SlideStarted(self._slide_id, ev.start))
                 events += self._analyse_ready(until=ev.at if ev.at >= 0 else None)
             elif isinstance(ev, Pause):
@@ -335,7 +330,6 @@ class Pipeline:
                         events.append(final)
                 self._onset = None
                 self._next = None
-                self._ended = None
                 self._take_pending_model()
                 self._windows = []
         return events
@@ -348,8 +342,6 @@ class Pipeline:
         s = self.settings
         end = self._reader.end
         limit = end if until is None else min(until, end)
-        if self._ended is not None:
-            limit = min(limit, self._ended)
         hop = max(1, round(s.hop() * self.fs))
         spans: list[tuple[int, int]] = []
         nxt: tuple[int, int] | None = self._next
