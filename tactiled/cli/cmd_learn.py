@@ -49,6 +49,10 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     config = config_of(args)
     check_output(args.output, args.force, (".npz",))  # before minutes of search, not after
+    if args.scheduler:
+        from tactiled.learn.search import check_scheduler
+
+        check_scheduler(args.scheduler)  # likewise
     result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
                    scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by,
                    novelty=args.novelty, ensemble=args.ensemble, speed=args.speed_copies,
@@ -196,7 +200,7 @@ def add_commands(sub: Sub) -> None:
                         "(allows one recording per surface, and cuts a slide of 4 s or more into slides of 2 to 4 s, so that a "
                         "recording that is one long slide can be cross-validated; the estimates are then optimistic, and train says so)")
     p.add_argument("--scheduler", help="dask.distributed scheduler address (tcp://host:port) to run the cross-validation on a cluster "
-                                        "(default: this machine, every core)")
+                                        "(default: this machine, every core); checked before any recording is read")
     p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP + " (the same files, options and seed give the same model file)")
     p.add_argument("--novelty", choices=("spectrum", "far", "combined", "ratio", "distance"), default="spectrum",
                    help="how a slide is judged unlike every taught surface (label null, reason unknown_surface): spectrum (the default), "

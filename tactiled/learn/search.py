@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import socket
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -352,6 +353,33 @@ def _interval_text(band: list[float] | None) -> str:
 # ---- parallel execution -----------------------------------------------------------------------------------------
 
 
+CONNECT_S = 10.0  # how long a scheduler may take to answer
+
+
+def check_scheduler(scheduler: str) -> None:
+    """Raise :class:`TactiledError` (one line) unless ``scheduler`` is an address dask.distributed can parse and, for
+    TCP (``tcp://``, ``tls://``), one that accepts a connection: a refused one is said at once (dask's client retries it
+    for :data:`CONNECT_S`), so ``train`` can check before it analyses any recording."""
+    try:
+        from distributed.comm import parse_address
+        from distributed.comm.addressing import parse_host_port
+        from distributed.comm.registry import get_backend
+    except ImportError:
+        raise TactiledError("--scheduler needs dask.distributed: pip install 'tactiled[cluster]'") from None
+    try:
+        scheme, location = parse_address(scheduler, strict=True)
+        get_backend(scheme)
+        host, port = parse_host_port(location) if scheme in ("tcp", "tls") else (None, None)
+    except ValueError as exc:  # not an address dask knows: no scheme://host:port
+        raise TactiledError(f"--scheduler {scheduler}: not a scheduler address (tcp://host:port): {exc}") from None
+    if host is None:
+        return
+    try:
+        socket.create_connection((host, port), timeout=CONNECT_S).close()
+    except OSError as exc:  # refused, no route, unknown host, or no answer (TimeoutError)
+        raise TactiledError(f"--scheduler {scheduler}: cannot connect: {exc.strerror or exc}") from None
+
+
 @contextlib.contextmanager
 def parallel_backend(scheduler: str | None) -> Iterator[None]:
     """joblib on every local core, or on a dask.distributed cluster at ``scheduler`` (``tcp://host:port``)."""
@@ -361,14 +389,11 @@ def parallel_backend(scheduler: str | None) -> Iterator[None]:
         with joblib.parallel_config(n_jobs=-1):
             yield
         return
+    check_scheduler(scheduler)
+    from dask.distributed import Client
+
     try:
-        from dask.distributed import Client
-    except ImportError:
-        raise TactiledError("--scheduler needs dask.distributed: pip install 'tactiled[cluster]'") from None
-    try:
-        client = Client(scheduler, timeout="10s")
-    except ValueError as exc:  # not an address dask knows: no scheme://host:port
-        raise TactiledError(f"--scheduler {scheduler}: not a scheduler address (tcp://host:port): {exc}") from None
+        client = Client(scheduler, timeout=f"{CONNECT_S:g}s")
     except (OSError, TimeoutError) as exc:
         raise TactiledError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
     try:
