@@ -24,7 +24,16 @@ with atheris.instrument_imports(include=["tactiled"]):  # our code only: instrum
     from tactiled.files.recording import load_recording
     from tactiled.learn.model import load_model
 
-_TMP = tempfile.mkdtemp(prefix="tactiled-fuzz-")
+
+def _input_file() -> str:
+    """A path the loaders can open, for each input in turn: an anonymous in-memory file on Linux (freed however the fuzzer
+    exits: libFuzzer leaves by C ``exit``, which runs no Python cleanup), else a file in a temporary folder."""
+    if hasattr(os, "memfd_create"):
+        return f"/proc/self/fd/{os.memfd_create('tactiled-fuzz-input')}"
+    return os.path.join(tempfile.mkdtemp(prefix="tactiled-fuzz-"), "input.npz")
+
+
+_PATH = _input_file()
 
 
 def decoder(data: bytes) -> None:
@@ -47,10 +56,9 @@ def decoder(data: bytes) -> None:
 
 
 def _file(data: bytes) -> str:
-    path = os.path.join(_TMP, "input.npz")
-    with open(path, "wb") as fh:
+    with open(_PATH, "wb") as fh:  # truncates: the file holds this input only
         fh.write(data)
-    return path
+    return _PATH
 
 
 def recording(data: bytes) -> None:

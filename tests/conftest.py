@@ -3,8 +3,10 @@ and a daemon on it, simulated recordings, what a bridge hands its outlets."""
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -27,6 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 # daemons started without --publish bind ipc://$TACTILED_RUNTIME_DIR/<sensor id>.sock: one folder per test process,
 # so that parallel test processes never meet (tactiled_client.endpoints)
 os.environ["TACTILED_RUNTIME_DIR"] = tempfile.mkdtemp(prefix="tactiled-run-")
+atexit.register(shutil.rmtree, os.environ["TACTILED_RUNTIME_DIR"], ignore_errors=True)  # gone with the test process
 # child processes (the CLI, the client's python -m tactiled_client) import the checkout's client library too, as this
 # process does (pytest's pythonpath, pyproject.toml), rather than the copy pip installed from ./clients
 os.environ["PYTHONPATH"] = os.pathsep.join([str(REPO / "clients"), *filter(None, [os.environ.get("PYTHONPATH")])])
