@@ -92,6 +92,11 @@ def test_dataset_cli(tmp_path: Path) -> None:
     rec = load_recording(files[0])
     assert rec.surface is not None and list(rec.surface) == ["Ra0.44", "Ra0.44"] and rec.meta["simulator"]["mode"] == "robot"
     assert np.all(rec.slide_stop > rec.slide_start)
+    # worker processes write the same files, and say each surface done in order
+    two = run_cli("simulate", "dataset", "--out", str(tmp_path / "two"), "--surfaces", "Ra0.44,Ra4.43", "--files-per-surface", "1",
+                  "--slides-per-file", "2", "--scene", "robot", "--jobs", "2")
+    assert two.returncode == 0 and two.stderr.splitlines() == ["simulate: Ra0.44 (1/2)", "simulate: Ra4.43 (2/2)"], two.stderr
+    assert [f.read_bytes() for f in files] == [(tmp_path / "two" / f.name).read_bytes() for f in files]
     bad = run_cli("simulate", "dataset", "--out", str(tmp_path), "--surfaces", "Ra9")
     assert bad.returncode == 2 and "unknown surface 'Ra9'" in bad.stderr
 

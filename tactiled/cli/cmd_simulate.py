@@ -20,7 +20,8 @@ def cmd_dataset(args: argparse.Namespace) -> int:
     check_folder(args.out, force=True)
     paths = write_dataset(Path(args.out), scene=args.scene, seed=args.seed, surfaces=args.surfaces, files_per_surface=args.files_per_surface,
                           slides_per_file=args.slides_per_file, mode=args.mode, fs=args.fs, channels=args.channels,
-                          progress=lambda msg: print(msg, file=sys.stderr), unit=args.unit, specimen=args.specimen, force=args.force)
+                          progress=lambda msg: print(msg, file=sys.stderr), unit=args.unit, specimen=args.specimen, force=args.force,
+                          jobs=args.jobs)
     print(f"{args.out}: wrote {len(paths)} recordings")
     return EXIT_OK
 
@@ -76,6 +77,7 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--specimen", type=c.seed, default=0,
                    help="which specimens of the grades: 0 the nominal ones, N new ones of the same grades (same names and nominal Ra "
                         "labels; their own Ra, correlation length and Hurst exponent drawn within the grade's tolerance; docs/simulator.md)")
+    p.add_argument("--jobs", type=c.jobs, default=0, metavar="N", help=c.JOBS_HELP + " (the same files whatever N)")
 
     p = command(group, "figure", "PNG of one slide per surface class: signal and spectrum", cmd_figure, "tactiled simulate figure -o slides.png")
     p.add_argument("-o", "--output", required=True, help="PNG file to write")

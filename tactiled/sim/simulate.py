@@ -7,7 +7,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +51,8 @@ def scene_for(scene: str | None, mode: str | None = None, fs: float | None = Non
 
 def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surfaces: str | None = None, files_per_surface: int = 4,
                   slides_per_file: int = 5, mode: str | None = None, fs: float | None = None, channels: int | None = None,
-                  progress: Callable[[str], None] | None = None, unit: int = 0, specimen: int = 0, force: bool = True) -> list[Path]:
+                  progress: Callable[[str], None] | None = None, unit: int = 0, specimen: int = 0, force: bool = True,
+                  jobs: int | None = 1) -> list[Path]:
     """Write ``files_per_surface`` recordings per surface of ``scene`` (docs/simulator.md) with ground truth; returns their paths.
 
     File names start with the scene (commas as ``+``): ``continuous+one-channel_Ra0.44_00.npz``. ``unit``: another unit of
@@ -59,7 +60,11 @@ def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surface
     (:func:`new_specimens`; 0 are the nominal ones). Both are recorded in each file's ``meta``; the ``ra_um`` labels are
     the grades' nominal Ra (µm), the specimen's own values are in ``meta["surface"]``. Without ``force``, a file of
     the same name already in ``out`` is an :class:`~tactiled.errors.OutputError` before anything is simulated.
+    ``jobs``: worker processes over the files (:func:`tactiled.run.pool.map_files`; each file has its own seed, so the
+    files are the same whatever the number).
     """
+    from tactiled.run.pool import map_files
+
     if files_per_surface < 1 or slides_per_file < 1:
         raise TactiledError("--files-per-surface and --slides-per-file must be >= 1")
     if unit < 0 or specimen < 0:
@@ -74,25 +79,56 @@ def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surface
     if existing and not force:
         raise OutputError(f"{existing[0]}: exists ({len(existing)} of the files to write do; --force replaces them)")
     out.mkdir(parents=True, exist_ok=True)
-    paths = []
+    tasks = []
     for i, surface in enumerate(chosen):
         file_params = replace(params, extra_gain=hot_gain(chosen, surface, params, seed + i)) if hot else params
         for f in range(files_per_surface):
             file_seed = int(np.random.SeedSequence([seed, i, f]).generate_state(1)[0])
-            sim = simulate_file(file_params, surface, slides_per_file, file_seed)
-            rec = Recording(
-                samples=sim.samples, fs=params.fs, volts_per_count=1.0 if params.float_output else params.volts_per_count,
-                slide_start=np.array([t.start for t in sim.truth]), slide_stop=np.array([t.stop for t in sim.truth]),
-                surface=np.array([t.surface.name for t in sim.truth]), ra_um=np.array([t.surface.grade_ra_um for t in sim.truth]),
-                meta={"scene": spec, "simulator": file_params.to_meta(), "seed": file_seed, "surface": vars(surface), "unit": unit, "specimen": specimen,
-                      "v_max_mps": [t.v_max_mps for t in sim.truth], "force": [t.force for t in sim.truth]},
-            )
-            path = out / f"{prefix}_{surface.name}_{f:02d}.npz"
-            save_recording(path, rec)
-            paths.append(path)
-        if progress:
-            progress(f"simulate: {surface.name} ({i + 1}/{len(chosen)})")
+            tasks.append(FileTask(out / f"{prefix}_{surface.name}_{f:02d}.npz", file_params, surface, slides_per_file, file_seed, spec, unit,
+                                  specimen))
+    per_file_s = slides_per_file * (sum(params.slide_s) + sum(params.rest_s)) / 2
+    paths = []
+    for k, path in enumerate(map_files(write_file, tasks, jobs, signal_s=SIMULATION_COST * per_file_s * len(tasks)), 1):
+        paths.append(path)
+        if progress and k % files_per_surface == 0:
+            i = k // files_per_surface - 1
+            progress(f"simulate: {chosen[i].name} ({i + 1}/{len(chosen)})")
     return paths
+
+
+# simulating a second of signal costs about as much CPU as replaying six (tactiled.run.pool.workers weighs signal by replay)
+SIMULATION_COST = 6.0
+
+
+@dataclass(frozen=True)
+class FileTask:
+    """One recording of :func:`write_dataset`: where, the simulator's parameters, the surface, slides and seed, and the
+    scene, unit and specimen its ``meta`` names."""
+
+    path: Path
+    params: SimParams
+    surface: Surface
+    slides: int
+    seed: int
+    scene: str
+    unit: int
+    specimen: int
+
+
+def write_file(task: FileTask) -> Path:
+    """Simulate and save one recording of :func:`write_dataset` (in a worker process or this one); returns its path."""
+    sim = simulate_file(task.params, task.surface, task.slides, task.seed)
+    p = task.params
+    rec = Recording(
+        samples=sim.samples, fs=p.fs, volts_per_count=1.0 if p.float_output else p.volts_per_count,
+        slide_start=np.array([t.start for t in sim.truth]), slide_stop=np.array([t.stop for t in sim.truth]),
+        surface=np.array([t.surface.name for t in sim.truth]), ra_um=np.array([t.surface.grade_ra_um for t in sim.truth]),
+        meta={"scene": task.scene, "simulator": p.to_meta(), "seed": task.seed, "surface": vars(task.surface), "unit": task.unit,
+              "specimen": task.specimen,
+              "v_max_mps": [t.v_max_mps for t in sim.truth], "force": [t.force for t in sim.truth]},
+    )
+    save_recording(task.path, rec)
+    return task.path
 
 
 def _seconds_list(option: str, text: str) -> list[float]:
