@@ -43,6 +43,8 @@ import numpy as np
 import zmq
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, Status
 
+from tactiled.sim.virtualboard import read_log
+
 # The tactiled command every bench runs. -P: the working directory is not put first on sys.path, so PYTHONPATH chooses
 # the code (an A/B of two checkouts: PYTHONPATH=/path/to/other/checkout python bench/...). Without it, `python -m tactiled` run from a
 # checkout imports that checkout's tactiled whatever PYTHONPATH says.
@@ -270,11 +272,9 @@ def main() -> None:
     if last is not None and args.board == "sim":
         # reconcile: samples the daemon counted lost against what the board says it did not deliver intact
         first = last.index - last.samples - last.samples_lost
-        with open(log) as fh:
-            events = [json.loads(line) for line in fh if line.strip()]
-        inside = [e for e in events if first <= e.get("index", -1) < last.index]
-        faulty = sum(e.get("count", 20) for e in inside if e["event"] in ("drop", "corrupt")) + \
-            20 * sum(1 for e in inside if e["event"] == "overrun")
+        # read_log: an overrun line of the board's log holds up to a second of frames; it gives one event per frame
+        inside = [e for e in read_log(log) if first <= e.get("index", -1) < last.index]
+        faulty = sum(e.get("count", 20) for e in inside if e["event"] in ("drop", "corrupt", "overrun"))
         unplugged = sum(1 for e in inside if e["event"] == "unplug")
         down = unplugged * (round(0.3 * 20_000) + 20)  # simulate serial's default --unplug-s 0.3, plus the frame at the unplug
         accounting = {"first_index": first, "frames_dropped_or_corrupted_or_overrun_samples": faulty, "unplugs": unplugged,
