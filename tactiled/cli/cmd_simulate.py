@@ -15,13 +15,14 @@ MODE_HELP = "older spelling of --scene hand / --scene robot (default: the scene'
 def cmd_dataset(args: argparse.Namespace) -> int:
     """Labelled recordings of a scene into a folder (more scenes may go beside them; the same names need --force)."""
     from tactiled.files.outputs import check_folder
+    from tactiled.run.pool import map_files
     from tactiled.sim.simulate import write_dataset
 
     check_folder(args.out, force=True)
     paths = write_dataset(Path(args.out), scene=args.scene, seed=args.seed, surfaces=args.surfaces, files_per_surface=args.files_per_surface,
                           slides_per_file=args.slides_per_file, mode=args.mode, fs=args.fs, channels=args.channels,
                           progress=lambda msg: print(msg, file=sys.stderr), unit=args.unit, specimen=args.specimen, force=args.force,
-                          jobs=args.jobs)
+                          mapper=lambda fn, tasks, signal_s: map_files(fn, tasks, args.jobs, signal_s=signal_s))
     print(f"{args.out}: wrote {len(paths)} recordings")
     return EXIT_OK
 

@@ -6,7 +6,7 @@ import argparse
 import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -49,10 +49,13 @@ def scene_for(scene: str | None, mode: str | None = None, fs: float | None = Non
     return spec, with_mode(params, None, fs, channels)
 
 
+Mapper = Callable[[Callable[["FileTask"], Path], list["FileTask"], float], Iterable[Path]]
+
+
 def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surfaces: str | None = None, files_per_surface: int = 4,
                   slides_per_file: int = 5, mode: str | None = None, fs: float | None = None, channels: int | None = None,
                   progress: Callable[[str], None] | None = None, unit: int = 0, specimen: int = 0, force: bool = True,
-                  jobs: int | None = 1) -> list[Path]:
+                  mapper: Mapper | None = None) -> list[Path]:
     """Write ``files_per_surface`` recordings per surface of ``scene`` (docs/simulator.md) with ground truth; returns their paths.
 
     File names start with the scene (commas as ``+``): ``continuous+one-channel_Ra0.44_00.npz``. ``unit``: another unit of
@@ -60,11 +63,11 @@ def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surface
     (:func:`new_specimens`; 0 are the nominal ones). Both are recorded in each file's ``meta``; the ``ra_um`` labels are
     the grades' nominal Ra (µm), the specimen's own values are in ``meta["surface"]``. Without ``force``, a file of
     the same name already in ``out`` is an :class:`~tactiled.errors.OutputError` before anything is simulated.
-    ``jobs``: worker processes over the files (:func:`tactiled.run.pool.map_files`; each file has its own seed, so the
-    files are the same whatever the number).
+    ``mapper(write_file, tasks, signal_s)`` writes the files and yields their paths in order (default: one after the
+    other here; the CLI passes worker processes, :func:`tactiled.run.pool.map_files`); ``signal_s`` is about the seconds
+    of signal in all, weighted as replaying that much would cost. Each file has its own seed: the files are the same
+    whatever the mapper.
     """
-    from tactiled.run.pool import map_files
-
     if files_per_surface < 1 or slides_per_file < 1:
         raise TactiledError("--files-per-surface and --slides-per-file must be >= 1")
     if unit < 0 or specimen < 0:
@@ -88,7 +91,8 @@ def write_dataset(out: Path, *, scene: str | None = None, seed: int = 0, surface
                                   specimen))
     per_file_s = slides_per_file * (sum(params.slide_s) + sum(params.rest_s)) / 2
     paths = []
-    for k, path in enumerate(map_files(write_file, tasks, jobs, signal_s=SIMULATION_COST * per_file_s * len(tasks)), 1):
+    mapper = mapper or (lambda fn, items, _: map(fn, items))
+    for k, path in enumerate(mapper(write_file, tasks, SIMULATION_COST * per_file_s * len(tasks)), 1):
         paths.append(path)
         if progress and k % files_per_surface == 0:
             i = k // files_per_surface - 1
