@@ -96,11 +96,15 @@ def median_last(a: npt.NDArray[Any], in_place: bool = False, scale: float | None
     upper half of each row of the reordered array holds its largest values.
 
     ``scale`` (> 0, finite): the median of ``a * scale`` (e.g. int16 counts and volts per count), the same values as
-    ``median_last(a * scale)``: the middle values are chosen in ``a`` (a positive scale keeps their order; int16 rows
-    partition ~4x faster than float64) and only they are scaled.
+    ``median_last(a * scale)``: the middle values are chosen in ``a`` (a positive scale keeps their order) and only they
+    are scaled. Integers narrower than 32 bits are selected as int32 (the same values): numpy's vectorised selection
+    covers 32- and 64-bit types, and int16 rows took ten times as long as int32 (and four times as long as float64) on
+    an AVX2 host, numpy 2.4.
     """
     n = a.shape[-1]
     k = n // 2
+    if not in_place and a.dtype.kind in "iu" and a.dtype.itemsize < 4:
+        a = a.astype(np.int32)
     if in_place:
         if n <= SHORT_ROWS:
             a.sort(axis=-1)
