@@ -263,7 +263,8 @@ def test_training_on_a_local_dask_cluster(tmp_path: Path) -> None:
     assert len(fp) == 2 and fp[0] == fp[1]  # the same model, wherever the folds ran
     bad = run_cli("train", *files, "-o", str(tmp_path / "m3.npz"), "--scheduler", "tcp://127.0.0.1:1")
     # refused: said at once, before any recording is read (dask's client retried it for 10 s, after the analysis)
-    assert bad.returncode == 2 and bad.stderr.strip().splitlines() == ["tactiled: error: --scheduler tcp://127.0.0.1:1: cannot connect: Connection refused"]
+    lines = bad.stderr.strip().splitlines()
+    assert bad.returncode == 2 and len(lines) == 1 and lines[0].startswith("tactiled: error: --scheduler tcp://127.0.0.1:1: cannot connect: "), lines
     for address in ("nonsense", "foo://127.0.0.1:1"):  # a traceback before: dask's ValueError
         bad = run_cli("train", *files, "-o", str(tmp_path / "m3.npz"), "--scheduler", address)
         lines = bad.stderr.strip().splitlines()
