@@ -16,7 +16,7 @@ import pytest
 from tactiled.errors import ModelError
 from tactiled.learn.elm import ELMClassifier
 from tactiled.learn.model import load_model
-from tests.conftest import REPO, run_cli, tactiled_cmd
+from tests.conftest import REPO, run_cli, simulate_dataset, tactiled_cmd
 
 
 def _data(n: int = 60, d: int = 4, k: int = 3, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -104,9 +104,7 @@ def test_model_for_other_rate_is_refused(tmp_path: Path) -> None:
 
 def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
     data = tmp_path / "data"
-    res = run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "2", "--slides-per-file", "3",
-                  "--scene", "robot", "--fs", "2200", "--channels", "1")
-    assert res.returncode == 0, res.stderr
+    simulate_dataset(data, surfaces="3", files_per_surface=2, slides_per_file=3, fs=2200.0, channels=1)
     model = tmp_path / "m.npz"
     files = sorted(str(p) for p in data.glob("*.npz"))
     res = run_cli("train", *files, "-o", str(model), "--folds", "2", "--method", "quick")
@@ -185,8 +183,7 @@ def test_score_counts_every_true_slide_and_reads_file_labels(tmp_path: Path) -> 
     assert report["correct"] == 1 and report["unknown"] == 1 and report["untaught"] == {"b": [1, 1]}
     # end to end: a file-level label recording scored through the CLI
     sim = tmp_path / "sim"
-    assert run_cli("simulate", "dataset", "--out", str(sim), "--surfaces", "2", "--files-per-surface", "2", "--slides-per-file", "2",
-                   "--scene", "robot").returncode == 0
+    simulate_dataset(sim, surfaces="2", files_per_surface=2, slides_per_file=2)
     files = sorted(sim.glob("*.npz"))
     model = tmp_path / "m.npz"
     assert run_cli("train", *map(str, files), "-o", str(model), "--folds", "2", "--method", "quick").returncode == 0
@@ -251,8 +248,7 @@ def test_training_on_a_local_dask_cluster(tmp_path: Path) -> None:
     """--scheduler runs the cross-validation through joblib's Dask backend (a LocalCluster on loopback)."""
     distributed = importlib.import_module("distributed")  # in the dev extras: a missing one fails
     data = tmp_path / "d"
-    assert run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "2", "--files-per-surface", "2", "--slides-per-file", "2",
-                   "--scene", "robot").returncode == 0
+    simulate_dataset(data, surfaces="2", files_per_surface=2, slides_per_file=2)
     files = sorted(str(p) for p in data.glob("*.npz"))
     with distributed.LocalCluster(host="127.0.0.1", n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick", "--scheduler", cluster.scheduler_address,

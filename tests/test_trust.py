@@ -14,7 +14,7 @@ from tactiled.errors import ModelError
 from tactiled.learn.model import Model, fit_pipeline, load_model, novelty_scores, softmax
 from tactiled.learn.score import calibration_scores
 from tactiled.learn.search import fit_calibration, fit_novelty
-from tests.conftest import run_cli
+from tests.conftest import run_cli, simulate_dataset
 
 NAMES = ("film1.psd.20-200Hz.power", "film1.psd.200-2000Hz.power", "film1.tex.centroid", "film1.tex.kurtosis")
 
@@ -355,9 +355,7 @@ def test_the_ece_a_calibrated_model_would_show_is_large_on_few_mid_range_slides_
 
 def test_train_and_evaluate_refuse_a_surface_with_one_recording_train_allows_it_by_slide(tmp_path: Path) -> None:
     data = tmp_path / "data"
-    res = run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "1", "--slides-per-file", "4",
-                  "--scene", "robot", "--fs", "2200", "--channels", "1")
-    assert res.returncode == 0, res.stderr
+    simulate_dataset(data, surfaces="3", files_per_surface=1, slides_per_file=4, fs=2200.0, channels=1)
     files = sorted(str(p) for p in data.glob("*.npz"))
     res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick")
     assert res.returncode == 2 and not (tmp_path / "m.npz").exists()
@@ -375,8 +373,7 @@ def test_train_and_evaluate_refuse_a_recording_given_twice(tmp_path: Path) -> No
     """The same samples under two names (a copy, or one file matched by two globs): grouped folds would test a recording on
     its copy (cross-validation then promised 100 % on the hand scene), so train and evaluate stop with one line naming both."""
     data = tmp_path / "data"
-    assert run_cli("simulate", "dataset", "--out", str(data), "--surfaces", "2", "--files-per-surface", "1", "--slides-per-file", "2",
-                   "--scene", "robot", "--fs", "2200", "--channels", "1").returncode == 0
+    simulate_dataset(data, surfaces="2", files_per_surface=1, slides_per_file=2, fs=2200.0, channels=1)
     files = sorted(data.glob("*.npz"))
     copy = data / "copy.npz"
     copy.write_bytes(files[0].read_bytes())
