@@ -10,6 +10,8 @@ from __future__ import annotations
 import contextlib
 import os
 import socket
+import subprocess
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -267,12 +269,29 @@ def test_frames_of_another_channel_count_are_counted_and_said_once(tmp_path: Pat
 def test_a_board_at_another_rate_than_configured_is_said_once(tmp_path: Path) -> None:
     """The virtual board at 3 x real time is a board at 60 kHz on a port configured for 20 kHz: once the clock map has
     measured the rate for a few seconds, the daemon says so once, naming both rates, however long it goes on."""
+    lines: list[str] = []
+    said_it = threading.Event()
+
+    def read_stderr(proc: subprocess.Popen[str]) -> None:  # the daemon's lines as they come, to the end
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            lines.append(line)
+            if "samples arrive at about" in line:
+                said_it.set()
+
     with board_and_daemon(tmp_path, "--no-model", speed=3.0) as live, \
             BlockingSubscriber(live.endpoint, topics=["status"], timeout=30) as sub:
-        fast = status_where(sub, lambda m: m.fs_clock > 1.5 * m.fs_nominal, 60, "the rate measured")
-        # the daemon says it after RATE_INTERVALS status intervals running off (5 s): a loaded host may measure it late
-        status_where(sub, lambda m: m.uptime_s > fast.uptime_s + 6.0, 30, "six more seconds of it")
-        err = live.stop()
+        reader = threading.Thread(target=read_stderr, args=(live.proc,), daemon=True)
+        reader.start()
+        status_where(sub, lambda m: m.fs_clock > 1.5 * m.fs_nominal, 60, "the rate measured")
+        # said after RATE_INTERVALS status intervals running off (5 s at the default), later on a loaded host
+        assert said_it.wait(60), "".join(lines)
+        now = status_where(sub, lambda m: True, 30, "a status")
+        status_where(sub, lambda m: m.uptime_s > now.uptime_s + 6.0, 30, "six more seconds of it")  # and not said again
+        live.proc.terminate()
+        live.proc.wait(30)
+        reader.join(10)
+    err = "".join(lines)
     said = [line for line in err.splitlines() if "samples arrive at about" in line]
     assert len(said) == 1 and "sensor.fs is 20000 Hz" in said[0], err
     rate = float(said[0].split("samples arrive at about ")[1].split(" Hz")[0])
