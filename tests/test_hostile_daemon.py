@@ -295,4 +295,6 @@ def test_a_board_at_another_rate_than_configured_is_said_once(tmp_path: Path) ->
     said = [line for line in err.splitlines() if "samples arrive at about" in line]
     assert len(said) == 1 and "sensor.fs is 20000 Hz" in said[0], err
     rate = float(said[0].split("samples arrive at about ")[1].split(" Hz")[0])
-    assert 45_000 < rate < 75_000, said[0]
+    # the rate the samples arrived at: the board's 60 kHz, or less where a loaded host held the board's thread back (41.6
+    # kHz once, with three test processes on two cores); well above the 20 kHz configured either way
+    assert 1.5 * 20_000 < rate < 75_000, said[0]
