@@ -35,12 +35,12 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 
 import numpy as np
 import zmq
+from scratch import scratch
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, Status
 
 from tactiled.sim.virtualboard import read_log
@@ -169,7 +169,7 @@ def main() -> None:
     if args.bare_reader:
         return bare_reader(args.bare_reader, args.interval)
     floor = args.board == "player" and not args.no_floor
-    tmp = tempfile.mkdtemp(prefix="tactiled-bench-")
+    tmp = str(scratch(None, "tactiled-bench-"))
     link, endpoint, log = f"{tmp}/tty", f"ipc://{tmp}/pub", f"{tmp}/board.jsonl"
     unplug_at = ",".join(str(round(args.seconds * (k + 1) / (args.unplugs + 1), 1)) for k in range(args.unplugs))
     if args.board == "sim":

@@ -14,11 +14,11 @@ import os
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 from bench_daemon import TACTILED
+from scratch import scratch
 
 from tactiled.learn.model import default_model_path
 from tactiled.run.pool import cores
@@ -48,7 +48,7 @@ def main() -> None:
     ap.add_argument("--commands", default="score,features")
     ap.add_argument("--out", help="folder for the recordings (default: a temporary one)")
     args = ap.parse_args()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-files-"))
+    root = scratch(args.out, "tactiled-files-")
     originals = write_dataset(root / "originals", scene="robot", seed=7, surfaces=5, files_per_surface=2, slides_per_file=3)
     print(f"{len(originals)} recordings of {sum(p.stat().st_size for p in originals) / len(originals) / 1e3:.0f} kB; "
           f"{cores()} cores; python {sys.version.split()[0]}")

@@ -20,12 +20,12 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 
 import numpy as np
 import zmq
+from scratch import scratch
 from tactiled_client import schema
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
@@ -66,7 +66,7 @@ def overruns_so_far(player: subprocess.Popen[str]) -> int:
 
 
 def run(k: int, seconds: float, stream_path: str, warmup: float, config: str | None = None) -> dict[str, object]:
-    tmp = tempfile.mkdtemp(prefix=f"tactiled-load{k}-")
+    tmp = str(scratch(None, f"tactiled-load{k}-"))
     links = [f"{tmp}/tty{i}" for i in range(k)]
     player = subprocess.Popen([sys.executable, __file__, "--play", ",".join(links), "--stream", stream_path], stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE, text=True)
@@ -154,7 +154,7 @@ def main() -> None:
 
     threadpool_limits(1)
     counts = [int(c) for c in args.counts.split(",")]
-    stream_path = os.path.join(tempfile.mkdtemp(prefix="tactiled-load-"), "stream.bin")
+    stream_path = os.path.join(str(scratch(None, "tactiled-load-")), "stream.bin")
     with open(stream_path, "wb") as fh:
         fh.write(make_stream(args.seconds + args.warmup + 60))
     rows = []

@@ -24,11 +24,11 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scratch import scratch
 
 from tactiled.config import Config
 from tactiled.core.analysis import window_settings
@@ -117,7 +117,7 @@ def main() -> None:
     ap.add_argument("--out", default=None)
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-caldraws-"))
+    root = scratch(args.out, "tactiled-caldraws-")
     config = Config()
     rows: list[dict[str, Any]] = []
     print("| scene | seed | winner | accuracy | ECE: temperature / Platt | mean confidence: temperature / Platt | nested CV - test "

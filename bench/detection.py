@@ -12,10 +12,10 @@ took in more than one true slide. Recordings are simulated into --out (a tempora
 from __future__ import annotations
 
 import argparse
-import tempfile
 from pathlib import Path
 
 import numpy as np
+from scratch import scratch
 
 from tactiled.config import Config
 from tactiled.core.events import Offset, Resume
@@ -41,7 +41,7 @@ def main() -> None:
     specs = [s for s in args.scenes.replace(";", "|").split("|")]
     specs = [x for s in specs for x in (s.split(",") if s == DEFAULT.split(";")[0] else [s])]
     config = Config()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-detect-"))
+    root = scratch(args.out, "tactiled-detect-")
     if args.mid_slide:
         print("| scene | starts mid-slide | first slide ended by a quiet | of those, taking in more than one true slide |")
         print("|---|---|---|---|")

@@ -31,10 +31,11 @@ Usage: python bench/enrol.py [--scenes robot,hand] [--new Ra1.40|Ra4.43|G0.32mm]
 from __future__ import annotations
 
 import argparse
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from scratch import scratch
 
 from tactiled.config import Config
 from tactiled.files.recording import Recording
@@ -76,7 +77,7 @@ def main() -> None:
     ap.add_argument("--units", action="store_true", help="the fingertip-swap table instead")
     ap.add_argument("--ensemble", default="off", help="train --ensemble for every model (off, always, guarded)")
     args = ap.parse_args()
-    config, root = Config(), Path(args.out or tempfile.mkdtemp(prefix="tactiled-enrol-"))
+    config, root = Config(), scratch(args.out, "tactiled-enrol-")
     opts: dict[str, Any] = {"ensemble": args.ensemble}
     if args.units:
         unit_swap(args.scenes.split(","), root, config, opts)

@@ -37,13 +37,13 @@ import argparse
 import itertools
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy import signal, stats
+from scratch import scratch
 
 from tactiled.config import Config
 from tactiled.files.recording import Recording
@@ -274,7 +274,7 @@ def main() -> None:
     ens_opts: dict[str, Any] = {"ensemble": args.ensemble} if args.ensemble else {}
     config = Config()
     units = [int(u) for u in args.other_units.split(",") if u]
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-labels-"))
+    root = scratch(args.out, "tactiled-labels-")
     rows: list[dict[str, Any]] = []
     print("| scene | nested CV | default: same unit (top class) | other units (top class, unknowns included) | plain baseline: same / other units "
           "| papers' method: same / other units | ECE same / other units | a calibrated model's ECE, same unit: median / 95 % "

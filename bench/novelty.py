@@ -29,12 +29,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from labels import LEAVE_OUT, dataset, ra
+from scratch import scratch
 
 from tactiled.config import Config
 from tactiled.files.recording import Recording
@@ -96,7 +96,7 @@ def main() -> None:
     args = ap.parse_args()
     opts: dict[str, Any] = {"novelty": args.novelty} if args.novelty else {}
     config = Config()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-novelty-"))
+    root = scratch(args.out, "tactiled-novelty-")
     result: dict[str, Any] = {}
     for spec in args.scenes.split(";"):
         name = spec.replace(",", "+")

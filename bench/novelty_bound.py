@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -45,6 +44,7 @@ import numpy as np
 from labels import LEAVE_OUT, plain_rows, ra  # bench/ is first on sys.path when run as a script
 from novelty import scores as ratio_scores
 from novelty import slide_rows
+from scratch import scratch
 
 from tactiled.config import Config
 from tactiled.learn.dataset import load_recordings
@@ -182,7 +182,7 @@ def main() -> None:
     ap.add_argument("--json", default=None, help="write every number here")
     args = ap.parse_args()
     config = Config()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-bound-"))
+    root = scratch(args.out, "tactiled-bound-")
     result: dict[str, Any] = {}
     t0 = time.perf_counter()
     for spec in args.scenes.split(";"):

@@ -23,12 +23,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from labels import DEFAULT, LEAVE_OUT, dataset, left_out_share, ra, unknown_share
+from scratch import scratch
 
 from tactiled.config import Config
 from tactiled.files.recording import Recording
@@ -68,7 +68,7 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     config = Config()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-ratio-"))
+    root = scratch(args.out, "tactiled-ratio-")
     rows: dict[str, Any] = {}
     print("| scene | ratio threshold | ratio test | same unit | unit 1 | unit 2 | unit 3 | unit 4 | gratings unknown "
           "| left out: unknown of theirs / of known, same unit; unit 1; unit 2 |")

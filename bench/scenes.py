@@ -17,12 +17,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scratch import scratch
 
 from tactiled.config import Config
 from tactiled.core.matching import match_slides
@@ -59,7 +59,7 @@ def main() -> None:
                     help="also refit every candidate of the default search and score it on the test set (kept in --json)")
     args = ap.parse_args()
     config = Config()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-scenes-"))
+    root = scratch(args.out, "tactiled-scenes-")
     rows = []
     print("| scene | detection recall / precision | default: winner | default: accuracy (coverage) | papers' method: accuracy (coverage) "
           "| train s (default / paper) |")

@@ -14,11 +14,10 @@ Usage: python bench/session_shift.py [--scenes "hand;robot;one-channel;continuou
 from __future__ import annotations
 
 import argparse
-import tempfile
-from pathlib import Path
 
 import numpy as np
 from labels import dataset
+from scratch import scratch
 
 from tactiled.config import Config
 from tactiled.learn.dataset import load_recordings
@@ -36,7 +35,7 @@ def main() -> None:
     ap.add_argument("--scenes", default="hand;robot;one-channel;continuous;fluctuating")
     ap.add_argument("--out", help="folder for the recordings (default: a temporary one)")
     args = ap.parse_args()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-shift-"))
+    root = scratch(args.out, "tactiled-shift-")
     config = Config()
     print("| scene | same unit: novelty 10/25/50/75/90 % | unit 1 | unit 2 | median over the same unit's: unit 1 / unit 2 |")
     print("|---|---|---|---|---|")

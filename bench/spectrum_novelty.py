@@ -23,11 +23,11 @@ Usage: python bench/spectrum_novelty.py [--scenes "robot;hand"] [--mixed] [--out
 from __future__ import annotations
 
 import argparse
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from labels import LEAVE_OUT, dataset, plain_rows, ra
+from scratch import scratch
 
 from tactiled.learn.dataset import load_recordings
 from tactiled.learn.model import nearest_surface_distances
@@ -65,7 +65,7 @@ def main() -> None:
     ap.add_argument("--mixed", action="store_true", help="8 grades spread over the range and 7 gratings per scene (bench/labels.py --mixed)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-spectrum-novelty-"))
+    root = scratch(args.out, "tactiled-spectrum-novelty-")
     print("| scene | view | threshold | known slides over it: same unit / units 1-4 (%) | 3 left out, theirs / known: same unit; "
           "unit 1; unit 2 (%) | gratings (%) |")
     print("|---|---|---|---|---|---|")

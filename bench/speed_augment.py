@@ -16,12 +16,12 @@ Usage: python bench/speed_augment.py [--scenes "hand;robot"] [--mixed] [--other-
 from __future__ import annotations
 
 import argparse
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from labels import dataset, plain_features
 from scipy import signal
+from scratch import scratch
 from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 from sklearn.svm import SVC
@@ -51,7 +51,7 @@ def main() -> None:
     ap.add_argument("--other-units", default="1,2,3,4")
     ap.add_argument("--out", help="folder for the recordings (default: a temporary one)")
     args = ap.parse_args()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-speed-"))
+    root = scratch(args.out, "tactiled-speed-")
     units = [int(u) for u in args.other_units.split(",")]
     print(f"| scene | copies | same unit | {' | '.join(f'unit {u}' for u in units)} | other units, mean |")
     print(f"|---|---|---|{'---|' * len(units)}---|")

@@ -15,10 +15,11 @@ import json
 import math
 import os
 import platform
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from scratch import scratch
 
 from tactiled.config import Config
 from tactiled.learn.train import train
@@ -42,7 +43,7 @@ def main() -> None:
     ap.add_argument("--out", default=None)
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-train-time-"))
+    root = scratch(args.out, "tactiled-train-time-")
     workers = [int(w) for w in args.workers.split(",") if w]
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}")
     print("| slides | this machine (joblib, every core) | " + " | ".join(f"Dask LocalCluster, {w} workers" for w in workers) + " |")

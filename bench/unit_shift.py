@@ -25,11 +25,11 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from scipy import fft, signal, stats
+from scratch import scratch
 from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 from sklearn.svm import SVC
@@ -92,7 +92,7 @@ def main() -> None:
     ap.add_argument("--scenes", default="robot,hand,continuous")
     ap.add_argument("--out", help="folder for the recordings (default: a temporary one)")
     args = ap.parse_args()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-unit-"))
+    root = scratch(args.out, "tactiled-unit-")
     print("| scene | representation | augmented | same unit | unit 1 | unit 2 |")
     print("|---|---|---|---|---|---|")
     calib = []

@@ -14,11 +14,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import tempfile
-from pathlib import Path
 
 import numpy as np
 from labels import dataset, end_to_end, plain_baseline
+from scratch import scratch
 
 import tactiled.sim.physics as physics
 from tactiled.config import Config
@@ -35,7 +34,7 @@ def main() -> None:
     ap.add_argument("--mixed", action="store_true", help="bench/labels.py's far-apart set of 8 grades and 7 gratings")
     ap.add_argument("--out", help="folder for the recordings (default: a temporary one)")
     args = ap.parse_args()
-    root = Path(args.out or tempfile.mkdtemp(prefix="tactiled-wider-"))
+    root = scratch(args.out, "tactiled-wider-")
     config = Config()
     nominal = physics.Tolerance()
     print("| scene | tolerance | default, unknowns wrong | default, top class | known slides called unknown | plain baseline |")
