@@ -70,20 +70,13 @@ def run_cli(*args: str, timeout: float = 120.0, **kw: object) -> subprocess.Comp
     return subprocess.run(tactiled_cmd(*args), capture_output=True, text=True, timeout=timeout, cwd=REPO, **kw)  # type: ignore[call-overload, no-any-return]
 
 
-def simulate_dataset(out: Path, scene: str = "robot", **kw: Any) -> list[Path]:
-    """``tactiled simulate dataset --out out --scene scene ...`` in this process, for a test's data: the same files (the
-    command itself runs as a process in tests/test_simulator.py), without the second a new process takes to import
-    SciPy's signal package. ``kw``: :func:`tactiled.sim.simulate.write_dataset`'s (surfaces as the option's text)."""
-    from tactiled.sim.simulate import write_dataset
-
-    return write_dataset(out, scene=scene, **kw)
-
-
 def surfaces_but_one(root: Path, surfaces: int, seed: int) -> tuple[Path, list[Path], list[str]]:
     """A robot-scene dataset of ``surfaces`` surfaces (2 files x 3 slides each) simulated into ``root``/d: the folder, the files
     of every surface but the last (to train on), and the surface names in order (the last one left out)."""
     data = root / "d"
-    simulate_dataset(data, surfaces=str(surfaces), files_per_surface=2, slides_per_file=3, seed=seed)
+    from tactiled.sim.simulate import write_dataset  # the command's files, in this process (no second of SciPy imports)
+
+    write_dataset(data, scene="robot", surfaces=str(surfaces), files_per_surface=2, slides_per_file=3, seed=seed)
     names = sorted({p.name.split("_")[1] for p in data.glob("*.npz")})
     return data, [p for p in sorted(data.glob("*.npz")) if f"_{names[-1]}_" not in p.name], names
 

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from tactiled.learn.cluster import hungarian_accuracy, kmeans, som_clusters
-from tests.conftest import run_cli, simulate_dataset
+from tactiled.sim.simulate import write_dataset
+from tests.conftest import run_cli
 
 
 def test_hungarian_and_kmeans_metrics() -> None:
@@ -24,7 +25,7 @@ def test_hungarian_and_kmeans_metrics() -> None:
 
 def test_evaluate_writes_all_six_experiments(tmp_path: Path) -> None:
     data = tmp_path / "d"
-    simulate_dataset(data, surfaces="3", files_per_surface=3, slides_per_file=3)
+    write_dataset(data, scene="robot", surfaces="3", files_per_surface=3, slides_per_file=3)
     report = tmp_path / "r"
     res = run_cli("evaluate", *sorted(str(p) for p in data.glob("*.npz")), "--report", f"{report}/", "--quick", "--folds", "3", timeout=300)
     assert res.returncode == 0, res.stderr

@@ -16,7 +16,8 @@ import pytest
 from tactiled.errors import ModelError
 from tactiled.learn.elm import ELMClassifier
 from tactiled.learn.model import load_model
-from tests.conftest import REPO, run_cli, simulate_dataset, tactiled_cmd
+from tactiled.sim.simulate import write_dataset
+from tests.conftest import REPO, run_cli, tactiled_cmd
 
 
 def _data(n: int = 60, d: int = 4, k: int = 3, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -104,7 +105,7 @@ def test_model_for_other_rate_is_refused(tmp_path: Path) -> None:
 
 def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
     data = tmp_path / "data"
-    simulate_dataset(data, surfaces="3", files_per_surface=2, slides_per_file=3, fs=2200.0, channels=1)
+    write_dataset(data, scene="robot", surfaces="3", files_per_surface=2, slides_per_file=3, fs=2200.0, channels=1)
     model = tmp_path / "m.npz"
     files = sorted(str(p) for p in data.glob("*.npz"))
     res = run_cli("train", *files, "-o", str(model), "--folds", "2", "--method", "quick")
@@ -183,7 +184,7 @@ def test_score_counts_every_true_slide_and_reads_file_labels(tmp_path: Path) -> 
     assert report["correct"] == 1 and report["unknown"] == 1 and report["untaught"] == {"b": [1, 1]}
     # end to end: a file-level label recording scored through the CLI
     sim = tmp_path / "sim"
-    simulate_dataset(sim, surfaces="2", files_per_surface=2, slides_per_file=2)
+    write_dataset(sim, scene="robot", surfaces="2", files_per_surface=2, slides_per_file=2)
     files = sorted(sim.glob("*.npz"))
     model = tmp_path / "m.npz"
     assert run_cli("train", *map(str, files), "-o", str(model), "--folds", "2", "--method", "quick").returncode == 0
@@ -248,7 +249,7 @@ def test_training_on_a_local_dask_cluster(tmp_path: Path) -> None:
     """--scheduler runs the cross-validation through joblib's Dask backend (a LocalCluster on loopback)."""
     distributed = importlib.import_module("distributed")  # in the dev extras: a missing one fails
     data = tmp_path / "d"
-    simulate_dataset(data, surfaces="2", files_per_surface=2, slides_per_file=2)
+    write_dataset(data, scene="robot", surfaces="2", files_per_surface=2, slides_per_file=2)
     files = sorted(str(p) for p in data.glob("*.npz"))
     with distributed.LocalCluster(host="127.0.0.1", n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick", "--scheduler", cluster.scheduler_address,
@@ -382,7 +383,6 @@ def test_nested_estimate_with_two_recordings_per_surface(tmp_path: Path, method:
     of the simplest candidate (62.5 % for a model every outer fold scored 100 %), the papers' cross-validation 12.5 %."""
     from tactiled.config import Config
     from tactiled.learn.train import train
-    from tactiled.sim.simulate import write_dataset
 
     paths = write_dataset(tmp_path, scene="robot", seed=3, surfaces="4", files_per_surface=2, slides_per_file=2)
     res = train(paths, Config(), method=method, progress=lambda m: None)
@@ -415,7 +415,6 @@ def test_nested_estimate_with_one_slide_per_surface_and_recording(tmp_path: Path
 
     from tactiled.config import Config
     from tactiled.learn.train import train
-    from tactiled.sim.simulate import write_dataset
 
     paths = write_dataset(tmp_path, scene="continuous", seed=4, surfaces="4", files_per_surface=2, slides_per_file=1)
     said: list[str] = []

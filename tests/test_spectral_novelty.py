@@ -17,7 +17,8 @@ from tactiled.core.features import family_names, spectral_shape
 from tactiled.errors import ModelError
 from tactiled.learn.model import default_model_path, load_model, nearest_surface_distances
 from tactiled.learn.search import fit_novelty
-from tests.conftest import run_cli, simulate_dataset
+from tactiled.sim.simulate import write_dataset
+from tests.conftest import run_cli
 
 NAMES = family_names("psd", 2, 20_000.0)
 
@@ -79,7 +80,7 @@ def grades_and_gratings(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path,
     sets = {"train": ("robot", "Ra0.44,Ra1.40,Ra4.43", "1", "3"), "known": ("robot", "Ra0.44,Ra1.40,Ra4.43", "2", "1"),
             "grating": ("robot,grating", "G1.00mm", "3", "1")}
     for name, (scene, surfaces, seed, files) in sets.items():
-        simulate_dataset(root / name, scene, surfaces=surfaces, seed=int(seed), files_per_surface=int(files), slides_per_file=3)
+        write_dataset(root / name, scene=scene, surfaces=surfaces, seed=int(seed), files_per_surface=int(files), slides_per_file=3)
     res = run_cli("train", *map(str, sorted((root / "train").glob("*.npz"))), "-o", str(root / "m.npz"), "--method", "quick", "--folds", "3")
     assert res.returncode == 0, res.stderr
     assert "whose spectral shape is farther from every taught surface" in res.stdout

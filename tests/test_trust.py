@@ -14,7 +14,8 @@ from tactiled.errors import ModelError
 from tactiled.learn.model import Model, fit_pipeline, load_model, novelty_scores, softmax
 from tactiled.learn.score import calibration_scores
 from tactiled.learn.search import fit_calibration, fit_novelty
-from tests.conftest import run_cli, simulate_dataset
+from tactiled.sim.simulate import write_dataset
+from tests.conftest import run_cli
 
 NAMES = ("film1.psd.20-200Hz.power", "film1.psd.200-2000Hz.power", "film1.tex.centroid", "film1.tex.kurtosis")
 
@@ -355,7 +356,7 @@ def test_the_ece_a_calibrated_model_would_show_is_large_on_few_mid_range_slides_
 
 def test_train_and_evaluate_refuse_a_surface_with_one_recording_train_allows_it_by_slide(tmp_path: Path) -> None:
     data = tmp_path / "data"
-    simulate_dataset(data, surfaces="3", files_per_surface=1, slides_per_file=4, fs=2200.0, channels=1)
+    write_dataset(data, scene="robot", surfaces="3", files_per_surface=1, slides_per_file=4, fs=2200.0, channels=1)
     files = sorted(str(p) for p in data.glob("*.npz"))
     res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick")
     assert res.returncode == 2 and not (tmp_path / "m.npz").exists()
@@ -373,7 +374,7 @@ def test_train_and_evaluate_refuse_a_recording_given_twice(tmp_path: Path) -> No
     """The same samples under two names (a copy, or one file matched by two globs): grouped folds would test a recording on
     its copy (cross-validation then promised 100 % on the hand scene), so train and evaluate stop with one line naming both."""
     data = tmp_path / "data"
-    simulate_dataset(data, surfaces="2", files_per_surface=1, slides_per_file=2, fs=2200.0, channels=1)
+    write_dataset(data, scene="robot", surfaces="2", files_per_surface=1, slides_per_file=2, fs=2200.0, channels=1)
     files = sorted(data.glob("*.npz"))
     copy = data / "copy.npz"
     copy.write_bytes(files[0].read_bytes())

@@ -49,10 +49,6 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     config = config_of(args)
     check_output(args.output, args.force, (".npz",))  # before minutes of search, not after
-    if args.scheduler:
-        from tactiled.learn.search import check_scheduler
-
-        check_scheduler(args.scheduler)  # likewise
     result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
                    scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by,
                    novelty=args.novelty, ensemble=args.ensemble, speed=args.speed_copies,

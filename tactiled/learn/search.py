@@ -389,11 +389,14 @@ def parallel_backend(scheduler: str | None) -> Iterator[None]:
         with joblib.parallel_config(n_jobs=-1):
             yield
         return
-    check_scheduler(scheduler)
-    from dask.distributed import Client
-
     try:
+        from dask.distributed import Client
+    except ImportError:
+        raise TactiledError("--scheduler needs dask.distributed: pip install 'tactiled[cluster]'") from None
+    try:  # train() has checked the address (check_scheduler); a scheduler gone since is said here
         client = Client(scheduler, timeout=f"{CONNECT_S:g}s")
+    except ValueError as exc:
+        raise TactiledError(f"--scheduler {scheduler}: not a scheduler address (tcp://host:port): {exc}") from None
     except (OSError, TimeoutError) as exc:
         raise TactiledError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
     try:

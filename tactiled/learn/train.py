@@ -34,6 +34,7 @@ from tactiled.learn.search import (
     UNTAUGHT_SHARE,
     Candidate,
     SearchResult,
+    check_scheduler,
     paper,
     quick_candidates,
     search,
@@ -125,6 +126,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     if ensemble not in ENSEMBLE_MODES:
         raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
     speed_option(speed)  # before the recordings load
+    if scheduler:
+        check_scheduler(scheduler)  # likewise: a refused address is said at once, not after the analysis
     recs = load_recordings(paths, say)
     check_recordings(recs, len(paths))
     per_file, counts = find_slides(recs, config)
