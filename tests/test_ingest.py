@@ -291,6 +291,39 @@ def test_run_no_wait_exits_at_once_and_waiting_says_so_once(tmp_path: Path) -> N
     assert sum("waiting for the device" in line for line in err.splitlines()) == 1, err
 
 
+def test_a_socket_url_port_delivers_every_byte(tmp_path: Path) -> None:
+    """``sensor.port = "socket://host:port"`` (a network serial bridge): the daemon reads all the board sends, not a byte per
+    read (pyserial's socket handler says one byte is waiting whatever has come)."""
+    import socket
+
+    sim = simulate_file(SimParams(), pick_surfaces("Ra2.29")[0], 2, 3)
+    n = sim.samples.shape[0] // 20 * 20
+    data = encode_frames(0, sim.samples[:n])
+    server = socket.create_server(("127.0.0.1", 0))
+    host, port = server.getsockname()
+
+    def serve() -> None:
+        with server, server.accept()[0] as conn:
+            conn.sendall(data)  # then the bridge closes: the daemon says it is disconnected
+
+    threading.Thread(target=serve, daemon=True).start()
+    cfg, raw, endpoint = tmp_path / "c.toml", tmp_path / "cap.bin", f"ipc://{tmp_path}/pub"
+    cfg.write_text("[sensor]\nallow_url = true\n[publish]\nstatus_interval_s = 0.05\n")
+    with BlockingSubscriber(endpoint, topics=["status"], timeout=20) as sub:
+        proc = subprocess.Popen(tactiled_cmd("run", "--config", str(cfg), "--port", f"socket://{host}:{port}", "--raw", str(raw),
+                                             "--no-model", "--publish", endpoint), stderr=subprocess.PIPE, text=True)
+        try:
+            seen: list[Status] = []
+            wait_for(lambda: seen.append(sub.receive()) or (seen[-1].samples >= n and seen[-1].state == "disconnected"),  # type: ignore[func-returns-value]
+                     timeout=60, what=f"{n} samples, then the bridge's close")
+        finally:
+            proc.terminate()
+            _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    assert (seen[-1].samples, seen[-1].samples_lost, seen[-1].crc_errors) == (n, 0, 0), err
+    assert raw.read_bytes() == data
+
+
 def test_replay_of_the_raw_capture_gives_the_live_daemons_events(tmp_path: Path) -> None:
     """The daemon writes what it reads (run --raw); replay x.bin through the decoder gives the same slides and labels."""
     raw = tmp_path / "cap.bin"

@@ -339,7 +339,8 @@ class SerialSource:
             while not stop.is_set():
                 time.sleep(interval)  # the read period, not synchronisation
                 now = self.alive_at = time.monotonic()
-                data = _read_all(fd, self._read_size, buf) if fd is not None else port.read(max(1, min(port.in_waiting, self._read_size)))
+                # a URL port: read() with timeout 0 returns what has come (pyserial's socket:// says in_waiting 1 for any amount)
+                data = _read_all(fd, self._read_size, buf) if fd is not None else port.read(self._read_size)
                 if data:
                     self.arrival = now
                     if tee is not None:
