@@ -292,8 +292,8 @@ def test_run_no_wait_exits_at_once_and_waiting_says_so_once(tmp_path: Path) -> N
 
 
 def test_a_socket_url_port_delivers_every_byte(tmp_path: Path) -> None:
-    """``sensor.port = "socket://host:port"`` (a network serial bridge): the daemon reads all the board sends, not a byte per
-    read (pyserial's socket handler says one byte is waiting whatever has come)."""
+    """``sensor.port = "socket://host:port"`` (a network serial bridge): the daemon reads all the bridge sends, not a byte per
+    read (pyserial's socket handler says one byte is waiting whatever has come), and keeps what came before the bridge closed."""
     import socket
 
     sim = simulate_file(SimParams(), pick_surfaces("Ra2.29")[0], 2, 3)
@@ -301,21 +301,29 @@ def test_a_socket_url_port_delivers_every_byte(tmp_path: Path) -> None:
     data = encode_frames(0, sim.samples[:n])
     server = socket.create_server(("127.0.0.1", 0))
     host, port = server.getsockname()
+    connected = threading.Event()
 
     def serve() -> None:
         with server, server.accept()[0] as conn:
-            conn.sendall(data)  # then the bridge closes: the daemon says it is disconnected
+            connected.wait(60)  # pyserial's open() drops what the socket holds: send once the daemon says it is connected
+            conn.sendall(data)  # then the bridge closes at once: the daemon says it is disconnected
 
     threading.Thread(target=serve, daemon=True).start()
     cfg, raw, endpoint = tmp_path / "c.toml", tmp_path / "cap.bin", f"ipc://{tmp_path}/pub"
     cfg.write_text("[sensor]\nallow_url = true\n[publish]\nstatus_interval_s = 0.05\n")
+    seen: list[Status] = []
+
+    def status() -> Status:
+        seen.append(sub.receive())
+        if seen[-1].state == "connected":
+            connected.set()
+        return seen[-1]
+
     with BlockingSubscriber(endpoint, topics=["status"], timeout=20) as sub:
         proc = subprocess.Popen(tactiled_cmd("run", "--config", str(cfg), "--port", f"socket://{host}:{port}", "--raw", str(raw),
                                              "--no-model", "--publish", endpoint), stderr=subprocess.PIPE, text=True)
         try:
-            seen: list[Status] = []
-            wait_for(lambda: seen.append(sub.receive()) or (seen[-1].samples >= n and seen[-1].state == "disconnected"),  # type: ignore[func-returns-value]
-                     timeout=60, what=f"{n} samples, then the bridge's close")
+            wait_for(lambda: (s := status()).samples >= n and s.state == "disconnected", timeout=60, what=f"{n} samples, then the close")
         finally:
             proc.terminate()
             _, err = proc.communicate(timeout=10)

@@ -326,7 +326,8 @@ class SerialSource:
 
     def _read_loop(self, port: serial.Serial, deliver: Callable[[bytes | tuple[str, str]], None], batched: bool) -> None:
         """Read once per read period; hand what was read on every read (``batched`` False) or once per :attr:`hand_over_s`."""
-        fd = None if self._url else port.fileno()
+        # a tty, or a socket:// port's socket (pyserial's socket read() drops what it gathered when it meets the close)
+        fd = port.fileno() if not self._url or hasattr(port, "fileno") else None
         if fd is not None:
             os.set_blocking(fd, False)
         tee, interval, stop = self._tee, self._read_interval, self._stop
@@ -339,8 +340,7 @@ class SerialSource:
             while not stop.is_set():
                 time.sleep(interval)  # the read period, not synchronisation
                 now = self.alive_at = time.monotonic()
-                # a URL port: read() with timeout 0 returns what has come (pyserial's socket:// says in_waiting 1 for any amount)
-                data = _read_all(fd, self._read_size, buf) if fd is not None else port.read(self._read_size)
+                data = _read_all(fd, self._read_size, buf) if fd is not None else port.read(self._read_size)  # timeout 0: what has come
                 if data:
                     self.arrival = now
                     if tee is not None:
