@@ -113,9 +113,8 @@ def pct(values: list[float], qs: tuple[float, ...]) -> list[float] | None:
     return [round(float(np.percentile(values, q)), 1) for q in qs] if values else None
 
 
-def make_stream(seconds: float, seed: int = 11, corrupt: float = 0.0, drop: float = 0.0, garbage: float = 0.0, scene: str = "hand") -> bytes:
-    """``seconds`` of a simulator scene (slides over random surfaces; 2 channels at 20 kHz) as the board's frames, faults injected per frame."""
-    from tactiled.board.frames import encode_frame
+def scene_samples(seconds: float, seed: int = 11, scene: str = "hand") -> np.ndarray:
+    """(n, 2) int16 counts: ``seconds`` of a simulator scene at 20 kHz, slides over random surfaces."""
     from tactiled.sim.physics import SensorSimulator, default_surfaces
     from tactiled.sim.simulate import scene_for
 
@@ -123,13 +122,20 @@ def make_stream(seconds: float, seed: int = 11, corrupt: float = 0.0, drop: floa
     if params.fs != FS or params.channels != 2:
         raise SystemExit(f"--scene {scene}: the player streams 2 channels at 20 kHz (the daemon's default sensor)")
     model = SensorSimulator(params, seed=seed)
-    rng = np.random.default_rng(seed)
     n = round(seconds * FS)
     parts = []
     for lo in range(0, n, FS):
         model.schedule_random(default_surfaces(), model.position + FS + 200)
         parts.append(model.read(min(FS, n - lo)))
-    samples = np.concatenate(parts)
+    return np.concatenate(parts)
+
+
+def make_stream(seconds: float, seed: int = 11, corrupt: float = 0.0, drop: float = 0.0, garbage: float = 0.0, scene: str = "hand") -> bytes:
+    """``seconds`` of a simulator scene (:func:`scene_samples`) as the board's frames, faults injected per frame."""
+    from tactiled.board.frames import encode_frame
+
+    samples = scene_samples(seconds, seed, scene)
+    rng = np.random.default_rng(seed)
     if not (corrupt or drop or garbage):
         from tactiled.board.frames import encode_frames
 
