@@ -153,6 +153,14 @@ def make_stream(seconds: float, seed: int = 11, corrupt: float = 0.0, drop: floa
     return b"".join(out)
 
 
+def report(out: dict[str, object], path: str | None) -> None:
+    """Print the figures as JSON, and write them to ``path`` too if given."""
+    print(json.dumps(out, indent=1))
+    if path:
+        with open(path, "w") as fh:
+            json.dump(out, fh, indent=1)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=600.0)
@@ -307,10 +315,7 @@ def main() -> None:
         "status": None if last is None else {k: getattr(last, k) for k in ("samples", "samples_lost", "crc_errors", "bad_headers",
                                                                              "bytes_discarded", "reconnects", "slides", "labels")},
     }
-    print(json.dumps(out, indent=1))
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(out, fh, indent=1)
+    report(out, args.json)
 
 
 if __name__ == "__main__":

@@ -19,13 +19,12 @@ daemon says once that the board runs faster than configured (the rate check), an
 from __future__ import annotations
 
 import argparse
-import json
 import socket
 import subprocess
 import threading
 import time
 
-from bench_daemon import FS, TACTILED, rss_mb, scene_samples
+from bench_daemon import FS, TACTILED, report, rss_mb, scene_samples
 from scratch import scratch
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Status
 
@@ -121,10 +120,7 @@ def main() -> None:
                                                                              "slides", "labels", "overloaded", "index")},
         "daemon_log": (tmp / "daemon.log").read_text().splitlines()[:20],
     }
-    print(json.dumps(out, indent=1))
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(out, fh, indent=1)
+    report(out, args.json)
 
 
 if __name__ == "__main__":
