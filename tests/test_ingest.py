@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import json
 import os
+import socket
 import subprocess
 import threading
 import time
@@ -16,11 +17,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import serial
 import zmq
 from tactiled_client import BlockingSubscriber, Roughness, Slide, Status
 
 from tactiled.board.frames import encode_frame, encode_frames
-from tactiled.board.serialsource import CONNECTED, DISCONNECTED, MemorySource, SerialSource
+from tactiled.board.serialsource import CONNECTED, DISCONNECTED, MemorySource, SerialSource, port_fd
 from tactiled.config import Config
 from tactiled.core.events import PipelineEvent, SlideResult
 from tactiled.files.capture import read_chunks, recording_bytes
@@ -294,8 +296,6 @@ def test_run_no_wait_exits_at_once_and_waiting_says_so_once(tmp_path: Path) -> N
 def test_a_socket_url_port_delivers_every_byte(tmp_path: Path) -> None:
     """``sensor.port = "socket://host:port"`` (a network serial bridge): the daemon reads all the bridge sends, not a byte per
     read (pyserial's socket handler says one byte is waiting whatever has come), and keeps what came before the bridge closed."""
-    import socket
-
     sim = simulate_file(SimParams(), pick_surfaces("Ra2.29")[0], 2, 3)
     n = sim.samples.shape[0] // 20 * 20
     data = encode_frames(0, sim.samples[:n])
@@ -330,6 +330,66 @@ def test_a_socket_url_port_delivers_every_byte(tmp_path: Path) -> None:
     assert proc.returncode == 0, err
     assert (seen[-1].samples, seen[-1].samples_lost, seen[-1].crc_errors) == (n, 0, 0), err
     assert raw.read_bytes() == data
+
+
+def test_a_read_takes_more_than_the_4_kib_a_tty_hands_out_at_once() -> None:
+    """A tty's read returns at most 4095 bytes; the source reads on until the kernel has no more, so a read period that
+    holds more than 4 KiB of the board's bytes (20 kHz at a 50 ms period, more channels, a loaded host) loses nothing."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    data = bytes(range(256)) * 240  # 60 kB: the pty holds ~20 kB, so the writer waits for the reader
+    got: list[bytes] = []
+    done = threading.Event()
+
+    def on_bytes(chunk: bytes) -> None:
+        got.append(chunk)
+        if sum(map(len, got)) >= len(data):
+            done.set()
+
+    source = SerialSource(os.ttyname(slave), on_bytes, read_interval_s=0.2)  # one delivery per read (start/stop)
+    try:
+        source.start()
+        writer = threading.Thread(target=lambda: [os.write(master, data[i:i + 920]) for i in range(0, len(data), 920)], daemon=True)
+        wait_for(lambda: source.connected, what="the source's open")  # (it drops what the port held before: nothing yet)
+        writer.start()
+        assert done.wait(60), f"{sum(map(len, got))} of {len(data)} bytes"
+        source.stop()
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert b"".join(got) == data
+    assert max(map(len, got)) > 4096, [len(c) for c in got]  # a read took more than one tty read's worth
+
+
+def test_url_ports_are_read_by_their_socket_or_by_read(tmp_path: Path) -> None:
+    """socket:// by its socket's fd (pyserial's read() there drops what it gathered at the close); loop:// and rfc2217://
+    have no fd of their own (io's fileno raises): read through pyserial, not taken for a disconnect."""
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        host, port = server.getsockname()
+        with contextlib.closing(serial.serial_for_url(f"socket://{host}:{port}", timeout=0)) as sock_port:
+            assert port_fd(sock_port) == sock_port._socket.fileno()
+    with contextlib.closing(serial.serial_for_url("loop://", timeout=0)) as loop_port:
+        assert port_fd(loop_port) is None
+
+
+def test_a_port_that_fails_before_a_byte_is_reopened_with_backoff() -> None:
+    """A bridge that accepts each connection and closes it at once: the source reopens after 0.05, 0.1, 0.2 ... s, not in
+    a tight loop (a replug that had given bytes is reopened at once)."""
+    opened: list[float] = []
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        server.settimeout(30)
+        host, port = server.getsockname()
+        source = SerialSource(f"socket://{host}:{port}", lambda b: None, retry_initial_s=0.05, retry_max_s=2.0)
+        source.start()
+        try:
+            while len(opened) < 6:
+                conn, _ = server.accept()
+                opened.append(time.monotonic())
+                conn.close()
+        finally:
+            source.stop()
+    gaps = np.diff(opened)  # each: pyserial's open (~0.3 s here), then the wait, which doubles from 0.05 s
+    assert gaps[-1] - gaps[0] >= 0.5, gaps  # 0.8 - 0.05 s expected
 
 
 def test_replay_of_the_raw_capture_gives_the_live_daemons_events(tmp_path: Path) -> None:

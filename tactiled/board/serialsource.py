@@ -240,6 +240,7 @@ class SerialSource:
 
     def _reader(self, deliver: Callable[[bytes | tuple[str, str]], None], batched: bool) -> None:
         down_reported = False
+        barren = self._retry[0]  # the wait before reopening a port that failed before it gave a byte (doubling to retry_max_s)
         while not self._stop.is_set():
             port: serial.Serial | None = None
             try:
@@ -252,6 +253,11 @@ class SerialSource:
                 self.connected = False
                 deliver((DISCONNECTED, f"disconnected: {exc}"))
                 down_reported = True
+                if self._read_any:  # a replug is reopened at once: the new tty's buffer fills from the first frame
+                    barren = self._retry[0]
+                else:  # opens, then fails at once (a bridge that closes each connection): not a tight loop
+                    self._stop.wait(barren)  # backoff, not synchronisation
+                    barren = min(barren * 2, self._retry[1])
             except Exception as exc:  # the reader must survive anything: reported, counted, reconnected
                 self.errors += 1
                 self.connected = False
@@ -300,6 +306,7 @@ class SerialSource:
         return None
 
     _ever_connected = False
+    _read_any = False  # the connection being read has given bytes
 
     def _open(self) -> serial.Serial:
         if self._url:  # pyserial URL handlers (loop://, socket://, ...)
@@ -326,11 +333,11 @@ class SerialSource:
 
     def _read_loop(self, port: serial.Serial, deliver: Callable[[bytes | tuple[str, str]], None], batched: bool) -> None:
         """Read once per read period; hand what was read on every read (``batched`` False) or once per :attr:`hand_over_s`."""
-        # a tty, or a socket:// port's socket (pyserial's socket read() drops what it gathered when it meets the close)
-        fd = port.fileno() if not self._url or hasattr(port, "fileno") else None
+        fd = port_fd(port)
         if fd is not None:
             os.set_blocking(fd, False)
         tee, interval, stop = self._tee, self._read_interval, self._stop
+        self._read_any = False
         held: list[bytes] = []
         buf = bytearray(READ_CHUNK)
         handed = time.monotonic()
@@ -342,7 +349,7 @@ class SerialSource:
                 now = self.alive_at = time.monotonic()
                 data = _read_all(fd, self._read_size, buf) if fd is not None else port.read(self._read_size)  # timeout 0: what has come
                 if data:
-                    self.arrival = now
+                    self.arrival, self._read_any = now, True
                     if tee is not None:
                         tee.write(data)
                     held.append(data)
@@ -352,6 +359,16 @@ class SerialSource:
         finally:
             if held:  # what was read before a disconnect still goes on
                 deliver(b"".join(held))
+
+
+def port_fd(port: serial.SerialBase) -> int | None:
+    """The file descriptor to read ``port`` by: a tty's, or a ``socket://`` port's socket (pyserial's socket ``read()`` drops
+    what it gathered when it meets the close, and says 1 byte is waiting whatever has come); None for the URL handlers that
+    have none (``loop://``, ``rfc2217://``: their ``fileno`` is io's, which raises), read through ``read()``."""
+    try:
+        return int(port.fileno())
+    except (OSError, AttributeError):  # io.UnsupportedOperation is an OSError
+        return None
 
 
 def _read_all(fd: int, limit: int, buf: bytearray) -> bytes:
@@ -379,9 +396,7 @@ def _read_all(fd: int, limit: int, buf: bytearray) -> bytes:
             if not n:
                 raise Disconnected("device reports readiness to read but returned no data (unplugged?)")
         parts.append(bytes(want[:n]))
-        total += n
-        if n < 4096:  # the kernel had no more (a tty hands out at most its buffer per read)
-            break
+        total += n  # and read again: a tty hands out at most 4095 bytes a read, whatever waits behind them
     return parts[0] if len(parts) == 1 else b"".join(parts)
 
 
