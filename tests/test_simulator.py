@@ -83,6 +83,22 @@ def test_any_rate_and_channel_count() -> None:
     assert sim.samples.shape[1] == 1 and len(sim.truth) == 2
 
 
+def test_a_virtual_board_of_a_float_scene_sends_its_signal_in_counts() -> None:
+    """``simulate serial --scene one-channel``: the scene's recordings are float volts (volts_per_count 1); its board sends
+    int16 counts at the default ADC's scale, the same signal as the scene's files to within a count (not rounded to 1 V)."""
+    from tactiled.sim.simulate import board_params, scene_for
+
+    params = board_params("one-channel")
+    assert (params.fs, params.channels, params.volts_per_count) == (2200.0, 1, SimParams.volts_per_count)
+    board, files = SensorSimulator(params, 3), SensorSimulator(scene_for("one-channel")[1], 3)
+    for model in (board, files):
+        model.add_slide(default_surfaces()[5], 1.0)
+    counts = board.read(board.scheduled_end).astype(np.float64)
+    assert counts.std() > 100  # tens of mV at 153 uV a count (1 V a count rounded it to 0 and 1)
+    expected = files.read_volts(files.scheduled_end)
+    assert np.abs(counts * params.volts_per_count - expected).max() <= params.volts_per_count
+
+
 def test_dataset_cli(tmp_path: Path) -> None:
     res = run_cli("simulate", "dataset", "--out", str(tmp_path), "--surfaces", "Ra0.44,Ra4.43", "--files-per-surface", "1",
                   "--slides-per-file", "2", "--scene", "robot")

@@ -505,9 +505,15 @@ def simulate_file(params: SimParams, surface: Surface, slides: int, seed: int) -
     if params.continuous:
         volts = volts[lead:lead + keep]
         model.truth = [replace(truth, start=0, stop=keep)]
+    return SimulatedFile(output(volts, params), model.truth)
+
+
+def output(volts: FloatArray, params: SimParams) -> npt.NDArray[Any]:
+    """What the sensor gives for ``volts`` (n, C): float32 volts clipped at the rails (``params.float_output``), else int16
+    counts (:func:`adc`); either times ``params.volts_per_count`` is volts (a float scene's is 1)."""
     if params.float_output:
-        return SimulatedFile(np.clip(volts, -params.full_scale_v, params.full_scale_v).astype(np.float32), model.truth)
-    return SimulatedFile(adc(volts, params.volts_per_count, params.full_scale_v), model.truth)
+        return np.clip(volts, -params.full_scale_v, params.full_scale_v).astype(np.float32)
+    return adc(volts, params.volts_per_count, params.full_scale_v)
 
 
 SCENES = ("hand", "robot", "continuous", "fluctuating", "hot-gain", "one-channel", "grating")

@@ -20,6 +20,7 @@ from tactiled.sim.physics import (
     Surface,
     hot_gain,
     other_unit,
+    output,
     pick_surfaces,
     scene_params,
     simulate_file,
@@ -143,11 +144,21 @@ def _seconds_list(option: str, text: str) -> list[float]:
         raise TactiledError(f"{option}: not a list of seconds: {text!r}") from None
 
 
-def run_virtual_board(args: argparse.Namespace) -> int:
-    """Run a virtual board until SIGINT/SIGTERM or ``--seconds``; prints the device path first."""
-    _, params = scene_for(getattr(args, "scene", None), args.mode, args.fs, args.channels)
+def board_params(scene: str | None, mode: str | None = None, fs: float | None = None, channels: int | None = None) -> SimParams:
+    """The parameters of a virtual board of ``scene`` (:func:`scene_for`): a board sends int16 counts, so a scene of float
+    volts (``one-channel``) is quantised at the default ADC's scale (its own ``volts_per_count`` of 1 would round its
+    signal to a count or two); a continuous scene slides back to back."""
+    _, params = scene_for(scene, mode, fs, channels)
+    if params.float_output:
+        params = replace(params, float_output=False, volts_per_count=SimParams.volts_per_count)
     if params.continuous:
         params = replace(params, rest_s=(0.0, 0.0))  # back-to-back slides: the stream never rests
+    return params
+
+
+def run_virtual_board(args: argparse.Namespace) -> int:
+    """Run a virtual board until SIGINT/SIGTERM or ``--seconds``; prints the device path first."""
+    params = board_params(getattr(args, "scene", None), args.mode, args.fs, args.channels)
     unplug_at, reset_at = _seconds_list("--unplug-at", args.unplug_at), _seconds_list("--reset-at", getattr(args, "reset_at", ""))
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):  # before the link exists, so that no stop leaves it behind
@@ -191,7 +202,7 @@ def write_figure(out: Path, scene: str | None = None, seed: int = 0, mode: str |
         model.add_rest(0.3)
         truth = model.add_slide(surface, 1.3)
         model.add_rest(0.3)
-        volts = model.read(model.scheduled_end).astype(np.float64) * params.volts_per_count
+        volts = output(model.read_volts(model.scheduled_end), params).astype(np.float64) * params.volts_per_count
         t = np.arange(volts.shape[0]) / params.fs
         axes[row, 0].plot(t, volts[:, 0], lw=0.4)
         axes[row, 0].axvspan(truth.start / params.fs, truth.stop / params.fs, color="orange", alpha=0.15)
