@@ -416,6 +416,25 @@ def test_replay_of_the_raw_capture_gives_the_live_daemons_events(tmp_path: Path)
     assert b"".join(read_chunks(raw))[:2] != b""  # the capture holds what was read
 
 
+def test_on_sigterm_what_was_read_is_recorded_too(tmp_path: Path) -> None:
+    """The reader holds up to ``serial.batch_s`` of bytes (``rest_batch_s`` at rest) before handing them over; stopped, the
+    daemon still records (and analyses) them: ``--record`` holds every sample of the ``--raw`` capture."""
+    from tactiled.files.recording import load_recording
+
+    config, raw, rec = tmp_path / "c.toml", tmp_path / "cap.bin", tmp_path / "rec.npz"
+    config.write_text("[serial]\nbatch_s = 1.0\nrest_batch_s = 1.0\n[publish]\nstatus_interval_s = 0.1\n")
+    with board_and_daemon(tmp_path, "--config", str(config), "--raw", str(raw), "--record", str(rec), surfaces=2, seed=3) as live, \
+            BlockingSubscriber(live.endpoint, topics=["status"], timeout=20) as sub:
+        wait_for(lambda: sub.receive().samples > 20_000, timeout=60, what="a second of samples")  # type: ignore[attr-defined]
+        err = live.stop()
+    assert live.proc.returncode == 0, err
+    ingest = Ingest(2, max_gap=10_000)
+    batches = ingest.feed(b"".join(read_chunks(raw))) + ingest.flush()
+    recorded = load_recording(rec)
+    assert recorded.first_index == batches[0].index
+    assert recorded.first_index + recorded.samples.shape[0] == batches[-1].index + batches[-1].samples.shape[0]
+
+
 def test_end_of_stream_releases_what_the_batcher_held() -> None:
     stream = Stream(Config(), None, max_gap=1000, min_batch=10_000)
     assert stream.feed_bytes(_frames(0, 5)).batches == [] and stream.ingest.held == 100

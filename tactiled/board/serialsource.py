@@ -64,6 +64,7 @@ READ_CHUNK = 1 << 16  # bytes asked of one os.read: a tty hands out at most ~4 k
 MAX_BACKLOG_BYTES = 4 << 20  # bytes read but not yet consumed: beyond this, new reads are dropped (counted) until the loop catches up
 CONNECTED = "connected"
 DISCONNECTED = "disconnected"
+_END: tuple[str, str] = ("end", "")  # SerialSource.run's queue: the reader thread has ended (compared by identity)
 
 
 class KeepInputSerial(serial.Serial):
@@ -211,30 +212,42 @@ class SerialSource:
                     self._backlog += len(item)
             loop.call_soon_threadsafe(arrive, time.monotonic(), item)
 
-        self._thread = threading.Thread(target=self._reader, args=(hand, True), name=f"serial:{self.path}", daemon=True)
+        async def take(item: bytes | tuple[str, str]) -> None:
+            if isinstance(item, tuple):
+                self._on_state(*item)
+                return
+            try:
+                result = self._consume(item)
+                if inspect.isawaitable(result):
+                    try:
+                        await result
+                    except Exception as exc:  # as in _consume: the daemon keeps running
+                        self._consumer_failed(exc)
+            finally:
+                self._waiting.popleft()
+                with self._backlog_lock:
+                    self._backlog -= len(item)
+
+        def read() -> None:  # the reader thread: once it ends (request_stop), what it held is queued, then the end
+            try:
+                self._reader(hand, True)
+            finally:
+                loop.call_soon_threadsafe(queue.put_nowait, _END)
+
+        self._thread = threading.Thread(target=read, name=f"serial:{self.path}", daemon=True)
         self._thread.start()
         try:
-            while True:
-                item = await queue.get()
-                if isinstance(item, tuple):
-                    self._on_state(*item)
-                    continue
-                try:
-                    result = self._consume(item)
-                    if inspect.isawaitable(result):
-                        try:
-                            await result
-                        except Exception as exc:  # as in _consume: the daemon keeps running
-                            self._consumer_failed(exc)
-                finally:
-                    self._waiting.popleft()
-                    with self._backlog_lock:
-                        self._backlog -= len(item)
+            while (item := await queue.get()) is not _END:
+                await take(item)
                 if not queue.empty():  # (an empty queue's get() waits: the loop turns there, without an extra turn here)
                     await asyncio.sleep(0)  # the loop turns between items, however many are queued
         finally:
             self._stop.set()
             await asyncio.to_thread(self._thread.join, 5.0)
+
+    def request_stop(self) -> None:
+        """Stop reading: :meth:`run` hands over what the reader holds (already in a raw capture), then returns (thread-safe)."""
+        self._stop.set()
 
     # ---- the reader thread ----------------------------------------------------------------------
 
@@ -417,7 +430,10 @@ class ByteSource(Protocol):
         """Seconds the oldest bytes read but not yet consumed have waited (0: keeping up)."""
 
     async def run(self) -> None:
-        """Read until cancelled or the source ends, handing bytes to ``on_bytes`` and state changes to ``on_state``."""
+        """Read until cancelled, stopped or the source ends, handing bytes to ``on_bytes`` and state changes to ``on_state``."""
+
+    def request_stop(self) -> None:
+        """End :meth:`run` soon, once what was read has been handed over."""
 
 
 class MemorySource:
@@ -441,12 +457,19 @@ class MemorySource:
         self._on_bytes = on_bytes
         self._on_state = on_state or (lambda state, detail: None)
         self._period = period_s
+        self._stopping = False
+
+    def request_stop(self) -> None:
+        """End :meth:`run` before the next chunk."""
+        self._stopping = True
 
     async def run(self) -> None:
         """Report connected, hand each chunk to ``on_bytes`` (awaited if it returns an awaitable) ``period_s`` apart, then report disconnected."""
         self.connected = True
         self._on_state(CONNECTED, "memory")
         for data in self._chunks:
+            if self._stopping:
+                break
             await asyncio.sleep(self._period)  # pacing (0: just yield to the loop), not synchronisation
             self.alive_at = self.arrival = time.monotonic()
             result = self._on_bytes(data)

@@ -68,6 +68,7 @@ RESUME_BELOW_S = 0.1  # ... until the oldest input waiting is younger than this
 RATE_INTERVALS = 10  # a rate off sensor.fs (rate_mismatch) is said after this many status intervals running (5 s at the default)
 KEEPING_UP = 0.5  # the watchdog is fed only while samples are handled at no less than this fraction of real time
 INLINE_ANALYSIS_S = 0.005  # a batch that completes a window is analysed on the loop if the last such batch took at most this, s
+STOP_READER_S = 5.0  # on SIGTERM, the longest wait for what the source has read to be analysed and recorded before it is cancelled
 
 
 @dataclass
@@ -169,6 +170,9 @@ class Daemon:
                 if self.control is not None:
                     tasks.append(tg.create_task(self._serve_control(), name="control"))
                 await asyncio.wait([self._reader, stopped], return_when=asyncio.FIRST_COMPLETED)
+                if not self._reader.done():  # stopped: what the source read is analysed and recorded first (bounded wait)
+                    self.source.request_stop()
+                    await asyncio.wait([self._reader], timeout=STOP_READER_S)
                 for t in tasks:
                     t.cancel()
         finally:
@@ -254,6 +258,8 @@ class Daemon:
         """The source until it ends (a finite source: then the explicit end of stream), or until cancelled."""
         assert self.source is not None
         await self.source.run()
+        if self.stop_event.is_set():  # stopped, not the end of a finite source: a slide under way is not ended
+            return
         step = self.stream.finish()
         self._take(step.batches)
         if self.config.publish.samples:
