@@ -268,6 +268,20 @@ def test_training_on_a_local_dask_cluster(tmp_path: Path) -> None:
         assert bad.returncode == 2 and len(lines) == 1 and "not a scheduler address" in lines[0] and address in lines[0], bad.stderr
 
 
+def test_a_scheduler_port_that_says_nothing_is_refused_before_training(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A port that accepts and never answers (another service): dask's client waited for ever there, after the analysis."""
+    import socket
+
+    from tactiled.errors import TactiledError
+    from tactiled.learn import search
+
+    monkeypatch.setattr(search, "CONNECT_S", 0.5)
+    with socket.create_server(("127.0.0.1", 0)) as server:  # the kernel accepts for it: connected, then silence
+        host, port = server.getsockname()
+        with pytest.raises(TactiledError, match=f"tcp://{host}:{port}: accepts connections but does not answer as a dask scheduler"):
+            search.check_scheduler(f"tcp://{host}:{port}")
+
+
 def test_headless_demo_prints_labels_with_the_truth_and_stops() -> None:
     res = run_cli("demo", "--headless", "--seconds", "10", "--scene", "robot", timeout=120)
     assert res.returncode == 0, res.stderr

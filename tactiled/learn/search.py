@@ -359,7 +359,9 @@ CONNECT_S = 10.0  # how long a scheduler may take to answer
 def check_scheduler(scheduler: str) -> None:
     """Raise :class:`TactiledError` (one line) unless ``scheduler`` is an address dask.distributed can parse and, for
     TCP (``tcp://``, ``tls://``), one that accepts a connection: a refused one is said at once (dask's client retries it
-    for :data:`CONNECT_S`), so ``train`` can check before it analyses any recording."""
+    for :data:`CONNECT_S`), so ``train`` can check before it analyses any recording. On ``tcp://`` the peer must also
+    begin dask's handshake (a scheduler sends its first at once) within :data:`CONNECT_S`: dask's client waits for ever
+    on a port that accepts and says nothing (another service's)."""
     try:
         from distributed.comm import parse_address
         from distributed.comm.addressing import parse_host_port
@@ -375,9 +377,18 @@ def check_scheduler(scheduler: str) -> None:
     if host is None:
         return
     try:
-        socket.create_connection((host, port), timeout=CONNECT_S).close()
+        conn = socket.create_connection((host, port), timeout=CONNECT_S)
     except OSError as exc:  # refused, no route, unknown host, or no answer (TimeoutError)
         raise TactiledError(f"--scheduler {scheduler}: cannot connect: {exc.strerror or exc}") from None
+    with conn:
+        if scheme == "tcp":  # (over tls the client speaks first)
+            try:
+                first = conn.recv(1)
+            except OSError:  # TimeoutError: no answer; a reset
+                first = b""
+            if not first:
+                raise TactiledError(f"--scheduler {scheduler}: accepts connections but does not answer as a dask scheduler "
+                                    f"(no handshake within {CONNECT_S:g} s)")
 
 
 @contextlib.contextmanager
