@@ -392,6 +392,19 @@ def test_a_port_that_fails_before_a_byte_is_reopened_with_backoff() -> None:
     assert gaps[-1] - gaps[0] >= 0.5, gaps  # 0.8 - 0.05 s expected
 
 
+def test_run_no_wait_and_record_refuse_a_socket_url_nothing_listens_on(tmp_path: Path) -> None:
+    """As for a missing tty: one line, exit 2, at once (they retried for ever)."""
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        host, port = server.getsockname()  # closed below: nothing listens there
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[sensor]\nallow_url = true\n")
+    url = f"socket://{host}:{port}"
+    for args in (("run", "--no-wait", "--no-model", "--publish", f"ipc://{tmp_path}/p"), ("record", "--seconds", "1", "-o", str(tmp_path / "r.npz"))):
+        res = subprocess.run(tactiled_cmd(*args, "--config", str(cfg), "--port", url), capture_output=True, text=True, timeout=60)
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith(f"tactiled: error: {url}: cannot open: "), res.stderr
+
+
 def test_replay_of_the_raw_capture_gives_the_live_daemons_events(tmp_path: Path) -> None:
     """The daemon writes what it reads (run --raw); replay x.bin through the decoder gives the same slides and labels."""
     raw = tmp_path / "cap.bin"

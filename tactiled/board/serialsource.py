@@ -87,8 +87,13 @@ class KeepInputSerial(serial.Serial):
 
 
 def check_port(path: str) -> None:
-    """Raise :class:`DeviceError` naming ``path`` if it cannot be opened now."""
+    """Raise :class:`DeviceError` naming ``path`` if it cannot be opened now (a URL: opened and closed again, so a
+    ``socket://`` bridge sees one connection more)."""
     if "://" in path:
+        try:
+            serial.serial_for_url(path, timeout=0).close()
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DeviceError(f"{path}: cannot open: {str(exc).removeprefix(f'Could not open port {path}: ')}") from None
         return
     if not os.path.exists(path):
         raise DeviceError(f"{path}: no such serial device")
