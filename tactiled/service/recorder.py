@@ -302,7 +302,9 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
             log.warning("%s: %s", s.port, detail)
 
     channels_said = rate_said = False  # each said once
-    first: tuple[float, int] | None = None  # when samples first came, and how many had come by then (the rate's start)
+    # the rate's start: when samples first came, the index's advance by then (samples and lost: an unplug or dropped frames
+    # are not a slower board), and the restarts and reconnects by then (either begins the measurement again)
+    first: tuple[float, int, tuple[int, int]] | None = None
 
     def take(data: bytes | None) -> None:
         nonlocal channels_said, rate_said, first
@@ -313,9 +315,10 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
             log.warning("%s", stream.ingest.decoder.channel_mismatch(s.id))
         if rate_said:
             return
-        now, n = time.monotonic(), stream.stats.samples
-        if n and first is None:
-            first = (now, n)
+        st = stream.stats
+        now, n, epoch = time.monotonic(), st.samples + st.samples_lost, (st.restarts, source.reconnects if source is not None else 0)
+        if n and (first is None or first[2] != epoch):
+            first = (now, n, epoch)
         elif first is not None and now - first[0] >= RATE_AFTER_S:  # sensor.fs is written into the recording
             rate_said = True
             line = rate_mismatch(s.id, (n - first[1]) / (now - first[0]), s.fs)
@@ -325,7 +328,9 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}  # a flag: never interrupts a write
     try:
-        source = SerialSource(s.port, chunks.put, on_state, baudrate=s.baudrate, retry_max_s=config.serial.retry_max_s)
+        c = config.serial
+        source = SerialSource(s.port, chunks.put, on_state, baudrate=s.baudrate, retry_initial_s=c.retry_initial_s, retry_max_s=c.retry_max_s,
+                              read_interval_s=c.read_interval_s)
         source.start()
         log.info("recording %s -> %s (Ctrl-C stops and saves)", s.port, out)
         try:
