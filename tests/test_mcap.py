@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 from mcap.reader import make_reader
 
+from tactiled.files.formats import open_recording
 from tactiled.files.recording import Recording, load_recording, save_recording
 from tactiled.service.mcap_export import read_mcap_samples
 from tactiled.sim.physics import SensorSimulator, SimParams, default_surfaces
@@ -142,3 +143,14 @@ def test_replay_of_the_exported_mcap_gives_the_npz_replays_labels(tmp_path: Path
     assert ros.returncode == 0, ros.stderr
     refused = run_cli("replay", str(tmp_path / "ros.mcap"))
     assert refused.returncode == 2 and "a ROS 2 bag" in refused.stderr and len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+
+
+def test_a_recording_of_no_samples_round_trips(tmp_path: Path) -> None:
+    """An export of 0 samples has no samples message; replay read it as "no samples channel", exit 2."""
+    src, out = tmp_path / "zero.npz", tmp_path / "zero.mcap"
+    save_recording(src, Recording(np.zeros((0, 3), np.int16), 20_000.0, 5 / 32768))
+    assert run_cli("export", "--no-model", str(src), "-o", str(out)).returncode == 0
+    back = open_recording(out)
+    assert isinstance(back, Recording) and back.samples.shape == (0, 3) and back.fs == 20_000.0
+    res = run_cli("replay", str(out))
+    assert res.returncode == 0, res.stderr

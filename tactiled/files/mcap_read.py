@@ -43,8 +43,11 @@ def load_mcap_recording(path: str | Path) -> Recording:
         raise
     except Exception as exc:  # the mcap reader's own errors (bad magic, truncated records) and malformed JSON
         raise RecordingError(f"{p}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
-    if not rows:
-        raise RecordingError(f"{p}: samples: no samples channel")
+    if not rows:  # a recording of no samples has no samples message: its channels are in the metadata
+        try:
+            rows = [np.zeros((0, int(info["channels"])))]
+        except (KeyError, ValueError):
+            raise RecordingError(f"{p}: samples: no samples messages, and no channel count in the metadata") from None
     volts = np.concatenate(rows)
     vpc = float(info.get("volts_per_count", "1.0"))
     dtype = np.dtype(info.get("samples_dtype", "float64"))
