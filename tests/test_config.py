@@ -106,3 +106,8 @@ def test_check_config_says_whether_run_would_find_a_model(tmp_path: Path) -> Non
     assert res.returncode == 2 and res.stderr.strip().splitlines() == [
         f"tactiled: error: {named}: model.path: model trained at fs 20000 Hz, sensor fingertip0 is 2200 Hz"], res.stderr
     assert run_cli("check-config", str(REPO / "configs" / "tactiled.toml")).stderr == ""  # the shipped model fits: nothing to say
+    slow = tmp_path / "slow.toml"  # record works at 100 Hz; run --no-model cannot analyse: said, naming the keys (run said it alone)
+    slow.write_text("[sensor]\nfs = 100\nchannels = 1\n")
+    res = run_cli("check-config", str(slow))
+    assert res.returncode == 0 and "--no-model cannot analyse with this config: window.duration_s = 0.5 s at 100 Hz is too short for " \
+        "features.families = dwt, psd, tex" in res.stderr, res.stderr

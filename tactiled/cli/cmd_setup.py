@@ -6,7 +6,7 @@ import argparse
 
 from tactiled.cli.common import EXIT_OK, Sub, command, say
 from tactiled.config import load_config
-from tactiled.errors import ModelError
+from tactiled.errors import ModelError, WindowError
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -21,6 +21,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     """Load and validate a config file: ok, or one line naming the key. Then the model ``tactiled run`` would use with it:
     a ``model.path`` or ``model.shadow`` that does not fit the sensor's rate and channels is an error (one line), as it is
     for ``run``; the shipped model not fitting is a note (a config for ``record`` needs no model)."""
+    from tactiled.core.analysis import AnalysisSettings
     from tactiled.learn.choose import ModelChoice
 
     config = load_config(args.file)
@@ -39,7 +40,12 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     for note in notes:
         say(f"note: {note}")
     if model is None:
-        say("note: tactiled run needs a model that fits this sensor (train one with tactiled train and set model.path) or --no-model")
+        try:  # run --no-model analyses with the config's own windows and features
+            AnalysisSettings.from_config(config, s.channels, s.fs)
+            no_model = "or --no-model"
+        except WindowError as exc:
+            no_model = f"(--no-model cannot analyse with this config: {exc})"
+        say(f"note: tactiled run needs a model that fits this sensor (train one with tactiled train and set model.path) {no_model}")
     return EXIT_OK
 
 

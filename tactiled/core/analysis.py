@@ -56,8 +56,8 @@ class AnalysisSettings:
         if st is None and "dwt" in fams and len(fams) > 1:
             st = window_settings(config, channels, fs, w.duration_s, [f for f in fams if f != "dwt"], w.start_s, w.max_windows, w.hop_s)
         if st is None:
-            raise WindowError("window_too_short", f"the feature families {', '.join(fams)} cannot be computed on {w.duration_s:g} s windows at "
-                              f"{fs:g} Hz (the DWT needs longer windows; psd and tex need 0.45 fs above features.psd_low_hz = "
+            raise WindowError("window_too_short", f"window.duration_s = {w.duration_s:g} s at {fs:g} Hz is too short for features.families = "
+                              f"{', '.join(fams)} (the DWT needs longer windows; psd and tex need 0.45 fs above features.psd_low_hz = "
                               f"{config.features.psd_low_hz:g} Hz)")
         return st
 
