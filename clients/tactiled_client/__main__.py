@@ -73,6 +73,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     def stop(signum: int, frame: object) -> None:
         nonlocal stopping
+        if stopping:  # a second Ctrl-C or SIGTERM: do not wait for the drain (what was recorded stays: each message is whole)
+            raise KeyboardInterrupt
         stopping = True
 
     try:
@@ -81,11 +83,14 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             if len(args.endpoint) < 2:
                 raise ClientError("record needs an endpoint and an output file")
-            signal.signal(signal.SIGTERM, stop)
-            signal.signal(signal.SIGINT, stop)
+            before = signal.signal(signal.SIGTERM, stop), signal.signal(signal.SIGINT, stop)
             *endpoints, out = args.endpoint
-            n = record(endpoints, out, seconds=args.seconds, topics=args.topics, sensor=args.sensor,
-                       curve=tuple(args.curve) if args.curve else None, stop=lambda: stopping, overwrite=args.force)
+            try:
+                n = record(endpoints, out, seconds=args.seconds, topics=args.topics, sensor=args.sensor,
+                           curve=tuple(args.curve) if args.curve else None, stop=lambda: stopping, overwrite=args.force)
+            finally:  # main may run inside another program (a test): give its handlers back
+                signal.signal(signal.SIGTERM, before[0])
+                signal.signal(signal.SIGINT, before[1])
             print(f"{out}: {n} messages" + ("" if n else f" (nothing came from {', '.join(endpoints)}: is a daemon publishing there?)"),
                   file=sys.stderr)
             return 0

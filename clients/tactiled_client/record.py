@@ -12,7 +12,8 @@ from tactiled_client.subscriber import _endpoints, _prefixes, _secure
 
 __all__ = ["record"]
 
-DRAIN_MS = 200  # on stop, keep recording until the socket has been quiet this long (messages already in flight)
+DRAIN_MS = 200  # on stop, keep recording until the socket has been quiet this long (messages already in flight) ...
+DRAIN_MAX_S = 1.0  # ... but never longer than this after the stop: a publisher that never pauses must not keep the recorder alive
 
 
 def record(endpoints: str | Sequence[str], out: str | Path, *, seconds: float | None = None, topics: Sequence[str] | None = None,
@@ -21,7 +22,8 @@ def record(endpoints: str | Sequence[str], out: str | Path, *, seconds: float | 
     """Subscribe to ``endpoints`` and append every message to ``out`` until ``seconds`` have passed or ``stop()`` is true.
 
     Each message is written with its receive times as it arrives (a killed recorder loses nothing before the
-    last message); when told to stop, what is already in flight is still recorded (until :data:`DRAIN_MS` of quiet).
+    last message); when told to stop, what is already in flight is still recorded (until :data:`DRAIN_MS` of quiet,
+    at most :data:`DRAIN_MAX_S`); after ``seconds``, only what has already arrived.
     ``on_message(count)`` is called after each one. Returns the number of messages recorded.
     """
     import zmq
@@ -49,14 +51,27 @@ def record(endpoints: str | Sequence[str], out: str | Path, *, seconds: float | 
                     if on_message is not None:
                         on_message(log.count)
 
-            while not (stop is not None and stop()):
+            stopped = False
+            while True:
+                if stop is not None and stop():
+                    stopped = True
+                    break
                 left = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
                 if left <= 0:
                     break
                 if sock.poll(int(left * 1000) + 1):
                     take()
-            while sock.poll(DRAIN_MS):  # what is already on the wire when told to stop
+            # what has already arrived, and when told to stop what is still on the wire: a bounded drain (a steady publisher
+            # never leaves DRAIN_MS of quiet: draining until it did ran a 1 s recording for 410 s, deaf to signals)
+            end = time.monotonic() + (DRAIN_MAX_S if stopped else 0.0)
+            queued = int(sock.getsockopt(zmq.RCVHWM)) or 1000  # at most a full queue once the drain's time is up
+            while queued > 0:
+                left_ms = int((end - time.monotonic()) * 1000)
+                if not sock.poll(max(0, min(DRAIN_MS, left_ms))):
+                    break
                 take()
+                if left_ms <= 0:
+                    queued -= 1
             return log.count
     finally:
         sock.close(linger=0)
