@@ -80,3 +80,43 @@ def test_record_ends_on_time_and_on_a_signal_against_a_publisher_that_never_paus
                 proc.kill()
                 proc.wait(10)
     assert proc.returncode == 0 and "b.tlog:" in err and "messages" in err, err
+
+
+def _subscriptions(xpub: zmq.Socket[bytes], wanted: set[bytes], timeout: float = 10.0) -> None:
+    """Wait until ``xpub`` has seen a subscription to each of ``wanted`` (topics), so that what it sends next is delivered."""
+    seen: set[bytes] = set()
+    deadline = time.monotonic() + timeout
+    while not wanted <= seen:
+        left = int((deadline - time.monotonic()) * 1000)
+        assert left > 0 and xpub.poll(left), f"subscribed to {sorted(seen)}, never to {sorted(wanted - seen)}"
+        seen.add(xpub.recv()[1:])
+
+
+def test_a_sensor_filter_takes_that_sensor_alone_with_or_without_topics(tmp_path: Path) -> None:
+    """``sensor=`` was dropped without ``topics`` (every sensor's messages came), and with them matched a prefix (finger10)."""
+    from tactiled_client import BlockingReplay, BlockingSubscriber
+    from tactiled_client.log import LogWriter
+
+    sent = [(b"status/finger10", _body("status", 0, "finger10")), (b"roughness/other", _body("roughness", 0, "other")),
+            (b"status/finger1", _body("status", 0, "finger1")), (b"roughness/finger10", _body("roughness", 0, "finger10")),
+            (b"roughness/finger1", _body("roughness", 0, "finger1"))]
+    endpoint = f"ipc://{tmp_path}/pub"
+    xpub: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.XPUB)
+    xpub.setsockopt(zmq.LINGER, 0)
+    xpub.bind(endpoint)
+    try:
+        with BlockingSubscriber(endpoint, sensor="finger1", timeout=10) as sub:
+            _subscriptions(xpub, {b"status/finger1", b"roughness/finger1"})
+            for frames in sent:
+                xpub.send_multipart(list(frames))
+            got = [sub.receive(), sub.receive()]
+        assert [(m.type, m.sensor) for m in got] == [("status", "finger1"), ("roughness", "finger1")]
+    finally:
+        xpub.close(linger=0)
+    with LogWriter(tmp_path / "s.tlog") as log:
+        for i, frames in enumerate(sent):
+            log.write(list(frames), float(i), float(i))
+    with BlockingReplay(tmp_path / "s.tlog", sensor="finger1", speed=None) as rep:
+        assert [(m.type, m.sensor) for m in rep] == [("status", "finger1"), ("roughness", "finger1")]
+    with BlockingReplay(tmp_path / "s.tlog", topics=["roughness"], sensor="finger1", speed=None) as rep:
+        assert [(m.type, m.sensor) for m in rep] == [("roughness", "finger1")]

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from tactiled_client.errors import UsageError
 from tactiled_client.log import LogWriter
-from tactiled_client.subscriber import _endpoints, _prefixes, _secure
+from tactiled_client.subscriber import _endpoints, _Filter, _secure
 
 __all__ = ["record"]
 
@@ -33,8 +33,9 @@ def record(endpoints: str | Sequence[str], out: str | Path, *, seconds: float | 
     sock: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.SUB)
     sock.setsockopt(zmq.LINGER, 0)
     try:
+        wanted = _Filter(topics, sensor)
         _secure(sock, curve)
-        for p in _prefixes(topics, sensor):
+        for p in wanted.prefixes:
             sock.setsockopt(zmq.SUBSCRIBE, p)
         for e in _endpoints(endpoints):
             try:
@@ -46,7 +47,7 @@ def record(endpoints: str | Sequence[str], out: str | Path, *, seconds: float | 
 
             def take() -> None:
                 frames = sock.recv_multipart()
-                if len(frames) == 2:  # else not a tactiled message
+                if len(frames) == 2 and wanted.wants(frames[0]):  # else not a tactiled message, or another sensor's
                     log.write(frames, time.monotonic(), time.time())
                     if on_message is not None:
                         on_message(log.count)

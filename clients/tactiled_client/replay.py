@@ -24,7 +24,7 @@ from types import TracebackType
 from tactiled_client import schema
 from tactiled_client.errors import EndOfLog, NoData, UsageError
 from tactiled_client.log import Entry, LogReader
-from tactiled_client.subscriber import _prefixes, _Tracker
+from tactiled_client.subscriber import _Filter, _Tracker
 
 __all__ = ["BlockingReplay", "Replay", "publish"]
 
@@ -40,7 +40,7 @@ class _Player(_Tracker):
         self.timeout = timeout
         self.speed = speed
         self.reader = LogReader(self.path)
-        self._prefixes = _prefixes(topics, sensor)
+        self._filter = _Filter(topics, sensor)
         self._entries: Iterator[Entry] | None = None
         self._pending: Entry | None = None
         self._origin: tuple[float, float] | None = None  # (recorded time, wall time) of the first message
@@ -53,7 +53,7 @@ class _Player(_Tracker):
         if self._entries is None:
             raise UsageError(f"receive() before entering the replay of {self.path} ('async with' / 'with')")
         if self._pending is None:
-            self._pending = next((e for e in self._entries if e.topic.encode().startswith(tuple(self._prefixes))), None)
+            self._pending = next((e for e in self._entries if self._filter.wants(e.topic.encode())), None)
         return self._pending
 
     def _wait(self, entry: Entry) -> float:

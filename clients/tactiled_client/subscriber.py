@@ -75,14 +75,35 @@ class _Tracker:
         return self._latest[1]
 
 
-def _prefixes(topics: Sequence[str] | None, sensor: str | None) -> list[bytes]:
-    kinds = list(topics) if topics else [""]
-    out = []
-    for kind in kinds:
-        if kind and kind not in schema.TOPICS:
-            raise UsageError(f"unknown topic {kind!r}; choose from {', '.join(schema.TOPICS)}")
-        out.append((f"{kind}/{sensor}" if kind and sensor else kind).encode())
-    return out
+class _Filter:
+    """Which messages a subscriber takes: ``prefixes`` for its SUB socket, and :meth:`wants`, the exact test a prefix cannot
+    make (``roughness/finger1`` is also a prefix of ``roughness/finger10``).
+
+    ``topics``: the kinds (None: every one); ``sensor``: that sensor's messages only, of the kinds given or of every kind
+    in :data:`schema.TOPICS`.
+    """
+
+    def __init__(self, topics: Sequence[str] | None, sensor: str | None) -> None:
+        kinds = list(topics) if topics else []
+        for kind in kinds:
+            if kind not in schema.TOPICS:
+                raise UsageError(f"unknown topic {kind!r}; choose from {', '.join(schema.TOPICS)}")
+        if sensor:
+            self._exact: frozenset[str] | None = frozenset(schema.topic(kind, sensor) for kind in kinds or schema.TOPICS)
+            self.prefixes = sorted(t.encode() for t in self._exact)
+        else:
+            self._exact = None
+            self.prefixes = [kind.encode() for kind in kinds] or [b""]
+        self._starts = tuple(self.prefixes)
+
+    def wants(self, topic: bytes) -> bool:
+        """Whether a message of ``topic`` (its first frame) is one of those asked for."""
+        return topic.startswith(self._starts) if self._exact is None else topic.decode("utf-8", "replace") in self._exact
+
+
+def _left_ms(deadline: float) -> int:
+    """Milliseconds to ``deadline`` (host monotonic clock), 0 once it has passed: what is already queued is still taken."""
+    return max(0, int((deadline - time.monotonic()) * 1000))
 
 
 def _endpoints(endpoints: str | Sequence[str]) -> list[str]:
@@ -112,7 +133,8 @@ class Subscriber(_Tracker):
         super().__init__()
         self.curve = curve
         self.endpoints = _endpoints(endpoints)
-        self.prefixes = _prefixes(topics, sensor)
+        self._filter = _Filter(topics, sensor)
+        self.prefixes = self._filter.prefixes
         self.timeout = timeout
         self._context = context or zmq.asyncio.Context.instance()
         self._socket: zmq.asyncio.Socket | None = None
@@ -137,9 +159,14 @@ class Subscriber(_Tracker):
         """The next message; :class:`NoData` after ``timeout`` seconds of silence."""
         if self._socket is None:
             raise UsageError("receive() before 'async with Subscriber(...)' (or after it ended)")
-        if self.timeout is not None and not await self._socket.poll(int(self.timeout * 1000)):
-            raise NoData(f"no message from {', '.join(self.endpoints)} for {self.timeout} s")
-        return self.accept(await self._socket.recv_multipart())
+        t = self.timeout
+        deadline = None if t is None else time.monotonic() + t
+        while True:
+            if deadline is not None and not await self._socket.poll(_left_ms(deadline)):
+                raise NoData(f"no message from {', '.join(self.endpoints)} for {t} s")
+            frames = await self._socket.recv_multipart()
+            if self._filter.wants(frames[0]):
+                return self.accept(frames)
 
     def __aiter__(self) -> AsyncIterator[schema.Message]:
         return self
@@ -158,8 +185,9 @@ class BlockingSubscriber(_Tracker):
         self.timeout = timeout
         self._socket = (context or zmq.Context.instance()).socket(zmq.SUB)
         self._socket.setsockopt(zmq.LINGER, 0)
+        self._filter = _Filter(topics, sensor)
         _secure(self._socket, curve)
-        for p in _prefixes(topics, sensor):
+        for p in self._filter.prefixes:
             self._socket.setsockopt(zmq.SUBSCRIBE, p)
         for e in self.endpoints:
             self._socket.connect(e)
@@ -167,9 +195,13 @@ class BlockingSubscriber(_Tracker):
     def receive(self, timeout: float | None = None) -> schema.Message:
         """The next message; :class:`NoData` after ``timeout`` (default: the subscriber's) seconds of silence."""
         t = self.timeout if timeout is None else timeout
-        if t is not None and not self._socket.poll(int(t * 1000)):
-            raise NoData(f"no message from {', '.join(self.endpoints)} for {t} s")
-        return self.accept(self._socket.recv_multipart())
+        deadline = None if t is None else time.monotonic() + t
+        while True:
+            if deadline is not None and not self._socket.poll(_left_ms(deadline)):
+                raise NoData(f"no message from {', '.join(self.endpoints)} for {t} s")
+            frames = self._socket.recv_multipart()
+            if self._filter.wants(frames[0]):
+                return self.accept(frames)
 
     def __iter__(self) -> Iterator[schema.Message]:
         while True:
