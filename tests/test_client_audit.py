@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import msgpack
+import pytest
 import zmq
 from tactiled_client import schema
 
@@ -120,3 +121,17 @@ def test_a_sensor_filter_takes_that_sensor_alone_with_or_without_topics(tmp_path
         assert [(m.type, m.sensor) for m in rep] == [("status", "finger1"), ("roughness", "finger1")]
     with BlockingReplay(tmp_path / "s.tlog", topics=["roughness"], sensor="finger1", speed=None) as rep:
         assert [(m.type, m.sensor) for m in rep] == [("roughness", "finger1")]
+
+
+def test_the_async_subscriber_takes_a_timeout_per_receive_as_the_others_do(tmp_path: Path) -> None:
+    """``Subscriber.receive()`` had no ``timeout=`` (``Replay`` and ``BlockingSubscriber`` have it): a TypeError."""
+    import asyncio
+
+    from tactiled_client import NoData, Subscriber
+
+    async def run() -> None:
+        async with Subscriber(f"ipc://{tmp_path}/nobody") as sub:  # no timeout of its own: would wait for ever
+            with pytest.raises(NoData, match=r"for 0\.05 s"):
+                await asyncio.wait_for(sub.receive(timeout=0.05), 10)
+
+    asyncio.run(run())

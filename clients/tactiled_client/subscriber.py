@@ -155,11 +155,11 @@ class Subscriber(_Tracker):
             self._socket.close(linger=0)
             self._socket = None
 
-    async def receive(self) -> schema.Message:
-        """The next message; :class:`NoData` after ``timeout`` seconds of silence."""
+    async def receive(self, timeout: float | None = None) -> schema.Message:
+        """The next message; :class:`NoData` after ``timeout`` (default: the subscriber's) seconds of silence."""
         if self._socket is None:
             raise UsageError("receive() before 'async with Subscriber(...)' (or after it ended)")
-        t = self.timeout
+        t = self.timeout if timeout is None else timeout
         deadline = None if t is None else time.monotonic() + t
         while True:
             if deadline is not None and not await self._socket.poll(_left_ms(deadline)):
