@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import unicodedata
 import zipfile
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -103,6 +104,25 @@ def lost_rows_budget(file_bytes: int, floor: int) -> int:
     return max(floor, file_bytes)
 
 
+UNPRINTABLE = frozenset({"Cc", "Cs", "Zl", "Zp"})  # control characters, lone surrogates, line and paragraph separators
+
+
+def surface_name_problem(name: str) -> str | None:
+    """What is wrong with ``name`` as a surface name (a recording's ``label`` or ``surface[i]``, ``enrol --label``), or None.
+
+    A name must hold something other than white space ("" is how training marks an unlabelled slide: such a surface
+    would be listed, then silently left out of the model), at most :data:`MAX_LABEL_CHARS` characters, and no control
+    character, lone surrogate or line separator (replay and score print one line per slide)."""
+    if len(name) > MAX_LABEL_CHARS:
+        return f"{len(name)} characters, more than the {MAX_LABEL_CHARS} a surface name may have"
+    if not name.strip():
+        return f"must not be empty or blank, got {name!r}"
+    bad = next((ch for ch in name if unicodedata.category(ch) in UNPRINTABLE), None)
+    if bad is not None:
+        return f"{name!r} holds the control character U+{ord(bad):04X}; a surface name is one printable line"
+    return None
+
+
 def _fail(path: object, key: str, message: str) -> RecordingError:
     return RecordingError(f"{path}: {key}: {message}")
 
@@ -165,8 +185,9 @@ def validate_arrays(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
         rec.first_index = int(_scalar(path, a, "first_index", "i"))
     if "label" in a:
         rec.label = str(_scalar(path, a, "label", "U"))
-        if len(rec.label) > MAX_LABEL_CHARS:
-            raise _fail(path, "label", f"{len(rec.label)} characters, more than the {MAX_LABEL_CHARS} a surface name may have")
+        problem = surface_name_problem(rec.label)
+        if problem:
+            raise _fail(path, "label", problem)
     if "meta" in a:
         try:
             meta = load_json_bounded(_scalar(path, a, "meta", "U"), "meta")
@@ -208,6 +229,10 @@ def validate_arrays(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
             longest = int(np.char.str_len(a["surface"]).max()) if k else 0
             if longest > MAX_LABEL_CHARS:
                 raise _fail(path, "surface", f"a name of {longest} characters, more than the {MAX_LABEL_CHARS} a surface name may have")
+            names, first = np.unique(a["surface"], return_index=True)  # each name checked once, however many slides carry it
+            bad = sorted((int(i), problem) for name, i in zip(names, first, strict=True) if (problem := surface_name_problem(str(name))))
+            if bad:
+                raise _fail(path, "surface", f"slide {bad[0][0]}: {bad[0][1]}")
             rec.surface = a["surface"].astype(f"<U{max(1, longest)}")  # no wider than its longest name, whatever the file declared
         elif rec.label is None:
             raise _fail(path, "surface", "missing (slides need a surface, or a file-level label)")

@@ -15,7 +15,6 @@ that is how recordings of known surfaces made with *another unit* of the sensor 
 
 from __future__ import annotations
 
-from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -26,9 +25,10 @@ import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.errors import ModelError, TactiledError
+from tactiled.files.recording import surface_name_problem
 from tactiled.learn.dataset import Progress, WindowSet, check_distinct, collect_windows, find_slides, load_recordings, speed_ratios
 from tactiled.learn.model import FloatArray, Model, fit_pipeline, load_model, take_columns
-from tactiled.learn.search import PARAMS, fit_model_novelty
+from tactiled.learn.search import PARAMS, fit_model_novelty, reasons_text
 
 MIN_SLIDES = 5
 
@@ -53,8 +53,9 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     where = model_path or "the shipped model"
     if old.refit is None or old.novelty_x is None or old.novelty_y is None or old.novelty_groups is None:
         raise ModelError(f"{where}: an older model file keeps no training rows; retrain it with this tactiled to enrol into it")
-    if label is not None and not label.strip():
-        raise TactiledError("--label: must not be empty")
+    problem = None if label is None else surface_name_problem(label)
+    if problem:
+        raise TactiledError(f"--label: {problem}")  # the rule a recording's label follows (docs/recordings.md)
     recs = load_recordings(paths, say)
     if len(recs) != len(paths):
         raise TactiledError(f"{len(paths) - len(recs)} of {len(paths)} recordings unreadable (named above); nothing enrolled")
@@ -72,12 +73,14 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     ws = collect_windows(recs, config, old.settings, found=(per_file, counts), speeds=speeds)
     slides = ws.averaged()  # one row per slide with a usable window (and per copy of it)
     labelled = (slides.y != "") & slides.originals()
-    if not labelled.any():
+    table = ws.per_class()  # {surface: (slides, slides with a usable window, files)}, a surface none of whose slides is usable too
+    if not table:
         raise TactiledError("the recordings carry no labels (per-slide ground truth or a file label): pass --label NAME")
-    added = dict(sorted(Counter(str(y) for y in slides.y[labelled]).items()))
-    short = [f"{k} ({n})" for k, n in added.items() if n < min_slides]
+    short = [f"{k} ({ok})" if ok == n else f"{k} ({ok} of {n} slides usable)" for k, (n, ok, _) in table.items() if ok < min_slides]
     if short:
-        raise TactiledError(f"too few usable slides for {', '.join(short)}: enrolment needs at least {min_slides} per surface; record more")
+        why = f" (slides without a usable window: {reasons_text(ws.skipped)})" if ws.skipped else ""
+        raise TactiledError(f"too few usable slides for {', '.join(short)}: enrolment needs at least {min_slides} per surface{why}; record more")
+    added = {k: ok for k, (_, ok, _) in table.items()}
     pipe, refit, params = _grown(old, slides if old.settings.fusion == "features" else ws, old.names)
     files = [Path(n).name for n, _ in recs]
     record = {"from": old.fingerprint, "slides": added, "files": files}

@@ -53,7 +53,7 @@ import math
 import socket
 import time
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -345,9 +345,47 @@ def accuracy_of(scores: FloatArray, y_idx: npt.NDArray[np.intp]) -> float:
     return float(np.mean(hits_of(scores, y_idx))) if len(y_idx) else 0.0
 
 
-def _interval_text(band: list[float] | None) -> str:
-    """`` (95 % interval over recordings 0.52-0.69)`` of :func:`recording_interval`, or nothing."""
-    return f" (95 % interval over recordings {band[0]:.2f}-{band[1]:.2f})" if band else ""
+def _interval_text(band: list[float] | None, over: str = "recordings") -> str:
+    """`` (95 % interval over recordings 0.52-0.69)`` of :func:`recording_interval`, or nothing; ``over``: what the groups
+    it resampled are (``slides`` for ``train --group-by slide``)."""
+    return f" (95 % interval over {over} {band[0]:.2f}-{band[1]:.2f})" if band else ""
+
+
+def reasons_text(skipped: dict[str, int]) -> str:
+    """``window_too_short 6, saturated 2``: why slides had no usable window (:attr:`WindowSet.skipped`), most frequent first."""
+    return ", ".join(f"{why} {n}" for why, n in sorted(skipped.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+# {surface: (slides, slides with a usable window, recordings with one, {reason: slides without a usable window})}
+UsableTable = dict[str, tuple[int, int, int, dict[str, int]]]
+
+
+def usable_table(sets: Sequence[WindowSet]) -> UsableTable:
+    """Per surface, what the window sets ``sets`` (every set has the same slides in the same order) can learn from: a slide
+    is usable when one of them has a window of it; a slide usable in none is counted under its reason in the first."""
+    first = sets[0]
+    out: dict[str, tuple[int, int, set[int], dict[str, int]]] = {}
+    for k, s in enumerate(first.slides):
+        if s.label is None:
+            continue
+        n, ok, files, why = out.setdefault(s.label, (0, 0, set(), {}))
+        reason = None if any(ws.reasons[k] is None for ws in sets) else first.reasons[k]
+        if reason is None:
+            files.add(s.file)
+        else:
+            why[reason] = why.get(reason, 0) + 1
+        out[s.label] = (n + 1, ok + (reason is None), files, why)
+    return {k: (n, ok, len(files), why) for k, (n, ok, files, why) in sorted(out.items())}
+
+
+def without_surfaces(ws: WindowSet, drop: set[str]) -> WindowSet:
+    """``ws`` without the slides (and their windows) of the surfaces ``drop``; the others keep their order."""
+    keep = np.array([s.label not in drop for s in ws.slides], dtype=bool)
+    index = np.cumsum(keep) - 1  # a kept slide's new index
+    rows = keep[ws.slide] if len(ws.slide) else np.zeros(0, dtype=bool)
+    return replace(ws, x=ws.x[rows], y=ws.y[rows], groups=ws.groups[rows], slide=index[ws.slide[rows]].astype(np.int64),
+                   spans=ws.spans[rows], slides=[s for s, k in zip(ws.slides, keep, strict=True) if k],
+                   reasons=[r for r, k in zip(ws.reasons, keep, strict=True) if k], copy=None if ws.copy is None else ws.copy[rows])
 
 
 # ---- parallel execution -----------------------------------------------------------------------------------------
@@ -469,7 +507,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
            candidates: Sequence[Candidate] | None = None, progress: Progress | None = None, scheduler: str | None = None,
            found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False,
            novelty: str = NOVELTY_DEFAULT, ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE,
-           speed: float = SPEED_DEFAULT) -> SearchResult:
+           speed: float = SPEED_DEFAULT, check_usable: Callable[[UsableTable], Collection[str]] | None = None,
+           group_by: str = "file") -> SearchResult:
     """Score every candidate, pick and refit the winner (see the module docstring).
 
     ``keep_models``: also refit every other candidate (``SearchResult.models``, by name; the winner alone under its name
@@ -481,6 +520,10 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     out-of-fold accuracy is within one standard error of the winner's (:func:`within_one_se` on the same outer folds).
     ``speed``: per cent slower and faster of the two speed-perturbed copies of each training slide every candidate also
     learns from (:func:`~tactiled.learn.dataset.speed_ratios`; 0: none).
+    ``check_usable``: once every window set is analysed, before any fold, it is given the slides each surface has with a
+    usable window (:func:`usable_table`); it raises, or returns the surfaces to train without. ``group_by``: what the
+    slides' ``file`` numbers are, ``file`` or ``slide`` (``train --group-by slide``: the nested estimate is then
+    optimistic, its interval over slides, and ``nested`` says ``grouped_by: slide``).
     """
     if ensemble not in ENSEMBLE_MODES:
         raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
@@ -507,6 +550,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
             if st is not None:
                 say(f"features of {c.duration_s:g} s windows from {c.start_s:g} s ({len(st.names)} features)")
                 sets[full] = (st, collect_windows(recs, config, st, progress, found=found, jobs=None, speeds=speeds))
+                if sets[full][1].skipped:
+                    say(f"  slides without a usable {c.duration_s:g} s window: {reasons_text(sets[full][1].skipped)}")
         if full in sets and all(any(name_family(n) == f for n in sets[full][1].names) for f in base_families(c.families)):
             if c.fusion == "features":
                 key = (*key, "features")
@@ -523,6 +568,13 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
             usable.append(c)
     if not usable:
         raise TactiledError(f"no candidate fits: windows too short for the feature families at {fs:g} Hz; record longer slides")
+    if check_usable is not None:
+        drop = set(check_usable(usable_table(list(windows_of.values()))))
+        if drop:  # every set loses the same slides, so they keep the same slides in the same order
+            distinct = {id(ws): ws for ws in [*(ws for _, ws in sets.values()), *windows_of.values()]}
+            trimmed = {i: without_surfaces(ws, drop) for i, ws in distinct.items()}
+            sets = {k: (st, trimmed[id(ws)]) for k, (st, ws) in sets.items()}
+            windows_of = {k: trimmed[id(ws)] for k, ws in windows_of.items()}
     first = sets[_key(usable[0])][1]
     classes = sorted({s.label for s in first.slides if s.label is not None})
     if len(classes) < 2:
@@ -581,7 +633,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     nested_hits = np.concatenate([hits_of(oof[name][te], y_idx[te]) for name, (_, te) in zip(picks, outer, strict=True)])
     band = recording_interval(nested_hits, np.concatenate([files[te] for _, te in outer]))
     nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks, "interval95": band,
-              **({"inner_grouped_by": "none" if "none" in grouping else "slide"} if set(grouping) - {"file"} else {})}
+              **({"inner_grouped_by": "none" if "none" in grouping else "slide"} if set(grouping) - {"file"} else {}),
+              **({"grouped_by": "slide"} if group_by == "slide" else {})}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
     summary: dict[str, Any] = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs),
                                **({"speed_copies": speed} if speeds else {})}  # without copies, the model file as before them
@@ -606,7 +659,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     said = f" with {SPECTRUM.name} (ensemble)" if model.partner is not None else ""
     ens_cv = f"; ensemble CV {board[chosen]['ensemble']['mean']:.3f}" if "ensemble" in board[chosen] else ""
     say(f"winner {best.name}{said}: {board[chosen]['mean']:.3f} ± {board[chosen]['sd']:.3f} (best mean {leaderboard[0]['mean']:.3f}){ens_cv}; "
-        f"nested CV {nested['mean']:.3f}{_interval_text(band)}; fitted on every slide")
+        f"nested CV {nested['mean']:.3f}{_interval_text(band, 'slides' if group_by == 'slide' else 'recordings')}"
+        + ("; optimistic: the folds split recordings (--group-by slide)" if group_by == "slide" else "") + "; fitted on every slide")
     # provisional labels come from the first windows of a slide: their own calibration (the winner alone's too, when it is
     # kept beside the ensemble, so that it is the model train --ensemble off makes)
     for m, of in [(model, members), *([(alone, members[:1])] if keep_models and model is not alone else [])]:
@@ -1119,7 +1173,8 @@ def window_oof(ws: WindowSet, cols: npt.NDArray[np.intp], kind: str, params: dic
 def paper(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
           progress: Progress | None = None, scheduler: str | None = None,
           found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, novelty: str = NOVELTY_DEFAULT,
-          untaught: float = UNTAUGHT_SHARE) -> SearchResult:
+          untaught: float = UNTAUGHT_SHARE, check_usable: Callable[[UsableTable], Collection[str]] | None = None,
+          group_by: str = "file") -> SearchResult:
     """The papers' DWT + SFS + ELM (:data:`PAPER`), cross-validated the same way as :func:`search`, then fitted on everything."""
     return search(recs, config, folds=folds, inner_folds=inner_folds, seed=seed, candidates=[PAPER], progress=progress, scheduler=scheduler,
-                  found=found, method="paper", novelty=novelty, untaught=untaught, speed=0.0)
+                  found=found, method="paper", novelty=novelty, untaught=untaught, speed=0.0, check_usable=check_usable, group_by=group_by)

@@ -2,12 +2,15 @@
 
 :func:`train` is the whole command as a library call. Training never drops a surface
 silently: the slides of every surface are counted first, and a surface with fewer than
-``min_slides`` is an error naming it (``drop_rare`` proceeds without it, saying so).
+``min_slides`` is an error naming it (``drop_rare`` proceeds without it, saying so). Once the
+windows are analysed, the same rules hold for the slides with a usable window (a slide too
+short or too damaged for any window teaches nothing): a surface with too few of them is an error
+naming it and why (``drop_rare``: left out, said, and listed in the summary's ``dropped``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -34,9 +37,11 @@ from tactiled.learn.search import (
     UNTAUGHT_SHARE,
     Candidate,
     SearchResult,
+    UsableTable,
     check_scheduler,
     paper,
     quick_candidates,
+    reasons_text,
     search,
     speed_option,
 )
@@ -72,14 +77,43 @@ def class_table(per_file: list[list[LabelledSlide]]) -> dict[str, tuple[int, int
     return {k: (v[0], v[1], len(v[2])) for k, v in sorted(out.items())}
 
 
-def check_two_recordings(table: dict[str, tuple[int, int, int]], hint: str = "") -> None:
+def check_two_recordings(table: dict[str, tuple[int, int, int]], hint: str = "", what: str = "slides") -> None:
     """Refuse (one line naming them) surfaces of :func:`class_table` with a single recording: cross-validation grouped by
     recording can never test them on one it did not train on (every such slide would count as wrong). ``hint``: what
-    else the command allows, appended to the advice."""
+    else the command allows, appended to the advice; ``what``: the slides counted (``usable slides``)."""
     single = [k for k, (_, _, files) in table.items() if files < 2]
     if single:
-        raise TactiledError(f"surface(s) {', '.join(single)} have a single recording with slides: cross-validation grouped by recording cannot "
+        raise TactiledError(f"surface(s) {', '.join(single)} have a single recording with {what}: cross-validation grouped by recording cannot "
                             f"test them on a recording it did not train on; record a second file of each{hint}")
+
+
+def usable_check(min_slides: int, drop_rare: bool, group_by: str, say: Progress, dropped: list[str]) -> Callable[[UsableTable], list[str]]:
+    """The ``check_usable`` of :func:`~tactiled.learn.search.search`: the rules of the slide table (at least ``min_slides``;
+    under ``group_by`` file, two recordings) on the slides with a usable window. A surface short of usable slides is an
+    error naming it, how many of its slides are usable and why the others are not, or, with ``drop_rare``, one to train
+    without (said, and appended to ``dropped``); a single recording with usable slides is refused as :func:`check_two_recordings`."""
+
+    def check(table: UsableTable) -> list[str]:
+        def told(k: str) -> str:
+            n, ok, _, why = table[k]
+            return f"{k}: {ok} of {n} slides usable" + (f" ({reasons_text(why)})" if why else "")
+
+        for k, (n, ok, _, _) in table.items():
+            if ok < n:
+                say(f"  {told(k)}")
+        short = [k for k, (_, ok, _, _) in table.items() if ok < min_slides]
+        if short and not drop_rare:
+            raise TactiledError(f"too few slides with a usable window (< {min_slides}): {'; '.join(told(k) for k in short)}; "
+                                "record more (or longer) slides, or pass --drop-rare to train without them")
+        if short:
+            say(f"training without {', '.join(short)} (--drop-rare): too few slides with a usable window")
+            dropped.extend(short)
+        if group_by == "file":
+            check_two_recordings({k: (ok, 0, files) for k, (_, ok, files, _) in table.items() if k not in short},
+                                 ", or pass --group-by slide (an optimistic estimate)", "usable slides")
+        return short
+
+    return check
 
 
 def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", folds: int = 5, seed: int = 0, min_slides: int = 2,
@@ -166,14 +200,17 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         serial = iter(range(sum(len(s) for s in per_file)))
         per_file = [[replace(s, file=next(serial)) for s in slides] for slides in per_file]
     found: tuple[list[list[LabelledSlide]], SlideCounts] = (per_file, counts)
+    unusable: list[str] = []  # surfaces --drop-rare left out for too few slides with a usable window
+    check = usable_check(min_slides, drop_rare, group_by, say, unusable)
     if method == "paper":
         result = paper(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, novelty=novelty,
-                       untaught=untaught)
+                       untaught=untaught, check_usable=check, group_by=group_by)
     else:
         if method == "quick" and candidates is None:
             candidates = quick_candidates()
         result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates,
-                        keep_models=keep_models, novelty=novelty, ensemble=ensemble, untaught=untaught, speed=speed)
+                        keep_models=keep_models, novelty=novelty, ensemble=ensemble, untaught=untaught, speed=speed,
+                        check_usable=check, group_by=group_by)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
-    result.model.summary["dropped"] = rare
+    result.model.summary["dropped"] = sorted([*rare, *unusable])
     return result
