@@ -135,3 +135,45 @@ def test_the_async_subscriber_takes_a_timeout_per_receive_as_the_others_do(tmp_p
                 await asyncio.wait_for(sub.receive(timeout=0.05), 10)
 
     asyncio.run(run())
+
+
+def _gap_session(path: Path) -> None:
+    """Four status messages with a 4 s silence in the middle of the recorded session."""
+    from tactiled_client.log import LogWriter
+
+    with LogWriter(path) as log:
+        for seq, t in enumerate([100.0, 100.1, 104.1, 104.2]):
+            log.write([b"status/s0", _body("status", seq, state="idle")], t, 1.7e9 + t)
+
+
+@pytest.mark.parametrize("speed", [None, 20.0])
+def test_a_replays_timeout_is_in_recorded_time_at_every_speed(speed: float | None, tmp_path: Path) -> None:
+    """The timeout was measured in wall time: a 4 s recorded silence and timeout=3 gave no NoData at speed None or 2."""
+    import asyncio
+
+    from tactiled_client import BlockingReplay, EndOfLog, NoData, Replay
+
+    _gap_session(tmp_path / "gap.tlog")
+    seen: list[str] = []
+    with BlockingReplay(tmp_path / "gap.tlog", speed=speed, timeout=3.0) as rep:
+        while True:
+            try:
+                seen.append(f"seq{rep.receive().seq}")
+            except EndOfLog:
+                break
+            except NoData as exc:
+                seen.append(str(exc).split(": ", 1)[1])
+    assert seen == ["seq0", "seq1", "no message for 3 s of recorded time", "seq2", "seq3"]
+
+    async def run() -> list[str]:
+        out: list[str] = []
+        async with Replay(tmp_path / "gap.tlog", speed=speed) as sub:
+            while True:
+                try:
+                    out.append(f"seq{(await sub.receive(timeout=3.0)).seq}")
+                except EndOfLog:
+                    return out
+                except NoData:
+                    out.append("NoData")
+
+    assert asyncio.run(run()) == ["seq0", "seq1", "NoData", "seq2", "seq3"]

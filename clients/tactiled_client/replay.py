@@ -8,7 +8,8 @@ A controller switches from live to file by changing one constructor::
             ...
 
 ``speed``: 1.0 replays at the recorded pace, 2.0 twice as fast, None as fast as possible. ``receive(timeout=)``
-raises :class:`NoData` when the next message is further away than the timeout (in replay time), and
+raises :class:`NoData` when the next message is further away than the timeout in recorded time (whatever the speed:
+a 4 s silence in the session is one NoData of a 3 s timeout, after 1.5 s of wall time at speed 2), and
 :class:`EndOfLog` (a :class:`NoData`) at the end of the file, where ``async for`` and ``for`` simply stop.
 ``latest(max_age_s)`` measures ages on the recorded clock. Files: :mod:`tactiled_client.log`.
 """
@@ -56,23 +57,39 @@ class _Player(_Tracker):
             self._pending = next((e for e in self._entries if self._filter.wants(e.topic.encode())), None)
         return self._pending
 
-    def _wait(self, entry: Entry) -> float:
-        """Seconds of wall time until ``entry`` is due (0 when replaying as fast as possible)."""
+    def _start(self, entry: Entry) -> None:
+        """The replay's clock starts at its first message (recorded time ``entry.time_mono``, wall time now)."""
         if self._origin is None:
             self._origin = (entry.time_mono, time.monotonic())
+            self._recorded_now = entry.time_mono
+
+    def _wait(self, entry: Entry) -> float:
+        """Seconds of wall time until ``entry`` is due (0 when replaying as fast as possible)."""
+        self._start(entry)
         if self.speed is None:
             return 0.0
-        due = self._origin[1] + (entry.time_mono - self._origin[0]) / self.speed
-        return max(0.0, due - time.monotonic())
+        return max(0.0, (entry.time_mono - self.now()) / self.speed)
 
-    def _plan(self, timeout: float | None) -> tuple[float, bool]:
-        """(seconds to wait, whether the wait ends in silence) before the next message; :class:`EndOfLog` if none is left."""
+    def _plan(self, timeout: float | None) -> tuple[float, float | None]:
+        """(seconds of wall time to wait, the recorded seconds of silence if the wait ends in silence, else None) before the
+        next message; :class:`EndOfLog` if none is left.
+
+        The timeout is in recorded time, as a live subscriber's is in the daemon's: a silence longer than it is a
+        :class:`NoData` at every speed (waiting ``timeout / speed`` of wall time, none when as fast as possible), and the
+        replay's clock moves on by the timeout.
+        """
         t = self.timeout if timeout is None else timeout
         entry = self._next()
         if entry is None:
             raise self._end()
-        wait = self._wait(entry)
-        return (t, True) if t is not None and wait > t else (wait, False)
+        self._start(entry)
+        ahead = entry.time_mono - self.now()  # recorded seconds until it is due
+        if t is not None and ahead > t:
+            if self.speed is None:
+                self._recorded_now += t
+                return 0.0, t
+            return t / self.speed, t
+        return (0.0 if self.speed is None else max(0.0, ahead / self.speed)), None
 
     def _deliver(self) -> schema.Message:
         entry = self._pending
@@ -83,7 +100,7 @@ class _Player(_Tracker):
         return self.accept(entry.frames())
 
     def _silence(self, t: float) -> NoData:
-        return NoData(f"{self.path}: no message for {t} s of replay time")
+        return NoData(f"{self.path}: no message for {t:g} s of recorded time")
 
     def _end(self) -> EndOfLog:
         return EndOfLog(f"{self.path}: end of file after {self.reader.count} messages")
@@ -111,11 +128,11 @@ class Replay(_Player):
 
     async def receive(self, timeout: float | None = None) -> schema.Message:
         """The next message, at its time; :class:`NoData` if it is further than ``timeout`` away, :class:`EndOfLog` at the end."""
-        wait, silent = self._plan(timeout)
+        wait, silence = self._plan(timeout)
         if wait > 0:
             await asyncio.sleep(wait)
-        if silent:
-            raise self._silence(wait)
+        if silence is not None:
+            raise self._silence(silence)
         return self._deliver()
 
     def __aiter__(self) -> AsyncIterator[schema.Message]:
@@ -138,11 +155,11 @@ class BlockingReplay(_Player):
 
     def receive(self, timeout: float | None = None) -> schema.Message:
         """The next message, at its time; :class:`NoData` if it is further than ``timeout`` away, :class:`EndOfLog` at the end."""
-        wait, silent = self._plan(timeout)
+        wait, silence = self._plan(timeout)
         if wait > 0:
             time.sleep(wait)
-        if silent:
-            raise self._silence(wait)
+        if silence is not None:
+            raise self._silence(silence)
         return self._deliver()
 
     def __iter__(self) -> Iterator[schema.Message]:
