@@ -177,3 +177,20 @@ def test_a_replays_timeout_is_in_recorded_time_at_every_speed(speed: float | Non
                     out.append("NoData")
 
     assert asyncio.run(run()) == ["seq0", "seq1", "NoData", "seq2", "seq3"]
+
+
+def test_a_bad_curve_key_file_is_one_line_naming_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A missing key file or one that is no certificate was a traceback and exit 1 (OSError, ValueError from pyzmq)."""
+    from tactiled_client import BlockingSubscriber, UsageError
+    from tactiled_client.__main__ import main
+
+    (tmp_path / "notes.txt").write_text("not a certificate\n")
+    endpoint = f"ipc://{tmp_path}/nobody"
+    for bad, what in ((tmp_path / "missing.key", "no such certificate file"), (tmp_path / "notes.txt", "not a ZeroMQ certificate")):
+        with pytest.raises(UsageError, match=what):
+            BlockingSubscriber(endpoint, curve=(str(bad), str(bad)))
+        for argv in (["record", endpoint, str(tmp_path / "s.tlog"), "--seconds", "0.1"], ["control", endpoint, "status", "--timeout", "0.1"]):
+            assert main([*argv, "--curve", str(bad), str(bad)]) == 2
+            err = capsys.readouterr().err.strip()
+            assert err == f"tactiled_client: {bad}: {what}" or err.startswith(f"tactiled_client: {bad}: {what} ("), err
+    assert not (tmp_path / "s.tlog").exists()

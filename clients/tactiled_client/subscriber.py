@@ -21,6 +21,7 @@ roughness label if it is younger than a given age.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import AsyncIterator, Iterator, Sequence
 from types import TracebackType
@@ -111,18 +112,34 @@ def _endpoints(endpoints: str | Sequence[str]) -> list[str]:
 
 
 def _secure(sock: Any, curve: tuple[str, str] | None) -> None:
-    """CURVE: ``curve`` = (daemon's public certificate file, this client's secret certificate file)."""
+    """CURVE: ``curve`` = (daemon's public certificate file, this client's secret certificate file); :class:`UsageError`
+    naming the file if one cannot be read or is not a ZeroMQ certificate (``tactiled curve-keys`` makes them)."""
     if curve is None:
         return
-    import zmq.auth
-
-    server_public, _ = zmq.auth.load_certificate(curve[0])
-    public, secret = zmq.auth.load_certificate(curve[1])
+    server_public, _ = _certificate(curve[0])
+    public, secret = _certificate(curve[1])
     if not secret:
         raise UsageError(f"{curve[1]}: holds no secret key")
-    sock.curve_serverkey = server_public
-    sock.curve_publickey = public
-    sock.curve_secretkey = secret
+    for name, key, file in (("curve_serverkey", server_public, curve[0]), ("curve_publickey", public, curve[1]),
+                            ("curve_secretkey", secret, curve[1])):
+        try:
+            setattr(sock, name, key)
+        except zmq.ZMQError:
+            raise UsageError(f"{file}: not a valid CURVE key (make certificates with tactiled curve-keys)") from None
+
+
+def _certificate(path: str) -> tuple[bytes, bytes | None]:
+    """(public key, secret key or None) of the ZeroMQ certificate file ``path``, or :class:`UsageError` naming it."""
+    import zmq.auth
+
+    if not os.path.isfile(path):
+        raise UsageError(f"{path}: no such certificate file" if not os.path.exists(path) else f"{path}: not a certificate file")
+    try:
+        return zmq.auth.load_certificate(path)
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot read the certificate: {exc.strerror or exc}") from None
+    except ValueError:
+        raise UsageError(f"{path}: not a ZeroMQ certificate (no public-key; make them with tactiled curve-keys)") from None
 
 
 class Subscriber(_Tracker):
