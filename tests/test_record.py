@@ -119,6 +119,17 @@ def test_record_missing_port_is_one_line_and_no_file(tmp_path: Path) -> None:
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("label", ["", "a\nb"])
+def test_record_refuses_a_label_its_file_could_not_load_with(tmp_path: Path, label: str) -> None:
+    """A recording's label follows the surface-name rule (docs/recordings.md); record wrote such a file, which train,
+    score and replay then refused."""
+    out = tmp_path / "x.npz"
+    res = run_cli("record", "--port", str(tmp_path / "nope"), "--seconds", "1", "--label", label, "-o", str(out))
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith("tactiled: error: --label: "), res.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_record_bad_config_value(tmp_path: Path) -> None:
     cfg = tmp_path / "c.toml"
     cfg.write_text("[sensor]\nchannels = 0\n")

@@ -33,7 +33,7 @@ import numpy.typing as npt
 from tactiled.board.frames import MAX_CHANNELS
 from tactiled.errors import RecordingError
 from tactiled.files.npzio import MAX_FILE_BYTES, load_json_bounded
-from tactiled.files.recording import MAX_FS, MAX_LABEL_CHARS, MIN_FS, Recording, StreamedArray, fsync_dir, lost_rows_budget, save_recording
+from tactiled.files.recording import MAX_FS, MIN_FS, Recording, StreamedArray, fsync_dir, lost_rows_budget, save_recording, surface_name_problem
 from tactiled.readable import file_problem
 
 MAGIC = b"TACTJNL\x01"
@@ -266,8 +266,9 @@ def read_journal(path: str | Path) -> JournalScan:
         if not (np.isfinite(fs) and MIN_FS <= fs <= MAX_FS and 1 <= channels <= MAX_CHANNELS and np.isfinite(vpc) and vpc > 0
                 and isinstance(meta, dict)):
             raise RecordingError(f"{path}: header: fs, channels or volts_per_count out of range")
-        if label is not None and len(str(label)) > MAX_LABEL_CHARS:  # what recovers must load
-            raise RecordingError(f"{path}: header: label: {len(str(label))} characters, more than the {MAX_LABEL_CHARS} a surface name may have")
+        problem = None if label is None else surface_name_problem(str(label))
+        if problem:  # what recovers must load
+            raise RecordingError(f"{path}: header: label: {problem}")
         scan = JournalScan(path, fs, channels, vpc, None if label is None else str(label), meta, size=os.fstat(fh.fileno()).st_size)
         start = fh.tell()
         if start < scan.size:
