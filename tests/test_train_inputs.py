@@ -123,3 +123,5 @@ def test_a_model_grouped_by_slide_says_its_interval_is_over_slides_and_optimisti
     assert "over recordings" not in winner and "optimistic" in winner, winner
     assert res.nested["interval95"] is None or "interval over slides" in winner, winner
     assert any(line.startswith("warning: --group-by slide") and "optimistic" in line for line in said), said
+    line = res.model.describe()  # the model file's own line (tactiled replay, run, check-config say it)
+    assert "over recordings" not in line and "optimistic (train --group-by slide" in line, line

@@ -546,8 +546,11 @@ class Model:
         acc = f", nested CV accuracy {100 * cv['mean']:.1f} ± {100 * cv['sd']:.1f} %" if isinstance(cv, dict) else ""
         band = cv.get("interval95") if isinstance(cv, dict) else None
         if acc and isinstance(band, list) and len(band) == 2 and all(_is_number(v) for v in band):
-            acc += f" (95 % interval over recordings {100 * band[0]:.0f}–{100 * band[1]:.0f} %)"
-        if isinstance(cv, dict) and cv.get("inner_grouped_by") == "none":
+            over = "slides" if cv.get("grouped_by") == "slide" else "recordings"
+            acc += f" (95 % interval over {over} {100 * band[0]:.0f}–{100 * band[1]:.0f} %)"
+        if isinstance(cv, dict) and cv.get("grouped_by") == "slide":
+            acc += ", optimistic (train --group-by slide: the folds split recordings)"
+        elif isinstance(cv, dict) and cv.get("inner_grouped_by") == "none":
             acc += ", optimistic (one slide of a surface in a fold: no choice inside it)"
         s = self.settings
         what = f"{self.kind} on {len(self.inputs)} features"
