@@ -194,3 +194,26 @@ def test_a_bad_curve_key_file_is_one_line_naming_it(tmp_path: Path, capsys: pyte
             err = capsys.readouterr().err.strip()
             assert err == f"tactiled_client: {bad}: {what}" or err.startswith(f"tactiled_client: {bad}: {what} ("), err
     assert not (tmp_path / "s.tlog").exists()
+
+
+def test_curve_keys_writes_the_secret_key_for_its_owner_alone(tmp_path: Path) -> None:
+    """``tactiled curve-keys`` wrote NAME.key_secret world-readable (0644 under umask 022), and --force kept an old file's mode."""
+    import os
+    import stat
+
+    import zmq.auth
+
+    from tactiled.service.publish import create_curve_pair
+
+    old = os.umask(0o022)
+    try:
+        public, secret = create_curve_pair(tmp_path / "keys", "daemon")
+        assert stat.S_IMODE(secret.stat().st_mode) == 0o600 and stat.S_IMODE(public.stat().st_mode) == 0o644
+        secret.chmod(0o644)  # a pair made by the old code, replaced
+        public2, secret2 = create_curve_pair(tmp_path / "keys", "daemon", force=True)
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(secret2.stat().st_mode) == 0o600
+    assert sorted(p.name for p in (tmp_path / "keys").iterdir()) == ["daemon.key", "daemon.key_secret"]  # no staging left
+    pub, sec = zmq.auth.load_certificate(secret2)
+    assert sec and zmq.auth.load_certificate(public2) == (pub, None)

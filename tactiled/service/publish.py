@@ -266,7 +266,13 @@ class Publisher:
 def create_curve_pair(folder: str | Path, name: str, force: bool = False) -> tuple[Path, Path]:
     """A ZeroMQ CURVE certificate pair ``NAME.key`` (public) and ``NAME.key_secret`` in ``folder`` (made if missing): the
     daemon's, for ``publish.curve_secret_key_file``, or a subscriber's, whose public half goes in the daemon's authorised
-    folder. A folder of keys takes more names; a pair of the same name is replaced only with ``force``. Returns the paths."""
+    folder. A folder of keys takes more names; a pair of the same name is replaced only with ``force``. Returns the paths.
+
+    The secret file is readable by its owner alone (0600) from the moment it exists: pyzmq writes both files with a plain
+    ``open`` (0644 under the usual umask, and an existing file keeps its mode), so they are written into a fresh folder
+    only the owner can enter (``mkdtemp``: 0700), the secret one set to 0600, and both then renamed into place."""
+    import tempfile
+
     import zmq.auth
 
     out = Path(folder)
@@ -276,7 +282,17 @@ def create_curve_pair(folder: str | Path, name: str, force: bool = False) -> tup
             check_output(out / file, force)
     try:
         out.mkdir(parents=True, exist_ok=True)
-        public, secret = zmq.auth.create_certificates(str(out), name)
+        staging = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=out))
+        try:
+            made_public, made_secret = zmq.auth.create_certificates(str(staging), name)
+            os.chmod(made_secret, 0o600)
+            public, secret = out / f"{name}.key", out / f"{name}.key_secret"
+            os.replace(made_secret, secret)  # a replaced file of that name goes, with its mode
+            os.replace(made_public, public)
+        finally:
+            for left in staging.iterdir():
+                left.unlink()
+            staging.rmdir()
     except OSError as exc:
         raise OutputError(f"{out}: cannot write the certificates: {exc.strerror or exc}") from None
-    return Path(public), Path(secret)
+    return public, secret
