@@ -217,3 +217,19 @@ def test_curve_keys_writes_the_secret_key_for_its_owner_alone(tmp_path: Path) ->
     assert sorted(p.name for p in (tmp_path / "keys").iterdir()) == ["daemon.key", "daemon.key_secret"]  # no staging left
     pub, sec = zmq.auth.load_certificate(secret2)
     assert sec and zmq.auth.load_certificate(public2) == (pub, None)
+
+
+def test_replay_json_into_a_pipe_closed_early_is_quiet(tmp_path: Path) -> None:
+    """``replay FILE --json | head -1`` printed a BrokenPipeError traceback."""
+    from tactiled_client.log import LogWriter
+
+    with LogWriter(tmp_path / "s.tlog") as log:  # far more than a pipe holds (64 kB): the replay is still writing when it closes
+        for seq in range(5000):
+            log.write([b"status/s0", _body("status", seq, state="idle")], float(seq), float(seq))
+    proc = subprocess.Popen([sys.executable, "-m", "tactiled_client", "replay", str(tmp_path / "s.tlog"), "--json"], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None and proc.stderr is not None
+    assert proc.stdout.readline().startswith('{"topic": "status/s0"')
+    proc.stdout.close()  # what head does after its line
+    err = proc.stderr.read()
+    assert proc.wait(30) == 1 and err == "", err

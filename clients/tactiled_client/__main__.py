@@ -6,8 +6,9 @@ running daemon to load a model or run one in its shadow (pyzmq + msgpack only).
     python -m tactiled_client replay session.tlog --publish tcp://127.0.0.1:7350 --speed 2
     python -m tactiled_client control ipc:///run/tactiled/fingertip0.control load new_model.npz
 
-Exit status: 0 done, 1 the daemon refused the request (its reason on stderr), 2 bad arguments or a file that cannot
-be read or no reply (one line on stderr), 130 interrupted.
+Exit status: 0 done, 1 the daemon refused the request (its reason on stderr) or the reader of the output went away
+(``replay --json | head``: nothing is printed), 2 bad arguments or a file that cannot be read or no reply (one line on
+stderr), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -124,6 +125,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # the reader of stdout went away (replay --json | head -1): quiet, as tactiled is
+        _stdout_to_devnull()
+        return 1
+
+
+def _stdout_to_devnull() -> None:
+    """Point stdout at /dev/null, so that flushing what is still buffered at exit does not raise again (Python's advice for
+    SIGPIPE)."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):  # no file descriptor behind stdout (run inside another program): nothing to flush there
+        pass
 
 
 if __name__ == "__main__":
