@@ -233,3 +233,15 @@ def test_replay_json_into_a_pipe_closed_early_is_quiet(tmp_path: Path) -> None:
     proc.stdout.close()  # what head does after its line
     err = proc.stderr.read()
     assert proc.wait(30) == 1 and err == "", err
+
+
+def test_publishing_a_truncated_log_warns_as_the_json_replay_does(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``replay trunc.tlog --publish`` said nothing of the truncation that ``--json`` warns about."""
+    from tactiled_client.__main__ import main
+
+    _gap_session(tmp_path / "s.tlog")
+    (tmp_path / "cut.tlog").write_bytes((tmp_path / "s.tlog").read_bytes()[:-5])  # a recorder killed mid-write
+    assert main(["replay", str(tmp_path / "cut.tlog"), "--publish", f"ipc://{tmp_path}/pub", "--speed", "1000"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2 and err[0].startswith(f"warning: {tmp_path / 'cut.tlog'}: ends inside a record at byte "), err
+    assert err[1] == f"{tmp_path / 'cut.tlog'}: published 3 messages on ipc://{tmp_path}/pub"

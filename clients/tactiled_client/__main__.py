@@ -111,7 +111,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         if args.publish:
             n = publish(args.file, args.publish, speed=args.speed if args.speed is not None else 1.0, topics=args.topics, sensor=args.sensor,
-                        wait_subscriber_s=args.wait_subscriber)
+                        wait_subscriber_s=args.wait_subscriber, warn=lambda note: print(f"warning: {note}", file=sys.stderr))
             print(f"{args.file}: published {n} messages on {args.publish}", file=sys.stderr)
             return 0
         with BlockingReplay(args.file, args.topics, args.sensor, speed=args.speed) as rep:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import AsyncIterator, Iterator, Sequence
+from collections.abc import AsyncIterator, Callable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 
@@ -191,9 +191,11 @@ class BlockingReplay(_Player):
 
 
 def publish(path: str | Path, endpoint: str, *, speed: float | None = 1.0, topics: Sequence[str] | None = None, sensor: str | None = None,
-            wait_subscriber_s: float = 0.0) -> int:
+            wait_subscriber_s: float = 0.0, warn: Callable[[str], None] | None = None) -> int:
     """Publish a recorded session on ``endpoint`` (bound) as the daemon would: the same topics and two-frame msgpack framing,
-    a fresh gapless ``seq`` per topic. Waits up to ``wait_subscriber_s`` for a first subscriber. Returns the messages sent."""
+    a fresh gapless ``seq`` per topic. Waits up to ``wait_subscriber_s`` for a first subscriber. Returns the messages sent.
+
+    ``warn`` is told, in one line, when the file ends inside a record (a killed recorder: every message before it is sent)."""
     import zmq
 
     from tactiled_client.log import check_body
@@ -217,4 +219,6 @@ def publish(path: str | Path, endpoint: str, *, speed: float | None = 1.0, topic
             sock.send_multipart([entry.topic.encode(), schema.pack(body)])
     finally:
         sock.close()
+    if player.reader.truncated and warn is not None:
+        warn(player.reader.truncated)
     return sum(sent.values())
