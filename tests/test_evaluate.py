@@ -50,3 +50,20 @@ def test_evaluate_writes_all_six_experiments(tmp_path: Path) -> None:
 def test_evaluate_needs_ground_truth(tmp_path: Path) -> None:
     res = run_cli("evaluate", str(tmp_path / "nope.npz"), "--report", str(tmp_path / "r"))
     assert res.returncode == 2 and "at least two readable recordings" in res.stderr
+
+
+def _files(root: Path, *, surfaces: str = "2", fs: float | None = None) -> list[str]:
+    """A tiny robot-scene set: two recordings of one slide per surface, at ``fs`` (default 20 kHz)."""
+    return [str(p) for p in write_dataset(root, scene="robot", surfaces=surfaces, files_per_surface=2, slides_per_file=1, fs=fs)]
+
+
+def test_features_refuse_recordings_of_two_rates_in_either_order(tmp_path: Path) -> None:
+    fast = _files(tmp_path / "fast", surfaces="1")[0]
+    slow = _files(tmp_path / "slow", surfaces="1", fs=2200.0)[0]
+    for files in ([fast, slow], [slow, fast]):  # the first order raised from deep inside; the second wrote 2.2 kHz bands for both
+        out = tmp_path / "f.npz"
+        res = run_cli("features", *files, "-o", str(out))
+        lines = res.stderr.splitlines()  # train's check (tactiled.learn.train.check_recordings), one line
+        assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith("tactiled: error: recordings differ in fs [2200.0, 20000.0]"), res.stderr
+        assert not out.exists()
+

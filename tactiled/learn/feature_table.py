@@ -22,6 +22,7 @@ from tactiled.errors import RecordingError, WindowError
 from tactiled.files.npzio import NpzError, load_json_bounded, read_npz
 from tactiled.files.recording import Recording, atomic_savez
 from tactiled.learn.dataset import WindowSet, collect_windows
+from tactiled.learn.train import check_recordings
 
 FORMAT, VERSION = "tactiled-features", 1
 KEYS = ("header", "x", "names", "label", "file", "slide", "span", "files")
@@ -30,8 +31,10 @@ MAX_FEATURES_BYTES = 1 << 30  # inflated, all arrays together
 
 def write_features(path: str | Path, recs: Sequence[tuple[str, Recording]], config: Config, jobs: int | None = None) -> WindowSet:
     """Analyse every slide of ``recs`` with the config's feature families and windows (on ``jobs`` processes, None: every
-    core); write the file; return the windows."""
-    fs, channels = recs[0][1].fs, min(r.channels for _, r in recs)
+    core); write the file; return the windows. Recordings of differing rates or channel counts, or one given twice, are a
+    :class:`~tactiled.errors.TactiledError` (``train``'s check): the windows of all are analysed with one set of bands."""
+    check_recordings(recs, len(recs))
+    fs, channels = recs[0][1].fs, recs[0][1].channels
     try:
         settings = AnalysisSettings.from_config(config, channels, fs)
     except WindowError as exc:  # the rate is a property of the recordings: name the first
