@@ -245,3 +245,38 @@ def test_publishing_a_truncated_log_warns_as_the_json_replay_does(tmp_path: Path
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 2 and err[0].startswith(f"warning: {tmp_path / 'cut.tlog'}: ends inside a record at byte "), err
     assert err[1] == f"{tmp_path / 'cut.tlog'}: published 3 messages on ipc://{tmp_path}/pub"
+
+
+def test_every_client_command_in_the_docs_parses_and_messages_md_names_the_schema_version() -> None:
+    """docs/integrations.md showed ``python -m tactiled_client replay slides.mcap``, which exits 2 (--json or --publish is
+    required); docs/messages.md's title said schema version 6 where the table and the wire say 7."""
+    import contextlib
+    import io
+    import re
+    import shlex
+
+    from tactiled_client.__main__ import build_parser
+
+    docs = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+    commands = []
+    for doc in docs:
+        if doc.name == "cli.md":  # the parser's own help
+            continue
+        text = doc.read_text(encoding="utf-8")
+        commands += [(doc.name, c) for c in re.findall(r"`(python -m tactiled_client [^`]*)`", text)]
+        commands += [(doc.name, c.split("#")[0]) for c in re.findall(r"^\s*(python -m tactiled_client .*)$", text, flags=re.M)]
+    bad = []
+    for name, command in commands:
+        if "|" in command:  # a synopsis (record|replay), not a command line
+            continue
+        err = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(err):
+                build_parser().parse_args(shlex.split(command)[3:])
+        except SystemExit as exc:
+            if exc.code:
+                bad.append(f"{name}: {command}: {err.getvalue().strip().splitlines()[-1]}")
+    assert not bad, "\n".join(bad)
+    assert len(commands) >= 6
+    title = (REPO / "docs" / "messages.md").read_text(encoding="utf-8").splitlines()[0]
+    assert title == f"# Messages (schema version {schema.SCHEMA_VERSION})"
