@@ -57,6 +57,16 @@ def _files(root: Path, *, surfaces: str = "2", fs: float | None = None) -> list[
     return [str(p) for p in write_dataset(root, scene="robot", surfaces=surfaces, files_per_surface=2, slides_per_file=1, fs=fs)]
 
 
+def _label_only(path: str, label: str | None) -> None:
+    """Rewrite the recording at ``path`` without its per-slide ground truth, with only the file-level ``label`` (or none)."""
+    from dataclasses import replace
+
+    from tactiled.files.recording import load_recording, save_recording
+
+    rec = load_recording(path)
+    save_recording(path, replace(rec, slide_start=None, slide_stop=None, surface=None, ra_um=None, label=label))
+
+
 def test_features_refuse_recordings_of_two_rates_in_either_order(tmp_path: Path) -> None:
     fast = _files(tmp_path / "fast", surfaces="1")[0]
     slow = _files(tmp_path / "slow", surfaces="1", fs=2200.0)[0]
@@ -67,3 +77,38 @@ def test_features_refuse_recordings_of_two_rates_in_either_order(tmp_path: Path)
         assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith("tactiled: error: recordings differ in fs [2200.0, 20000.0]"), res.stderr
         assert not out.exists()
 
+
+def test_evaluate_refuses_a_single_surface(tmp_path: Path) -> None:
+    report = tmp_path / "r"
+    res = run_cli("evaluate", *_files(tmp_path / "d", surfaces="1"), "--report", str(report), "--quick", "--experiments", "a")
+    assert res.returncode == 2 and res.stderr.splitlines()[-1].startswith("tactiled: error: evaluation needs at least two surfaces, got ['Ra"), res.stderr
+    assert not (report / "report.md").exists()
+
+
+def test_evaluate_uses_label_only_recordings_and_names_one_without_ground_truth(tmp_path: Path) -> None:
+    files = _files(tmp_path / "d")
+    for path in files[2:]:  # every recording of the second surface keeps only its file label
+        _label_only(path, Path(path).name.split("_")[1])
+    bare = str(tmp_path / "bare.npz")
+    write_dataset(tmp_path / "b", scene="robot", surfaces="1", files_per_surface=1, slides_per_file=1, seed=5)
+    (tmp_path / "b" / next(p.name for p in (tmp_path / "b").glob("*.npz"))).rename(bare)
+    _label_only(bare, None)
+    report = tmp_path / "r"
+    res = run_cli("evaluate", *files, bare, "--report", str(report), "--quick", "--experiments", "a", "--folds", "2")
+    assert res.returncode == 2, res.stderr  # the bare file was named and skipped
+    assert f"tactiled: skipped: {bare}: no ground truth (neither per-slide surfaces nor a file label)" in res.stderr.splitlines()
+    assert res.stdout.startswith(f"{report / 'report.md'}: 4 recordings")
+    out = json.loads((report / "report.json").read_text())
+    assert (out["files"], out["classifiers"]["surfaces"], out["classifiers"]["slides"]) == (4, 2, 4)
+
+
+def test_evaluate_sampling_rate_below_20_khz_and_the_folds_used(tmp_path: Path) -> None:
+    report = tmp_path / "r"
+    res = run_cli("evaluate", *_files(tmp_path / "d", fs=2200.0), "--report", str(report), "--quick", "--experiments", "c")
+    assert res.returncode == 0, res.stderr
+    out = json.loads((report / "report.json").read_text())
+    assert [r["fs"] for r in out["sampling_rate"]] == [2200.0, 550.0]  # the recordings' rate and a quarter of it
+    assert all(len(r["ELM"]["folds"]) == 2 for r in out["sampling_rate"])
+    assert (out["folds"], out["folds_requested"]) == (2, 5)  # two recordings per surface: two folds, whatever --folds asked
+    md = (report / "report.md").read_text()
+    assert "grouped 2-fold (5 asked for: the surface with fewest recordings has 2) cross-validation" in md and "| 550 Hz | 2 |" in md

@@ -153,19 +153,25 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from tactiled.files.outputs import check_folder
     from tactiled.learn.dataset import load_recordings
     from tactiled.learn.evaluate import run_evaluation
+    from tactiled.learn.train import check_recordings
 
     config = config_of(args)
     check_folder(args.report, args.force)  # before minutes of experiments, not after
     readable = load_recordings(args.files, say)
-    recs = [(n, r) for n, r in readable if r.slides()]
+    # as train: a file with only a file-level label gives the detector's slides that label (tactiled.learn.dataset)
+    recs = []
+    for name, rec in readable:
+        if rec.slides() or rec.label is not None:
+            recs.append((name, rec))
+        else:
+            say(f"skipped: {name}: no ground truth (neither per-slide surfaces nor a file label)")
     if len(recs) < 2:
-        raise TactiledError("evaluation needs at least two readable recordings with ground-truth slides")
-    if len({(r.fs, r.channels) for _, r in recs}) != 1:
-        raise TactiledError("recordings differ in fs or channels; evaluate one kind at a time")
+        raise TactiledError("evaluation needs at least two readable recordings with ground truth (per-slide surfaces or a file label)")
+    check_recordings(recs, len(recs))  # one rate and channel count, no recording twice
     results = run_evaluation(recs, config, Path(args.report), experiments=args.experiments, folds=args.folds, quick=args.quick, seed=args.seed,
                              progress=lambda m: print(f"evaluate: {m}", file=sys.stderr, flush=True))
     print(f"{Path(args.report) / 'report.md'}: {len(recs)} recordings, {results['seconds']:.0f} s")
-    return EXIT_OK if len(readable) == len(args.files) else EXIT_USAGE  # as features and score: the skipped files were named
+    return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE  # as features and score: the skipped files were named
 
 
 def add_commands(sub: Sub) -> None:
@@ -228,8 +234,9 @@ def add_commands(sub: Sub) -> None:
 
     p = command(sub, "evaluate", "the papers' experiments by grouped cross-validation", cmd_evaluate,
                 "tactiled evaluate data/sim/*.npz --report report/")
-    p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth, all of one rate and channel count, "
-                   "at least two of each surface (folds are grouped by recording)")
+    p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth or a file-level label (its slides found by the "
+                   "detector, as train), all of one rate and channel count, at least two surfaces and two recordings of each (folds "
+                   "are grouped by recording)")
     p.add_argument("--report", required=True, help="output folder: report.md, report.json, PNG figures")
     p.add_argument("--force", action="store_true", help="write into a report folder that is not empty")
     p.add_argument("--config", help=c.CONFIG_HELP)

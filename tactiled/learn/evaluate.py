@@ -3,7 +3,8 @@
 (a) classifiers: ELM against kNN (k = 1, 5, 9), SVM (linear, RBF), a regularised linear
     model, and the papers' plain ELM (Huang's U(−1, 1) weights, pseudo-inverse, no ridge);
 (b) start point × duration of the analysis window;
-(c) sampling rate: 20 kHz decimated with anti-aliasing (scipy.signal.decimate) to 10, 5, 2, 1 kHz;
+(c) sampling rate: the recordings' own rate decimated with anti-aliasing (scipy.signal.decimate) by 2, 4, 10 and 20
+    (from 20 kHz: 10, 5, 2, 1 kHz; ``--quick``: by 4);
 (d) number of selected features;
 (e) without labels: K-means (squared Euclidean, cityblock, cosine) and a SOM, Hungarian-scored;
 (f) error against run time: accuracy beside the compute time per slide (features + inference)
@@ -15,7 +16,8 @@
 (a)–(f) use the papers' single window per slide (DWT statistics, forward selection inside
 each training fold). Slides come from the daemon's detector paired with the ground truth
 (:mod:`tactiled.learn.dataset`), and every true slide counts: one without a usable window is wrong.
-Folds never split a recording.
+Folds never split a recording; there are as many as the surface with fewest recordings has, at most the folds asked
+for, and the report gives the number used. Every input needs two surfaces, each with two recordings.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from scipy import signal
 from tactiled.config import Config
 from tactiled.core.analysis import AnalysisSettings
 from tactiled.core.features import FeaturePlan, classifier_inputs
+from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.cluster import hungarian_accuracy, kmeans, som_clusters
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, check_distinct, collect_windows, find_slides
@@ -81,7 +84,13 @@ class Evaluator:
         self.channels = self.recs[0][1].channels
         self.found: dict[Any, tuple[list[list[LabelledSlide]], SlideCounts]] = {None: find_slides(self.recs, config)}
         check_distinct(self.recs)
-        check_two_recordings(class_table(self.found[None][0]))
+        table = class_table(self.found[None][0])
+        if len(table) < 2:  # as train (tactiled.learn.search): one surface gives nothing to tell apart
+            raise TactiledError(f"evaluation needs at least two surfaces, got {sorted(table)}")
+        check_two_recordings(table)
+        slides = [s for per_file in self.found[None][0] for s in per_file]
+        self.folds_used = len(grouped_splits(np.array([s.label or "" for s in slides], dtype=np.str_), np.array([s.file for s in slides]), folds,
+                                             seed))
         self._features: dict[tuple[Any, ...], WindowSet] = {}
         self._selection: dict[tuple[Any, ...], list[list[int]]] = {}
 
@@ -318,6 +327,7 @@ def decimate(rec: Recording, rate: float) -> Recording:
 
 
 QUICK_SFS_POOL = 16  # evaluate --quick: candidates per forward-selection step
+RATE_FACTORS, RATE_FACTORS_QUICK = (1, 2, 4, 10, 20), (1, 4)  # (c): the recordings' rate divided by these (20 kHz: 20, 10, 5, 2, 1 kHz)
 
 
 def run_evaluation(recs: Sequence[tuple[str, Recording]], config: Config, report: Path, *, experiments: str = "abcdefg", folds: int = 5,
@@ -325,15 +335,16 @@ def run_evaluation(recs: Sequence[tuple[str, Recording]], config: Config, report
     """Run the experiments, write report.md, report.json and PNG figures into ``report``; return the results."""
     ev = Evaluator(recs, config, folds=folds, max_features=3 if quick else 6, seed=seed, progress=progress, sfs_pool=QUICK_SFS_POOL if quick else 0)
     starts, durations = ((0.1, 0.3), (0.25, 0.5)) if quick else ((0.0, 0.15, 0.3, 0.5), (0.1, 0.25, 0.5, 0.8))
-    rates = (20000.0, 5000.0) if quick else (20000.0, 10000.0, 5000.0, 2000.0, 1000.0)
-    results: dict[str, Any] = {"files": len(recs), "folds": folds, "fs": ev.fs, "channels": ev.channels, "sfs_pool": ev.sfs_pool}
+    rates = [ev.fs / q for q in (RATE_FACTORS_QUICK if quick else RATE_FACTORS)]
+    results: dict[str, Any] = {"files": len(recs), "folds": ev.folds_used, "folds_requested": folds, "fs": ev.fs, "channels": ev.channels,
+                               "sfs_pool": ev.sfs_pool}
     t0 = time.perf_counter()
     if "a" in experiments:
         results["classifiers"] = ev.classifiers()
     if "b" in experiments or "f" in experiments:
         results["window_grid"] = ev.window_grid(starts, durations)
-    if "c" in experiments and ev.fs >= max(rates):
-        results["sampling_rate"] = ev.sampling_rates([r for r in rates if r <= ev.fs and ev.fs % r == 0])
+    if "c" in experiments:
+        results["sampling_rate"] = ev.sampling_rates(rates)
     if "d" in experiments:
         results["feature_count"] = ev.feature_counts(3 if quick else 6)
     if "e" in experiments:
@@ -355,7 +366,7 @@ def _pm(r: dict[str, Any]) -> str:
 
 def markdown(res: dict[str, Any], figures: list[str]) -> str:
     """report.md: the results of :func:`run_evaluation` as Markdown sections and tables, then the ``figures`` (PNG names)."""
-    out = [f"# Evaluation report\n\n{res['files']} recordings at {res['fs']:g} Hz, {res['channels']} channels; grouped {res['folds']}-fold "
+    out = [f"# Evaluation report\n\n{res['files']} recordings at {res['fs']:g} Hz, {res['channels']} channels; grouped {res['folds']}-fold{_folds_note(res)} "
            f"cross-validation (mean ± sd over folds; slides from the daemon's detector paired with the ground truth, every true slide counted); "
            f"{res['seconds']:.0f} s."
            + (f" Quick run: forward selection among the {res['sfs_pool']} features of largest ANOVA F in each fold." if res.get("sfs_pool") else "")
@@ -419,6 +430,12 @@ def markdown(res: dict[str, Any], figures: list[str]) -> str:
         out.append("")
     out += [f"![{f}]({f})\n" for f in figures]
     return "\n".join(out) + "\n"
+
+
+def _folds_note(res: dict[str, Any]) -> str:
+    """Why fewer folds were used than ``--folds`` asked for, for the report; nothing when as many."""
+    asked = res.get("folds_requested", res["folds"])
+    return f" ({asked} asked for: the surface with fewest recordings has {res['folds']})" if asked != res["folds"] else ""
 
 
 def _calibrated(cal: dict[str, Any]) -> str:
