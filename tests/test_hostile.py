@@ -449,7 +449,7 @@ def test_a_rate_too_low_for_the_features_is_one_line_naming_the_file(tmp_path: P
     res = run_cli("replay", "--no-model", str(tmp_path / "slow.npz"), str(CORPUS / "rec-good.npz"), timeout=60)
     assert res.returncode == 2 and "Traceback" not in res.stderr
     errors = [line for line in res.stderr.splitlines() if "error" in line]
-    assert len(errors) == 1 and "slow.npz" in errors[0] and "cannot be computed" in errors[0] and "40 Hz" in errors[0]
+    assert len(errors) == 1 and "slow.npz" in errors[0] and "is too short for features.families" in errors[0] and "40 Hz" in errors[0]
     assert "rec-good.npz:" in res.stdout  # the other file is still replayed
     res = run_cli("features", str(tmp_path / "slow.npz"), "-o", str(tmp_path / "f.npz"), timeout=60)
     lines = res.stderr.strip().splitlines()

@@ -546,7 +546,7 @@ class Model:
         acc = f", nested CV accuracy {100 * cv['mean']:.1f} ± {100 * cv['sd']:.1f} %" if isinstance(cv, dict) else ""
         band = cv.get("interval95") if isinstance(cv, dict) else None
         if acc and isinstance(band, list) and len(band) == 2 and all(_is_number(v) for v in band):
-            over = "slides" if cv.get("grouped_by") == "slide" else "recordings"
+            over = "slides" if isinstance(cv, dict) and cv.get("grouped_by") == "slide" else "recordings"
             acc += f" (95 % interval over {over} {100 * band[0]:.0f}–{100 * band[1]:.0f} %)"
         if isinstance(cv, dict) and cv.get("grouped_by") == "slide":
             acc += ", optimistic (train --group-by slide: the folds split recordings)"
