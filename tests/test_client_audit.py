@@ -280,3 +280,35 @@ def test_every_client_command_in_the_docs_parses_and_messages_md_names_the_schem
     assert len(commands) >= 6
     title = (REPO / "docs" / "messages.md").read_text(encoding="utf-8").splitlines()[0]
     assert title == f"# Messages (schema version {schema.SCHEMA_VERSION})"
+
+
+def test_a_message_that_is_not_tactileds_is_skipped_and_counted_not_raised(tmp_path: Path) -> None:
+    """Three frames, a body that is no msgpack or no map, an unknown type without seq raised ValueError, FormatError or
+    TypeError out of receive(): not a ClientError, so it ended a controller that catches the library's errors."""
+    from tactiled_client import BlockingReplay, BlockingSubscriber
+    from tactiled_client.log import LogWriter
+
+    noseq: bytes = msgpack.packb({"v": 7, "sensor": "s0", "type": "force"})
+    strseq: bytes = msgpack.packb({"v": 7, "seq": "a", "sensor": "s0", "type": "status"})
+    bad = [[b"roughness/s0", b"x", b"y"], [b"roughness/s0", b"\xc1\xc1"], [b"roughness/s0", msgpack.packb([1, 2])],
+           [b"force/s0", noseq], [b"status/s0", strseq]]
+    endpoint = f"ipc://{tmp_path}/pub"
+    xpub: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.XPUB)
+    xpub.setsockopt(zmq.LINGER, 0)
+    xpub.bind(endpoint)
+    try:
+        with BlockingSubscriber(endpoint, timeout=10) as sub:
+            _subscriptions(xpub, {b""})
+            for frames in [*bad, [b"status/s0", _body("status", 0, state="idle")]]:
+                xpub.send_multipart(frames)
+            msg = sub.receive()
+        assert (msg.type, msg.seq, sub.malformed) == ("status", 0, 5)
+        assert sub.last_malformed == "status/s0: seq is str, not int"
+    finally:
+        xpub.close(linger=0)
+    with LogWriter(tmp_path / "s.tlog") as log:  # a recorder keeps every two-frame message; the replay skips them alike
+        log.write([b"force/s0", noseq], 1.0, 1.0)
+        log.write([b"status/s0", strseq], 2.0, 2.0)
+        log.write([b"status/s0", _body("status", 0, state="idle")], 3.0, 3.0)
+    with BlockingReplay(tmp_path / "s.tlog", speed=None) as rep:
+        assert [m.type for m in rep] == ["status"] and rep.malformed == 2

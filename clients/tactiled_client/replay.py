@@ -91,7 +91,8 @@ class _Player(_Tracker):
             return t / self.speed, t
         return (0.0 if self.speed is None else max(0.0, ahead / self.speed)), None
 
-    def _deliver(self) -> schema.Message:
+    def _deliver(self) -> schema.Message | None:
+        """The pending entry's message (None: skipped as malformed, see :meth:`_Tracker.accept`)."""
         entry = self._pending
         if entry is None:
             raise UsageError("nothing to deliver")  # only reached after _next gave an entry
@@ -128,12 +129,14 @@ class Replay(_Player):
 
     async def receive(self, timeout: float | None = None) -> schema.Message:
         """The next message, at its time; :class:`NoData` if it is further than ``timeout`` away, :class:`EndOfLog` at the end."""
-        wait, silence = self._plan(timeout)
-        if wait > 0:
-            await asyncio.sleep(wait)
-        if silence is not None:
-            raise self._silence(silence)
-        return self._deliver()
+        while True:
+            wait, silence = self._plan(timeout)
+            if wait > 0:
+                await asyncio.sleep(wait)
+            if silence is not None:
+                raise self._silence(silence)
+            if (msg := self._deliver()) is not None:
+                return msg
 
     def __aiter__(self) -> AsyncIterator[schema.Message]:
         return self
@@ -155,12 +158,14 @@ class BlockingReplay(_Player):
 
     def receive(self, timeout: float | None = None) -> schema.Message:
         """The next message, at its time; :class:`NoData` if it is further than ``timeout`` away, :class:`EndOfLog` at the end."""
-        wait, silence = self._plan(timeout)
-        if wait > 0:
-            time.sleep(wait)
-        if silence is not None:
-            raise self._silence(silence)
-        return self._deliver()
+        while True:
+            wait, silence = self._plan(timeout)
+            if wait > 0:
+                time.sleep(wait)
+            if silence is not None:
+                raise self._silence(silence)
+            if (msg := self._deliver()) is not None:
+                return msg
 
     def __iter__(self) -> Iterator[schema.Message]:
         while True:

@@ -16,7 +16,9 @@ Blocking (scripts)::
 CURVE. Every message is typed (:mod:`tactiled_client.schema`); ``msg.missed`` is how many
 messages of that topic were lost just before it (from ``seq``); ``timeout`` (s) raises
 :class:`NoData` when nothing arrives for that long; :meth:`latest` returns the newest
-roughness label if it is younger than a given age.
+roughness label if it is younger than a given age. A message that is not a tactiled message
+(something else publishing there) is skipped and counted in ``malformed`` (``last_malformed``
+says why), never raised.
 """
 
 from __future__ import annotations
@@ -45,9 +47,19 @@ class _Tracker:
     def __init__(self) -> None:
         self.last_seq: dict[str, int] = {}
         self.missed: dict[str, int] = {}
+        self.malformed = 0  # messages skipped because they are not tactiled messages (docs/messages.md)
+        self.last_malformed: str | None = None  # why the last of them was skipped (topic and fault, one line)
         self._latest: tuple[float, schema.Roughness] | None = None
 
-    def accept(self, frames: list[bytes]) -> schema.Message:
+    def accept(self, frames: list[bytes]) -> schema.Message | None:
+        """The typed message of ``frames`` with its ``missed`` set; None, counted in :attr:`malformed`, if it is not a
+        tactiled message (not two frames, a body that is not a msgpack map, ``v``, ``seq``, ``sensor`` or ``type`` missing
+        or of the wrong type): something else publishing on the endpoint must not end a controller's loop."""
+        fault = _fault(frames)
+        if fault is not None:
+            self.malformed += 1
+            self.last_malformed = fault
+            return None
         topic, body = schema.decode(frames)
         msg = schema.parse(topic, body)
         last = self.last_seq.get(topic)
@@ -74,6 +86,29 @@ class _Tracker:
         if self._latest is None or self.now() - self._latest[0] > max_age_s:
             return None
         return self._latest[1]
+
+
+_HEAD_TYPES: tuple[tuple[str, type], ...] = (("v", int), ("seq", int), ("sensor", str), ("type", str))
+
+
+def _fault(frames: list[bytes]) -> str | None:
+    """Why ``frames`` is not a tactiled message (one line, naming its topic), or None if it is one."""
+    import msgpack
+
+    where = frames[0][:80].decode("utf-8", "replace") if frames else "(no frames)"
+    if len(frames) != 2:
+        return f"{where}: {len(frames)} frames, not 2"
+    try:
+        body = msgpack.unpackb(frames[1], raw=False, strict_map_key=False)
+    except (ValueError, TypeError, RecursionError, msgpack.UnpackException) as exc:
+        return f"{where}: body is not msgpack: {str(exc)[:80]}"
+    if not isinstance(body, dict):
+        return f"{where}: body is not a map"
+    for name, kind in _HEAD_TYPES:
+        value = body.get(name)
+        if not isinstance(value, kind) or isinstance(value, bool):
+            return f"{where}: {name} is {type(value).__name__ if name in body else 'missing'}, not {kind.__name__}"
+    return None
 
 
 class _Filter:
@@ -182,8 +217,8 @@ class Subscriber(_Tracker):
             if deadline is not None and not await self._socket.poll(_left_ms(deadline)):
                 raise NoData(f"no message from {', '.join(self.endpoints)} for {t} s")
             frames = await self._socket.recv_multipart()
-            if self._filter.wants(frames[0]):
-                return self.accept(frames)
+            if self._filter.wants(frames[0]) and (msg := self.accept(frames)) is not None:
+                return msg
 
     def __aiter__(self) -> AsyncIterator[schema.Message]:
         return self
@@ -217,8 +252,8 @@ class BlockingSubscriber(_Tracker):
             if deadline is not None and not self._socket.poll(_left_ms(deadline)):
                 raise NoData(f"no message from {', '.join(self.endpoints)} for {t} s")
             frames = self._socket.recv_multipart()
-            if self._filter.wants(frames[0]):
-                return self.accept(frames)
+            if self._filter.wants(frames[0]) and (msg := self.accept(frames)) is not None:
+                return msg
 
     def __iter__(self) -> Iterator[schema.Message]:
         while True:
