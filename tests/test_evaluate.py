@@ -74,7 +74,8 @@ def test_features_refuse_recordings_of_two_rates_in_either_order(tmp_path: Path)
         out = tmp_path / "f.npz"
         res = run_cli("features", *files, "-o", str(out))
         lines = res.stderr.splitlines()  # train's check (tactiled.learn.train.check_recordings), one line
-        assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith("tactiled: error: recordings differ in fs [2200.0, 20000.0]"), res.stderr
+        assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith("tactiled: error: recordings differ in fs or channels ("), res.stderr
+        assert f"{files[0]}: {'20000' if files[0] == fast else '2200'} Hz" in lines[0] and f"{files[1]}: " in lines[0], lines  # which files
         assert not out.exists()
 
 

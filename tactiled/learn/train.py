@@ -56,10 +56,12 @@ def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None
         raise TactiledError("unreadable recordings (listed above); nothing written")
     if not recs:
         raise TactiledError("no recordings given")
-    fs = {r.fs for _, r in recs}
-    channels = {r.channels for _, r in recs}
-    if len(fs) != 1 or len(channels) != 1:
-        raise TactiledError(f"recordings differ in fs {sorted(fs)} or channels {sorted(channels)}; train one rate at a time")
+    kinds: dict[tuple[float, int], str] = {}  # (fs, channels) -> the first file of that kind
+    for path, r in recs:
+        kinds.setdefault((r.fs, r.channels), path)
+    if len(kinds) > 1:
+        which = "; ".join(f"{path}: {fs:g} Hz, {c} channel{'s' if c > 1 else ''}" for (fs, c), path in kinds.items())
+        raise TactiledError(f"recordings differ in fs or channels ({which}); use one rate and channel count at a time")
     check_distinct(recs)
 
 
