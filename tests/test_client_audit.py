@@ -312,3 +312,14 @@ def test_a_message_that_is_not_tactileds_is_skipped_and_counted_not_raised(tmp_p
         log.write([b"status/s0", _body("status", 0, state="idle")], 3.0, 3.0)
     with BlockingReplay(tmp_path / "s.tlog", speed=None) as rep:
         assert [m.type for m in rep] == ["status"] and rep.malformed == 2
+
+
+@pytest.mark.parametrize("argv", [[], ["replay", "s.tlog"], ["record", "ipc:///x", "s.tlog", "--topics", "nope"], ["control", "ipc:///x", "fly"]])
+def test_a_client_usage_error_is_one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    """The module docstring promises one line on stderr; argparse printed its whole usage first (7 lines for replay)."""
+    from tactiled_client.__main__ import main
+
+    with pytest.raises(SystemExit) as done:
+        main(argv)
+    err = capsys.readouterr().err
+    assert done.value.code == 2 and len(err.strip().splitlines()) == 1 and "error:" in err and "--help" in err, err

@@ -19,16 +19,24 @@ import json
 import signal
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 from tactiled_client import schema
 from tactiled_client.errors import ClientError
 from tactiled_client.log import check_body
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, as ``tactiled``'s are (its subcommands' parsers are of this class too)."""
+
+    def error(self, message: str) -> NoReturn:
+        """Exit 2 with one line: the problem and where the help is (argparse prints the whole usage first)."""
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``python -m tactiled_client`` (record, replay, control); docs/cli.md shows its help."""
-    ap = argparse.ArgumentParser(prog="python -m tactiled_client", description="record and replay tactiled sessions (docs/messages.md)")
+    ap = _Parser(prog="python -m tactiled_client", description="record and replay tactiled sessions (docs/messages.md)")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
     p = sub.add_parser("record", help="record what a daemon publishes to a session log")
     p.add_argument("endpoint", nargs="+", help="daemon endpoint(s), e.g. tcp://127.0.0.1:7350, then the output file")
