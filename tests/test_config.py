@@ -106,6 +106,10 @@ def test_check_config_says_whether_run_would_find_a_model(tmp_path: Path) -> Non
     assert res.returncode == 2 and res.stderr.strip().splitlines() == [
         f"tactiled: error: {named}: model.path: model trained at fs 20000 Hz, sensor fingertip0 is 2200 Hz"], res.stderr
     assert run_cli("check-config", str(REPO / "configs" / "tactiled.toml")).stderr == ""  # the shipped model fits: nothing to say
+    lazy = tmp_path / "lazy.toml"  # 0.05 s between reads: 4.5 KiB of the standard board's frames wait, more than a tty holds
+    lazy.write_text("[serial]\nread_interval_s = 0.05\n")
+    res = run_cli("check-config", str(lazy))
+    assert res.returncode == 0 and "serial.read_interval_s = 0.05 s lets ~4.5 KiB of frames wait between reads" in res.stderr, res.stderr
     slow = tmp_path / "slow.toml"  # record works at 100 Hz; run --no-model cannot analyse: said, naming the keys (run said it alone)
     slow.write_text("[sensor]\nfs = 100\nchannels = 1\n")
     res = run_cli("check-config", str(slow))

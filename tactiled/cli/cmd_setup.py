@@ -8,6 +8,8 @@ from tactiled.cli.common import EXIT_OK, Sub, command, say
 from tactiled.config import load_config
 from tactiled.errors import ModelError, WindowError
 
+TTY_READ_BUFFER = 4096  # bytes a tty's line discipline holds for its reader before it throttles the driver
+
 
 def cmd_config(args: argparse.Namespace) -> int:
     """Print the example config (every key, its default and what it does), shipped inside the package."""
@@ -21,6 +23,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     """Load and validate a config file: ok, or one line naming the key. Then the model ``tactiled run`` would use with it:
     a ``model.path`` or ``model.shadow`` that does not fit the sensor's rate and channels is an error (one line), as it is
     for ``run``; the shipped model not fitting is a note (a config for ``record`` needs no model)."""
+    from tactiled.board.frames import frame_size
     from tactiled.core.analysis import AnalysisSettings
     from tactiled.learn.choose import ModelChoice
 
@@ -37,6 +40,11 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     except ModelError as exc:
         raise ModelError(f"{args.file}: {key}: {exc}") from None
     print(f"{args.file}: ok")
+    waiting = config.serial.read_interval_s * s.fs * frame_size(s.channels, 20) / 20  # bytes between two reads, 20-sample frames
+    if waiting > TTY_READ_BUFFER:
+        notes.append(f"serial.read_interval_s = {config.serial.read_interval_s:g} s lets ~{waiting / 1024:.1f} KiB of frames wait between reads, "
+                     f"more than the {TTY_READ_BUFFER // 1024} KiB a tty's line discipline holds: safe on a board that buffers them itself "
+                     "(USB CDC-ACM) or with flow control; a USB-serial bridge without it loses the rest (docs/benchmarks.md)")
     for note in notes:
         say(f"note: {note}")
     if model is None:
