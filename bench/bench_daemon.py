@@ -37,11 +37,12 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import zmq
 from scratch import scratch
-from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, Status
+from tactiled_client import BlockingSubscriber, Message, NoData, Roughness, Slide, Status
 
 from tactiled.sim.virtualboard import read_log
 
@@ -161,6 +162,16 @@ def report(out: dict[str, object], path: str | None) -> None:
             json.dump(out, fh, indent=1)
 
 
+def messages(endpoint: str, stop: threading.Event) -> Iterator[Message]:
+    """Every message a subscriber of ``endpoint`` receives until ``stop`` is set (checked at least once a second)."""
+    with BlockingSubscriber(endpoint, timeout=1.0) as sub:
+        while not stop.is_set():
+            try:
+                yield sub.receive()
+            except NoData:
+                continue
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=600.0)
@@ -225,27 +236,22 @@ def main() -> None:
     stop = threading.Event()
 
     def reader(k: int) -> None:
-        with BlockingSubscriber(endpoint, timeout=1.0) as sub:
-            while not stop.is_set():
-                try:
-                    msg = sub.receive()
-                except NoData:
-                    continue
-                missed[k] += msg.missed
-                if isinstance(msg, Roughness):
-                    labels[k] += 1
-                    if k == 0 and not msg.final and msg.start_mono is not None:
-                        first_provisional.setdefault(msg.slide_id, (time.monotonic() - msg.start_mono) * 1e3)
-                    if k == 0 and msg.final:
-                        sensor = None if msg.stop_mono is None else (time.monotonic() - msg.stop_mono) * 1e3 + 1e3 / 20_000
-                        standing[msg.slide_id] = (msg.latency_ms, sensor)
-                elif isinstance(msg, Slide) and k == 0 and msg.event == "start" and msg.start_mono is not None:
-                    started[msg.slide_id] = (time.monotonic() - msg.start_mono) * 1e3
-                    slide_start[msg.slide_id] = msg.start
-                elif isinstance(msg, Slide) and k == 0 and msg.event == "resumed":  # that final label was withdrawn: the slide went on
-                    withdrawn[0] += standing.pop(msg.slide_id, None) is not None
-                elif isinstance(msg, Status) and k == 0:
-                    statuses.append(msg)
+        for msg in messages(endpoint, stop):
+            missed[k] += msg.missed
+            if isinstance(msg, Roughness):
+                labels[k] += 1
+                if k == 0 and not msg.final and msg.start_mono is not None:
+                    first_provisional.setdefault(msg.slide_id, (time.monotonic() - msg.start_mono) * 1e3)
+                if k == 0 and msg.final:
+                    sensor = None if msg.stop_mono is None else (time.monotonic() - msg.stop_mono) * 1e3 + 1e3 / 20_000
+                    standing[msg.slide_id] = (msg.latency_ms, sensor)
+            elif isinstance(msg, Slide) and k == 0 and msg.event == "start" and msg.start_mono is not None:
+                started[msg.slide_id] = (time.monotonic() - msg.start_mono) * 1e3
+                slide_start[msg.slide_id] = msg.start
+            elif isinstance(msg, Slide) and k == 0 and msg.event == "resumed":  # that final label was withdrawn: the slide went on
+                withdrawn[0] += standing.pop(msg.slide_id, None) is not None
+            elif isinstance(msg, Status) and k == 0:
+                statuses.append(msg)
 
     threads = [threading.Thread(target=reader, args=(k,), daemon=True) for k in range(args.subscribers)]
     for t in threads:

@@ -24,9 +24,9 @@ import subprocess
 import threading
 import time
 
-from bench_daemon import FS, TACTILED, report, rss_mb, scene_samples
+from bench_daemon import FS, TACTILED, messages, report, rss_mb, scene_samples
 from scratch import scratch
-from tactiled_client import BlockingSubscriber, NoData, Roughness, Status
+from tactiled_client import Roughness, Status
 
 from tactiled.board.frames import encode_frames
 
@@ -80,16 +80,11 @@ def main() -> None:
     labels = [0]
 
     def read() -> None:
-        with BlockingSubscriber(endpoint, timeout=1.0) as sub:
-            while not stop.is_set():
-                try:
-                    msg = sub.receive()
-                except NoData:
-                    continue
-                if isinstance(msg, Roughness) and msg.final:
-                    labels[0] += 1
-                elif isinstance(msg, Status):
-                    statuses[:] = [msg]
+        for msg in messages(endpoint, stop):
+            if isinstance(msg, Roughness) and msg.final:
+                labels[0] += 1
+            elif isinstance(msg, Status):
+                statuses[:] = [msg]
 
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
