@@ -262,7 +262,7 @@ def test_training_on_a_local_dask_cluster(tmp_path: Path) -> None:
     # refused: said at once, before any recording is read (dask's client retried it for 10 s, after the analysis)
     lines = bad.stderr.strip().splitlines()
     assert bad.returncode == 2 and len(lines) == 1 and lines[0].startswith("tactiled: error: --scheduler tcp://127.0.0.1:1: cannot connect: "), lines
-    for address in ("nonsense", "foo://127.0.0.1:1"):  # a traceback before: dask's ValueError
+    for address in ("nonsense", "foo://127.0.0.1:1", ""):  # a traceback before: dask's ValueError; "" ran locally without a word
         bad = run_cli("train", *files, "-o", str(tmp_path / "m3.npz"), "--scheduler", address)
         lines = bad.stderr.strip().splitlines()
         assert bad.returncode == 2 and len(lines) == 1 and "not a scheduler address" in lines[0] and address in lines[0], bad.stderr

@@ -162,7 +162,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     if ensemble not in ENSEMBLE_MODES:
         raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
     speed_option(speed)  # before the recordings load
-    if scheduler:
+    if scheduler is not None:  # "" too: an empty address is a mistake, not a request for the local cores
         check_scheduler(scheduler)  # likewise: a refused address is said at once, not after the analysis
     recs = load_recordings(paths, say)
     check_recordings(recs, len(paths))
