@@ -21,7 +21,7 @@ from typing import IO, Any
 import numpy as np
 import numpy.typing as npt
 
-from tactiled.errors import RecordingError
+from tactiled.errors import RecordingError, TactiledError
 from tactiled.files.npzio import NpzError, NpzReader, load_json_bounded, read_npz
 
 KEYS = ("samples", "fs", "volts_per_count", "first_index", "label", "meta", "lost", "slide_start", "slide_stop", "surface", "ra_um")
@@ -121,6 +121,14 @@ def surface_name_problem(name: str) -> str | None:
     if bad is not None:
         return f"{name!r} holds the control character U+{ord(bad):04X}; a surface name is one printable line"
     return None
+
+
+def check_label_option(label: str | None) -> None:
+    """Raise :class:`TactiledError` (``--label: ...``) unless ``label`` is None or a valid surface name
+    (:func:`surface_name_problem`): what ``record --label`` and ``enrol --label`` check before any work."""
+    problem = None if label is None else surface_name_problem(label)
+    if problem:
+        raise TactiledError(f"--label: {problem}")
 
 
 def _fail(path: object, key: str, message: str) -> RecordingError:

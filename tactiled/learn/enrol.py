@@ -25,7 +25,7 @@ import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.errors import ModelError, TactiledError
-from tactiled.files.recording import surface_name_problem
+from tactiled.files.recording import check_label_option
 from tactiled.learn.dataset import Progress, WindowSet, check_distinct, collect_windows, find_slides, load_recordings, speed_ratios
 from tactiled.learn.model import FloatArray, Model, fit_pipeline, load_model, take_columns
 from tactiled.learn.search import PARAMS, fit_model_novelty, reasons_text
@@ -53,9 +53,7 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     where = model_path or "the shipped model"
     if old.refit is None or old.novelty_x is None or old.novelty_y is None or old.novelty_groups is None:
         raise ModelError(f"{where}: an older model file keeps no training rows; retrain it with this tactiled to enrol into it")
-    problem = None if label is None else surface_name_problem(label)
-    if problem:
-        raise TactiledError(f"--label: {problem}")  # the rule a recording's label follows (docs/recordings.md)
+    check_label_option(label)  # the rule a recording's label follows (docs/recordings.md)
     recs = load_recordings(paths, say)
     if len(recs) != len(paths):
         raise TactiledError(f"{len(paths) - len(recs)} of {len(paths)} recordings unreadable (named above); nothing enrolled")

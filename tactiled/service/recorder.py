@@ -26,10 +26,10 @@ from tactiled.board.clockmap import rate_mismatch
 from tactiled.board.frames import DecoderStats, Frame
 from tactiled.board.serialsource import DISCONNECTED, ByteSource, SerialSource, check_port
 from tactiled.config import Config
-from tactiled.errors import OutputError, TactiledError
+from tactiled.errors import OutputError
 from tactiled.files.journal import MIN_LOST_ROWS, JournalWriter, encode_chunk, encode_header, is_locked, journal_path, recover
 from tactiled.files.outputs import check_output
-from tactiled.files.recording import fsync_dir, lost_rows_budget, surface_name_problem
+from tactiled.files.recording import check_label_option, fsync_dir, lost_rows_budget
 from tactiled.run.ingest import Batch
 from tactiled.run.stream import Stream
 from tactiled.signals import STOP_SIGNALS
@@ -286,9 +286,7 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     is saved, so a second Ctrl-C never leaves a half-written file.
     """
     s = config.sensor
-    problem = None if label is None else surface_name_problem(label)
-    if problem:  # the file would not load (docs/recordings.md): said before the port opens
-        raise TactiledError(f"--label: {problem}")
+    check_label_option(label)  # else the file would not load (docs/recordings.md): said before the port opens
     check_port(s.port)
     chunks: queue.Queue[bytes | None] = queue.Queue()
     stream = Stream(config, analyse=False)
