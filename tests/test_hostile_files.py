@@ -261,15 +261,21 @@ def test_samples_near_1e307_are_one_line_for_features_score_and_export(command: 
     assert code == 2 and sum(f"{huge}: samples: reach" in line for line in err) == 1 and len(err) <= 2, err
 
 
-def test_score_of_a_recording_with_no_detected_slide_reports_0_slides(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Bound: a labelled file of silence (no slide to detect) scores 0 of 0 true slides, exit 0 (it raised IndexError)."""
+@pytest.mark.parametrize("json_out", [False, True])
+def test_score_of_recordings_with_no_detected_slide_is_one_line_not_a_score(json_out: bool, tmp_path: Path,
+                                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """Bound: labelled files of silence (no slide to detect) are one line naming them, exit 2; no "accuracy 0.0000 (0 of 0)"
+    with exit 0, as an audit found (before that it raised IndexError)."""
     from tactiled.files.recording import Recording, save_recording
 
-    flat = tmp_path / "flat.npz"
-    save_recording(flat, Recording(samples=np.zeros((40_000, 2), np.int16), fs=20_000.0, label="Ra0.44"))
-    code = main(["score", "--jobs", "1", MODEL, str(flat)])
-    out = capsys.readouterr().out
-    assert code == 0 and "(0 of 0 true slides)" in out, out
+    flats = [tmp_path / f"flat{k}.npz" for k in range(2)]
+    for flat in flats:
+        save_recording(flat, Recording(samples=np.zeros((40_000, 2), np.int16), fs=20_000.0, label="Ra0.44"))
+    code = main(["score", "--jobs", "1", *(["--json"] if json_out else []), MODEL, *map(str, flats)])
+    out, err = capsys.readouterr()
+    lines = [line for line in err.splitlines() if "error" in line]  # beside the progress line
+    assert code == 2 and out == "" and len(lines) == 1, (out, err)
+    assert "no true slide to score" in lines[0] and all(str(f) in lines[0] for f in flats), lines
 
 
 @pytest.mark.parametrize("key", ["label", "surface"])

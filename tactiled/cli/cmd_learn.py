@@ -125,6 +125,11 @@ def cmd_score(args: argparse.Namespace) -> int:
     if not scored:
         raise TactiledError("no recording with ground truth (per-slide surfaces or a file label) to score")
     report = score_recordings(scored, config, model, args.jobs, files_done("score"))
+    if report["n"] == 0:  # only file labels, and the detector found no slide in any of them: an accuracy of 0 of 0 is no score
+        names = [n for n, _ in scored]
+        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        raise TactiledError(f"no true slide to score: the detector found no slide in {shown} (a file label names the surface of "
+                            "each slide the detector finds; see `tactiled replay` on one of them)")
     if args.json:
         print(json.dumps(report))
         return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
