@@ -25,6 +25,8 @@ def file_problem(path: str | Path, max_bytes: int) -> str | None:
         return MISSING
     except OSError as exc:
         return exc.strerror or str(exc)
+    except ValueError as exc:  # a path no file can have: a NUL character (a path from a control request, not argv)
+        return f"not a path ({exc})"
     if not stat.S_ISREG(info.st_mode):
         return NOT_REGULAR
     if info.st_size > max_bytes:

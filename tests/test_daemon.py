@@ -303,6 +303,7 @@ def test_a_control_request_swaps_the_model_refuses_a_bad_one_and_starts_and_stop
             wait_for(lambda: final_by(b), timeout=60, what="a label by the loaded model")
             res = control("load", str(tmp_path / "bad.npz"))
             assert res.returncode == 1 and res.stderr.count("\n") == 1 and "bad.npz" in res.stderr, res.stderr
+            assert raw_request(ctl, {"cmd": "load", "path": "a\0b"}) == {"ok": False, "error": "request: path holds a NUL character"}
             res = control("shadow", str(tmp_path / "b.npz"))
             assert res.returncode == 0 and b in res.stdout, res.stderr
             wait_for(lambda: (m := sub.receive()) and isinstance(m, Status) and m.shadow is not None and m.shadow["slides"] >= 1,
@@ -319,6 +320,19 @@ def test_a_control_request_swaps_the_model_refuses_a_bad_one_and_starts_and_stop
         (m.slide_id, m.final, m.model, m.label, m.reason) for m in got if isinstance(m, Roughness)]
     statuses = statuses_after_first_label(got)
     assert statuses and lost_across(statuses) <= live.overrun_samples(first_label(got).start)  # no sample lost across the swap
+
+
+def raw_request(endpoint: str, request: dict[str, object]) -> object:
+    """One control request sent as it is (what the client would refuse to send) and its reply, unpacked (30 s at most)."""
+    import msgpack
+    import zmq
+
+    with zmq.Context() as ctx, ctx.socket(zmq.REQ) as req:
+        req.setsockopt(zmq.LINGER, 0)
+        req.connect(endpoint)
+        req.send(msgpack.packb(request))
+        assert req.poll(30_000), f"no reply to {request}"
+        return msgpack.unpackb(req.recv())
 
 
 def first_label(got: list[object]) -> Roughness:

@@ -12,6 +12,7 @@ import os
 import socket
 import struct
 import subprocess
+import sys
 import tracemalloc
 import zipfile
 from pathlib import Path
@@ -277,6 +278,24 @@ def test_stream_stops_at_the_declared_size(tmp_path: Path) -> None:
     finally:
         tracemalloc.stop()
     assert x.tolist() == list(range(10)) and peak < 4 << 20
+
+
+def test_an_unterminated_string_of_escaped_quotes_is_refused_without_a_quadratic_scan() -> None:
+    """Bound: a 666 kB header of one unterminated string of escaped quotes (4 kB deflated in a model file) is refused as not
+    JSON; the depth check's string pattern tried again from every quote, an hour of CPU holding the GIL (a daemon asked to
+    load such a model lost 100 s of samples). In a process of its own, so a regression is killed, not waited for."""
+    code = ("from tactiled.files.npzio import load_json_bounded\n"
+            "try:\n    load_json_bounded('\"' + '\\\\\"' * 333_000, 'header')\n"
+            "except ValueError as exc:\n    print(exc)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0 and res.stdout.startswith("header: not JSON: Unterminated string"), res
+
+
+def test_a_path_with_a_nul_character_is_no_file() -> None:
+    """Bound: os.stat raises ValueError on a NUL character (a path from a control request): one reason, no exception."""
+    from tactiled.readable import file_problem
+
+    assert file_problem("model\0.npz", 1 << 20) == "not a path (embedded null byte)"
 
 
 def test_features_file_with_nested_header_is_refused(tmp_path: Path) -> None:

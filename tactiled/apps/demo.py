@@ -8,6 +8,7 @@ demo says so with the daemon's last log line (exit 1).
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
 import tempfile
@@ -19,6 +20,8 @@ from tactiled_client.truth import overlapping
 
 from tactiled.apps.monitor import read_truth, run_monitor
 from tactiled.signals import sigterm_as_exit
+
+DAEMON_LAST_WORDS_S = 10.0  # how long a daemon that gave no label may take to exit and say why, s
 
 
 def run_demo(scene: str = "hand", seed: int = 0, publish: str | None = None, headless: bool = False, seconds: float = 20.0) -> int:
@@ -41,6 +44,9 @@ def run_demo(scene: str = "hand", seed: int = 0, publish: str | None = None, hea
             labels = print_labels(endpoint, seconds, board_log)
             if labels:
                 return 0
+            if daemon.poll() is None:  # a daemon that fails (a socket it cannot bind) exits; on a loaded machine it may still be starting
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    daemon.wait(DAEMON_LAST_WORDS_S)
             last = [line for line in daemon_log.read_text(errors="replace").splitlines() if line.strip()]
             print(f"tactiled: no label in {seconds:g} s; the daemon's last words: {last[-1] if last else '(nothing)'}", file=sys.stderr)
             return 1

@@ -39,7 +39,9 @@ MAX_RATIO = 200
 RATIO_FLOOR = 16 << 20
 CHUNK = 1 << 20
 DTYPE_KINDS = "biufU"  # bool, integers, floats, unicode: everything tactiled writes
-_STRINGS = re.compile(r'"(?:[^"\\]|\\.)*"')
+# a string, or an unterminated one to the end of the text: a match never fails once begun, so the scan is linear (a pattern
+# that must find the closing quote tries again from every quote of an unterminated string of escaped quotes: quadratic)
+_STRINGS = re.compile(r'"(?:[^"\\]|\\.)*"?', re.DOTALL)
 _BRACKETS = re.compile(r"[\[\]{}]")
 _ARCHIVE_ERRORS = (OSError, zipfile.BadZipFile, EOFError, ValueError, NotImplementedError, RuntimeError)
 

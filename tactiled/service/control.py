@@ -52,6 +52,8 @@ def parse_request(frames: list[bytes]) -> tuple[str, str | None]:
         raise ValueError(f"request: cmd must be one of {', '.join(COMMANDS)}, got {cmd!r}")
     if path is not None and not isinstance(path, str):
         raise ValueError("request: path must be a string or nil")
+    if path is not None and "\0" in path:
+        raise ValueError("request: path holds a NUL character")
     if cmd == "load" and not path:
         raise ValueError("request: load needs a path")
     return cmd, path

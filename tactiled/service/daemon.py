@@ -237,22 +237,28 @@ class Daemon:
             except ValueError as exc:
                 await self.control.send(reply(False, error=str(exc)))
                 continue
-            if cmd == "status":
-                answer = reply(True, status=self._status_message().to_map())
-            elif cmd == "load":
-                assert path is not None
-                error = await self.load(path)
-                answer = reply(error is None, **({"error": error} if error else {"model": self.fingerprint}))
-            else:
-                try:
-                    candidate = await self._checked(path) if path else None
-                except TactiledError as exc:
-                    answer = reply(False, error=str(exc))
-                else:
-                    self.set_shadow(candidate)
-                    log.info("shadow: %s", f"model {candidate.fingerprint} from {path}" if candidate else "stopped")
-                    answer = reply(True, shadow=candidate.fingerprint if candidate else None)
+            try:
+                answer = await self._answer(cmd, path)
+            except Exception as exc:  # a request the checks missed is refused in one line; the daemon runs on
+                log.error("control: %s %s refused: %s: %s", cmd, path, type(exc).__name__, exc)
+                answer = reply(False, error=f"{type(exc).__name__}: {exc}")
             await self.control.send(answer)
+
+    async def _answer(self, cmd: str, path: str | None) -> bytes:
+        """The packed reply to one parsed control request."""
+        if cmd == "status":
+            return reply(True, status=self._status_message().to_map())
+        if cmd == "load":
+            assert path is not None
+            error = await self.load(path)
+            return reply(error is None, **({"error": error} if error else {"model": self.fingerprint}))
+        try:
+            candidate = await self._checked(path) if path else None
+        except TactiledError as exc:
+            return reply(False, error=str(exc))
+        self.set_shadow(candidate)
+        log.info("shadow: %s", f"model {candidate.fingerprint} from {path}" if candidate else "stopped")
+        return reply(True, shadow=candidate.fingerprint if candidate else None)
 
     async def _read(self) -> None:
         """The source until it ends (a finite source: then the explicit end of stream), or until cancelled."""
