@@ -125,3 +125,26 @@ def test_a_model_grouped_by_slide_says_its_interval_is_over_slides_and_optimisti
     assert any(line.startswith("warning: --group-by slide") and "optimistic" in line for line in said), said
     line = res.model.describe()  # the model file's own line (tactiled replay, run, check-config say it)
     assert "over recordings" not in line and "optimistic (train --group-by slide" in line, line
+
+
+def test_a_surface_whose_label_only_files_give_no_slide_is_named_not_dropped_silently(data: tuple[list[str], list[str]], tmp_path: Path,
+                                                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """Two files labelled Glass in which the detector finds no slide (silence; noise too short for a slide): Glass was missing
+    from the slide table and from the model, nothing named it, exit 0. Now each file is named in one line, Glass is listed with
+    0 slides and the min-slides rule names it (exit 2); --drop-rare trains without it, saying so."""
+    good, _ = data
+    glass = [str(tmp_path / "glass_a.npz"), str(tmp_path / "glass_b.npz")]
+    rng = np.random.default_rng(0)
+    np.savez(glass[0], samples=np.zeros((40000, 2), np.int16), fs=np.float64(20000), label=np.str_("Glass"))
+    np.savez(glass[1], samples=rng.integers(-300, 300, (2800, 2)).astype(np.int16), fs=np.float64(20000), label=np.str_("Glass"))
+    out = tmp_path / "m.npz"
+    code = main(["train", *good, *glass, "-o", str(out), "--method", "quick"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and not out.exists(), err
+    assert "train:   Glass: 0, 0, 0" in err, err
+    assert all(f"train: no slide detected in {g} (label Glass)" in err for g in glass), err
+    assert err[-1].startswith("tactiled: error: too few slides (< 2) for surface(s) Glass (0 slides)") and "group-by" not in err[-1], err
+    said: list[str] = []
+    res = train([*good, *glass], Config(), drop_rare=True, candidates=quick_candidates()[:1], folds=2, progress=said.append)
+    assert res.model.summary["dropped"] == ["Glass"] and "Glass" not in res.model.classes, res.model.summary["dropped"]
+    assert "training without Glass (0 slides) (--drop-rare)" in said, said

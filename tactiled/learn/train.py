@@ -1,7 +1,8 @@
 """``tactiled train``: recordings → slides (the daemon's detector, paired with ground truth) → model search → model file.
 
 :func:`train` is the whole command as a library call. Training never drops a surface
-silently: the slides of every surface are counted first, and a surface with fewer than
+silently: the slides of every surface are counted first (a surface named by file labels in whose files the detector
+found no slide counts 0, and each such file is named), and a surface with fewer than
 ``min_slides`` is an error naming it (``drop_rare`` proceeds without it, saying so). Once the
 windows are analysed, the same rules hold for the slides with a usable window (a slide too
 short or too damaged for any window teaches nothing): a surface with too few of them is an error
@@ -65,9 +66,11 @@ def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None
     check_distinct(recs)
 
 
-def class_table(per_file: list[list[LabelledSlide]]) -> dict[str, tuple[int, int, int]]:
-    """{surface: (slides, slides the detector found, files)}."""
-    out: dict[str, list[Any]] = {}
+def class_table(per_file: list[list[LabelledSlide]], labels: Sequence[str | None] = ()) -> dict[str, tuple[int, int, int]]:
+    """{surface: (slides, slides the detector found, files with a slide of it)}. ``labels``: the file-level labels of the
+    recordings; a surface they name without a slide is a row of zeros, so that it meets the slide rules (it was left out of
+    the table, and of the model, without a word)."""
+    out: dict[str, list[Any]] = {label: [0, 0, set()] for label in labels if label is not None}
     for slides in per_file:
         for s in slides:
             if s.label is None:
@@ -171,6 +174,10 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         f"{sum(counts.missed.values())} missed by the detector, {sum(counts.false.values())} detections outside any true slide)")
     for name, n in counts.missed.items():
         say(f"  detector missed {n} true slide(s) in {name}: used at their true bounds")
+    labels = [None if rec.slides() else rec.label for _, rec in recs]  # file-level labels (per-slide truth always gives slides)
+    for (name, _), label, slides in zip(recs, labels, per_file, strict=True):
+        if label is not None and not slides:  # its surface may still have slides from other files: said, not lost silently
+            say(f"no slide detected in {name} (label {label})")
     if group_by == "slide":  # a recording that is one long slide gives cross-validation several groups
         length = round(GROUP_PIECE_S * recs[0][1].fs)
         cut = [cut_long_slides(slides, length) for slides in per_file]
@@ -180,7 +187,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
                 f"to {2 * GROUP_PIECE_S:g} s ({sum(map(len, cut))} slides where {sum(map(len, per_file))} were found), so that a "
                 "recording that is one long slide gives the folds several")
         per_file = cut
-    table = class_table(per_file)
+    table = class_table(per_file, labels)
     say("slides per surface (slides, found by the detector, files):")
     for label, (n, det, files) in table.items():
         say(f"  {label}: {n}, {det}, {files}")
@@ -188,11 +195,13 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         raise TactiledError("no labelled slides: the recordings carry neither per-slide ground truth nor a file label "
                             "(tactiled record --label SURFACE, or docs/recordings.md)")
     rare = [k for k, (n, _, _) in table.items() if n < min_slides]
+    named = ", ".join(f"{k} ({table[k][0]} slide{'' if table[k][0] == 1 else 's'})" for k in rare)
     if rare and not drop_rare:
-        raise TactiledError(f"too few slides (< {min_slides}) for surface(s) {', '.join(rare)}; record more, or pass --drop-rare to train without them"
-                            + (f" (or --group-by slide, if each is one slide of {2 * GROUP_PIECE_S:g} s or more)" if group_by == "file" else ""))
+        raise TactiledError(f"too few slides (< {min_slides}) for surface(s) {named}; record more, or pass --drop-rare to train without them"
+                            + (f" (or --group-by slide, if each is one slide of {2 * GROUP_PIECE_S:g} s or more)"
+                               if group_by == "file" and any(table[k][0] for k in rare) else ""))
     if rare:
-        say(f"training without {', '.join(rare)} (--drop-rare)")
+        say(f"training without {named} (--drop-rare)")
         per_file = [[s for s in slides if s.label not in rare] for slides in per_file]
     if group_by == "file":
         check_two_recordings({k: v for k, v in table.items() if k not in rare}, ", or pass --group-by slide (an optimistic estimate)")
