@@ -154,3 +154,41 @@ def test_a_recording_of_no_samples_round_trips(tmp_path: Path) -> None:
     assert isinstance(back, Recording) and back.samples.shape == (0, 3) and back.fs == 20_000.0
     res = run_cli("replay", str(out))
     assert res.returncode == 0, res.stderr
+
+
+def _bomb(path: Path, n: int, frame_size: bool = True) -> Path:
+    """A tactiled-looking MCAP file of one samples message of ``n`` zeros per film in one zstd chunk (a few kB on disk, 4n
+    bytes of JSON inflated); ``frame_size`` False: the chunk declares 1 kB, only its zstd frame the true size."""
+    from mcap.writer import CompressionType, Writer
+
+    with open(path, "wb") as fh:
+        w = Writer(fh, compression=CompressionType.ZSTD, chunk_size=1 << 40)
+        w.start(profile="", library="x")
+        cid = w.register_channel("/tactiled/fingertip0/samples", "json", w.register_schema("tactiled.Samples", "jsonschema", b"{}"))
+        w.add_metadata("tactiled.recording", {"fs": "20000.0", "channels": "2", "volts_per_count": "0.000152587890625",
+                                              "first_index": "0", "samples_dtype": "int16", "meta": "{}"})
+        zeros = ",".join(["0"] * n).encode()
+        w.add_message(cid, log_time=0, publish_time=0, data=b'{"index":0,"n":%d,"lost":[],"film1":[' % n + zeros + b'],"film2":[' + zeros + b']}')
+        w.finish()
+    if not frame_size:  # the chunk record (opcode 6: start and end times, then its uncompressed size) says 1 kB
+        data = bytearray(path.read_bytes())
+        at = 8  # past the magic
+        while data[at] != 6:
+            at += 9 + int.from_bytes(data[at + 1: at + 9], "little")
+        data[at + 25: at + 33] = (1024).to_bytes(8, "little")
+        path.write_bytes(bytes(data))
+    return path
+
+
+def test_an_mcap_decompression_bomb_is_refused_before_it_is_inflated(tmp_path: Path) -> None:
+    """Bound: a few kB of zstd declaring 20 MB of JSON zeros (which json and numpy make several hundred MB) is one line
+    naming the file, exit 2, as an .npz member over 200:1 is; an audit's 8 kB file took 13 s and 1.3 GB before."""
+    for frame_size in (True, False):
+        bomb = _bomb(tmp_path / f"bomb{frame_size}.mcap", 5_000_000, frame_size)
+        assert bomb.stat().st_size < 20_000
+        res = run_cli("replay", "--no-model", str(bomb))
+        assert res.returncode == 2 and res.stdout == "", res
+        line = res.stderr.strip()
+        assert len(line.splitlines()) == 1 and str(bomb) in line and "a decompression bomb" in line, line
+    small = _bomb(tmp_path / "small.mcap", 1000)  # the same shape, small: no bomb, a recording
+    assert open_recording(small).samples.shape == (1000, 2)
