@@ -232,3 +232,29 @@ def test_assess_many_is_assess_of_each_slide_bit_for_bit(trained: tuple[Path, Pa
                 for i, (lo, hi) in enumerate(rows):
                     p, c, n = fused.assess(x[lo:hi], final)
                     assert np.array_equal(proba[i], p) and confidence[i] == c and novelty[i] == n, (fusion, final, lo, hi)
+
+
+def test_an_ensemble_states_its_own_nested_accuracy_not_its_first_members(trained: tuple[Path, Path, list[str]]) -> None:
+    """With --ensemble always the file's cv_accuracy (and the line describe() prints from it) was the winner alone's nested
+    estimate, beside the ensemble's own CV accuracy. Now it is the ensemble's (each outer fold's pick with its partner); the
+    winner alone's is kept under ensemble.alone_nested, and a file without the mark says whose it is."""
+    path, _, _ = trained
+    model = load_model(path)
+    cv, ens = model.summary["cv_accuracy"], model.summary["ensemble"]
+    assert cv["model"] == "ensemble" and ens["alone_nested"]["picks"] == cv["picks"] and "model" not in ens["alone_nested"]
+    assert cv["mean"] == pytest.approx(np.mean(cv["folds"]))
+    if all(p == model.summary["winner"] for p in cv["picks"]):  # the same member in every fold: the ensemble's own folds
+        assert cv["folds"] == pytest.approx(ens["folds"])
+    assert f"nested CV accuracy {100 * cv['mean']:.1f} ±" in model.describe()
+    old = replace(model, summary={**model.summary, "cv_accuracy": ens["alone_nested"]})  # a file from before the mark
+    assert "nested CV accuracy of its first member alone" in old.describe(), old.describe()
+
+
+def test_ensemble_always_says_when_there_is_no_ensemble_to_make(trained: tuple[Path, Path, list[str]]) -> None:
+    """The winner was the spectral candidate itself: --ensemble always did nothing without a word."""
+    _, data, surfaces = trained
+    known = [p for p in sorted(data.glob("*.npz")) if f"_{surfaces[4]}_" not in p.name][:4]  # two surfaces
+    said: list[str] = []
+    res = train(known, Config(), folds=2, candidates=[SPECTRUM], ensemble="always", progress=said.append)
+    assert res.model.partner is None
+    assert f"--ensemble always: no ensemble: the choice is {SPECTRUM.name} itself" in said, said

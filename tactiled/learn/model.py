@@ -548,6 +548,8 @@ class Model:
         if acc and isinstance(band, list) and len(band) == 2 and all(_is_number(v) for v in band):
             over = "slides" if isinstance(cv, dict) and cv.get("grouped_by") == "slide" else "recordings"
             acc += f" (95 % interval over {over} {100 * band[0]:.0f}–{100 * band[1]:.0f} %)"
+        if acc and self.partner is not None and isinstance(cv, dict) and cv.get("model") != "ensemble":  # trained before its file stated the ensemble's own
+            acc = acc.replace("nested CV accuracy", "nested CV accuracy of its first member alone", 1)
         if isinstance(cv, dict) and cv.get("grouped_by") == "slide":
             acc += ", optimistic (train --group-by slide: the folds split recordings)"
         elif isinstance(cv, dict) and cv.get("inner_grouped_by") == "none":

@@ -40,7 +40,9 @@ as recorded (docs/evaluation.md measured it on the same unit and on other units 
 scenes 6 of 90 slides): when the winner shares :data:`SPECTRUM`'s windows, the model multiplies the winner's
 probabilities by SPECTRUM's (:func:`ensemble_of`; its temperature and calibration fitted on the two candidates'
 out-of-fold scores combined, its provisional-label calibration on their combined prefixes, its novelty the winner's),
-always or only when that combination's out-of-fold accuracy is within one standard error of the winner's.
+always or only when that combination's out-of-fold accuracy is within one standard error of the winner's. The model
+file then states the ensemble's nested estimate (each outer fold's pick with SPECTRUM), the winner alone's kept beside it;
+where no ensemble can be made (the winner is SPECTRUM, or does not share its windows), train says so.
 
 Work is spread over every core with joblib; ``scheduler`` (a dask.distributed address)
 sends it to a cluster through joblib's Dask backend instead.
@@ -632,7 +634,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         nested_accs.append(float(board[pick]["folds"][o]))
     nested_hits = np.concatenate([hits_of(oof[name][te], y_idx[te]) for name, (_, te) in zip(picks, outer, strict=True)])
     band = recording_interval(nested_hits, np.concatenate([files[te] for _, te in outer]))
-    nested = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks, "interval95": band,
+    nested: dict[str, Any] = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks, "interval95": band,
               **({"inner_grouped_by": "none" if "none" in grouping else "slide"} if set(grouping) - {"file"} else {}),
               **({"grouped_by": "slide"} if group_by == "slide" else {})}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
@@ -641,6 +643,11 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     alone = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty, untaught,
                    windows_of[_key(best)])
     model, members, scores = alone, [(best, alone.temperature)], oof[best.name]
+    if ensemble != "off" and not can_partner(best, usable):
+        say(f"--ensemble {ensemble}: no ensemble: " + (
+            f"the choice is {SPECTRUM.name} itself" if best == SPECTRUM else
+            f"{SPECTRUM.name} was not among the candidates scored" if SPECTRUM not in usable else
+            f"the choice's windows are not {SPECTRUM.name}'s (0.25 s from the start, all of them)"))
     if ensemble != "off" and can_partner(best, usable):
         own_t = fit_temperature(oof[best.name], y_idx)  # the winner's temperature as a member (label-smoothed, as the partner's)
         partner = _fit_member(sets, SPECTRUM, oof[SPECTRUM.name], y_idx, classes, config, fs, channels, seed, inner_folds, method)
@@ -652,15 +659,21 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         board[chosen]["ensemble"] = info
         if info["used"]:
             model = ensemble_of(alone, own_t, partner, both, y_idx, sets[_key(best)][1].names)
-            model.summary = {**model.summary, "ensemble": info}
+            # the model written is the ensemble: its file states the ensemble's nested estimate (the winner alone's is kept)
+            info["alone_nested"] = nested
+            nested = _nested_ensemble(oof, usable, picks, outer, y_idx, files, {best.name: own_t}, partner.temperature, nested)
+            band = nested["interval95"]
+            model.summary = {**model.summary, "cv_accuracy": nested, "ensemble": info}
             members, scores = [(best, own_t), (SPECTRUM, partner.temperature)], both
         else:
             alone.summary = {**alone.summary, "ensemble": info}
     said = f" with {SPECTRUM.name} (ensemble)" if model.partner is not None else ""
-    ens_cv = f"; ensemble CV {board[chosen]['ensemble']['mean']:.3f}" if "ensemble" in board[chosen] else ""
+    ens = board[chosen].get("ensemble")
+    ens_cv = f"; ensemble CV {ens['mean']:.3f}" if ens else ""
+    alone_cv = f" (the choice alone: {ens['alone_nested']['mean']:.3f})" if ens and "alone_nested" in ens else ""
     say(f"winner {best.name}{said}: {board[chosen]['mean']:.3f} ± {board[chosen]['sd']:.3f} (best mean {leaderboard[0]['mean']:.3f}){ens_cv}; "
-        f"nested CV {nested['mean']:.3f}{_interval_text(band, 'slides' if group_by == 'slide' else 'recordings')}"
-        + ("; optimistic: the folds split recordings (--group-by slide)" if group_by == "slide" else "") + "; fitted on every slide")
+        f"nested CV {'of the ensemble ' if alone_cv else ''}{nested['mean']:.3f}{_interval_text(band, 'slides' if group_by == 'slide' else 'recordings')}"
+        f"{alone_cv}" + ("; optimistic: the folds split recordings (--group-by slide)" if group_by == "slide" else "") + "; fitted on every slide")
     # provisional labels come from the first windows of a slide: their own calibration (the winner alone's too, when it is
     # kept beside the ensemble, so that it is the model train --ensemble off makes)
     for m, of in [(model, members), *([(alone, members[:1])] if keep_models and model is not alone else [])]:
@@ -676,6 +689,30 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
                                                                    inner_folds, method, summary, novelty, untaught, windows_of[_key(c)])
                          for c in usable}
     return result
+
+
+def _nested_ensemble(oof: dict[str, FloatArray], usable: Sequence[Candidate], picks: Sequence[str], outer: Sequence[tuple[Any, Any]],
+                     y_idx: npt.NDArray[np.intp], files: npt.NDArray[Any], temperatures: dict[str, float], partner_temperature: float,
+                     alone: dict[str, Any]) -> dict[str, Any]:
+    """The nested estimate of ``train --ensemble``'s model, in the form of :func:`search`'s ``nested``: in each outer fold, the
+    candidate the inner folds picked (``picks``) with :data:`SPECTRUM` as its partner where it may have one
+    (:func:`can_partner`; alone where not), scored on that fold's out-of-fold scores ``oof``. Each member's temperature is
+    as the ensemble's (``temperatures`` of the winner, else fitted on the pick's out-of-fold scores; ``partner_temperature``),
+    as for the ensemble's own cross-validated accuracy. ``guarded``'s check is not repeated inside the folds. ``alone``: the
+    picks' own nested estimate, whose grouping notes (``grouped_by``, ``inner_grouped_by``) it keeps."""
+    by_name = {c.name: c for c in usable}
+    accs, hits = [], []
+    for name, (_, te) in zip(picks, outer, strict=True):
+        sc = oof[name][te]
+        if can_partner(by_name[name], usable):
+            t = temperatures.get(name)
+            t = fit_temperature(oof[name], y_idx) if t is None else t
+            sc = ensemble_scores(sc, t, oof[SPECTRUM.name][te], partner_temperature)
+        accs.append(accuracy_of(sc, y_idx[te]))
+        hits.append(hits_of(sc, y_idx[te]))
+    band = recording_interval(np.concatenate(hits), np.concatenate([files[te] for _, te in outer]))
+    return {"mean": float(np.mean(accs)), "sd": float(np.std(accs)), "folds": accs, "picks": list(picks), "interval95": band,
+            "model": "ensemble", **{k: v for k, v in alone.items() if k in ("grouped_by", "inner_grouped_by")}}
 
 
 def can_partner(best: Candidate, usable: Sequence[Candidate]) -> bool:
