@@ -336,6 +336,25 @@ def test_early_probability_is_a_probability_short_of_certain(p_top: float, windo
     assert early_probability((2.0, 0.0, 0.0), 0.9, 1) > early_probability((2.0, 0.0, 0.0), 0.6, 1)
 
 
+@pytest.mark.parametrize("n", [40, 60, 1000])
+def test_a_provisional_label_is_never_surer_than_the_final_map_allows(n: int, tmp_path: Path) -> None:
+    """The early map was clamped to a fixed [0.01, 0.99] whatever the training slides: a model trained on 40 slides, all
+    right (its final map the constant 41/42 = 0.9762), gave 0.99 from one window. Now the final map's range bounds it (at
+    most 0.99), through the file too."""
+    model = _model(tmp_path)
+    x = np.abs(np.random.default_rng(5).standard_normal((2, 4))) + 3.0
+    scores, y = _oof(n, 4, 1.0 if n == 40 else 0.8)
+    model.temperature, model.calibration, _ = fit_calibration(scores, y)
+    top = float(np.max(model.calibration[1]))
+    assert top == pytest.approx(41 / 42 if n == 40 else 1 - 1 / (n + 2))
+    model.early_calibration = (1.0, 0.0, 50.0)  # every provisional label as sure as the map lets it be
+    model.save(tmp_path / "m.npz")
+    for m in (model, load_model(tmp_path / "m.npz")):
+        assert m.assess(x, final=False)[1] == pytest.approx(min(top, 0.99)) and m.assess(x)[1] <= top
+        m.early_calibration = (1.0, 0.0, -50.0)
+        assert m.assess(x, final=False)[1] == pytest.approx(max(1 / (n + 2), 0.01) if n != 40 else 1 - 41 / 42)
+
+
 def test_calibration_scores_of_a_perfect_and_an_overconfident_model() -> None:
     right = np.array([True] * 8 + [False] * 2)
     assert calibration_scores(np.full(10, 0.8), right)["ece"] == pytest.approx(0.0)

@@ -30,7 +30,7 @@ out-of-fold slides by temperature scaling and makes the map the top probability 
 1 - 1/(n+2)] (``summary["calibration"]["method"]`` is ``temperature``); older models hold a Platt or isotonic map over a
 label-smoothed temperature, and still load. A provisional label's confidence, from the first windows of a slide, is
 :func:`early_probability` of the top probability and the number of windows (``early_calibration``, fitted on out-of-fold
-prefixes of slides, format 5). The second number is ``novelty``, a score of the slide
+prefixes of slides, format 5), kept within the final map's range (:meth:`Model.early_bounds`). The second number is ``novelty``, a score of the slide
 (the mean of its windows' features, standardised as the classifier sees them) against the training slides
 (:func:`novelty_parts`), divided by the threshold that grouped cross-validation set so that at most 5 % of slides
 of known surfaces exceed it: above 1, the slide is unlike every surface the model was taught. From format 5 on the
@@ -488,7 +488,18 @@ class Model:
         softmax probability: :func:`early_probability` with ``early_calibration``; the whole-slide map when the model has none."""
         if self.early_calibration is None:
             return self.confidence(p_top)
-        return early_probability(self.early_calibration, p_top, windows)
+        return early_probability(self.early_calibration, p_top, windows, self.early_bounds())
+
+    def early_bounds(self) -> tuple[float, float]:
+        """[low, high] of a provisional label's confidence: the range of the final calibration map (temperature scaling's
+        [1/(n+2), 1 - 1/(n+2)] of n training slides; a constant map's one value as its top) and its mirror, within
+        :data:`EARLY_BOUNDS`, so that a label from a few windows is never surer than the whole slide's could be."""
+        if self.calibration is None or not self.calibration.shape[-1]:
+            return EARLY_BOUNDS
+        values = self.calibration[1]
+        hi = min(EARLY_BOUNDS[1], float(np.max(values)))
+        lo = max(EARLY_BOUNDS[0], min(float(np.min(values)), 1.0 - hi))
+        return min(lo, hi), hi
 
     def assess(self, features: FloatArray, final: bool = True) -> tuple[FloatArray, float, float | None]:
         """(softmax probabilities (K,), confidence that the top class is right, novelty) of a slide's windows' raw features (w, F).
@@ -998,15 +1009,19 @@ def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[
     model.novelty_threshold = float(threshold) if threshold is not None else math.inf
 
 
-def early_probability(coef: Sequence[float], p_top: float, windows: int) -> float:
+EARLY_BOUNDS = (0.01, 0.99)  # a provisional label's confidence never leaves these, whatever the model's final map allows
+
+
+def early_probability(coef: Sequence[float], p_top: float, windows: int, bounds: tuple[float, float] = EARLY_BOUNDS) -> float:
     """P(label right) of a label from the first ``windows`` windows of a slide with top softmax probability ``p_top``:
     sigmoid(a logit(p_top) + b log(windows) + c), ``coef`` = (a, b, c) (Platt scaling with the window count as a second
-    input, fitted in training on out-of-fold prefixes of slides), kept within [0.01, 0.99]: a few windows never make a
-    label certain."""
+    input, fitted in training on out-of-fold prefixes of slides), kept within ``bounds`` (:meth:`Model.early_bounds`: those
+    of the final map, within :data:`EARLY_BOUNDS`): a few windows never make a label certain, nor surer than the whole slide
+    could be."""
     a, b, c = coef
     q = min(max(p_top, 1e-6), 1 - 1e-6) if math.isfinite(p_top) else 0.5
     z = a * math.log(q / (1 - q)) + b * math.log(max(windows, 1)) + c
-    return min(max(1.0 / (1.0 + math.exp(-min(max(z, -700.0), 700.0))), 0.01), 0.99)
+    return min(max(1.0 / (1.0 + math.exp(-min(max(z, -700.0), 700.0))), bounds[0]), bounds[1])
 
 
 def _distances(z: FloatArray, train: FloatArray, alone: bool = False) -> FloatArray:
