@@ -13,7 +13,7 @@ from tactiled.core.analysis import Analyser, AnalysisSettings
 from tactiled.errors import ModelError
 from tactiled.learn.model import Model, fit_pipeline, load_model, novelty_scores, softmax
 from tactiled.learn.score import calibration_scores
-from tactiled.learn.search import fit_calibration, fit_novelty
+from tactiled.learn.search import fit_calibration, fit_novelty, held_out_rejected
 from tactiled.sim.simulate import write_dataset
 from tests.conftest import run_cli
 
@@ -353,6 +353,26 @@ def test_a_provisional_label_is_never_surer_than_the_final_map_allows(n: int, tm
         assert m.assess(x, final=False)[1] == pytest.approx(min(top, 0.99)) and m.assess(x)[1] <= top
         m.early_calibration = (1.0, 0.0, -50.0)
         assert m.assess(x, final=False)[1] == pytest.approx(max(1 / (n + 2), 0.01) if n != 40 else 1 - 41 / 42)
+
+
+def test_the_spectrum_tests_known_rejected_is_of_each_recording_left_out() -> None:
+    """fit_novelty counted the slides its own scales were fitted on (each surface's 95 % quantile of its own slides'
+    distances: with 12 slides, their largest): 0 % of known slides called unknown, whatever a new recording did. Now each
+    recording's slides are counted against the threshold and scales fitted on the others, as fitting on them alone gives."""
+    from tactiled.learn.model import surface_distances
+
+    rng = np.random.default_rng(0)
+    labels, files = np.repeat(np.array(list("abcd")), 12), np.repeat(np.arange(12), 4)
+    z = rng.standard_normal((48, 6)) + np.searchsorted(np.unique(labels), labels)[:, None] * 0.8 + rng.standard_normal((12, 6))[files]
+    _, info = fit_novelty(z, files, labels, 3, score="spectrum")
+    rejected = 0
+    for r in range(12):
+        rest = files != r
+        _, fitted = fit_novelty(z[rest], files[rest], labels[rest], 3, score="spectrum")
+        near = surface_distances(z[~rest], z[rest], labels[rest], 3) / np.array(fitted["surface_scale"])
+        rejected += int(np.sum(near.min(axis=1) / fitted["distance_threshold"] > 1.0))
+    assert info["known_rejected_by"] == "recording left out" and info["known_rejected"] == pytest.approx(rejected / 48) and rejected > 0
+    assert held_out_rejected(z, files, labels, 3, np.full((48, 4), 1e-12)) == 0.0  # every slide at no distance: none beyond
 
 
 def test_calibration_scores_of_a_perfect_and_an_overconfident_model() -> None:

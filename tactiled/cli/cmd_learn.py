@@ -68,10 +68,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         early = result.model.summary.get("early_calibration", {})
         print(f"confidence: calibrated ({cal['method']}) on {cal['slides']} out-of-fold slides"
               + (f"; provisional labels on {early['prefixes']} out-of-fold slide prefixes" if result.model.early_calibration else ""))
-    if nov.get("known_rejected") is not None:
+    if nov.get("known_rejected") is not None or nov.get("known_rejected_by"):
         ratio, far = nov.get("threshold") is not None, nov.get("distance_threshold") is not None
-        if ratio or far:
-            print(f"unknown surfaces: by cross-validation, {100 * nov['known_rejected']:.1f} % of slides of known surfaces are called unknown, "
+        if (ratio or far) and nov.get("known_rejected") is not None:
+            known = (f"by leaving each recording out, {100 * nov['known_rejected']:.1f} % of the slides of a new recording of a known surface "
+                     "are called unknown" if nov.get("known_rejected_by") == "recording left out" else
+                     f"by cross-validation, {100 * nov['known_rejected']:.1f} % of slides of known surfaces are called unknown")
+            print(f"unknown surfaces: {known}, "
                   + (f"{100 * nov['unseen_flagged']:.1f} % of slides of a surface left out of training" if nov.get("unseen_flagged") is not None
                      else "and no surface could be left out to test it"))
         if nov.get("score") == "spectrum":

@@ -55,6 +55,7 @@ import math
 import socket
 import time
 import warnings
+from collections import Counter
 from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -1011,18 +1012,90 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
         info["distance_threshold"] = far
     info.update(threshold=threshold if math.isfinite(threshold) else None, known_rejected=float(np.mean(over_thresholds(have, threshold, far) > 1.0)),
                 unseen_flagged=float(np.mean(over_thresholds(flagged, threshold, far) > 1.0)) if len(flagged) else None)
+    if score == "spectrum":  # the threshold and scales are fitted on the slides counted above: count each recording left out instead
+        info.update(known_rejected=held_out_rejected(z, files, labels, k, per_known, reject), known_rejected_by="recording left out")
     return threshold, info
 
 
-def own_scales(per_known: FloatArray, labels: npt.NDArray[Any], threshold: float, reject: float = 0.05) -> FloatArray:
+def held_out_rejected(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any], k: int, per_known: FloatArray,
+                      reject: float = 0.05) -> float | None:
+    """The share of slides of a new recording of a taught surface that ``spectrum``'s test calls unknown, by leaving each
+    recording out in turn: its slides (``z`` (n, F') of recordings ``files`` and surfaces ``labels``) against the distance
+    threshold and own scales (:func:`own_scales`) fitted, as :func:`fit_novelty` fits them, on the other recordings alone.
+    ``per_known`` (n, S): each slide's distance to every surface's slides of the other recordings (:func:`fit_novelty`'s).
+    A slide whose surface no other recording holds is not counted (it would be an untaught surface). None when no slide
+    can be counted.
+
+    Counting the slides the threshold was fitted on (each surface's own scale is the 95 % quantile of its own slides'
+    distances: with fewer than 20 slides, their largest) called none of them unknown, whatever a new recording does."""
+    surfaces, which = np.unique(labels, return_inverse=True)
+    which = which.reshape(-1)
+    d = np.sqrt(np.maximum((z * z).sum(axis=1)[:, None] - 2.0 * z @ z.T + (z * z).sum(axis=1)[None, :], 0.0))
+    d[files[:, None] == files[None, :]] = np.inf  # a slide is measured against other recordings only
+    # per surface, each slide's nearest slides of it (enough that k stay once any one recording's are taken away), and their recordings
+    top = k + max(Counter(zip(files.tolist(), labels.tolist(), strict=True)).values())
+    dist = np.full((len(z), len(surfaces), top), np.inf)
+    of = np.full((len(z), len(surfaces), top), -1, dtype=np.int64)
+    code = np.unique(files, return_inverse=True)[1].reshape(-1)  # recordings numbered 0..R-1
+    for j in range(len(surfaces)):
+        cols = np.flatnonzero(which == j)
+        order = np.argsort(d[:, cols], axis=1, kind="stable")[:, :top]
+        dist[:, j, :order.shape[1]] = np.take_along_axis(d[:, cols], order, axis=1)
+        of[:, j, :order.shape[1]] = code[cols][order]
+    base = _first_k_mean(dist, np.isfinite(dist), k)  # (n, S): per_known's distances, from these lists
+    # the (slide, surface) pairs whose k nearest hold a slide of recording r: only they change when r is left out
+    row, col, pos = np.nonzero((of[:, :, :k] >= 0) & np.isfinite(dist[:, :, :k]))
+    rec = of[row, col, pos]
+    by = np.argsort(rec, kind="stable")
+    cuts = np.flatnonzero(np.diff(rec[by])) + 1
+    touched = {int(rec[g[0]]): np.unique(np.stack([row[g], col[g]], axis=1), axis=0) for g in np.split(by, cuts) if len(g)}
+    rejected = counted = 0
+    for r in range(int(code.max()) + 1):
+        rest = code != r
+        held = ~rest
+        own = per_known[np.flatnonzero(held), which[held]]
+        taught = np.isfinite(own)
+        if not taught.any():
+            continue
+        per = base.copy()  # as per_known, of the other recordings' slides without r
+        pairs = touched.get(r)
+        if pairs is not None and len(pairs):
+            a, b = pairs[:, 0], pairs[:, 1]
+            per[a, b] = _first_k_mean(dist[a, b][:, None, :], ((of[a, b] != r) & np.isfinite(dist[a, b]))[:, None, :], k)[:, 0]
+        per = per[rest]
+        nearest_any = per.min(axis=1)
+        if not np.isfinite(nearest_any).any():
+            continue  # no other recording has a second one to fit a threshold on: nothing would be called unknown
+        far = max(float(np.quantile(nearest_any[np.isfinite(nearest_any)], 1.0 - reject, method="higher")), 1e-9)
+        scale = own_scales(per, labels[rest], far, reject, surfaces)
+        beyond = (per_known[held] / scale).min(axis=1) / far > 1.0
+        rejected += int(beyond[taught].sum())
+        counted += int(taught.sum())
+    return rejected / counted if counted else None
+
+
+def _first_k_mean(dist: FloatArray, use: npt.NDArray[np.bool_], k: int) -> FloatArray:
+    """(..., S) the mean of the first ``k`` of each sorted row of ``dist`` (..., S, m) that ``use`` allows; inf where none."""
+    use = use & (np.cumsum(use, axis=-1) <= k)
+    n = use.sum(axis=-1)
+    out: FloatArray = np.where(n > 0, np.where(use, dist, 0.0).sum(axis=-1) / np.maximum(n, 1), np.inf)
+    return out
+
+
+def own_scales(per_known: FloatArray, labels: npt.NDArray[Any], threshold: float, reject: float = 0.05,
+               surfaces: npt.NDArray[Any] | None = None) -> FloatArray:
     """(S,) each surface's own distance scale (surfaces sorted), at least 1: the (1 - ``reject``) quantile of the distances
     from each of its slides to its *own* other recordings' slides (``per_known`` (n, S): each slide's distance to every
     surface's slides of other recordings, inf where there are none), over ``threshold``.
     A surface whose recordings lie farther apart than the threshold (a grating whose lines move with the sliding speed, a
     surface taught from a few one-slide recordings) is measured on its own scale, so that a new recording of it is not
-    called unknown for being as far from the others as they are from each other. 1 for a surface of one recording."""
-    surfaces, which = np.unique(labels, return_inverse=True)
-    which = which.reshape(-1)
+    called unknown for being as far from the others as they are from each other. 1 for a surface of one recording.
+    ``surfaces``: the columns of ``per_known`` (sorted; default: those of ``labels``), a superset of ``labels``' surfaces."""
+    if surfaces is None:
+        surfaces, which = np.unique(labels, return_inverse=True)
+        which = which.reshape(-1)
+    else:
+        which = np.searchsorted(surfaces, labels)
     own = per_known[np.arange(len(labels)), which]
     out = np.ones(len(surfaces))
     for j in range(len(surfaces)):
