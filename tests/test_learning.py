@@ -197,6 +197,27 @@ def test_score_counts_every_true_slide_and_reads_file_labels(tmp_path: Path) -> 
     assert out["n"] == 2 and out["correct"] == 2
 
 
+def test_score_measures_calibration_on_taught_surfaces_only_and_says_what_untaught_slides_got() -> None:
+    """Calibration error, Brier score and reliability counted the slides of a surface the model was not taught, for which
+    confidence means nothing (docs/messages.md); and score printed "3 of its 3 slides called unknown (the right answer), the
+    rest labelled" with nothing left to label."""
+    from tactiled.cli.cmd_learn import untaught_line
+    from tactiled.core.events import SlideResult
+    from tactiled.files.recording import Recording
+    from tactiled.learn.score import score
+
+    rec = Recording(np.zeros((100, 1), dtype=np.int16), 1000.0, slide_start=np.array([0, 40]), slide_stop=np.array([30, 90]),
+                    surface=np.array(["a", "b"]))
+    ok = SlideResult(0, 2, 28, (2, 28), "a", None, 0.9, [("a", 0.9)], {})
+    wrong = SlideResult(1, 42, 88, (42, 88), "a", None, 0.6, [("a", 0.6)], {})  # "b" untaught: labelled "a"
+    report = score([("f", rec)], [[ok, wrong]], ["a"])
+    assert report["calibration_slides"] == 1 and report["brier"] == pytest.approx(0.01) and report["reliability"] == [[0.9, 1, 0.9, 1.0]]
+    assert report["untaught"] == {"b": [1, 0]} and report["untaught_labelled"] == {"b": 1}
+    assert untaught_line("b", 3, 3, 0) == "not a surface of the model: b, 3 of its 3 slides called unknown (the right answer)"
+    assert untaught_line("b", 5, 2, 2).endswith("2 of its 5 slides called unknown (the right answer), 2 labelled and 1 without a label "
+                                                 "for another reason")
+
+
 def test_elm_passes_check_estimator() -> None:
     import warnings
 

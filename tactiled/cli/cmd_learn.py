@@ -113,6 +113,15 @@ def cmd_enrol(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def untaught_line(surface: str, slides: int, unknown: int, labelled: int) -> str:
+    """score's line for a surface the model was not taught: how many of its slides came out unknown, labelled, or neither."""
+    rest = [f"{labelled} labelled"] if labelled else []
+    if slides - unknown - labelled > 0:
+        rest.append(f"{slides - unknown - labelled} without a label for another reason")
+    return (f"not a surface of the model: {surface}, {unknown} of its {slides} slides called unknown (the right answer)"
+            + (f", {' and '.join(rest)}" if rest else ""))
+
+
 def cmd_score(args: argparse.Namespace) -> int:
     """Accuracy, coverage and calibration of a model over every true slide of held-out recordings."""
     from tactiled.learn.dataset import load_recordings
@@ -144,11 +153,14 @@ def cmd_score(args: argparse.Namespace) -> int:
         print("no label: " + ", ".join(f"{k} {v}" for k, v in sorted(report["abstained"].items())))
     print(f"unknown surfaces: {report['unknown']} of {report['n']} true slides")
     for surface, (slides, unknown) in report["untaught"].items():
-        print(f"not a surface of the model: {surface}, {unknown} of its {slides} slides called unknown (the right answer), the rest labelled")
+        print(untaught_line(surface, slides, unknown, report["untaught_labelled"].get(surface, 0)))
     if report["ece"] is not None:
         null = report["ece_calibrated"]
-        print(f"confidence: expected calibration error {report['ece']:.3f} (10 bins; a perfectly calibrated model would show {null[0]:.3f}, "
-              f"up to {null[1]:.3f} in 95 % of draws, on as many slides), Brier score {report['brier']:.3f}")
+        print(f"confidence: expected calibration error {report['ece']:.3f} over the {report['calibration_slides']} slides of taught surfaces "
+              f"(10 bins; a perfectly calibrated model would show {null[0]:.3f}, up to {null[1]:.3f} in 95 % of draws, on as many slides), "
+              f"Brier score {report['brier']:.3f}")
+    elif report["untaught"]:
+        print("confidence: no slide of a taught surface to measure its calibration on (it is the probability of a right label on one)")
     if report["unpaired_detections"]:
         print(f"detections outside any true slide: {report['unpaired_detections']}")
     for cls, r in report["recall"].items():

@@ -6,7 +6,9 @@ overlaps it most (:func:`tactiled.core.matching.match_slides`); a true slide wit
 the slides are the detector's and each should carry that label. Accuracy is over every
 true slide; coverage is the fraction that got a label; abstentions are listed by reason. Slides of a surface the model
 was not taught count as wrong in the accuracy (no label can be right) and are listed apart (``untaught``: how many of them
-came out unknown, the right answer there).
+came out unknown, the right answer there; ``untaught_labelled``: how many were labelled). The calibration scores (expected
+calibration error, Brier score, reliability) are over the slides of taught surfaces only (``calibration_slides``): a
+label's confidence is the probability that it is right for a surface the model was trained on, and says nothing of others.
 """
 
 from __future__ import annotations
@@ -60,14 +62,15 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
             elif r.label is None:
                 reasons[r.reason or "?"] += 1
             right += r is not None and r.label == t
-            if r is not None and r.confidence is not None and r.top:
+            if t in taught and r is not None and r.confidence is not None and r.top:  # confidence is defined for a taught surface only
                 conf.append(r.confidence)
                 hit.append(r.top[0][0] == t)  # the top class, labelled or not (an unknown surface still has one)
             top_right += r is not None and bool(r.top) and r.top[0][0] == t
             if t not in taught:
-                row = untaught.setdefault(t, [0, 0])
+                row = untaught.setdefault(t, [0, 0, 0])
                 row[0] += 1
                 row[1] += int(r is not None and r.reason == "unknown_surface")
+                row[2] += int(r is not None and r.label is not None)
         per_file.append({"file": name, "slides": len(truth), "correct": right, "unpaired_detections": unpaired})
     n = len(y_true)
     hits = np.array([p == t for p, t in zip(y_pred, y_true, strict=True)], dtype=bool)
@@ -80,7 +83,9 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
            "interval95": recording_interval(hits, files)}
     out.update(calibration_scores(np.array(conf), np.array(hit, dtype=bool)))
     out.update(confusion(y_true, y_pred, classes))
-    out["untaught"] = dict(sorted(untaught.items()))
+    out["calibration_slides"] = len(conf)
+    out["untaught"] = {k: v[:2] for k, v in sorted(untaught.items())}
+    out["untaught_labelled"] = {k: v[2] for k, v in sorted(untaught.items())}
     return out
 
 
