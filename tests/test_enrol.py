@@ -93,3 +93,21 @@ def test_train_novelty_distance_is_kept_in_the_file_and_through_enrolment(traine
     assert enrolled.novelty_distance_threshold != combined.novelty_distance_threshold  # refitted with the new surface's slides
     bad = run_cli("train", *known, "-o", str(tmp_path / "x.npz"), "--novelty", "cosine")
     assert bad.returncode == 2 and "--novelty" in bad.stderr
+
+
+def test_an_enrolled_model_states_its_accuracy_as_the_base_models(trained: tuple[Path, Path, list[str]]) -> None:
+    """enrol keeps the summary of the model it started from, and the new model's line printed that model's nested CV accuracy
+    as its own. Also: train's winner line and the model's line rounded one interval two ways (0.925: "0.93-1.00" and "92–100 %")."""
+    from dataclasses import replace
+
+    from tactiled.learn.search import _interval_text
+
+    model, data, surfaces = trained
+    base = load_model(model)
+    done = enrol(model, sorted(str(p) for p in data.glob(f"*_{surfaces[2]}_*.npz")), Config(), label="NEW")
+    line = done.model.describe()
+    assert "nested CV accuracy" in base.describe() and "base model" not in base.describe()
+    assert "the base model's nested CV accuracy" in line and line.endswith("(from before enrolment: not measured with the slides enrolled)")
+    cv = {**base.summary["cv_accuracy"], "interval95": [0.925, 1.0]}
+    assert _interval_text([0.925, 1.0]) == " (95 % interval over recordings 92–100 %)"
+    assert _interval_text([0.925, 1.0]) in replace(base, summary={**base.summary, "cv_accuracy": cv}).describe()

@@ -565,6 +565,9 @@ class Model:
             acc += ", optimistic (train --group-by slide: the folds split recordings)"
         elif isinstance(cv, dict) and cv.get("inner_grouped_by") == "none":
             acc += ", optimistic (one slide of a surface in a fold: no choice inside it)"
+        if acc and self.summary.get("enrolled"):  # enrol keeps the summary of the model it started from
+            acc = (acc.replace(", nested CV accuracy", ", the base model's nested CV accuracy", 1)
+                   + " (from before enrolment: not measured with the slides enrolled)")
         s = self.settings
         what = f"{self.kind} on {len(self.inputs)} features"
         if self.partner is not None:

@@ -349,9 +349,9 @@ def accuracy_of(scores: FloatArray, y_idx: npt.NDArray[np.intp]) -> float:
 
 
 def _interval_text(band: list[float] | None, over: str = "recordings") -> str:
-    """`` (95 % interval over recordings 0.52-0.69)`` of :func:`recording_interval`, or nothing; ``over``: what the groups
+    """`` (95 % interval over recordings 52–69 %)`` of :func:`recording_interval`, or nothing; ``over``: what the groups
     it resampled are (``slides`` for ``train --group-by slide``)."""
-    return f" (95 % interval over {over} {band[0]:.2f}-{band[1]:.2f})" if band else ""
+    return f" (95 % interval over {over} {100 * band[0]:.0f}–{100 * band[1]:.0f} %)" if band else ""  # as Model.describe rounds it
 
 
 def reasons_text(skipped: dict[str, int]) -> str:
