@@ -113,3 +113,21 @@ def test_evaluate_sampling_rate_below_20_khz_and_the_folds_used(tmp_path: Path) 
     assert (out["folds"], out["folds_requested"]) == (2, 5)  # two recordings per surface: two folds, whatever --folds asked
     md = (report / "report.md").read_text()
     assert "grouped 2-fold (5 asked for: the surface with fewest recordings has 2) cross-validation" in md and "| 550 Hz | 2 |" in md
+
+
+def test_evaluate_names_a_surface_whose_files_gave_no_slide(tmp_path: Path) -> None:
+    """A surface named only by file labels of recordings where the detector found nothing (silence) is one line naming it,
+    exit 2, with a line per such file; evaluate left it out without a word (an audit found it in train)."""
+    from tactiled.files.recording import Recording, save_recording
+
+    files = _files(tmp_path / "d", surfaces="2")
+    silent = [str(tmp_path / f"glass_{k}.npz") for k in range(2)]
+    for k, path in enumerate(silent):  # silence, not the same samples twice (that is refused as one recording given twice)
+        save_recording(path, Recording(samples=np.full((40_000, 2), k, np.int16), fs=20_000.0, label="Glass"))
+    report = tmp_path / "r"
+    res = run_cli("evaluate", *files, *silent, "--report", str(report), "--quick", "--experiments", "a", "--folds", "2")
+    lines = res.stderr.splitlines()
+    assert res.returncode == 2 and lines[-1] == ("tactiled: error: surface(s) Glass: no slide detected in any of their recordings, "
+                                                 "so nothing to evaluate them on"), res.stderr
+    assert all(any(f"no slide detected in {path} (label Glass)" in line for line in lines) for path in silent), res.stderr
+    assert not (report / "report.md").exists()

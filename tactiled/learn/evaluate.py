@@ -52,7 +52,7 @@ from tactiled.learn.search import (
     window_oof,
     window_settings,
 )
-from tactiled.learn.train import check_two_recordings, class_table
+from tactiled.learn.train import check_two_recordings, class_table, file_labels
 
 Folds = list[tuple[Any, Any]]
 CLASSIFIERS: dict[str, tuple[str, dict[str, Any]]] = {
@@ -84,7 +84,10 @@ class Evaluator:
         self.channels = self.recs[0][1].channels
         self.found: dict[Any, tuple[list[list[LabelledSlide]], SlideCounts]] = {None: find_slides(self.recs, config)}
         check_distinct(self.recs)
-        table = class_table(self.found[None][0])
+        table = class_table(self.found[None][0], file_labels(self.recs, self.found[None][0], self.progress))
+        empty = [k for k, (n, _, _) in table.items() if n == 0]
+        if empty:  # as train's slide rule: a surface named only by files the detector found no slide in (it was left out unsaid)
+            raise TactiledError(f"surface(s) {', '.join(empty)}: no slide detected in any of their recordings, so nothing to evaluate them on")
         if len(table) < 2:  # as train (tactiled.learn.search): one surface gives nothing to tell apart
             raise TactiledError(f"evaluation needs at least two surfaces, got {sorted(table)}")
         check_two_recordings(table)

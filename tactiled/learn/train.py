@@ -66,6 +66,16 @@ def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None
     check_distinct(recs)
 
 
+def file_labels(recs: Sequence[tuple[str, Recording]], per_file: list[list[LabelledSlide]], say: Progress) -> list[str | None]:
+    """The file-level label of each recording (None where per-slide truth gives the slides), saying each labelled file the
+    detector found no slide in (its surface may still have slides from other files: said, not lost silently)."""
+    labels = [None if rec.slides() else rec.label for _, rec in recs]
+    for (name, _), label, slides in zip(recs, labels, per_file, strict=True):
+        if label is not None and not slides:
+            say(f"no slide detected in {name} (label {label})")
+    return labels
+
+
 def class_table(per_file: list[list[LabelledSlide]], labels: Sequence[str | None] = ()) -> dict[str, tuple[int, int, int]]:
     """{surface: (slides, slides the detector found, files with a slide of it)}. ``labels``: the file-level labels of the
     recordings; a surface they name without a slide is a row of zeros, so that it meets the slide rules (it was left out of
@@ -174,10 +184,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         f"{sum(counts.missed.values())} missed by the detector, {sum(counts.false.values())} detections outside any true slide)")
     for name, n in counts.missed.items():
         say(f"  detector missed {n} true slide(s) in {name}: used at their true bounds")
-    labels = [None if rec.slides() else rec.label for _, rec in recs]  # file-level labels (per-slide truth always gives slides)
-    for (name, _), label, slides in zip(recs, labels, per_file, strict=True):
-        if label is not None and not slides:  # its surface may still have slides from other files: said, not lost silently
-            say(f"no slide detected in {name} (label {label})")
+    labels = file_labels(recs, per_file, say)
     if group_by == "slide":  # a recording that is one long slide gives cross-validation several groups
         length = round(GROUP_PIECE_S * recs[0][1].fs)
         cut = [cut_long_slides(slides, length) for slides in per_file]
