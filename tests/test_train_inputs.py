@@ -48,7 +48,7 @@ def _tiny(path: Path, **arrays: object) -> Path:
 
 @pytest.mark.parametrize(("key", "names"), [
     ("label", ""), ("label", "   "), ("label", "a\nb"), ("label", "P120\x1b[2J"), ("label", "a\u2028b"),
-    ("surface", ["A", ""]), ("surface", [" \t", "A"]), ("surface", ["A", "b\rc"]),
+    ("surface", ["A", ""]), ("surface", [" \t", "A"]), ("surface", ["A", "b\rc"]), ("label", "P120 "), ("surface", ["P120", " P120"]),
 ])
 def test_a_blank_name_or_one_with_a_control_character_is_refused_at_load(key: str, names: str | list[str], tmp_path: Path,
                                                                          capsys: pytest.CaptureFixture[str]) -> None:

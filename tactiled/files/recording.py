@@ -111,12 +111,14 @@ def surface_name_problem(name: str) -> str | None:
     """What is wrong with ``name`` as a surface name (a recording's ``label`` or ``surface[i]``, ``enrol --label``), or None.
 
     A name must hold something other than white space ("" is how training marks an unlabelled slide: such a surface
-    would be listed, then silently left out of the model), at most :data:`MAX_LABEL_CHARS` characters, and no control
+    would be listed, then silently left out of the model), neither begin nor end with it, at most :data:`MAX_LABEL_CHARS` characters, and no control
     character, lone surrogate or line separator (replay and score print one line per slide)."""
     if len(name) > MAX_LABEL_CHARS:
         return f"{len(name)} characters, more than the {MAX_LABEL_CHARS} a surface name may have"
     if not name.strip():
         return f"must not be empty or blank, got {name!r}"
+    if name != name.strip():  # "P120 " and "P120" would be two surfaces that print alike
+        return f"{name!r} begins or ends with white space; a surface name is printed as it is, so two would look alike"
     bad = next((ch for ch in name if unicodedata.category(ch) in UNPRINTABLE), None)
     if bad is not None:
         return f"{name!r} holds the control character U+{ord(bad):04X}; a surface name is one printable line"
