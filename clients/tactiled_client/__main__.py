@@ -9,6 +9,11 @@ running daemon to load a model or run one in its shadow (pyzmq + msgpack only).
 Exit status: 0 done, 1 the daemon refused the request (its reason on stderr) or the reader of the output went away
 (``replay --json | head``: nothing is printed), 2 bad arguments or a file that cannot be read or no reply (one line on
 stderr), 130 interrupted.
+
+``replay --json`` prints each message's fields exactly as recorded: bytes as base64, a msgpack extension value (which
+tactiled never sends, but a subscriber delivers) as ``{"ext": code, "data": base64}`` (a timestamp is code -1). The
+recorder's summary line says how many messages it did not record and why the last was not (a message no reader could
+read back: over 64 MiB, a body that is no msgpack map; or a publisher whose connection the size limit dropped).
 """
 
 from __future__ import annotations
@@ -21,9 +26,11 @@ import sys
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
+import msgpack
+
 from tactiled_client import schema
-from tactiled_client.errors import ClientError
-from tactiled_client.log import check_body
+from tactiled_client.errors import ClientError, LogError
+from tactiled_client.log import Entry, check_body
 
 
 class _Parser(argparse.ArgumentParser):
@@ -66,13 +73,44 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _jsonable(v: Any) -> Any:
+    """``v`` (a decoded msgpack value) as JSON can hold it: bytes as base64, extension values as ``{"ext", "data"}``."""
     if isinstance(v, bytes):
         return base64.b64encode(v).decode()
+    if isinstance(v, msgpack.ExtType):
+        return {"ext": v.code, "data": base64.b64encode(v.data).decode()}
+    if isinstance(v, msgpack.Timestamp):
+        return {"ext": -1, "data": base64.b64encode(v.to_bytes()).decode()}
     if isinstance(v, dict):
         return {str(k): _jsonable(x) for k, x in v.items()}
     if isinstance(v, list):
         return [_jsonable(x) for x in v]
     return v
+
+
+def _json_line(entry: Entry, file: str) -> str:
+    """One ``replay --json`` line: the entry's topic and its body's fields; :class:`LogError` naming the record if the body
+    nests deeper than JSON can be written."""
+    where = f"{file}: {entry.where}" if entry.where else file
+    try:
+        return json.dumps({"topic": entry.topic, **_jsonable(check_body(entry.body, where))})
+    except RecursionError:
+        raise LogError(f"{where}: message body nests too deep to print as JSON") from None
+
+
+class _Refusals:
+    """The messages the recorder did not record: how many, and why the last was not (for its summary line)."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.last = ""
+
+    def __call__(self, why: str) -> None:
+        self.count += 1
+        self.last = why
+
+    def summary(self) -> str:
+        """``; N not recorded (the last: why)``, or nothing."""
+        return f"; {self.count} not recorded (the last: {self.last})" if self.count else ""
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -94,14 +132,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise ClientError("record needs an endpoint and an output file")
             before = signal.signal(signal.SIGTERM, stop), signal.signal(signal.SIGINT, stop)
             *endpoints, out = args.endpoint
+            refused = _Refusals()
             try:
                 n = record(endpoints, out, seconds=args.seconds, topics=args.topics, sensor=args.sensor,
-                           curve=tuple(args.curve) if args.curve else None, stop=lambda: stopping, overwrite=args.force)
+                           curve=tuple(args.curve) if args.curve else None, stop=lambda: stopping, overwrite=args.force,
+                           on_refused=refused)
             finally:  # main may run inside another program (a test): give its handlers back
                 signal.signal(signal.SIGTERM, before[0])
                 signal.signal(signal.SIGINT, before[1])
-            print(f"{out}: {n} messages" + ("" if n else f" (nothing came from {', '.join(endpoints)}: is a daemon publishing there?)"),
-                  file=sys.stderr)
+            quiet = "" if n or refused.count else f" (nothing came from {', '.join(endpoints)}: is a daemon publishing there?)"
+            print(f"{out}: {n} messages{refused.summary()}{quiet}", file=sys.stderr)
             return 0
         if args.command == "control":
             import os
@@ -124,7 +164,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         with BlockingReplay(args.file, args.topics, args.sensor, speed=args.speed) as rep:
             for entry in rep.entries():  # every field exactly as recorded
-                print(json.dumps({"topic": entry.topic, **_jsonable(check_body(entry.body, args.file))}), flush=True)
+                print(_json_line(entry, args.file), flush=True)
             if rep.reader.truncated:
                 print(f"warning: {rep.reader.truncated}", file=sys.stderr)
         return 0

@@ -21,3 +21,12 @@ class LogError(ClientError, ValueError):
 
 class UsageError(ClientError, ValueError):
     """The API used out of order, e.g. receiving before ``async with``."""
+
+
+class RecordRefused(LogError):
+    """A message a session log will not hold, because no reader could read it back (too large, not a msgpack map, a
+    receive time that is no clock reading): nothing is written. ``reason`` is the fault without the file's name."""
+
+    def __init__(self, path: object, reason: str) -> None:
+        super().__init__(f"{path}: {reason}")
+        self.reason = reason

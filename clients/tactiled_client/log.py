@@ -9,7 +9,14 @@ message::
 ``recv_mono`` and ``recv_unix`` are the host's monotonic and wall clocks (s) when the message arrived, ``topic``
 the first frame (str) and ``body`` the second, the msgpack map exactly as the daemon sent it (bin). Each record
 is written with one ``write`` as it arrives, so a recorder killed at any moment leaves every message before the
-last complete; a reader replays up to there and says where the file ends.
+last complete; a reader replays up to there and says where the file ends. :class:`LogWriter` refuses
+(:class:`RecordRefused`, nothing written) what :class:`LogReader` would refuse: a record over :data:`MAX_RECORD`
+bytes, a body that is not a msgpack map, a receive time that is no clock reading.
+
+Receive times: each must be a finite number of seconds within :data:`MAX_TIME_S` of 0 (in every kind of file), and in a
+session log ``recv_mono`` (a recorder's monotonic clock) may not go back more than :data:`BACK_S` nor jump more than
+:data:`MAX_GAP_S` past the record before it. Anything else is one :class:`LogError` naming the byte, line or MCAP
+message: the replay's pacing would otherwise sleep for ever, or overflow ``time.sleep``.
 
 :func:`open_log` also reads the files tactiled writes: an MCAP file's ``roughness`` channels (needs the
 ``mcap`` package: ``pip install 'tactiled-client[mcap]'``) and ``tactiled replay --json`` lines (each slide's
@@ -23,14 +30,14 @@ import os
 import struct
 import zlib
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
 import msgpack
 
 from tactiled_client import schema
-from tactiled_client.errors import LogError
+from tactiled_client.errors import LogError, RecordRefused
 
 MAGIC = b"TACTILEDLOG\x00"
 VERSION = 1
@@ -39,6 +46,9 @@ RECORD = struct.Struct("<II")  # payload length, CRC-32
 MAX_RECORD = 64 << 20  # bytes of one record's payload (a samples message of 0.1 s at 8 channels is ~16 kB)
 MAX_LINE = 16 << 20  # bytes of one replay --json line
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+MAX_TIME_S = 1e10  # s: no clock reading is further from 0 (a monotonic clock counts from boot; unix time reaches it in 2286)
+BACK_S = 1.0  # s a session log's recv_mono may go back between records (a monotonic clock never does)
+MAX_GAP_S = 30 * 86400.0  # s a session log's recv_mono may jump between records (a recorder hearing nothing for a month)
 
 
 @dataclass(frozen=True)
@@ -49,6 +59,7 @@ class Entry:
     time_unix: float
     topic: str
     body: bytes
+    where: str = field(default="", compare=False)  # its place in the file: "byte 84", "line 3" or "<channel> message 7"
 
     def frames(self) -> list[bytes]:
         """The two ZeroMQ frames the message came in."""
@@ -60,6 +71,7 @@ class LogWriter:
 
     def __init__(self, path: str | Path, *, overwrite: bool = False) -> None:
         self.path = Path(path)
+        self._last_mono: float | None = None
         flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
         try:
             self._fd: int | None = os.open(self.path, flags, 0o644)
@@ -78,9 +90,17 @@ class LogWriter:
             view = view[os.write(self._fd, view):]
 
     def write(self, frames: list[bytes], time_mono: float, time_unix: float) -> None:
-        """Append one received two-frame message with its receive times (s)."""
-        payload = msgpack.packb([time_mono, time_unix, frames[0].decode("utf-8", "replace"), bytes(frames[1])], use_bin_type=True)
+        """Append one received two-frame message with its receive times (s); :class:`RecordRefused`, nothing written, for
+        a message :class:`LogReader` would refuse (see the module docstring), so that every later record stays readable."""
+        topic = frames[0].decode("utf-8", "replace")
+        fault = _times_fault(time_mono, time_unix, self._last_mono) or _map_fault(bytes(frames[1]))
+        if fault is not None:
+            raise RecordRefused(self.path, f"{topic[:80]}: {fault}")
+        payload = msgpack.packb([time_mono, time_unix, topic, bytes(frames[1])], use_bin_type=True)
+        if len(payload) > MAX_RECORD:
+            raise RecordRefused(self.path, f"{topic[:80]}: a record of {len(payload)} bytes, more than the {MAX_RECORD} a record may hold")
         self._write(RECORD.pack(len(payload), zlib.crc32(payload)) + payload)
+        self._last_mono = time_mono
         self.count += 1
 
     def close(self) -> None:
@@ -132,7 +152,12 @@ class LogReader:
 
     def __iter__(self) -> Iterator[Entry]:
         entries = {"log": self._log, "mcap": self._mcap, "json": self._json}[self.kind]()
+        last: float | None = None
         for entry in entries:
+            fault = _times_fault(entry.time_mono, entry.time_unix, last if self.kind == "log" else None)
+            if fault is not None:
+                raise self._fail(entry.where, fault)
+            last = entry.time_mono
             self.count += 1
             yield entry
 
@@ -172,7 +197,7 @@ class LogReader:
         if not ok:
             raise self._fail(f"byte {at}", "record is not [recv_mono, recv_unix, topic, body]")
         check_body(rec[3], f"{self.path}: byte {at}")
-        return Entry(float(rec[0]), float(rec[1]), rec[2], rec[3])
+        return Entry(float(rec[0]), float(rec[1]), rec[2], rec[3], f"byte {at}")
 
     def _mcap(self) -> Iterator[Entry]:
         try:
@@ -186,33 +211,41 @@ class LogReader:
                     parts = channel.topic.strip("/").split("/")
                     if len(parts) != 3 or parts[0] != "tactiled" or parts[2] != schema.ROUGHNESS:
                         continue  # samples and ground-truth slides are not wire messages
-                    body = _json_map(message.data, f"{self.path}: {channel.topic} message {message.sequence}")
+                    where = f"{channel.topic} message {message.sequence}"
+                    body = _json_map(message.data, f"{self.path}: {where}")
                     t = message.log_time / 1e9
-                    yield Entry(t, t, schema.topic(schema.ROUGHNESS, parts[1]), schema.pack(body))
+                    yield Entry(t, t, schema.topic(schema.ROUGHNESS, parts[1]), _pack(body, f"{self.path}: {where}"), where)
             except LogError:
                 raise
             except (McapError, ValueError, KeyError, EOFError, OSError, struct.error) as exc:  # what the mcap reader raises on a bad file
                 raise LogError(f"{self.path}: not a readable MCAP file: {type(exc).__name__}: {exc}") from None
 
     def _json(self) -> Iterator[Entry]:
-        fields = schema.Roughness.wire_fields()
+        """Each line's provisional labels (at ``t_start + used_s``), then its final one (at ``t_stop``). A field these times
+        come from that is not a number of seconds, or ``provisional`` not a list of maps, is a :class:`LogError` naming the
+        line and the field."""
+        wire = schema.Roughness.wire_fields()
         with open(self.path, "rb") as fh:
             for number, line in enumerate(_lines(fh, self.path), 1):
                 if not line.strip():
                     continue
-                where = f"{self.path}: line {number}"
+                at = f"line {number}"
+                where = f"{self.path}: {at}"
                 obj = _json_map(line, where)
-                final = {k: v for k, v in obj.items() if k in fields}
-                sensor = str(final.get("sensor", ""))
-                start = float(final.get("t_start", 0.0) or 0.0)
-                for p in obj.get("provisional", []) or []:
+                final = {k: v for k, v in obj.items() if k in wire}
+                topic = schema.topic(schema.ROUGHNESS, str(final.get("sensor", "")))
+                start = _seconds(final, "t_start", 0.0, where)
+                provisional = obj.get("provisional") or []
+                if not isinstance(provisional, list):
+                    raise LogError(f"{where}: provisional: {type(provisional).__name__}, not a list")
+                for i, p in enumerate(provisional):
                     if not isinstance(p, dict):
-                        raise LogError(f"{where}: provisional: not a map")
-                    early = {**final, **{k: v for k, v in p.items() if k in fields}, "final": False}
-                    t = start + float(p.get("used_s", 0.0) or 0.0)
-                    yield Entry(t, t, schema.topic(schema.ROUGHNESS, sensor), schema.pack(early))
-                t = float(final.get("t_stop", start) or start)
-                yield Entry(t, t, schema.topic(schema.ROUGHNESS, sensor), schema.pack(final))
+                        raise LogError(f"{where}: provisional[{i}]: {type(p).__name__}, not a map")
+                    early = {**final, **{k: v for k, v in p.items() if k in wire}, "final": False}
+                    t = start + _seconds(p, "used_s", 0.0, f"{where}: provisional[{i}]")
+                    yield Entry(t, t, topic, _pack(early, where), at)
+                t = _seconds(final, "t_stop", start, where)
+                yield Entry(t, t, topic, _pack(final, where), at)
 
 
 def _lines(fh: IO[bytes], path: Path) -> Iterator[bytes]:
@@ -223,6 +256,43 @@ def _lines(fh: IO[bytes], path: Path) -> Iterator[bytes]:
         if len(line) > MAX_LINE:
             raise LogError(f"{path}: a line longer than {MAX_LINE} bytes")
         yield line
+
+
+def _seconds(obj: dict[str, Any], name: str, default: float, where: str) -> float:
+    """``obj[name]`` as seconds (``default`` when absent, null or 0), or :class:`LogError` naming ``where`` and the field if
+    it is not a finite number within :data:`MAX_TIME_S`."""
+    value = obj.get(name)
+    if value is None:
+        return default
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not abs(value) <= MAX_TIME_S:
+        shown = f"a {type(value).__name__}" if isinstance(value, (dict, list)) else json.dumps(value)[:40]
+        raise LogError(f"{where}: {name}: {shown} is not a time in seconds (a number within {MAX_TIME_S:g})")
+    return float(value) or default
+
+
+def _pack(body: dict[str, Any], where: str) -> bytes:
+    """The msgpack body of a message read from JSON, or :class:`LogError` if JSON held what msgpack cannot (an integer
+    beyond 64 bits)."""
+    try:
+        return schema.pack(body)
+    except (OverflowError, ValueError, TypeError) as exc:
+        raise LogError(f"{where}: a value msgpack cannot hold: {str(exc)[:80]}") from None
+
+
+def _times_fault(time_mono: float, time_unix: float, last_mono: float | None) -> str | None:
+    """Why a record's receive times are no clock readings (one phrase), or None; ``last_mono``: the record before's
+    ``recv_mono`` in a session log (its monotonic clock neither goes back more than :data:`BACK_S` nor jumps more than
+    :data:`MAX_GAP_S`), None to check the values alone."""
+    for name, t in (("recv_mono", time_mono), ("recv_unix", time_unix)):
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not abs(t) <= MAX_TIME_S:  # NaN fails <= too
+            return f"{name} {t!r:.40} is not a clock reading (a number of seconds within {MAX_TIME_S:g})"
+    if last_mono is not None:
+        step = time_mono - last_mono
+        if step < -BACK_S:
+            return f"recv_mono goes back {-step:g} s from the record before (a recorder's monotonic clock never does)"
+        if step > MAX_GAP_S:
+            return f"recv_mono jumps {step:g} s past the record before (more than {MAX_GAP_S:g} s: not one recording)"
+    return None
 
 
 def _json_map(data: bytes, where: str) -> dict[str, Any]:
@@ -238,14 +308,29 @@ def _json_map(data: bytes, where: str) -> dict[str, Any]:
 
 def check_body(body: bytes, where: str) -> dict[str, Any]:
     """The decoded message map of ``body``, or :class:`LogError` (not a map, too deep, a schema newer than this client's)."""
+    obj = _unpack_map(body)
+    if isinstance(obj, str):
+        raise LogError(f"{where}: {obj}")
+    _check_version(obj, where)
+    return obj
+
+
+def _unpack_map(body: bytes) -> dict[str, Any] | str:
+    """The decoded map of a message body, or why it is none (one phrase: not msgpack, nested too deep, not a map)."""
     try:
         obj = msgpack.unpackb(body, raw=False, strict_map_key=False)
     except (ValueError, msgpack.UnpackException, TypeError, RecursionError) as exc:
-        raise LogError(f"{where}: message body is not msgpack: {exc}") from None
+        return f"message body is not msgpack: {exc}"
     if not isinstance(obj, dict):
-        raise LogError(f"{where}: message body is not a map")
-    _check_version(obj, where)
+        return "message body is not a map"
     return obj
+
+
+def _map_fault(body: bytes) -> str | None:
+    """Why ``body`` is not a message map a reader takes (see :func:`_unpack_map`), or None. A schema version newer than this
+    client's is no fault here: a newer client reads it."""
+    obj = _unpack_map(body)
+    return obj if isinstance(obj, str) else None
 
 
 def _check_version(obj: dict[str, Any], where: str) -> None:

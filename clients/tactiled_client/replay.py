@@ -12,6 +12,11 @@ raises :class:`NoData` when the next message is further away than the timeout in
 a 4 s silence in the session is one NoData of a 3 s timeout, after 1.5 s of wall time at speed 2), and
 :class:`EndOfLog` (a :class:`NoData`) at the end of the file, where ``async for`` and ``for`` simply stop.
 ``latest(max_age_s)`` measures ages on the recorded clock. Files: :mod:`tactiled_client.log`.
+
+Receive times that are no clock readings (not finite, beyond ``log.MAX_TIME_S``; in a session log going back more than
+``log.BACK_S`` or jumping more than ``log.MAX_GAP_S``) are not clamped: the replay stops there with one :class:`LogError`
+naming the byte (or line), as for any other fault in the file, after every message before it. No single wait is
+longer than :data:`MAX_WAIT_S` (a tiny ``speed`` would otherwise overflow ``time.sleep``).
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ from tactiled_client.log import Entry, LogReader
 from tactiled_client.subscriber import _Filter, _Tracker
 
 __all__ = ["BlockingReplay", "Replay", "publish"]
+
+MAX_WAIT_S = 1e9  # s: the longest one wait of a replay (time.sleep overflows past ~9.2e9 s; this is already for ever)
 
 
 class _Player(_Tracker):
@@ -68,7 +75,7 @@ class _Player(_Tracker):
         self._start(entry)
         if self.speed is None:
             return 0.0
-        return max(0.0, (entry.time_mono - self.now()) / self.speed)
+        return _bounded((entry.time_mono - self.now()) / self.speed)
 
     def _plan(self, timeout: float | None) -> tuple[float, float | None]:
         """(seconds of wall time to wait, the recorded seconds of silence if the wait ends in silence, else None) before the
@@ -88,8 +95,8 @@ class _Player(_Tracker):
             if self.speed is None:
                 self._recorded_now += t
                 return 0.0, t
-            return t / self.speed, t
-        return (0.0 if self.speed is None else max(0.0, ahead / self.speed)), None
+            return _bounded(t / self.speed), t
+        return (0.0 if self.speed is None else _bounded(ahead / self.speed)), None
 
     def _deliver(self) -> schema.Message | None:
         """The pending entry's message (None: skipped as malformed, see :meth:`_Tracker.accept`)."""
@@ -111,6 +118,11 @@ class _Player(_Tracker):
         if self._origin is None or self.speed is None:
             return self._recorded_now
         return self._origin[0] + (time.monotonic() - self._origin[1]) * self.speed
+
+
+def _bounded(wait: float) -> float:
+    """``wait`` (s of wall time) within [0, :data:`MAX_WAIT_S`]."""
+    return min(max(0.0, wait), MAX_WAIT_S)
 
 
 class Replay(_Player):
@@ -218,7 +230,7 @@ def publish(path: str | Path, endpoint: str, *, speed: float | None = 1.0, topic
         if wait_subscriber_s > 0 and sock.poll(int(wait_subscriber_s * 1000)):
             sock.recv()  # the first subscription
         for entry in player.entries():
-            body = check_body(entry.body, str(path))
+            body = check_body(entry.body, f"{path}: {entry.where}" if entry.where else str(path))
             body["seq"] = sent.get(entry.topic, 0)
             sent[entry.topic] = body["seq"] + 1
             sock.send_multipart([entry.topic.encode(), schema.pack(body)])
