@@ -310,3 +310,27 @@ def test_a_good_replay_json_line_replays_as_before(tmp_path: Path) -> None:
     entries = list(LogReader(path))
     assert [(e.time_mono, e.where) for e in entries] == [(1.5, "line 1"), (2.0, "line 1")]
     assert [msgpack.unpackb(e.body).get("final", True) for e in entries] == [False, True]
+
+
+@pytest.mark.parametrize("frame_size", [True, False])
+def test_an_mcap_decompression_bomb_is_refused_before_the_client_inflates_it(frame_size: bool, tmp_path: Path) -> None:
+    """Bound: the client's MCAP reader inflated every chunk to find the roughness channels (808 MB for a 37 kB file in an
+    audit): the file tactiled's reader refuses (tests/test_mcap.py) is one LogError here too, before any chunk is inflated."""
+    from tests.test_mcap import _bomb
+
+    bomb = _bomb(tmp_path / "bomb.mcap", 5_000_000, frame_size)
+    with pytest.raises(LogError, match=r"bomb\.mcap: its records inflate \d+ bytes to \d+ .*a decompression bomb"):
+        list(LogReader(bomb))
+
+
+@pytest.mark.parametrize("endpoint", ["foo", "tcp://127.0.0.1"])
+def test_an_endpoint_zeromq_cannot_parse_is_one_line_naming_it(endpoint: str, tmp_path: Path) -> None:
+    """`control foo status` (and record, and a subscriber) ended in ZeroMQ's bare 'Invalid argument' traceback (an audit)."""
+    from tactiled_client import BlockingSubscriber, UsageError
+
+    with pytest.raises(UsageError, match=f"^{endpoint}: not an endpoint ZeroMQ can connect to"), BlockingSubscriber(endpoint):
+        pass
+    for args in (["control", endpoint, "status"], ["record", endpoint, str(tmp_path / "s.tlog"), "--seconds", "1"]):
+        res = subprocess.run([sys.executable, "-m", "tactiled_client", *args], capture_output=True, text=True, timeout=60, cwd=REPO)
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 2 and len(lines) == 1 and f"{endpoint}: not an endpoint ZeroMQ can connect to" in lines[0], res

@@ -10,6 +10,7 @@ from typing import Any
 
 import msgpack
 
+from tactiled_client.endpoints import connect
 from tactiled_client.errors import NoData, UsageError
 from tactiled_client.subscriber import _secure
 
@@ -34,7 +35,7 @@ def control(endpoint: str, cmd: str, path: str | None = None, *, curve: tuple[st
         # after that would wait for ever (seen once in CI under load: the command outlived its 2 s timeout by a minute)
         sock.setsockopt(zmq.SNDTIMEO, round(timeout * 1000))
         _secure(sock, curve)
-        sock.connect(endpoint)
+        connect(sock, endpoint)
         try:
             sock.send(msgpack.packb({"cmd": cmd, "path": path}, use_bin_type=True))
             body = msgpack.unpackb(sock.recv(), raw=False)

@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
+
+from tactiled_client.errors import UsageError
 
 SYSTEM_DIR = Path("/run/tactiled")  # the systemd unit's RuntimeDirectory=tactiled
 AUTO = "auto"  # publish.endpoint's default: local_socket(sensor id)
@@ -37,3 +40,14 @@ def local_endpoint(sensor: str = "fingertip0") -> str:
     system = SYSTEM_DIR / f"{sensor}.sock"
     path = own if own.exists() or not system.exists() or "TACTILED_RUNTIME_DIR" in os.environ else system
     return f"ipc://{path}"
+
+
+def connect(sock: Any, endpoint: str) -> None:
+    """``sock.connect(endpoint)`` (a ZeroMQ socket); :class:`UsageError` naming ``endpoint`` when ZeroMQ cannot parse it
+    (``foo``, ``tcp://host`` without a port), where ZeroMQ raises a bare ``Invalid argument``."""
+    import zmq
+
+    try:
+        sock.connect(endpoint)
+    except zmq.ZMQError as exc:
+        raise UsageError(f"{endpoint}: not an endpoint ZeroMQ can connect to ({exc.strerror})") from None

@@ -38,6 +38,7 @@ import msgpack
 
 from tactiled_client import schema
 from tactiled_client.errors import LogError, RecordRefused
+from tactiled_client.mcapbound import inflation_problem
 
 MAGIC = b"TACTILEDLOG\x00"
 VERSION = 1
@@ -46,6 +47,7 @@ RECORD = struct.Struct("<II")  # payload length, CRC-32
 MAX_RECORD = 64 << 20  # bytes of one record's payload (a samples message of 0.1 s at 8 channels is ~16 kB)
 MAX_LINE = 16 << 20  # bytes of one replay --json line
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+MAX_MCAP_BYTES = 2 << 30  # bytes an MCAP file's records may inflate to (tactiled's own MCAP recordings: the same bound as an .npz)
 MAX_TIME_S = 1e10  # s: no clock reading is further from 0 (a monotonic clock counts from boot; unix time reaches it in 2286)
 BACK_S = 1.0  # s a session log's recv_mono may go back between records (a monotonic clock never does)
 MAX_GAP_S = 30 * 86400.0  # s a session log's recv_mono may jump between records (a recorder hearing nothing for a month)
@@ -207,6 +209,9 @@ class LogReader:
             raise LogError(f"{self.path}: reading MCAP needs the mcap package: pip install 'tactiled-client[mcap]'") from None
         with open(self.path, "rb") as fh:
             try:
+                problem = inflation_problem(fh, MAX_MCAP_BYTES)
+                if problem is not None:
+                    raise LogError(f"{self.path}: {problem}")
                 for _schema, channel, message in make_reader(fh).iter_messages(log_time_order=True):
                     parts = channel.topic.strip("/").split("/")
                     if len(parts) != 3 or parts[0] != "tactiled" or parts[2] != schema.ROUGHNESS:

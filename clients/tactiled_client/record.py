@@ -19,6 +19,7 @@ from typing import Any
 import zmq
 from zmq.utils.monitor import recv_monitor_message
 
+from tactiled_client.endpoints import connect
 from tactiled_client.errors import RecordRefused, UsageError
 from tactiled_client.log import MAX_RECORD, LogWriter
 from tactiled_client.subscriber import _endpoints, _Filter, _secure
@@ -110,10 +111,7 @@ def record(endpoints: str | Sequence[str], out: str | Path, *, seconds: float | 
             sock.setsockopt(zmq.SUBSCRIBE, p)
         redialer = _Redialer(sock, _endpoints(endpoints), told)
         for e in _endpoints(endpoints):
-            try:
-                sock.connect(e)
-            except zmq.ZMQError as exc:
-                raise UsageError(f"{e}: {exc}") from None
+            connect(sock, e)
         deadline = None if seconds is None else time.monotonic() + seconds
         poller = zmq.Poller()
         poller.register(sock, zmq.POLLIN)

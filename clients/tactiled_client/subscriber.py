@@ -33,6 +33,7 @@ import zmq
 import zmq.asyncio
 
 from tactiled_client import schema
+from tactiled_client.endpoints import connect
 from tactiled_client.errors import NoData, UsageError
 
 __all__ = ["BlockingSubscriber", "NoData", "Subscriber"]
@@ -198,7 +199,7 @@ class Subscriber(_Tracker):
         for p in self.prefixes:
             sock.setsockopt(zmq.SUBSCRIBE, p)
         for e in self.endpoints:
-            sock.connect(e)
+            connect(sock, e)
         self._socket = sock
         return self
 
@@ -242,7 +243,7 @@ class BlockingSubscriber(_Tracker):
         for p in self._filter.prefixes:
             self._socket.setsockopt(zmq.SUBSCRIBE, p)
         for e in self.endpoints:
-            self._socket.connect(e)
+            connect(self._socket, e)
 
     def receive(self, timeout: float | None = None) -> schema.Message:
         """The next message; :class:`NoData` after ``timeout`` (default: the subscriber's) seconds of silence."""

@@ -10,15 +10,14 @@ bag (``export --profile ros2``) is refused in one line: its samples are float32.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
+from tactiled_client.mcapbound import inflation_problem
 
 from tactiled.errors import RecordingError
 from tactiled.extras import need
-from tactiled.files.npzio import MAX_RATIO, RATIO_FLOOR
 from tactiled.files.recording import MAX_RECORDING_BYTES, Recording, validate_arrays
 from tactiled.readable import file_problem
 
@@ -32,8 +31,9 @@ def load_mcap_recording(path: str | Path) -> Recording:
     make_reader = need("mcap.reader", "mcap").make_reader
     try:
         with open(p, "rb") as fh:
-            _check_inflation(p, fh)
-            fh.seek(0)
+            problem = inflation_problem(fh, MAX_RECORDING_BYTES)
+            if problem is not None:
+                raise RecordingError(f"{p}: {problem}")
             reader = make_reader(fh)
             header = reader.get_header()
             if header.profile == "ros2":
@@ -69,33 +69,6 @@ def load_mcap_recording(path: str | Path) -> Recording:
         if all(s[3] is not None for s in slides):
             arrays["ra_um"] = np.array([s[3] for s in slides], dtype=np.float64)
     return validate_arrays(p, arrays)
-
-
-def _check_inflation(p: Path, fh: BinaryIO) -> None:
-    """Refuse, before anything is inflated, a file whose chunks and messages would inflate beyond :data:`MAX_RATIO` to 1 of
-    its size (past :data:`RATIO_FLOOR` bytes; the bound an ``.npz`` member has) or beyond :data:`MAX_RECORDING_BYTES`: a
-    few kB of zstd can declare gigabytes of JSON samples. A chunk's size is the larger of what it declares and what its
-    zstd frame declares (zstandard inflates a frame to the size in its header, whatever the chunk says)."""
-    from mcap.records import Chunk, Message
-    from mcap.stream_reader import StreamReader
-
-    size = os.fstat(fh.fileno()).st_size
-    inflated = 0
-    for record in StreamReader(fh, emit_chunks=True, record_size_limit=MAX_RECORDING_BYTES).records:
-        if isinstance(record, Chunk):
-            if record.compression == "zstd":
-                import zstandard  # mcap reads zstd chunks with it
-
-                inflated += max(record.uncompressed_size, zstandard.frame_content_size(record.data))
-            elif record.compression == "":
-                inflated += len(record.data)
-            else:
-                raise RecordingError(f"{p}: a chunk compressed with {record.compression!r} (tactiled writes zstd or none)")
-        elif isinstance(record, Message):
-            inflated += len(record.data)
-    if inflated > MAX_RECORDING_BYTES or (inflated > RATIO_FLOOR and inflated > MAX_RATIO * size):
-        raise RecordingError(f"{p}: its records inflate {size} bytes to {inflated} (over {MAX_RATIO}:1 or past {MAX_RECORDING_BYTES}): "
-                             "a decompression bomb")
 
 
 def _messages(reader: Any, first: int) -> tuple[list[np.ndarray], list[list[int]], list[tuple[int, int, str | None, float | None]]]:
