@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import ipaddress
 import math
+import os
 import types
 import typing
 from dataclasses import dataclass, field
@@ -263,14 +264,16 @@ class PublishConfig:
     socket_group: str = "tactiled"  # an ipc socket's group (mode 660), when that group exists and the daemon is in it
 
     def validate(self, p: str) -> None:
-        """Check endpoint (tcp://, ipc:// or inproc://; loopback unless ``allow_remote``), status_interval_s (s), and the CURVE key file and folder.
+        """Check endpoint (``auto``, tcp://HOST:PORT or ipc://PATH, :func:`endpoint_problem`; loopback unless ``allow_remote``),
+        status_interval_s (s), and the CURVE key file and folder.
 
         The key file and folder are set together or not at all, and must exist. A bad value raises ConfigError naming the key.
         """
         _check(bool(self.curve_secret_key_file) == bool(self.curve_authorized_dir), f"{p}.curve_authorized_dir",
                f"must be set together with {p}.curve_secret_key_file")
-        _check(self.endpoint == DEFAULT_ENDPOINT or self.endpoint.startswith(("tcp://", "ipc://", "inproc://")), f"{p}.endpoint",
-               f"must be {DEFAULT_ENDPOINT!r} or start with tcp://, ipc:// or inproc://")
+        if self.endpoint != DEFAULT_ENDPOINT:
+            problem = endpoint_problem(self.endpoint)
+            _check(problem is None, f"{p}.endpoint", f"must be {DEFAULT_ENDPOINT!r}, tcp://HOST:PORT or ipc://PATH: {problem}")
         _check(0.01 <= self.status_interval_s <= 1.0, f"{p}.status_interval_s", "must be in [0.01, 1] s")
         _check(1 <= self.max_connections <= 512, f"{p}.max_connections", "must be in 1..512 (the unit's LimitNOFILE is 1024)")
         _check(self.allow_remote or is_local_endpoint(self.endpoint), f"{p}.endpoint",
@@ -291,9 +294,67 @@ class ControlConfig:
     endpoint: str = ""
 
     def validate(self, p: str) -> None:
-        """Check endpoint is empty, ipc:// or a tcp:// loopback address; a bad value raises ConfigError naming the key (``p``: the section)."""
-        _check(not self.endpoint or (self.endpoint.startswith(("ipc://", "tcp://")) and is_local_endpoint(self.endpoint)), f"{p}.endpoint",
+        """Check endpoint is empty, ipc:// or a tcp:// loopback address with a port (:func:`endpoint_problem`); a bad value raises
+        ConfigError naming the key (``p``: the section)."""
+        if not self.endpoint:
+            return
+        _check(self.endpoint.startswith(("ipc://", "tcp://")) and is_local_endpoint(self.endpoint), f"{p}.endpoint",
                "must be empty, an ipc:// path or a tcp:// loopback address (the control socket is never remote)")
+        problem = endpoint_problem(self.endpoint, any_port=False)
+        _check(problem is None, f"{p}.endpoint", f"must be empty, ipc://PATH or tcp://HOST:PORT on loopback: {problem}")
+
+
+MAX_IPC_PATH_BYTES = 107  # a Unix socket's path (sockaddr_un.sun_path less its closing NUL)
+RUN_DIRS = ("/run/", "/var/run/")  # folders under these are made at boot or when a unit starts (systemd's RuntimeDirectory=)
+
+
+def endpoint_problem(endpoint: str, any_port: bool = True, connect: bool = False) -> str | None:
+    """Why ``endpoint`` is not one a daemon can bind (``connect``: a subscriber connect to) so that other processes reach
+    it, or None: ``tcp://HOST:PORT`` with a port in 0..65535 (1..65535 to connect) (``*``: any free one, when ``any_port`` and not ``connect``;
+    ZeroMQ would take a larger port modulo 65536) or ``ipc://PATH`` (at most :data:`MAX_IPC_PATH_BYTES` bytes).
+    ``inproc://`` is refused: only the daemon's own process could reach it."""
+    if endpoint.startswith("ipc://"):
+        path = endpoint[len("ipc://"):]
+        if not path:
+            return "ipc:// needs a path"
+        if len(path.encode("utf-8", "surrogateescape")) > MAX_IPC_PATH_BYTES:
+            return f"the socket path is longer than the {MAX_IPC_PATH_BYTES} bytes a Unix socket's path may have"
+        return None
+    if endpoint.startswith("tcp://"):
+        host, colon, port = endpoint[len("tcp://"):].rpartition(":")
+        if not colon or not host or (host.endswith(":") and not host.startswith("[")):  # tcp://HOST, tcp://:7350, tcp://::1
+            return "a tcp:// endpoint needs a host and a port (tcp://127.0.0.1:7350)"
+        if port == "*" and any_port and not connect:
+            return None
+        low = 1 if connect else 0
+        if not (port.isascii() and port.isdigit() and low <= int(port) <= 65535):
+            return f"port {port!r} is not a number in {low}..65535"
+        return None
+    if endpoint.startswith("inproc://"):
+        return "an inproc:// endpoint is reachable from this process only (no subscriber could connect)"
+    return f"{endpoint!r} is neither tcp:// nor ipc://"
+
+
+def ipc_folder_problem(endpoint: str) -> tuple[bool, str] | None:
+    """For an ``ipc://`` endpoint whose folder does not exist: (fatal, why), or None (not ipc, abstract, or the folder
+    exists). ``tactiled run`` cannot bind there; under /run the folder is fatal only if nothing makes it first, which
+    systemd does when a unit with ``RuntimeDirectory=`` starts (``/run/tactiled``): not fatal there."""
+    if not endpoint.startswith("ipc://") or endpoint.startswith(("ipc://@", "ipc://*")):
+        return None
+    folder = Path(endpoint[len("ipc://"):]).absolute().parent
+    if folder.is_dir():
+        return None
+    later = str(folder).startswith(RUN_DIRS)
+    why = f"the folder {folder} does not exist: tactiled run cannot bind its socket there"
+    return (not later, why + (" until something makes it (the systemd unit's RuntimeDirectory= makes /run/tactiled when it starts)"
+                              if later else ""))
+
+
+def same_ipc_socket(a: str, b: str) -> bool:
+    """Whether two endpoints are the same ``ipc://`` socket file (a second bind would silently take the first one's over)."""
+    if not (a.startswith("ipc://") and b.startswith("ipc://")):
+        return False
+    return os.path.normpath(os.path.abspath(a[6:])) == os.path.normpath(os.path.abspath(b[6:]))
 
 
 def _readable_file(path: str, where: str, max_bytes: int) -> None:
@@ -355,9 +416,20 @@ class Config:
         for f in dataclasses.fields(self):
             getattr(self, f.name).validate(f.name)
         s = self.sensor
+        if self.control.endpoint:
+            _check(self.control.endpoint != self.publish.endpoint and not same_ipc_socket(self.control.endpoint, self.publish_address()),
+                   "control.endpoint", f"is publish.endpoint's socket ({self.control.endpoint}): the control socket needs one of its own")
         ring_bytes = self.ring.seconds * s.fs * s.channels * 8
         _check(ring_bytes <= MAX_RING_BYTES, "ring.seconds",
                f"{self.ring.seconds:g} s of {s.channels} channels at {s.fs:g} Hz would take {ring_bytes / 2**20:.0f} MiB, more than {MAX_RING_BYTES >> 20} MiB")
+
+    def publish_address(self) -> str:
+        """The endpoint the daemon binds for ``publish.endpoint`` in this environment (``auto``: its local ipc socket)."""
+        if self.publish.endpoint != DEFAULT_ENDPOINT:
+            return self.publish.endpoint
+        from tactiled_client.endpoints import local_socket
+
+        return f"ipc://{local_socket(self.sensor.id)}"
 
     def override(self, values: dict[str, Any]) -> Config:
         """A copy with ``{"section.key": value}`` replaced (values already typed), validated."""
@@ -390,6 +462,7 @@ def _coerce(value: Any, typ: Any, key: str) -> Any:
         return float(value)
     if typ is str:
         _check(isinstance(value, str), key, "must be a string")
+        _check("\0" not in value, key, "holds a NUL character (\\u0000), which no path, endpoint or name may hold")
         return value
     if typing.get_origin(typ) is tuple:
         _check(isinstance(value, list) and len(value) <= 64 and all(isinstance(v, str) for v in value), key, "must be a list of at most 64 strings")
@@ -442,6 +515,9 @@ def load_config(path: str | Path | None) -> Config:
         config = Config()
         config.validate()
         return config
+    problem = file_problem(path, 1 << 62)  # a FIFO would block the open; the size is bounded by the read below
+    if problem is not None:
+        raise ConfigError(f"{path}: cannot read config: {problem}")
     try:
         with open(path, encoding="utf-8") as fh:
             text = fh.read(MAX_CONFIG_BYTES + 1)  # never more: a config path may be a device or a huge file

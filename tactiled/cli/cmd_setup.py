@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 
 from tactiled.cli.common import EXIT_OK, Sub, command, say
-from tactiled.config import load_config
-from tactiled.errors import ModelError, WindowError
+from tactiled.config import ipc_folder_problem, load_config
+from tactiled.errors import ConfigError, ModelError, WindowError
 
 TTY_READ_BUFFER = 4096  # bytes a tty's line discipline holds for its reader before it throttles the driver
 
@@ -20,7 +20,9 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
-    """Load and validate a config file: ok, or one line naming the key. Then the model ``tactiled run`` would use with it:
+    """Load and validate a config file: ok, or one line naming the key. An ipc:// endpoint whose folder does not exist is an
+    error, or a note under /run (systemd makes the unit's RuntimeDirectory, /run/tactiled, when the unit starts: a check
+    before that must pass). Then the model ``tactiled run`` would use with it:
     a ``model.path`` or ``model.shadow`` that does not fit the sensor's rate and channels is an error (one line), as it is
     for ``run``; the shipped model not fitting is a note (a config for ``record`` needs no model)."""
     from tactiled.board.frames import frame_size
@@ -31,6 +33,12 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     s = config.sensor
     where = f"sensor {s.id}"
     notes: list[str] = []
+    for key, endpoint in (("publish.endpoint", config.publish.endpoint), ("control.endpoint", config.control.endpoint)):
+        folder = ipc_folder_problem(endpoint)  # auto: the daemon makes its runtime folder itself
+        if folder is not None and folder[0]:
+            raise ConfigError(f"{args.file}: {key}: {folder[1]}")
+        if folder is not None:
+            notes.append(f"{key}: {folder[1]}")
     key = "model.path"
     try:
         model = ModelChoice(config, config.model.path or None, check_cost=False, warn=notes.append).for_stream(s.fs, s.channels, where)
