@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 import os
+import signal
+import stat
+import subprocess
+import time
 from pathlib import Path
 
 import pytest
+from tactiled_client import BlockingSubscriber, NoData, Status, schema
 
 from tactiled.config import parse_config
 from tactiled.errors import ConfigError
-from tests.conftest import run_cli
+from tests.conftest import REPO, board_and_daemon, run_cli, tactiled_cmd, wait_for
+from tests.test_daemon import raw_request
 
 
 def cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
@@ -69,3 +75,47 @@ def test_check_config_on_endpoints_and_a_fifo(tmp_path: Path, capsys: pytest.Cap
     config.write_text('[publish]\nendpoint = "ipc:///run/tactiled-audit-none/x.sock"\n')
     code, err = cli(["check-config", str(config)], capsys)
     assert code == 0 and "note: publish.endpoint: the folder /run/tactiled-audit-none does not exist" in err, err
+
+
+def test_control_socket_is_shared_like_the_publish_socket_refused_when_taken_and_status_is_real_and_sighup_loads_model_path(
+        tmp_path: Path) -> None:
+    """One daemon: its control socket is mode 660 (it was 755: the tactiled group could not connect); a second daemon on the
+    same control.endpoint is refused in one line (it took the socket over); a control status has real seq, time and rate
+    (it had 0, 0.0, 0.0); after a control load, SIGHUP loads model.path again, not the loaded file."""
+    from tactiled.learn.model import load_model
+
+    shipped = load_model()
+    a = shipped.fingerprint
+    shipped.summary = {**shipped.summary, "note": "the same classifier under another fingerprint"}
+    b = shipped.save(tmp_path / "b.npz")
+    ctl = f"ipc://{tmp_path}/control"
+    config = tmp_path / "c.toml"
+    config.write_text(f'[control]\nendpoint = "{ctl}"\n')
+    with board_and_daemon(tmp_path, "--config", str(config)) as live, BlockingSubscriber(live.endpoint, topics=["status"], timeout=30) as sub:
+        def streaming() -> Status | None:
+            m = sub.receive()
+            return m if isinstance(m, Status) and m.seq >= 2 and m.fs_measured > 0 and m.state != schema.STATE_DISCONNECTED else None
+        wait_for(streaming, timeout=60, what="statuses of a streaming board")
+        assert stat.S_IMODE(os.stat(tmp_path / "control").st_mode) == 0o660
+        reply = raw_request(ctl, {"cmd": "status"})
+        assert isinstance(reply, dict) and reply["ok"], reply
+        status = reply["status"]
+        assert status["seq"] >= 2 and abs(status["time_unix"] - time.time()) < 10 and status["fs_measured"] > 1000, status
+        second = subprocess.run(tactiled_cmd("run", "--config", str(config), "--port", str(tmp_path / "none"), "--publish",
+                                             f"ipc://{tmp_path}/pub2", "--no-model"), capture_output=True, text=True, timeout=30, cwd=REPO)
+        assert second.returncode == 2 and second.stderr.strip().splitlines() == [
+            f"tactiled: error: control.endpoint: another process already listens on {ctl} (another daemon's control socket?); "
+            "stop it or give this one another endpoint"], second.stderr
+        assert raw_request(ctl, {"cmd": "load", "path": str(tmp_path / "b.npz")}) == {"ok": True, "model": b}  # still the first's
+
+        def status_of(model: str) -> bool:
+            try:
+                m = sub.receive(timeout=5)
+            except NoData:
+                return False
+            return isinstance(m, Status) and m.model == model
+        wait_for(lambda: status_of(b), timeout=30, what="a status of the loaded model")
+        live.proc.send_signal(signal.SIGHUP)
+        wait_for(lambda: status_of(a), timeout=60, what="the model of model.path back after SIGHUP")
+        err = live.stop()
+    assert live.proc.returncode == 0 and "reload refused" not in err, err[-2000:]

@@ -1,6 +1,7 @@
 """The daemon's control socket: a local request loads a model, starts or stops a shadow model, or asks for status.
 
-A ZeroMQ REP socket on ``control.endpoint`` (ipc, or tcp on loopback only: checked in the config). Requests and
+A ZeroMQ REP socket on ``control.endpoint`` (ipc, or tcp on loopback only: checked in the config; an ipc socket another
+process listens on is refused, and one bound is mode 660 with ``publish.socket_group``, as the publish socket). Requests and
 replies are msgpack maps: ``{"cmd": "load" | "shadow" | "status", "path": str | nil}``; the reply is
 ``{"ok": true, ...}`` or ``{"ok": false, "error": "<one line>"}``. With CURVE configured for the subscriptions
 (``publish.curve_secret_key_file``), the control socket uses the same certificate, and the same authorised folder
@@ -9,6 +10,7 @@ admits clients (the publisher's authenticator serves every socket of the context
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import msgpack
@@ -18,6 +20,7 @@ import zmq.auth
 
 from tactiled.config import Config
 from tactiled.errors import ConfigError
+from tactiled.service.publish import in_use, share_socket
 
 COMMANDS = ("load", "shadow", "status")
 MAX_REQUEST_BYTES = 4096
@@ -31,11 +34,18 @@ def control_socket(config: Config, context: zmq.Context[Any]) -> zmq.asyncio.Soc
     if config.publish.curve_secret_key_file:
         public, secret = zmq.auth.load_certificate(config.publish.curve_secret_key_file)  # read and checked by the publisher already
         sock.curve_secretkey, sock.curve_publickey, sock.curve_server = secret, public, True
+    endpoint = config.control.endpoint
+    if in_use(endpoint):
+        sock.close()
+        raise ConfigError(f"control.endpoint: another process already listens on {endpoint} (another daemon's control socket?); "
+                          "stop it or give this one another endpoint")
     try:
-        sock.bind(config.control.endpoint)
+        sock.bind(endpoint)
     except zmq.ZMQError as exc:
         sock.close()
-        raise ConfigError(f"control.endpoint: cannot bind {config.control.endpoint}: {exc}") from None
+        raise ConfigError(f"control.endpoint: cannot bind {endpoint}: {exc}") from None
+    if endpoint.startswith("ipc://"):  # as the publish socket: mode 660, publish.socket_group's users may connect
+        share_socket(Path(endpoint[6:]), config.publish.socket_group)
     return sock
 
 

@@ -12,7 +12,8 @@ one, and after a slow one), so a costly model's feature extraction never stalls 
 detection-only batches run inline; ``status`` (at least once a
 second, and the systemd watchdog, fed only while the reader is alive and the daemon keeps up); ``stop`` (SIGTERM,
 SIGINT). A finite source (tests) ends the stream explicitly and the daemon stops. SIGHUP
-(``systemctl reload``) loads the model file again: validated as at start-up (a bad file is refused
+(``systemctl reload``) loads the model file again (``model.path`` or ``run --model``, even after a control request
+loaded another: that one runs until the next reload or restart): validated as at start-up (a bad file is refused
 in one line and the running model stays), it takes over at the next slide, so a slide in progress
 ends with the model it began with and no sample is lost.
 
@@ -48,7 +49,7 @@ from tactiled.board.serialsource import CONNECTED, ByteSource, SerialSource
 from tactiled.config import Config
 from tactiled.core.events import PipelineEvent, SlideResult, SlideResumed
 from tactiled.core.shadow import ShadowStats
-from tactiled.errors import TactiledError
+from tactiled.errors import ConfigError, TactiledError
 from tactiled.learn.cost import check_speed
 from tactiled.learn.model import Model, load_model
 from tactiled.run.ingest import Batch
@@ -97,7 +98,7 @@ class Daemon:
                  model_path: str | None = None, force: bool = False, shadow: Model | None = None) -> None:
         self.config = config
         self.model = model
-        self.model_path = model_path  # what SIGHUP loads again
+        self.model_path = model_path  # what SIGHUP loads again: the config's model.path (or run --model), whatever a control request loaded
         self.force = force  # run a model even if its analysis cannot keep up with the sensor (tactiled/learn/cost.py)
         if model is not None and not force:
             check_speed(model, model_path or "model")
@@ -131,7 +132,13 @@ class Daemon:
         self._reader: asyncio.Task[None] | None = None
         self._turned = time.monotonic()  # when the loop last turned (work is bounded between turns)
         self._analysis_s = float("inf")  # how long the last batch that completed a window took to process (inf: none yet), s
-        self.control = control_socket(config, self.publisher.context) if config.control.endpoint else None
+        self._status_at = self.state.started  # when the last periodic status was made (host monotonic, s): the next one's interval began then
+        self._periodic: schema.Status | None = None  # that status
+        try:
+            self.control = control_socket(config, self.publisher.context) if config.control.endpoint else None
+        except ConfigError:
+            self.publisher.close()
+            raise
 
     @property
     def endpoint(self) -> str:
@@ -194,7 +201,8 @@ class Daemon:
                 loop.remove_signal_handler(sig)
 
     async def reload(self) -> bool:
-        """Load :attr:`model_path` again and swap it in at the next slide; a bad file is refused in one line (the old model stays)."""
+        """Load :attr:`model_path` (the config's ``model.path``, or ``run --model``) again and swap it in at the next slide; a
+        bad file is refused in one line (the old model stays). A model loaded by a control request is replaced by it."""
         if not self.model_path:
             log.error("reload: no model file to load (the daemon runs without a model)")
             return False
@@ -202,8 +210,10 @@ class Daemon:
 
     async def load(self, path: str) -> str | None:
         """Load ``path``, check it as at start-up (stream, probe, speed) and swap it in at the next slide (a slide in
-        progress finishes with the model it started with); SIGHUP then reloads ``path``. None, or why it was refused
-        (logged; the old model stays)."""
+        progress finishes with the model it started with). None, or why it was refused (logged; the old model stays).
+
+        A model loaded from another file than :attr:`model_path` (a control request) runs until the next reload (SIGHUP,
+        which loads :attr:`model_path`) or restart."""
         try:
             model = await self._checked(path)
         except TactiledError as exc:
@@ -211,7 +221,7 @@ class Daemon:
             return str(exc)
         self.stream.swap_model(model)
         log.info("reload: model %s from %s takes over at the next slide (was %s)", model.fingerprint, path, self.fingerprint or "none")
-        self.model, self.fingerprint, self.model_path = model, model.fingerprint, path
+        self.model, self.fingerprint = model, model.fingerprint
         return None
 
     async def _checked(self, path: str) -> Model:
@@ -247,7 +257,7 @@ class Daemon:
     async def _answer(self, cmd: str, path: str | None) -> bytes:
         """The packed reply to one parsed control request."""
         if cmd == "status":
-            return reply(True, status=self._status_message().to_map())
+            return reply(True, status=self._status_now().to_map())
         if cmd == "load":
             assert path is not None
             error = await self.load(path)
@@ -259,6 +269,17 @@ class Daemon:
         self.set_shadow(candidate)
         log.info("shadow: %s", f"model {candidate.fingerprint} from {path}" if candidate else "stopped")
         return reply(True, shadow=candidate.fingerprint if candidate else None)
+
+    def _status_now(self) -> schema.Status:
+        """A status for a control request: every figure as of now, but ``fs_measured`` and ``level`` those of the last status
+        published (over its whole interval: the one under way may have only begun) and its ``seq``; ``time_unix`` now.
+        Before the first status, the rate and levels since the start."""
+        msg = self._status_message(time.monotonic() - self._status_at)
+        last = self._periodic
+        if last is not None:
+            msg.seq, msg.fs_measured, msg.level = last.seq, last.fs_measured, last.level
+        msg.time_unix = time.time()
+        return msg
 
     async def _read(self) -> None:
         """The source until it ends (a finite source: then the explicit end of stream), or until cancelled."""
@@ -485,13 +506,14 @@ class Daemon:
 
     async def _status(self) -> None:
         interval = self.config.publish.status_interval_s
-        last = time.monotonic()
+        last = self._status_at = time.monotonic()
         handled = self.stream.stats.samples
         watchdog = "WATCHDOG_USEC" in os.environ
         while True:
             await asyncio.sleep(interval)  # the status period itself, not synchronisation
             now = time.monotonic()
-            self.publisher.publish(self._status_message(now - last))
+            self._periodic = self.publisher.publish(self._status_message(now - last))
+            self._status_at = now
             self._say_channel_errors()
             self._say_rate()
             self.state.samples_window = 0

@@ -75,19 +75,27 @@ def bind_address(endpoint: str, sensor: str) -> str:
         except OSError as exc:
             raise ConfigError(f"publish.endpoint: cannot make {path.parent} for the daemon's socket: {exc.strerror or exc}") from None
         endpoint = f"ipc://{path}"
-    if endpoint.startswith("ipc://") and Path(endpoint[6:]).is_socket():
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
-            try:
-                probe.connect(endpoint[6:])
-            except OSError:
-                pass  # nobody listens: a stale socket of a daemon that died, replaced by the bind
-            else:
-                raise ConfigError(f"publish.endpoint: another process already publishes on {endpoint} (another daemon for sensor "
-                                  f"{sensor}?); stop it or give this one another endpoint")
+    if in_use(endpoint):
+        raise ConfigError(f"publish.endpoint: another process already publishes on {endpoint} (another daemon for sensor "
+                          f"{sensor}?); stop it or give this one another endpoint")
     return endpoint
 
 
-def _share(path: Path, group: str) -> None:
+def in_use(endpoint: str) -> bool:
+    """Whether ``endpoint`` is an ``ipc://`` socket another process still listens on: ZeroMQ's bind would silently take it
+    over (the other process's peers then reach this one). A stale socket, of a daemon that died, is not in use (the bind
+    replaces it)."""
+    if not (endpoint.startswith("ipc://") and Path(endpoint[6:]).is_socket()):
+        return False
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        try:
+            probe.connect(endpoint[6:])
+        except OSError:
+            return False  # nobody listens
+    return True
+
+
+def share_socket(path: Path, group: str) -> None:
     """Mode 660 on the socket at ``path``, and group ``group`` when it exists and this process belongs to it (else the
     file keeps this process's group): the users of that group may subscribe, as gpsd's users do through its socket."""
     with contextlib.suppress(OSError):
@@ -146,7 +154,7 @@ class Publisher:
             raise
         self.endpoint = self.socket.getsockopt_string(zmq.LAST_ENDPOINT)
         if self.endpoint.startswith("ipc://"):
-            _share(Path(self.endpoint[6:]), config.socket_group)
+            share_socket(Path(self.endpoint[6:]), config.socket_group)
         self._seq: dict[str, int] = {}
         self.sent = 0
         self.dropped = 0
