@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import os
 import signal
 import stat
@@ -10,10 +11,12 @@ import time
 from pathlib import Path
 
 import pytest
+from rich.console import Console
 from tactiled_client import BlockingSubscriber, NoData, Status, schema
 
+from tactiled.apps.monitor import MonitorState, render
 from tactiled.config import parse_config
-from tactiled.errors import ConfigError
+from tactiled.errors import ConfigError, TactiledError
 from tests.conftest import REPO, board_and_daemon, run_cli, tactiled_cmd, wait_for
 from tests.test_daemon import raw_request
 
@@ -75,6 +78,51 @@ def test_check_config_on_endpoints_and_a_fifo(tmp_path: Path, capsys: pytest.Cap
     config.write_text('[publish]\nendpoint = "ipc:///run/tactiled-audit-none/x.sock"\n')
     code, err = cli(["check-config", str(config)], capsys)
     assert code == 0 and "note: publish.endpoint: the folder /run/tactiled-audit-none does not exist" in err, err
+
+
+@pytest.mark.parametrize("connect", ["foo", "tcp://127.0.0.1"])
+def test_monitor_refuses_an_endpoint_it_cannot_connect_to_in_one_line(connect: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """It was a zmq.error.ZMQError traceback."""
+    code, err = cli(["monitor", "--connect", connect], capsys)
+    assert code == 2 and err.startswith(f"tactiled: error: --connect {connect}: must be tcp://HOST:PORT or ipc://PATH") and err.count("\n") == 1
+
+
+def test_connect_endpoints_no_daemon_can_be_at_are_refused() -> None:
+    """ZeroMQ connects to these without a word (a port taken modulo 65536, an inproc name of the monitor's own process)."""
+    from tactiled.cli.cmd_live import check_connect
+
+    for connect in ("tcp://127.0.0.1:70000", "tcp://127.0.0.1:0", "inproc://x", "tcp://127.0.0.1:*"):
+        with pytest.raises(TactiledError, match="--connect"):
+            check_connect(connect)
+    check_connect("tcp://robot.local:7350")
+    check_connect("ipc:///run/tactiled/fingertip0.sock")
+
+
+def test_monitor_blanks_stale_figures_and_shows_every_loss_counter() -> None:
+    """After the daemon dies the state said NO DATA but the last rate and slide stayed; restarts, duplicate frames, dropped
+    messages and load shedding were never shown."""
+    model = MonitorState()
+    model.update(schema.status("s", state=schema.STATE_SLIDING, fs_nominal=20_000.0, fs_measured=20_160.0, restarts=2,
+                               duplicate_frames=5, dropped_messages=3, overloaded=4000, level=[0.01, 0.02]))
+    model.update(schema.slide_start("s", 4, 1000, 20_000.0))
+
+    def screens() -> tuple[str, str]:
+        big = Console(file=io.StringIO(), width=140, record=True, color_system=None)
+        big.print(render(model, "ipc://x"))
+        small = Console(file=io.StringIO(), width=80, height=24, record=True, color_system=None)
+        small.print(render(model, "ipc://x", 80, 24))
+        return big.export_text(), small.export_text()
+
+    for text in screens():
+        assert "20160" in text and "slide 4 since" in text
+        assert "restarts 2" in text and "duplicate frames 5" in text and "dropped msgs 3" in text and "overloaded 4000" in text, text
+        assert "input shed" not in text and "bad headers" not in text  # 0: not shown
+    assert not model.check_stale(model.last_message + 1.0)
+    assert model.check_stale(model.last_message + 10.0)
+    for text in screens():
+        assert " NO DATA " in text and "20160" not in text and "slide 4" not in text and "10.00" not in text, text
+    big, small = screens()
+    assert "rate - (no data for 10 s)" in big and "- Hz" in small
 
 
 def test_control_socket_is_shared_like_the_publish_socket_refused_when_taken_and_status_is_real_and_sighup_loads_model_path(

@@ -13,6 +13,7 @@ ZeroMQ subscriber, and the same renderable prints to a string for headless tests
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import os
@@ -24,14 +25,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zmq
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Samples, Slide, Status, schema
 from tactiled_client.truth import overlapping
+
+from tactiled.errors import TactiledError
 
 TRACE_LEN = 120  # points per film trace (one per 10 ms of signal)
 LABEL_HISTORY = 40  # labels kept; as many as fit are shown
 FULL_SIZE = (100, 40)  # (columns, lines) from which the screen also shows the spectrum and every label column
 SPECTRUM_N = 4096  # samples per spectrum
 SPARK = "▁▂▃▄▅▆▇█"
+STALE_AFTER_S = 3.0  # no message for this long: the daemon's state is shown as "no data" and its live figures blanked
+NO_DATA = "no data"
 
 
 def sparkline(values: np.ndarray, top: float) -> str:
@@ -71,13 +77,17 @@ class MonitorState:
         self.fs = 0.0
         self.truth_log = truth_log
         self._truth: list[tuple[int, int, str]] = []
+        self.stale_s = 0.0  # seconds since the last message, once over STALE_AFTER_S (0: the figures are live)
 
     def update(self, msg: Any) -> None:
         """Fold one message (status, slide, roughness or samples) into the state, adding the messages it says were missed."""
         self.last_message = time.monotonic()
+        self.stale_s = 0.0
         self.missed += msg.missed
         if isinstance(msg, Status):
             self.status = msg
+            if msg.state in (schema.STATE_DISCONNECTED, schema.STATE_STOPPING):  # no slide goes on without samples
+                self.slide = None
         elif isinstance(msg, Slide) and msg.event == schema.SLIDE_RESUMED:  # its final label is withdrawn: the slide goes on
             self.labels = deque((r for r in self.labels if not (r.final and r.slide_id == msg.slide_id)), maxlen=LABEL_HISTORY)
             self.slide = msg
@@ -87,6 +97,17 @@ class MonitorState:
             self.labels.appendleft(msg)
         elif isinstance(msg, Samples):
             self._samples(msg)
+
+    def check_stale(self, now: float | None = None) -> bool:
+        """After :data:`STALE_AFTER_S` without a message: the state becomes "no data", the slide in progress is forgotten and
+        :attr:`stale_s` says for how long nothing came (the rate and film levels are then shown blank). True if stale."""
+        now = time.monotonic() if now is None else now
+        if not self.last_message or now - self.last_message <= STALE_AFTER_S or self.status is None:
+            return False
+        self.status.state = NO_DATA
+        self.slide = None
+        self.stale_s = now - self.last_message
+        return True
 
     def _samples(self, msg: Samples) -> None:
         volts = msg.counts().astype(np.float64) * msg.volts_per_count
@@ -139,6 +160,27 @@ def foreign_frames(s: Status) -> str:
     return f"{s.channel_errors} frames of another channel count skipped: check [sensor] channels"
 
 
+def losses(s: Status, missed: int) -> str:
+    """The loss counters that are always shown, in one line."""
+    return f"lost {s.samples_lost} samples  crc errors {s.crc_errors}  bytes discarded {s.bytes_discarded}  reconnects {s.reconnects}  missed msgs {missed}"
+
+
+def other_losses(s: Status) -> str:
+    """The counters of rarer losses and faults, those not 0, in one line ("" when all are 0): board restarts, repeated
+    frames dropped, messages the daemon could not queue, samples not analysed (load shed), input dropped undecoded, bad headers."""
+    parts = [f"{label} {value}" for label, value in (
+        ("restarts", s.restarts), ("duplicate frames", s.duplicate_frames), ("dropped msgs", s.dropped_messages),
+        ("overloaded", s.overloaded), ("input shed bytes", s.input_shed_bytes), ("bad headers", s.bad_headers)) if value]
+    return "  ".join(parts)
+
+
+def rate(model: MonitorState, s: Status, full: bool) -> str:
+    """The measured rate, or a dash and how long nothing has come once the figures are stale."""
+    if model.stale_s:
+        return f"rate - (no data for {model.stale_s:.0f} s)" if full else "- Hz"
+    return f"rate {s.fs_measured:.1f} Hz (clock {s.fs_clock:.1f} Hz, nominal {s.fs_nominal:g} Hz)" if full else f"{s.fs_measured:.0f} Hz"
+
+
 def render(model: MonitorState, endpoint: str, width: int = 140, height: int = 50) -> Any:
     """The whole screen, for a terminal of ``width`` columns and ``height`` lines, as one rich renderable.
 
@@ -159,13 +201,14 @@ def render(model: MonitorState, endpoint: str, width: int = 140, height: int = 5
     if s is None:
         head.append("waiting for the daemon's status ...", style="yellow")
         return Panel(head)
-    colour = {schema.STATE_DISCONNECTED: "bold red", schema.STATE_SLIDING: "bold green", "no data": "bold red"}.get(s.state, "bold cyan")
+    colour = {schema.STATE_DISCONNECTED: "bold red", schema.STATE_SLIDING: "bold green", NO_DATA: "bold red"}.get(s.state, "bold cyan")
     head.append(f"sensor {s.sensor}  ")
     head.append(f" {s.state.upper()} ", style=f"reverse {colour}")
     head.append(f"  uptime {s.uptime_s:.1f} s  model {s.model or '-'}  v{s.version}\n")
-    head.append(f"rate {s.fs_measured:.1f} Hz (clock {s.fs_clock:.1f} Hz, nominal {s.fs_nominal:g} Hz)  samples {s.samples}  index {s.index}\n")
-    head.append(f"lost {s.samples_lost} samples  crc errors {s.crc_errors}  bytes discarded {s.bytes_discarded}  reconnects {s.reconnects}  "
-                f"missed msgs {model.missed}")
+    head.append(f"{rate(model, s, True)}  samples {s.samples}  index {s.index}\n")
+    head.append(losses(s, model.missed))
+    if other_losses(s):
+        head.append(f"\n{other_losses(s)}", style="yellow")
     if s.discarded_at_start:
         head.append(f"\n{at_start(s)}")
     if s.channel_errors:
@@ -181,10 +224,10 @@ def render(model: MonitorState, endpoint: str, width: int = 140, height: int = 5
         for k, trace in enumerate(model.traces):
             values = np.array(trace)
             top = max(float(values.max()), 1e-6)
-            levels.add_row(f"film{k + 1}", f"{values[-1] * 1e3:.2f}", f"{top * 1e3:.2f}", sparkline(values, top))
+            levels.add_row(f"film{k + 1}", "-" if model.stale_s else f"{values[-1] * 1e3:.2f}", f"{top * 1e3:.2f}", sparkline(values, top))
     else:
         for k, v in enumerate(s.level):
-            levels.add_row(f"film{k + 1}", f"{v * 1e3:.2f}", "", "(no samples topic: run the daemon with --samples)")
+            levels.add_row(f"film{k + 1}", "-" if model.stale_s else f"{v * 1e3:.2f}", "", "(no samples topic: run the daemon with --samples)")
     db, hz = model.spectrum()
     spec = Text()
     if db.size:
@@ -226,12 +269,14 @@ def render_compact(model: MonitorState, endpoint: str, width: int, height: int) 
     title = line(Text.assemble(("tactiled monitor ", "bold"), f"{endpoint} (q quits)"))
     if s is None:
         return Group(title, line(Text("waiting for the daemon's status ...", style="yellow")))
-    colour = {schema.STATE_DISCONNECTED: "bold red", schema.STATE_SLIDING: "bold green", "no data": "bold red"}.get(s.state, "bold cyan")
+    colour = {schema.STATE_DISCONNECTED: "bold red", schema.STATE_SLIDING: "bold green", NO_DATA: "bold red"}.get(s.state, "bold cyan")
     sliding = f"  slide {model.slide.slide_id} since {model.slide.start}" if model.slide is not None else ""
     state = line(Text.assemble(f"{s.sensor} ", (f" {s.state.upper()} ", f"reverse {colour}"),
-                               f"{sliding}  up {s.uptime_s:.0f} s  {s.fs_measured:.0f} Hz  model {s.model or '-'}"))
+                               f"{sliding}  up {s.uptime_s:.0f} s  {rate(model, s, False)}  model {s.model or '-'}"))
     counters = [line(Text(f"lost {s.samples_lost}  crc {s.crc_errors}  discarded {s.bytes_discarded}  reconnects {s.reconnects}  "
                           f"missed msgs {model.missed}  samples {s.samples}"))]
+    if other_losses(s):
+        counters.append(line(Text(other_losses(s), style="yellow")))
     if s.discarded_at_start:
         counters.append(line(Text(at_start(s))))
     if s.channel_errors:
@@ -241,10 +286,11 @@ def render_compact(model: MonitorState, endpoint: str, width: int, height: int) 
         for k, trace in enumerate(model.traces):
             values = np.array(trace)
             top = max(float(values.max()), 1e-6)
-            head = f"film{k + 1} {values[-1] * 1e3:7.2f} {top * 1e3:7.2f} "
+            head = f"film{k + 1} {'-' if model.stale_s else format(values[-1] * 1e3, '7.2f'):>7} {top * 1e3:7.2f} "
             levels.append(line(Text(head + sparkline(values[-max(width - len(head) - 1, 0):], top))))
     else:
-        levels.append(line(Text("  ".join(f"film{k + 1} {v * 1e3:.2f}" for k, v in enumerate(s.level)) + "  (traces: run the daemon with --samples)")))
+        levels.append(line(Text("  ".join(f"film{k + 1} {'-' if model.stale_s else format(v * 1e3, '.2f')}" for k, v in enumerate(s.level))
+                                + "  (traces: run the daemon with --samples)")))
     labels = Table(box=box.SIMPLE_HEAD, expand=True, show_edge=False, pad_edge=False, title="last labels (newest first)",
                    title_justify="left", title_style="bold")
     for col, just in (("slide", "right"), ("kind", "left"), ("label", "left"), ("conf", "right"), ("truth", "left"), ("reason", "left")):
@@ -263,6 +309,10 @@ def run_monitor(endpoint: str, truth_log: str | None = None) -> int:
     from rich.live import Live
 
     model = MonitorState(truth_log)
+    try:
+        sub = BlockingSubscriber(endpoint)
+    except zmq.ZMQError as exc:  # an endpoint ZeroMQ cannot connect to (tcp://*:7350, a malformed one from a config)
+        raise TactiledError(f"cannot connect to {endpoint}: {exc}") from None
     tty = sys.stdin.isatty()
     old = None
     if tty:
@@ -272,7 +322,7 @@ def run_monitor(endpoint: str, truth_log: str | None = None) -> int:
         old = termios.tcgetattr(sys.stdin)
         ttymod.setcbreak(sys.stdin.fileno())
     try:
-        with BlockingSubscriber(endpoint) as sub, Live(render(model, endpoint), auto_refresh=False, screen=True) as live:
+        with sub, Live(render(model, endpoint), auto_refresh=False, screen=True) as live:
             while True:
                 deadline = time.monotonic() + 0.1  # redraw period
                 try:
@@ -280,8 +330,7 @@ def run_monitor(endpoint: str, truth_log: str | None = None) -> int:
                         model.update(sub.receive(timeout=max(deadline - time.monotonic(), 0.0)))
                 except NoData:
                     pass
-                if model.last_message and time.monotonic() - model.last_message > 3 and model.status is not None:
-                    model.status.state = "no data"
+                model.check_stale()
                 size = live.console.size
                 live.update(render(model, endpoint, size.width, size.height), refresh=True)
                 if tty and select.select([sys.stdin], [], [], 0)[0] and os.read(sys.stdin.fileno(), 1) in (b"q", b"Q"):
@@ -292,4 +341,5 @@ def run_monitor(endpoint: str, truth_log: str | None = None) -> int:
         if old is not None:
             import termios
 
-            termios.tcsetattr(sys.stdin, termios.TCSADRAIN, old)
+            with contextlib.suppress(termios.error, OSError):  # the terminal may be gone (closed: SIGHUP)
+                termios.tcsetattr(sys.stdin, termios.TCSADRAIN, old)

@@ -7,7 +7,7 @@ import sys
 
 from tactiled.cli import common as c
 from tactiled.cli.common import EXIT_FAIL, EXIT_OK, Sub, command, config_of, say
-from tactiled.config import subscribe_endpoint
+from tactiled.config import endpoint_problem, subscribe_endpoint
 from tactiled.errors import TactiledError
 
 
@@ -54,10 +54,19 @@ def cmd_run(args: argparse.Namespace) -> int:
     return asyncio.run(main())
 
 
+def check_connect(connect: str | None) -> None:
+    """Refuse (one line) a ``--connect`` endpoint no subscriber can connect to (ZeroMQ would raise ``Invalid argument``):
+    not tcp://HOST:PORT (port 1..65535) or ipc://PATH."""
+    problem = endpoint_problem(connect, connect=True) if connect is not None else None
+    if problem is not None:
+        raise TactiledError(f"--connect {connect}: must be tcp://HOST:PORT or ipc://PATH: {problem}")
+
+
 def cmd_monitor(args: argparse.Namespace) -> int:
     """The terminal view of a running daemon."""
     from tactiled.apps.monitor import run_monitor
 
+    check_connect(args.connect)
     return run_monitor(args.connect or subscribe_endpoint(config_of(args)), args.truth)
 
 
@@ -65,6 +74,7 @@ def cmd_lsl(args: argparse.Namespace) -> int:
     """The LSL bridge, until stopped."""
     from tactiled.apps.bridges.cli import serve
 
+    check_connect(args.connect)
     return serve("lsl", config_of(args), args.connect, args.sensor_id, nan_lost=args.nan_lost)
 
 
@@ -72,6 +82,7 @@ def cmd_ros2(args: argparse.Namespace) -> int:
     """The ROS 2 bridge, until stopped."""
     from tactiled.apps.bridges.cli import serve
 
+    check_connect(args.connect)
     return serve("ros2", config_of(args), args.connect, args.sensor_id, ros_args=args.ros_args)
 
 
