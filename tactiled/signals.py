@@ -32,14 +32,16 @@ def sd_notify(message: str) -> None:
 
 
 @contextmanager
-def sigterm_as_exit() -> Iterator[None]:
-    """Within the block, SIGTERM raises ``SystemExit(143)`` like Ctrl-C raises KeyboardInterrupt, so ``finally`` clauses run
-    (a parent that starts processes stops them instead of leaving them orphaned)."""
+def sigterm_as_exit(signals: tuple[signal.Signals, ...] = (signal.SIGTERM,)) -> Iterator[None]:
+    """Within the block, SIGTERM (and any other of ``signals``: the demo adds SIGHUP, its terminal closed) raises
+    ``SystemExit(128 + signal)`` like Ctrl-C raises KeyboardInterrupt, so ``finally`` clauses run (a parent that starts
+    processes stops them instead of leaving them orphaned)."""
     def handler(signum: int, frame: FrameType | None) -> None:
         raise SystemExit(128 + signum)
 
-    previous = signal.signal(signal.SIGTERM, handler)
+    previous = {sig: signal.signal(sig, handler) for sig in signals}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, old in previous.items():
+            signal.signal(sig, old)

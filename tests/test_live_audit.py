@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import signal
 import stat
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -17,6 +19,7 @@ from tactiled_client import BlockingSubscriber, NoData, Status, schema
 from tactiled.apps.monitor import MonitorState, render
 from tactiled.config import parse_config
 from tactiled.errors import ConfigError, TactiledError
+from tactiled.service.publish import in_use
 from tests.conftest import REPO, board_and_daemon, run_cli, tactiled_cmd, wait_for
 from tests.test_daemon import raw_request
 
@@ -167,3 +170,26 @@ def test_control_socket_is_shared_like_the_publish_socket_refused_when_taken_and
         wait_for(lambda: status_of(a), timeout=60, what="the model of model.path back after SIGHUP")
         err = live.stop()
     assert live.proc.returncode == 0 and "reload refused" not in err, err[-2000:]
+
+
+def test_demo_cleans_up_on_sighup(tmp_path: Path) -> None:
+    """Closing the demo's terminal (SIGHUP) left its daemon running for ever and its temporary folder behind."""
+    endpoint = f"ipc://{tmp_path}/demo.sock"
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    demo = subprocess.Popen([sys.executable, "-m", "tactiled", "demo", "--headless", "--seconds", "120", "--publish", endpoint],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+    try:
+        with BlockingSubscriber(endpoint, topics=["status"], timeout=60) as sub:
+            wait_for(lambda: isinstance(sub.receive(), Status), timeout=60, what="the demo's daemon publishing")
+        assert len(list(tmp_path.glob("tactiled-demo-*"))) == 1
+        demo.send_signal(signal.SIGHUP)
+        demo.wait(30)
+        assert demo.returncode == 128 + signal.SIGHUP
+        assert not list(tmp_path.glob("tactiled-demo-*"))  # the folder went with the demo
+        assert not in_use(endpoint)  # and its daemon: nobody listens on its socket any more
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(demo.pid, signal.SIGKILL)  # whatever of its session is left (the daemon, orphaned without the fix)
+        demo.wait(10)

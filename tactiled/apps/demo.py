@@ -2,13 +2,15 @@
 one line per label with the surface the simulator really slid over).
 
 Both helpers run as processes of their own (``tactiled simulate serial`` and ``tactiled run``), as a user would start
-them; their files live in a temporary folder that goes when the demo ends. If no label comes within a headless run, the
+them; their files live in a temporary folder that goes when the demo ends (Ctrl-C, SIGTERM, or SIGHUP when its terminal
+closes, stop both first). If no label comes within a headless run, the
 demo says so with the daemon's last log line (exit 1).
 """
 
 from __future__ import annotations
 
 import contextlib
+import signal
 import subprocess
 import sys
 import tempfile
@@ -28,17 +30,21 @@ def run_demo(scene: str = "hand", seed: int = 0, publish: str | None = None, hea
     """Run the demo (see the module docstring) on ``scene`` with ``seed``, publishing on ``publish`` (default: an ipc socket in
     the temporary folder); ``headless``: label lines for ``seconds`` of wall time instead of the monitor. Exit code: 0 if
     final labels came (headless) or the monitor was quit, 1 if not."""
-    with sigterm_as_exit(), tempfile.TemporaryDirectory(prefix="tactiled-demo-") as tmp:
+    # SIGHUP too (its terminal closed): the daemon child would take it for a reload and outlive the demo
+    with sigterm_as_exit((signal.SIGTERM, signal.SIGHUP)), tempfile.TemporaryDirectory(prefix="tactiled-demo-") as tmp:
         link, board_log, daemon_log = f"{tmp}/tty", f"{tmp}/board.jsonl", Path(tmp) / "daemon.log"
         endpoint = publish or f"ipc://{tmp}/pub"
         exe = [sys.executable, "-m", "tactiled"]
-        board = subprocess.Popen([*exe, "simulate", "serial", "--link", link, "--scene", scene, "--seed", str(seed), "--log", board_log],
-                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-        assert board.stdout is not None
-        board.stdout.readline()  # the device path: the pty exists from here on
-        with open(daemon_log, "w") as log:
-            daemon = subprocess.Popen([*exe, "run", "--port", link, "--publish", endpoint, "--samples"], stderr=log)
+        started: list[subprocess.Popen[str] | subprocess.Popen[bytes]] = []  # stopped however the demo ends, even while starting them
         try:
+            board = subprocess.Popen([*exe, "simulate", "serial", "--link", link, "--scene", scene, "--seed", str(seed), "--log", board_log],
+                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+            started.append(board)
+            assert board.stdout is not None
+            board.stdout.readline()  # the device path: the pty exists from here on
+            with open(daemon_log, "w") as log:
+                daemon = subprocess.Popen([*exe, "run", "--port", link, "--publish", endpoint, "--samples"], stderr=log)
+            started.append(daemon)
             if not headless:
                 return run_monitor(endpoint, board_log)  # the simulator's log: the true surface of every slide
             labels = print_labels(endpoint, seconds, board_log)
@@ -51,7 +57,7 @@ def run_demo(scene: str = "hand", seed: int = 0, publish: str | None = None, hea
             print(f"tactiled: no label in {seconds:g} s; the daemon's last words: {last[-1] if last else '(nothing)'}", file=sys.stderr)
             return 1
         finally:
-            stop_processes(daemon, board)
+            stop_processes(*reversed(started))
 
 
 def print_labels(endpoint: str, seconds: float, board_log: str) -> int:
