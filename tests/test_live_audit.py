@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 from rich.console import Console
-from tactiled_client import BlockingSubscriber, NoData, Status, schema
+from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, Status, schema
 
 from tactiled.apps.monitor import MonitorState, render
 from tactiled.config import parse_config
@@ -193,3 +193,28 @@ def test_demo_cleans_up_on_sighup(tmp_path: Path) -> None:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(demo.pid, signal.SIGKILL)  # whatever of its session is left (the daemon, orphaned without the fix)
         demo.wait(10)
+
+
+def test_a_slide_in_progress_when_the_port_goes_ends_then_with_its_label(tmp_path: Path) -> None:
+    """An unplug in the middle of a slide left it open until the board came back, then ended it as end_of_stream (a
+    replay's reason) with a late label, or none if the board never came back. The virtual board of seed 0 slides from
+    19.07 s to 20.56 s of sensor time (its schedule is the seed's); it is unplugged at 20.0 s and stays away."""
+    fs = 20_000
+    with board_and_daemon(tmp_path, seed=0, unplug_at=[20.0], unplug_s=600.0) as live, \
+            BlockingSubscriber(live.endpoint, topics=["slide", "roughness"], timeout=30) as sub:
+        got: list[object] = []
+
+        def ended() -> bool:
+            got.append(sub.receive())
+            return isinstance(got[-1], Slide) and got[-1].event == schema.SLIDE_END and got[-1].stop > 19.5 * fs
+        wait_for(ended, timeout=60, what="the end of the slide the unplug cut")
+        end = got[-1]
+        assert isinstance(end, Slide) and end.reason == "disconnected", end
+        assert abs(end.start - 19.07 * fs) < 0.2 * fs and 19.5 * fs < end.stop <= 20.0 * fs, end
+
+        def final() -> Roughness | None:
+            m = sub.receive()
+            return m if isinstance(m, Roughness) and m.final and m.slide_id == end.slide_id else None
+        label = wait_for(final, timeout=30, what="the final label of the cut slide")
+        assert isinstance(label, Roughness) and label.quality["windows"] >= 1 and label.stop == end.stop, label
+    assert not any(isinstance(m, Slide) and m.reason == "end_of_stream" for m in got)

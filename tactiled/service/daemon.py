@@ -4,7 +4,8 @@ Tasks in one TaskGroup: ``reader`` (tactiled.board.serialsource: a thread reads 
 ``serial.read_interval_s`` and hands the loop its bytes once per ``serial.batch_s``, or once per
 ``serial.rest_batch_s`` while no slide can be in progress: no slide under way in the live or shadow
 pipeline, their detectors past the stream's undecided start, and no load being shed; it
-survives unplugs and any exception), whose bytes go through the ingest core (tactiled.run.ingest: decoder, channel and gap policies,
+survives unplugs and any exception: a slide in progress when the port goes ends there, reason ``disconnected``, with its final
+label from the samples read), whose bytes go through the ingest core (tactiled.run.ingest: decoder, channel and gap policies,
 batches of ``serial.batch_s``) into the pipeline and the publisher: batches that complete an
 analysis window run inline while the model's analysis is cheap (the last one took at most
 :data:`INLINE_ANALYSIS_S`; a thread hop costs two wake-ups), in a worker thread otherwise (the first
@@ -37,7 +38,7 @@ import os
 import signal
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import BinaryIO
 
 import numpy as np
@@ -45,9 +46,9 @@ from tactiled_client import schema
 
 from tactiled import __version__
 from tactiled.board.clockmap import ClockMap, rate_mismatch
-from tactiled.board.serialsource import CONNECTED, ByteSource, SerialSource
+from tactiled.board.serialsource import CONNECTED, DISCONNECTED, ByteSource, SerialSource
 from tactiled.config import Config
-from tactiled.core.events import PipelineEvent, SlideResult, SlideResumed
+from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideResumed
 from tactiled.core.shadow import ShadowStats
 from tactiled.errors import ConfigError, TactiledError
 from tactiled.learn.cost import check_speed
@@ -69,6 +70,7 @@ RESUME_BELOW_S = 0.1  # ... until the oldest input waiting is younger than this
 RATE_INTERVALS = 10  # a rate off sensor.fs (rate_mismatch) is said after this many status intervals running (5 s at the default)
 KEEPING_UP = 0.5  # the watchdog is fed only while samples are handled at no less than this fraction of real time
 INLINE_ANALYSIS_S = 0.005  # a batch that completes a window is analysed on the loop if the last such batch took at most this, s
+END_DISCONNECTED = "disconnected"  # a slide's end reason: the port was lost during it (docs/messages.md, slide/<sensor>)
 STOP_READER_S = 5.0  # on SIGTERM, the longest wait for what the source has read to be analysed and recorded before it is cancelled
 
 
@@ -296,6 +298,31 @@ class Daemon:
 
     def _on_state(self, state: str, detail: str) -> None:
         log.log(logging.INFO if state == CONNECTED else logging.WARNING, "%s: %s (%s)", self.config.sensor.port, state, detail)
+        if state == DISCONNECTED:
+            self._port_lost()
+
+    def _port_lost(self) -> None:
+        """The serial port is gone (unplugged, or a reader error): a slide in progress ends at the last sample read, its end
+        published with reason :data:`END_DISCONNECTED`, and gets its final label from the samples read (the live and shadow
+        pipelines alike), as a gap longer than the ring ends one; the detector goes on with the samples after the
+        reconnection. Nothing changes if no slide is in progress, nor on a stop (a slide under way is not ended), for a
+        finite source (its end is the end of the stream), or while shedding load (slides already ended)."""
+        live, shadow = self.stream.pipeline, self.stream.shadow
+        if self.stop_event.is_set() or self.state.shedding or not isinstance(self.source, SerialSource) or live is None:
+            return
+        held = self.stream.held()  # decoded and counted, not yet handed over: recorded, published and analysed first
+        self._take(held)
+        if self.config.publish.samples:
+            self._publish_samples(held)
+        now = time.perf_counter()
+        step = self.stream.process(held)
+        if live.sliding:
+            step.events += [replace(ev, reason=END_DISCONNECTED) if isinstance(ev, SlideEnded) and ev.reason == "end_of_stream" else ev
+                            for ev in live.finish()]
+        if shadow is not None and shadow.sliding:
+            step.shadow += shadow.finish()
+        self._publish(step.events, now)
+        self._publish_shadow(step.shadow, now)
 
     async def _on_bytes(self, data: bytes) -> None:
         """Bytes read from the port: decode them a slice at a time, and run the pipeline on each batch they complete,
