@@ -22,10 +22,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Protocol, TypeVar
 
-SCHEMA_VERSION = 7  # 3: roughness messages carry novelty; reason unknown_surface. 4: shadow messages, status.shadow.
+SCHEMA_VERSION = 8  # 3: roughness messages carry novelty; reason unknown_surface. 4: shadow messages, status.shadow.
 # 5: roughness.overloaded; status.overloaded, status.behind_s, status.input_shed_bytes (load shed when the daemon cannot keep up)
 # 6: slide event "resumed": an end published after a short quiet (detector.end_hold_s) is withdrawn with its final label
 # 7: status.discarded_at_start (stale bytes in the port when the daemon first opened it, dropped rather than counted as lost samples)
+# 8: slide end reason "disconnected" (the serial port went away during the slide, which ends at the last sample read)
 ROUGHNESS, SLIDE, STATUS, SAMPLES, SHADOW = "roughness", "slide", "status", "samples", "shadow"
 TOPICS = (ROUGHNESS, SLIDE, STATUS, SAMPLES, SHADOW)
 
@@ -47,6 +48,7 @@ STATES = (STATE_DISCONNECTED, STATE_CONNECTED, STATE_IDLE, STATE_SLIDING, STATE_
 # slide events, and why a slide ended
 SLIDE_START, SLIDE_END, SLIDE_CANCELLED, SLIDE_RESUMED = "start", "end", "cancelled", "resumed"
 END_QUIET, END_MAX_DURATION, END_TOO_SHORT = "quiet", "max_duration", "too_short"
+END_DISCONNECTED = "disconnected"  # the daemon's serial port went away during the slide (it ends at the last sample read)
 
 HostTime = Callable[[int], tuple[float, float]]
 """Sensor sample index → (host monotonic time, host unix time) of that sample, s."""

@@ -70,7 +70,6 @@ RESUME_BELOW_S = 0.1  # ... until the oldest input waiting is younger than this
 RATE_INTERVALS = 10  # a rate off sensor.fs (rate_mismatch) is said after this many status intervals running (5 s at the default)
 KEEPING_UP = 0.5  # the watchdog is fed only while samples are handled at no less than this fraction of real time
 INLINE_ANALYSIS_S = 0.005  # a batch that completes a window is analysed on the loop if the last such batch took at most this, s
-END_DISCONNECTED = "disconnected"  # a slide's end reason: the port was lost during it (docs/messages.md, slide/<sensor>)
 STOP_READER_S = 5.0  # on SIGTERM, the longest wait for what the source has read to be analysed and recorded before it is cancelled
 
 
@@ -303,7 +302,7 @@ class Daemon:
 
     def _port_lost(self) -> None:
         """The serial port is gone (unplugged, or a reader error): a slide in progress ends at the last sample read, its end
-        published with reason :data:`END_DISCONNECTED`, and gets its final label from the samples read (the live and shadow
+        published with reason ``schema.END_DISCONNECTED``, and gets its final label from the samples read (the live and shadow
         pipelines alike), as a gap longer than the ring ends one; the detector goes on with the samples after the
         reconnection. Nothing changes if no slide is in progress, nor on a stop (a slide under way is not ended), for a
         finite source (its end is the end of the stream), or while shedding load (slides already ended)."""
@@ -317,7 +316,7 @@ class Daemon:
         now = time.perf_counter()
         step = self.stream.process(held)
         if live.sliding:
-            step.events += [replace(ev, reason=END_DISCONNECTED) if isinstance(ev, SlideEnded) and ev.reason == "end_of_stream" else ev
+            step.events += [replace(ev, reason=schema.END_DISCONNECTED) if isinstance(ev, SlideEnded) and ev.reason == "end_of_stream" else ev
                             for ev in live.finish()]
         if shadow is not None and shadow.sliding:
             step.shadow += shadow.finish()
