@@ -244,6 +244,24 @@ def test_recover_drops_a_torn_last_chunk_and_a_corrupt_one(tmp_path: Path) -> No
     assert np.array_equal(rec.samples[rec.valid_mask()], np.concatenate([samples[:1000], samples[2000:3000]]))
 
 
+def test_recover_refuses_the_journal_of_a_running_recorder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An audit recovered a live recorder's journal (part of the capture, "nothing dropped"), removed it as after a
+    recovery, and the recorder then failed at its stop with the whole capture lost: a locked journal is refused."""
+    from tactiled.cli.main import main
+
+    journal = journal_path(tmp_path / "live.npz")
+    writer = JournalWriter(journal, encode_header(20000.0, 2, 1e-4, "P120", {}))  # holds the lock, as a recorder does
+    writer.append(encode_chunk(0, 0, 1000, [], {"crc_errors": 0}, np.zeros((1000, 2), np.int16)))
+    out = tmp_path / "copy.npz"
+    assert main(["recover", str(journal), "-o", str(out)]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"tactiled: error: {journal}: in use by a running recorder (it holds the journal's lock), which writes its recording itself "
+        "when it stops; nothing written"]
+    assert not out.exists()
+    writer.close()  # the recorder gone (killed or stopped): its journal is recovered
+    assert recover(journal, out).samples == 1000
+
+
 def test_recover_refuses_what_is_not_a_journal(tmp_path: Path) -> None:
     bad = tmp_path / "x.journal"
     bad.write_bytes(b"PK\x03\x04 not a journal")

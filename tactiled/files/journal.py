@@ -362,8 +362,15 @@ def recover(journal: str | Path, out: str | Path, extra_meta: dict[str, Any] | N
 
     The recording's ``meta`` is the header's plus the last intact chunk's counters and ``extra_meta``.
     Raises :class:`RecordingError` if the journal has no intact chunk (unless ``allow_empty``: a recording of
-    no samples, what a recorder stopped before the first frame writes).
+    no samples, what a recorder stopped before the first frame writes), or if a live recorder holds it (its lock).
     """
+    try:
+        locked = is_locked(journal)
+    except OSError:  # missing or unreadable: read_journal says which, in its own words
+        locked = False
+    if locked:  # what it holds so far is not the recording, and removing it (as after a recovery) loses the recorder's
+        raise RecordingError(f"{journal}: in use by a running recorder (it holds the journal's lock), which writes its recording "
+                             "itself when it stops; nothing written")
     scan = read_journal(journal)
     implied = scan.rows - sum(c.stored for c in scan.chunks)
     budget = lost_rows_budget(scan.size, MIN_LOST_ROWS)
