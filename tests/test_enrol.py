@@ -111,3 +111,14 @@ def test_an_enrolled_model_states_its_accuracy_as_the_base_models(trained: tuple
     cv = {**base.summary["cv_accuracy"], "interval95": [0.925, 1.0]}
     assert _interval_text([0.925, 1.0]) == " (95 % interval over recordings 92–100 %)"
     assert _interval_text([0.925, 1.0]) in replace(base, summary={**base.summary, "cv_accuracy": cv}).describe()
+
+
+def test_enrol_refuses_to_grow_a_model_past_the_classes_a_file_may_hold(trained: tuple[Path, Path, list[str]], tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """An audit enrolled a 10 000-class model into one of 10 001 that every later command refused: the limit is checked
+    before anything is fitted or written (the limit lowered to the model's own 2 classes here)."""
+    model, data, surfaces = trained
+    new = sorted(str(p) for p in data.glob(f"*_{surfaces[2]}_*.npz"))
+    monkeypatch.setattr("tactiled.learn.enrol.MAX_CLASSES", 2)
+    with pytest.raises(TactiledError, match=r"^enrolment would give the model 3 classes, more than the 2 a model file may hold"):
+        enrol(model, new, Config(), label="NEW")

@@ -9,6 +9,7 @@ import io
 import json
 import math
 import os
+import re
 import socket
 import struct
 import subprocess
@@ -289,6 +290,24 @@ def test_an_unterminated_string_of_escaped_quotes_is_refused_without_a_quadratic
             "except ValueError as exc:\n    print(exc)\n")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0 and res.stdout.startswith("header: not JSON: Unterminated string"), res
+
+
+@pytest.mark.parametrize(("name", "why"), [("", "must not be empty or blank"), ("Ra0\n.44", "holds the control character U+000A"),
+                                           ("a\x1b[2J", "holds the control character U+001B"), ("Ra0.44 ", "begins or ends with white space"),
+                                           ("x" * 300, "300 characters, more than the 256")])
+def test_a_model_class_that_is_no_surface_name_is_refused_at_load(name: str, why: str, tmp_path: Path) -> None:
+    """A model's classes follow a recording's surface-name rule (an audit's newline class split replay's lines, an escape
+    wrote to the terminal, "" was published as a label that reads as none): one line naming file and class."""
+    from dataclasses import replace
+
+    from tactiled.errors import ModelError
+    from tactiled.learn.model import load_model
+
+    shipped = load_model()
+    path = tmp_path / "m.npz"
+    replace(shipped, classes=[*shipped.classes[:1], name, *shipped.classes[2:]], fingerprint="").save(path)
+    with pytest.raises(ModelError, match=f"^{tmp_path / 'm.npz'}: header.classes\\[1\\]: .*{re.escape(why)}"):
+        load_model(path)
 
 
 def test_a_path_with_a_nul_character_is_no_file() -> None:

@@ -27,7 +27,7 @@ from tactiled.config import Config
 from tactiled.errors import ModelError, TactiledError
 from tactiled.files.recording import check_label_option
 from tactiled.learn.dataset import Progress, WindowSet, check_distinct, collect_windows, find_slides, load_recordings, speed_ratios
-from tactiled.learn.model import FloatArray, Model, fit_pipeline, load_model, take_columns
+from tactiled.learn.model import MAX_CLASSES, FloatArray, Model, fit_pipeline, load_model, take_columns
 from tactiled.learn.search import PARAMS, fit_model_novelty, reasons_text
 
 MIN_SLIDES = 5
@@ -79,6 +79,9 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
         why = f" (slides without a usable window: {reasons_text(ws.skipped)})" if ws.skipped else ""
         raise TactiledError(f"too few usable slides for {', '.join(short)}: enrolment needs at least {min_slides} per surface{why}; record more")
     added = {k: ok for k, (_, ok, _) in table.items()}
+    grown = len(set(old.classes) | set(added))
+    if grown > MAX_CLASSES:  # a file its own loader would refuse
+        raise TactiledError(f"enrolment would give the model {grown} classes, more than the {MAX_CLASSES} a model file may hold; nothing written")
     pipe, refit, params = _grown(old, slides if old.settings.fusion == "features" else ws, old.names)
     files = [Path(n).name for n, _ in recs]
     record = {"from": old.fingerprint, "slides": added, "files": files}

@@ -105,7 +105,7 @@ from tactiled.core.analysis import Analyser, AnalysisSettings
 from tactiled.core.features import FeaturePlan, classifier_inputs, name_family, raw_features, row_dots, rowwise_matmul, spectral_shape
 from tactiled.errors import ModelError
 from tactiled.files.npzio import NpzError, NpzReader, load_json_bounded
-from tactiled.files.recording import atomic_savez
+from tactiled.files.recording import atomic_savez, surface_name_problem
 from tactiled.learn.infer import SVM_ARRAYS, LeanPipeline, lean_pipeline, log_proba, pair_matrices, pairwise_scores, pm_half, svm_arrays
 from tactiled.readable import MISSING
 
@@ -851,8 +851,12 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
     fs = float(fs)
     settings = AnalysisSettings.from_dict(header["settings"])
     _check_settings(path, settings, fs, channels)
+    _need(isinstance(header["classes"], list), path, "header.classes: must be a list")
     classes = [str(c) for c in header["classes"]]
-    _need(1 <= len(classes) <= 10_000 and len(set(classes)) == len(classes), path, "header.classes: 1..10000 distinct classes")
+    _need(1 <= len(classes) <= MAX_CLASSES and len(set(classes)) == len(classes), path, f"header.classes: 1..{MAX_CLASSES} distinct classes")
+    bad = next(((i, problem) for i, c in enumerate(classes) if (problem := surface_name_problem(c))), None)
+    if bad is not None:  # a class is a surface name: printed one per line, published as the label ("" would read as no label)
+        raise ModelError(f"{path}: header.classes[{bad[0]}]: {bad[1]}")
     _need(isinstance(header["params"], dict), path, "header.params: must be an object")
     params, seed = dict(header["params"]), header["seed"]
     _check_params(path, kind, params)
@@ -1012,6 +1016,7 @@ def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[
     model.novelty_threshold = float(threshold) if threshold is not None else math.inf
 
 
+MAX_CLASSES = 10_000  # classes a model file may hold
 EARLY_BOUNDS = (0.01, 0.99)  # a provisional label's confidence never leaves these, whatever the model's final map allows
 
 
