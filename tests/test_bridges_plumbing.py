@@ -1,7 +1,8 @@
 """The bridges' own logic without any middleware: what run_bridge says and refuses, and the ROS 2 message layouts.
 
-A real PUB socket on ipc feeds :func:`run_bridge` with a sink that records; nothing here opens
-an LSL outlet or a DDS participant, so it runs outside a network namespace.
+A real PUB socket on ipc feeds :func:`run_bridge` with a sink that records, and the LSL sink is fed
+messages directly with a fake pylsl (outlets that keep what was pushed); nothing here opens an LSL
+outlet or a DDS participant, so it runs outside a network namespace.
 """
 
 from __future__ import annotations
@@ -9,12 +10,14 @@ from __future__ import annotations
 import importlib
 import json
 import threading
+import types
 from pathlib import Path
 
 import numpy as np
-from tactiled_client import Status, schema
+from tactiled_client import Samples, Status, schema
 
-from tactiled.apps.bridges import lost_ranges, run_bridge
+from tactiled.apps.bridges import StreamMeta, lost_ranges, run_bridge
+from tactiled.apps.bridges.lsl import LslSink
 from tactiled.apps.bridges.ros2 import node_name, samples_table, status_values, table_dtype
 from tactiled.config import PublishConfig
 from tactiled.errors import TactiledError
@@ -108,3 +111,97 @@ def test_status_values_are_json_not_python_reprs() -> None:
     assert values["state"] == "idle" and values["model"] == "abc" and values["level"] == "[0.5, 0.25]"
     assert values["clock_mono"] == "null" and json.loads(values["samples"]) == 0
     assert node_name("tip-7.a") == "tactiled_tip_7_a"
+
+
+class FakeXml:
+    """pylsl's XMLElement, enough for a stream description."""
+
+    def append_child(self, name: str) -> FakeXml:
+        return self
+
+    def append_child_value(self, name: str, value: str) -> FakeXml:
+        return self
+
+
+class FakeInfo:
+    def __init__(self, *args: object) -> None:
+        self.args = args
+
+    def desc(self) -> FakeXml:
+        return FakeXml()
+
+
+class FakeOutlet:
+    """An LSL outlet that keeps what was pushed: rows (float32) with their stamps, and string samples with theirs."""
+
+    def __init__(self, info: FakeInfo, chunk_size: int = 0, max_buffered: int = 360) -> None:
+        self.info, self.rows, self.stamps, self.strings = info, [np.zeros((0, int(str(info.args[2]))), np.float32)], [], []
+
+    def push_chunk(self, x: np.ndarray, timestamp: float | list[float] = 0.0) -> None:
+        assert isinstance(timestamp, list) and len(timestamp) == len(x)
+        self.rows.append(np.asarray(x, np.float32))
+        self.stamps += timestamp
+
+    def push_sample(self, x: list[str], timestamp: float = 0.0) -> None:
+        self.strings.append((json.loads(x[0]), timestamp))
+
+
+FAKE_LSL = types.SimpleNamespace(StreamInfo=FakeInfo, StreamOutlet=FakeOutlet, IRREGULAR_RATE=0.0)
+FS = 1000.0
+
+
+def fake_sink(nan_lost: bool = True, nan_max_s: float = 30.0) -> LslSink:
+    return LslSink(StreamMeta("tip7", 2, FS, 0.5), nan_lost=nan_lost, nan_max_s=nan_max_s, lsl=FAKE_LSL)
+
+
+def batch(index: int, n: int = 100, lost_before: int = 0, step_s: float = 0.0, step_at: int = 0) -> Samples:
+    """A samples message with the host times of a mapping that steps forward by ``step_s`` from index ``step_at`` on."""
+    counts = np.ones((n, 2), dtype=np.int16)
+    return schema.samples("tip7", index, counts.astype("<i2").tobytes(), n, 2, fs=FS, volts_per_count=0.5, lost=[[10, 5]],
+                          lost_before=lost_before, to_host=lambda i: (50.0 + i / FS + (step_s if i >= step_at else 0.0), 1.7e9 + i / FS))
+
+
+def pushed(sink: LslSink) -> tuple[np.ndarray, np.ndarray, list[dict[str, object]]]:
+    raw, marks = sink.raw, sink.markers
+    return np.concatenate(raw.rows), np.array(raw.stamps), [m for m, _ in marks.strings]
+
+
+def test_nan_lost_fills_a_gap_the_daemon_only_counts_so_the_stream_stays_regular() -> None:
+    sink = fake_sink()
+    sink.samples(batch(0))
+    sink.samples(batch(100 + 1012, lost_before=1012, step_s=0.15, step_at=1112))  # an unplug of 1.012 s; the mapping stepped forward
+    rows, stamps, markers = pushed(sink)
+    assert len(rows) == 100 + 1012 + 100 and np.isnan(rows).any(axis=1).sum() == 1012 + 5 + 5
+    assert np.isnan(rows[100:1112]).all() and np.diff(stamps).min() > 0 and np.diff(stamps).max() < 1.2 / FS  # no hole: every row stamped
+    assert abs(stamps[100] - stamps[99] - 1 / FS) < 1e-9 and abs(stamps[1112] - (50.0 + 1112 / FS + 0.15)) < 1e-9
+    assert {"event": "lost", "index": 100, "count": 1012, "filled": True} in markers
+    plain = fake_sink(nan_lost=False)
+    plain.samples(batch(0))
+    plain.samples(batch(1112, lost_before=1012))
+    rows, _, markers = pushed(plain)
+    assert len(rows) == 190 and not np.isnan(rows).any() and {"event": "lost", "index": 100, "count": 1012, "filled": False} in markers
+
+
+def test_a_daemon_restart_is_a_loss_marker_nan_filled_when_the_index_carried_on_and_unknown_when_it_went_back() -> None:
+    sink = fake_sink()
+    sink.samples(batch(0))
+    sink.samples(batch(100 + 3900))  # a new daemon: the board's index carried on over 3.9 s, and it says nothing lost (lost_before 0)
+    sink.samples(batch(7))  # another one that started the index again
+    rows, stamps, markers = pushed(sink)
+    lost = [m for m in markers if m["count"] != 5]
+    assert lost == [{"event": "lost", "index": 100, "count": 3900, "filled": True},
+                    {"event": "lost", "index": None, "count": None, "next": 7, "filled": False}]
+    assert len(rows) == 100 + 3900 + 100 + 100 and np.isnan(rows[100:4000]).all() and np.diff(stamps[:4100]).max() < 1.2 / FS
+    assert abs(sink.markers.strings[-2][1] - (50.0 + 4100 / FS)) < 1e-9  # the unknown loss stamped where the last rows pushed ended
+
+
+def test_a_gap_longer_than_nan_max_s_is_only_its_marker() -> None:
+    sink = fake_sink(nan_max_s=2.0)
+    sink.samples(batch(0))
+    sink.samples(batch(100 + 2000, lost_before=2000))  # 2 s: filled
+    sink.samples(batch(2200 + 2001, lost_before=2001))  # just over: the marker says so, no rows
+    sink.samples(batch(2**40))  # an index jump of hours: no rows (nor an array of them)
+    rows, stamps, markers = pushed(sink)
+    assert len(rows) == 100 + 2000 + 100 + 100 + 100 and np.diff(stamps).min() > 0
+    assert [(m["index"], m["count"], m["filled"]) for m in markers if m["count"] != 5] == [(100, 2000, True), (2200, 2001, False),
+                                                                                           (4301, 2**40 - 4301, False)]

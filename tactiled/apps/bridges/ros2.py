@@ -13,8 +13,11 @@ relative, so ``--ros-args -r __ns:=/robot1`` moves them all and ``-r <name>:=<ot
   ``index`` (float64, the sensor sample index, exact below 2**53). :func:`tactiled.rostable.table_dtype` is its numpy
   dtype: ``np.frombuffer(msg.data, table_dtype(C))``. QoS: sensor data (best effort, depth 5).
 - ``tactiled/<id>/roughness`` std_msgs/String: the final label ("" when abstaining). Reliable, depth 10.
+  A bare string names no slide, so it cannot say that a label was withdrawn: ``roughness/json`` does.
 - ``tactiled/<id>/roughness/json`` std_msgs/String: every roughness message (final and
-  provisional) as the JSON object of docs/messages.md (host times in ``start_unix`` …). Reliable, depth 10.
+  provisional) as the JSON object of docs/messages.md (host times in ``start_unix`` …), and every
+  slide message ``resumed`` as its JSON object (``"type": "slide"``: the final label of that
+  ``slide_id`` just published is withdrawn; the slide's real final label follows). Reliable, depth 10.
 - ``tactiled/<id>/status`` std_msgs/String: every status message as JSON. Reliable, depth 10.
 - ``/diagnostics`` diagnostic_msgs/DiagnosticArray, stamped now: the status as a DiagnosticStatus
   (OK connected/idle/sliding, ERROR disconnected, STALE stopping), every field a key/value whose
