@@ -144,8 +144,8 @@ def add_commands(sub: Sub) -> None:
         p.add_argument("--config", help=c.CONFIG_HELP)
         p.add_argument("--sensor-id", help="sensor to bridge (default: sensor.id of --config)")
         if name == "lsl":
-            p.add_argument("--nan-lost", action="store_true", help="push lost samples as NaN rows (a regular stream); each lost range "
-                                                                   "is a marker either way")
+            p.add_argument("--nan-lost", action="store_true", help="push lost samples as NaN rows (a regular stream; a gap longer "
+                                                                   "than 30 s gets its marker only); each lost range is a marker either way")
         else:
             p.add_argument("--ros-args", nargs=argparse.REMAINDER, default=None, metavar="ARG",
                            help="the rest goes to ROS: -r __ns:=/robot1, -r __node:=NAME, -r FROM:=TO, -p endpoint:=…, -p sensor_id:=…, "
