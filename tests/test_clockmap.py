@@ -8,6 +8,10 @@ with the daemon's rounding.
 
 from __future__ import annotations
 
+import asyncio
+from collections.abc import Awaitable, Callable
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -120,3 +124,99 @@ def test_a_full_map_drops_its_oldest_knots_and_stays_monotonic(monkeypatch: pyte
     probe = np.linspace(0, rows[-1], 2001).astype(np.int64)
     times = np.array([clock.mono(int(i)) for i in probe])
     assert np.all(np.isfinite(times)) and np.all(np.diff(times) > 0)
+
+
+class _LaggingSource:
+    """What the daemon reads from, as :class:`~tactiled.board.serialsource.SerialSource` feeds it: a 0.05 %-fast board's
+    frames (20 samples, 2-4 ms of transport), read every 10 ms, handed over every 40 ms, each hand-over consumed ``lag``
+    seconds after it was made (an analysis that lags, held, then catching up). ``arrival`` is the newest read when an item
+    is consumed; ``read_at`` is each byte's own read."""
+
+    def __init__(self, on_bytes: Callable[[bytes], Awaitable[None]], lag: Callable[[float], float], seconds: float) -> None:
+        from tactiled.board.frames import encode_frame
+        from tactiled.board.serialsource import Reads
+
+        self.on_bytes, self.connected, self.reconnects, self.errors, self.shed_bytes, self.discarded_at_start = on_bytes, False, 0, 0, 0, 0
+        self.arrival, self.alive_at, self.hand_over_s, self.behind = 0.0, 0.0, 0.04, 0.0
+        rng = np.random.default_rng(5)
+        frames = int(seconds * TRUE_FS) // 20
+        block = np.zeros((20, 2), dtype=np.int16)
+        came = np.maximum.accumulate(T0 + np.arange(1, frames + 1) * 20 / TRUE_FS + 0.002 + rng.uniform(0, 0.002, frames))  # in order
+        self.read_times = T0 + 0.01 * np.arange(1, int(seconds / 0.01) + 2) + rng.uniform(0, 0.0005, int(seconds / 0.01) + 1)
+        read_of = np.searchsorted(self.read_times, came)  # the first read at or after a frame came returns it
+        reads = [b"".join(encode_frame(f * 20, block) for f in np.flatnonzero(read_of == k)) for k in range(len(self.read_times))]
+        self.items = [(Reads.join(reads[k:k + 4], list(self.read_times[k:k + 4])), self.read_times[min(k + 3, len(reads) - 1)])
+                      for k in range(0, len(reads), 4)]  # (reads, when handed over)
+        self.lag = lag
+        self.current = self.items[0][0]
+        self.sample_read = np.repeat(self.read_times, [len(r) // 92 * 20 for r in reads])  # each sample's own read
+
+    def read_at(self, offset: int) -> float:
+        return self.current.time_at(offset)
+
+    def request_stop(self) -> None:
+        pass
+
+    async def run(self) -> None:
+        for reads, handed in self.items:
+            consumed = handed + self.lag(handed - T0)
+            self.current, self.arrival = reads, self.read_times[np.searchsorted(self.read_times, consumed, "right") - 1]
+            await self.on_bytes(reads.data)
+
+
+def _daemon_map(tmp: Any, lag_s: float, held_s: float) -> tuple[ClockMap, _LaggingSource]:
+    """The clock map of a daemon fed by a :class:`_LaggingSource` whose consumer lags ``lag_s`` for ``held_s`` from 4 s on."""
+    from tactiled.config import Config
+    from tactiled.service.daemon import Daemon
+
+    def lag(t: float) -> float:  # none, then lag_s reached at half speed, held, and drained at twice the input's speed
+        return float(np.clip(min(t - 4.0, lag_s, lag_s - 0.5 * (t - 4.0 - lag_s - held_s)), 0.0, None))
+
+    box: list[_LaggingSource] = []
+
+    def factory(on_bytes: Callable[[bytes], Awaitable[None]], on_state: Callable[[str, str], None]) -> _LaggingSource:
+        box.append(_LaggingSource(on_bytes, lag, LAG_RUN_S))
+        return box[0]
+
+    daemon = Daemon(Config().override({"publish.endpoint": f"ipc://{tmp}/pub", "sensor.fs": FS}), None, source_factory=factory)
+    asyncio.run(daemon.run())
+    return daemon.clock, box[0]
+
+
+LAG_RUN_S = 11.0  # 3 s to settle, 1 s more, the longest lag (1.5 s reached in 1.5 s, held 3 s, drained in 3 s), 1 s after
+
+
+@pytest.fixture(scope="module")
+def unlagged(tmp_path_factory: pytest.TempPathFactory) -> ClockMap:
+    return _daemon_map(tmp_path_factory.mktemp("unlagged"), 0.0, 0.0)[0]
+
+
+@pytest.mark.parametrize(("lag_s", "held_s"), [(0.6, 1.2), (1.5, 3.0)])
+def test_a_lagging_analysis_changes_nothing_in_the_map(tmp_path: Any, unlagged: ClockMap, lag_s: float, held_s: float) -> None:
+    """The daemon feeds the map each slice's own read time, so an analysis ``lag_s`` behind for ``held_s`` (the daemon says
+    "overloaded: input 1.43 s behind") gives the very map it would have made keeping up. Fed the newest read's time (before
+    the fix), the map took the lag for a board restart (a reset, two steps): stamps up to 0.58 s and 1.5 s after the
+    samples' own read, local rates of 1 264 Hz to 41 kHz and of 746 Hz to 44 kHz."""
+    clock, source = _daemon_map(tmp_path, lag_s, held_s)
+    rows = np.arange(0, len(source.sample_read) - 800, 800)  # a published batch's first row every 40 ms
+    stamps = np.array([clock.mono(int(i)) for i in rows])
+    rate = np.array([clock.rate(int(a), int(a) + 800) for a in rows])
+    late = stamps - source.sample_read[rows]  # after the read that returned the sample: never
+    settled = rows > SETTLE_S * TRUE_FS
+    err = (stamps - (T0 + rows / TRUE_FS))[settled]  # the truth plus the transport: 2 ms at least
+    figures = (f"resets {clock.resets}, steps {clock.steps}, late up to {late.max() * 1e3:.1f} ms, settled error {err.min() * 1e3:.2f}.."
+               f"{err.max() * 1e3:.2f} ms, local rate {rate[settled[:len(rate)]].min():.0f}..{rate[settled[:len(rate)]].max():.0f} Hz")
+    assert clock.resets == 0 and clock.steps == 0, figures
+    assert late.max() <= 0.0, figures
+    assert np.array_equal(stamps, [unlagged.mono(int(i)) for i in rows]), figures  # the map of a daemon keeping up, exactly
+    assert np.array_equal(rate, [unlagged.rate(int(a), int(a) + 800) for a in rows]), figures
+    # the map's own accuracy is tested above (finer reads); with 1 ms frames read every 10 ms and handed over every 40 ms:
+    assert err.min() > 0.0 and err.max() < 0.004 and np.all(np.abs(rate[settled[:len(rate)]] / TRUE_FS - 1) < 0.02), figures
+
+
+def test_each_byte_handed_over_keeps_the_time_of_its_own_read() -> None:
+    from tactiled.board.serialsource import Reads
+
+    item = Reads.join([b"ab", b"cde", b"f"], [1.0, 2.0, 3.0])  # three reads handed over together
+    assert item.data == b"abcdef" and [item.time_at(i) for i in range(6)] == [1.0, 1.0, 2.0, 2.0, 2.0, 3.0]
+    assert Reads.join([b"xy"], [5.0]).time_at(1) == 5.0

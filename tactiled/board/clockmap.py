@@ -35,6 +35,12 @@ the map follows at most 500 ppm per second (the fastest an NTP slew moves it), s
 increase too; a wall-clock step of more than ``wall_step_s`` (NTP step, date set) is followed at
 once, in either direction.
 
+**Arrival** is when the host read the bytes that completed the samples: the time of the read that returned them
+(``SerialSource.read_at``), not when they were decoded nor the time of the newest read. A consumer that lags (the
+daemon "overloaded: input 1.4 s behind") decodes bytes read long ago; fed the newest read's time, every pair would
+look late by the lag, and a lag over ``reset_s`` held for ``persist_s`` would be taken for a board restart and the line
+measured again from the late pairs (stamps up to 1.1 s late, then 0.8 s early, local rates of 645 Hz to 2e8 Hz at 20 kHz).
+
 Driven by the host clock by nature (it measures it); the pipeline never uses it.
 """
 
@@ -71,7 +77,8 @@ def wall_offset() -> float:
 
 
 class ClockMap:
-    """Feed :meth:`observe` with (index one past the newest sample received, host monotonic time); read :meth:`mono` / :meth:`host`."""
+    """Feed :meth:`observe` with (index one past the newest sample received, host monotonic time of the read that returned
+    it: its arrival, not when it was decoded); read :meth:`mono` / :meth:`host`."""
 
     def __init__(self, fs_nominal: float, span_s: float = 30.0, reset_s: float = 0.5, persist_s: float = 1.0, tau_s: float = 0.1,
                  max_slew: float = 0.5, step_s: float = 0.05, wall_step_s: float = 0.1) -> None:
@@ -110,6 +117,8 @@ class ClockMap:
     def observe(self, end_index: int, t_mono: float, wall: float | None = None) -> None:
         """Samples up to ``end_index`` (exclusive) had arrived by ``t_mono`` (host monotonic, s).
 
+        ``t_mono``: the time of the read that returned the bytes completing them (the module docstring, "Arrival"); not the
+        time they were decoded, nor of a later read, or a consumer's lag reads as a late board.
         ``wall``: the host's ``time.time() - time.monotonic()`` then (default: measured now).
         """
         self._envelope(end_index, t_mono)

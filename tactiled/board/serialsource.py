@@ -29,6 +29,11 @@ blocking users (``record``: :meth:`SerialSource.start` / :meth:`SerialSource.sto
 reader thread. ``tee``: a binary file that receives every byte read, exactly (a raw capture
 for ``tactiled replay x.bin``).
 
+Each item handed over keeps the time of every read it joins (:class:`Reads`): while ``on_bytes`` runs,
+:meth:`SerialSource.read_at` gives the host monotonic time of the read that returned a byte of it. That, not
+:attr:`SerialSource.arrival` (the newest read, which may be seconds after the bytes being consumed when the
+consumer lags), is when those bytes arrived: what a clock map of the board's sample index is fed with.
+
 The loop always turns: :meth:`SerialSource.run` yields to the event loop after every item it hands
 over, so status, the watchdog and signals are served between them however fast items queue up.
 :attr:`SerialSource.behind` says how long the oldest bytes read but not yet consumed have waited
@@ -41,8 +46,10 @@ cannot grow the daemon without bound.
 from __future__ import annotations
 
 import asyncio
+import bisect
 import contextlib
 import inspect
+import itertools
 import logging
 import os
 import select
@@ -65,6 +72,30 @@ MAX_BACKLOG_BYTES = 4 << 20  # bytes read but not yet consumed: beyond this, new
 CONNECTED = "connected"
 DISCONNECTED = "disconnected"
 _END: tuple[str, str] = ("end", "")  # SerialSource.run's queue: the reader thread has ended (compared by identity)
+
+
+class Reads:
+    """Bytes read, and when: ``data`` joins one or more reads; read ``k`` returned ``data[ends[k - 1]:ends[k]]`` (from 0 for
+    the first) at host monotonic time ``times[k]``. What the reader thread hands over (a few reads a hand-over: cheap)."""
+
+    __slots__ = ("data", "ends", "times")
+
+    def __init__(self, data: bytes, ends: list[int], times: list[float]) -> None:
+        self.data, self.ends, self.times = data, ends, times
+
+    @classmethod
+    def join(cls, parts: list[bytes], times: list[float]) -> Reads:
+        """One item of the reads ``parts``, read at ``times`` (one a part)."""
+        if len(parts) == 1:
+            return cls(parts[0], [len(parts[0])], times)
+        return cls(b"".join(parts), list(itertools.accumulate(map(len, parts))), times)
+
+    def time_at(self, offset: int) -> float:
+        """When the byte at ``offset`` of :attr:`data` was read (host monotonic, s); past the end: the last read's time."""
+        return self.times[min(bisect.bisect_right(self.ends, offset), len(self.times) - 1)]
+
+
+_NOTHING = Reads(b"", [0], [0.0])  # what read_at answers from before any bytes were handed over
 
 
 class KeepInputSerial(serial.Serial):
@@ -137,7 +168,7 @@ class SerialSource:
         self.reconnects = 0
         self.errors = 0  # unexpected reader exceptions (each reported, then reconnected)
         self.connected = False
-        self.arrival = 0.0  # host monotonic time of the newest bytes read
+        self.arrival = 0.0  # host monotonic time of the newest bytes read (not of the bytes being consumed: read_at)
         self.alive_at = time.monotonic()  # the reader loop's heartbeat
         self._on_bytes = on_bytes
         self._on_state = on_state or (lambda state, detail: None)
@@ -156,17 +187,23 @@ class SerialSource:
         self._backlog = 0  # bytes handed to the loop and not yet consumed (run only)
         self._backlog_lock = threading.Lock()
         self._waiting: deque[float] = deque()  # read times of the items queued and not yet consumed (on the loop)
+        self._current = _NOTHING  # the item being consumed (or the last one)
 
     @property
     def behind(self) -> float:
         """Seconds the oldest bytes read but not yet consumed have waited (0: nothing waiting; :meth:`run` only)."""
         return time.monotonic() - self._waiting[0] if self._waiting else 0.0
 
+    def read_at(self, offset: int) -> float:
+        """When the byte at ``offset`` of the bytes ``on_bytes`` is consuming was read (host monotonic, s): the time of the read
+        that returned it, however long the bytes then waited to be consumed (call it from ``on_bytes``)."""
+        return self._current.time_at(offset)
+
     # ---- blocking users: callbacks on the reader thread ------------------------------------
 
     def start(self) -> None:
         """Read in a thread until :meth:`stop`; ``on_bytes`` and ``on_state`` are called from that thread."""
-        def deliver(item: bytes | tuple[str, str]) -> None:
+        def deliver(item: Reads | tuple[str, str]) -> None:
             if isinstance(item, tuple):
                 self._on_state(*item)
             else:
@@ -181,9 +218,10 @@ class SerialSource:
         if self._thread is not None:
             self._thread.join(timeout)
 
-    def _consume(self, data: bytes) -> Awaitable[None] | None:
+    def _consume(self, item: Reads) -> Awaitable[None] | None:
+        self._current = item
         try:
-            return self._on_bytes(data)
+            return self._on_bytes(item.data)
         except Exception as exc:  # a failing consumer must not take the reader down: reported, counted, reading goes on
             self._consumer_failed(exc)
             return None
@@ -200,24 +238,24 @@ class SerialSource:
         Yields to the loop after each item, whatever the queue holds, so no backlog can starve the loop's other tasks.
         """
         loop = asyncio.get_running_loop()
-        queue: asyncio.Queue[bytes | tuple[str, str]] = asyncio.Queue()
+        queue: asyncio.Queue[Reads | tuple[str, str]] = asyncio.Queue()
         self._stop.clear()
 
-        def arrive(read_at: float, item: bytes | tuple[str, str]) -> None:  # on the loop
-            if isinstance(item, bytes):
+        def arrive(read_at: float, item: Reads | tuple[str, str]) -> None:  # on the loop
+            if isinstance(item, Reads):
                 self._waiting.append(read_at)
             queue.put_nowait(item)
 
-        def hand(item: bytes | tuple[str, str]) -> None:  # on the reader thread
-            if isinstance(item, bytes):
+        def hand(item: Reads | tuple[str, str]) -> None:  # on the reader thread
+            if isinstance(item, Reads):
                 with self._backlog_lock:
-                    if self._backlog + len(item) > self._max_backlog:
-                        self.shed_bytes += len(item)
+                    if self._backlog + len(item.data) > self._max_backlog:
+                        self.shed_bytes += len(item.data)
                         return
-                    self._backlog += len(item)
+                    self._backlog += len(item.data)
             loop.call_soon_threadsafe(arrive, time.monotonic(), item)
 
-        async def take(item: bytes | tuple[str, str]) -> None:
+        async def take(item: Reads | tuple[str, str]) -> None:
             if isinstance(item, tuple):
                 self._on_state(*item)
                 return
@@ -231,7 +269,7 @@ class SerialSource:
             finally:
                 self._waiting.popleft()
                 with self._backlog_lock:
-                    self._backlog -= len(item)
+                    self._backlog -= len(item.data)
 
         def read() -> None:  # the reader thread: once it ends (request_stop), what it held is queued, then the end
             try:
@@ -256,7 +294,7 @@ class SerialSource:
 
     # ---- the reader thread ----------------------------------------------------------------------
 
-    def _reader(self, deliver: Callable[[bytes | tuple[str, str]], None], batched: bool) -> None:
+    def _reader(self, deliver: Callable[[Reads | tuple[str, str]], None], batched: bool) -> None:
         down_reported = False
         barren = self._retry[0]  # the wait before reopening a port that failed before it gave a byte (doubling to retry_max_s)
         while not self._stop.is_set():
@@ -291,7 +329,7 @@ class SerialSource:
                     with contextlib.suppress(Exception):
                         self._tee.flush()
 
-    def _connect(self, deliver: Callable[[bytes | tuple[str, str]], None], reported: bool) -> serial.Serial | None:
+    def _connect(self, deliver: Callable[[Reads | tuple[str, str]], None], reported: bool) -> serial.Serial | None:
         delay = self._retry[0]
         while not self._stop.is_set():
             self.alive_at = time.monotonic()
@@ -349,7 +387,7 @@ class SerialSource:
                 n += len(chunk)
         return n
 
-    def _read_loop(self, port: serial.Serial, deliver: Callable[[bytes | tuple[str, str]], None], batched: bool) -> None:
+    def _read_loop(self, port: serial.Serial, deliver: Callable[[Reads | tuple[str, str]], None], batched: bool) -> None:
         """Read once per read period; hand what was read on every read (``batched`` False) or once per :attr:`hand_over_s`."""
         fd = port_fd(port)
         if fd is not None:
@@ -357,6 +395,7 @@ class SerialSource:
         tee, interval, stop = self._tee, self._read_interval, self._stop
         self._read_any = False
         held: list[bytes] = []
+        held_at: list[float] = []  # when each of held was read
         buf = bytearray(READ_CHUNK)
         handed = time.monotonic()
         try:
@@ -371,12 +410,13 @@ class SerialSource:
                     if tee is not None:
                         tee.write(data)
                     held.append(data)
+                    held_at.append(now)
                 if held and (not batched or now - handed >= self.hand_over_s):
-                    deliver(held[0] if len(held) == 1 else b"".join(held))
-                    held, handed = [], now
+                    deliver(Reads.join(held, held_at))
+                    held, held_at, handed = [], [], now
         finally:
             if held:  # what was read before a disconnect still goes on
-                deliver(b"".join(held))
+                deliver(Reads.join(held, held_at))
 
 
 def port_fd(port: serial.SerialBase) -> int | None:
@@ -424,7 +464,7 @@ class ByteSource(Protocol):
     connected: bool
     reconnects: int
     errors: int
-    arrival: float
+    arrival: float  # the newest read's host monotonic time, s (not the bytes being consumed: read_at)
     alive_at: float
     shed_bytes: int
     discarded_at_start: int
@@ -433,6 +473,9 @@ class ByteSource(Protocol):
     @property
     def behind(self) -> float:
         """Seconds the oldest bytes read but not yet consumed have waited (0: keeping up)."""
+
+    def read_at(self, offset: int) -> float:
+        """Host monotonic time (s) of the read that returned byte ``offset`` of the bytes being consumed (from ``on_bytes``)."""
 
     async def run(self) -> None:
         """Read until cancelled, stopped or the source ends, handing bytes to ``on_bytes`` and state changes to ``on_state``."""
@@ -463,6 +506,10 @@ class MemorySource:
         self._on_state = on_state or (lambda state, detail: None)
         self._period = period_s
         self._stopping = False
+
+    def read_at(self, offset: int) -> float:
+        """When the chunk being consumed was handed over (one read a chunk), s."""
+        return self.arrival
 
     def request_stop(self) -> None:
         """End :meth:`run` before the next chunk."""

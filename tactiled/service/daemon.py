@@ -325,14 +325,21 @@ class Daemon:
 
     async def _on_bytes(self, data: bytes) -> None:
         """Bytes read from the port: decode them a slice at a time, and run the pipeline on each batch they complete,
-        turning the loop whenever :data:`TURN_S` of work has passed."""
+        turning the loop whenever :data:`TURN_S` of work has passed.
+
+        After each slice the clock map is told that the samples decoded so far had arrived by the time of the read that
+        returned the slice's last byte (``source.read_at``): their arrival, however long they then waited to be decoded. Not
+        the newest read's time (``source.arrival``): while analysis lags, the bytes decoded now were read long before it,
+        every pair would look late, and held late over the map's ``reset_s`` for ``persist_s`` they would measure its line
+        again, hundreds of ms off."""
         self._turned = time.monotonic()  # the source yields before each item
         view = memoryview(data)
         for lo in range(0, len(view), SLICE_BYTES):
-            batches = self.stream.decode(view[lo:lo + SLICE_BYTES])
+            hi = min(lo + SLICE_BYTES, len(view))
+            batches = self.stream.decode(view[lo:hi])
             end = self.decoder.next_index
             if end is not None and self.source is not None:
-                self.clock.observe(end, self.source.arrival)  # every sample decoded so far had arrived by then
+                self.clock.observe(end, self.source.read_at(hi - 1))  # every sample decoded so far had arrived by then
             if batches:
                 await self._process(batches)
             await self._turn()
