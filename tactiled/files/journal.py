@@ -122,10 +122,11 @@ class JournalWriter:
 
 
 def is_locked(path: str | Path) -> bool:
-    """True if a live writer holds ``path`` (its ``flock``)."""
+    """True if a live writer holds ``path`` (its ``flock``). Opened without blocking: a FIFO there (nothing a recorder writes)
+    would otherwise wait for a writer for ever."""
     import fcntl
 
-    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except BlockingIOError:
