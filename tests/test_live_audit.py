@@ -218,3 +218,55 @@ def test_a_slide_in_progress_when_the_port_goes_ends_then_with_its_label(tmp_pat
         label = wait_for(final, timeout=30, what="the final label of the cut slide")
         assert isinstance(label, Roughness) and label.quality["windows"] >= 1 and label.stop == end.stop, label
     assert not any(isinstance(m, Slide) and m.reason == "end_of_stream" for m in got)
+
+
+def test_an_error_answering_a_control_request_is_one_error_reply_and_the_daemon_runs_on(tmp_path: Path,
+                                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """A request the checks miss (a load whose path os.stat could not take stopped the daemon in an audit) raises inside
+    the answer: the requester gets one error reply naming the exception, and the next request is answered."""
+    import asyncio
+    from collections.abc import Iterator
+
+    import msgpack
+    import zmq
+
+    from tactiled.board.serialsource import MemorySource
+    from tactiled.config import Config
+    from tactiled.learn.model import load_model
+    from tactiled.service.daemon import Daemon
+
+    answer = Daemon._answer
+
+    async def failing(self: Daemon, cmd: str, path: str | None) -> bytes:
+        if cmd == "load":
+            raise RuntimeError("what no check foresaw")
+        return await answer(self, cmd, path)
+
+    monkeypatch.setattr(Daemon, "_answer", failing)
+    ctl = f"ipc://{tmp_path}/control"
+    config = Config().override({"publish.endpoint": f"ipc://{tmp_path}/pub", "control.endpoint": ctl})
+    req = zmq.Context.instance().socket(zmq.REQ)
+    req.setsockopt(zmq.LINGER, 0)
+    replies: list[dict[str, object]] = []
+
+    def chunks() -> Iterator[bytes]:
+        """Each request sent and its reply awaited while the daemon's loop runs (the source yields to it), then the end."""
+        for request in ({"cmd": "load", "path": "m.npz"}, {"cmd": "status"}):
+            req.send(msgpack.packb(request))
+            deadline = time.monotonic() + 30
+            while not req.poll(0):
+                assert time.monotonic() < deadline, f"no reply to {request}"
+                yield b""
+            replies.append(msgpack.unpackb(req.recv()))
+
+    async def main() -> None:
+        daemon = Daemon(config, load_model(), source_factory=lambda on_bytes, on_state: MemorySource(chunks(), on_bytes, on_state))
+        req.connect(ctl)
+        await daemon.run()  # returns at the end of the stream
+
+    try:
+        asyncio.run(main())
+    finally:
+        req.close()
+    assert replies[0] == {"ok": False, "error": "RuntimeError: what no check foresaw"}, replies
+    assert replies[1]["ok"] is True and isinstance(replies[1]["status"], dict), replies
