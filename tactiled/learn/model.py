@@ -1032,7 +1032,7 @@ def early_probability(coef: Sequence[float], p_top: float, windows: int, bounds:
     return min(max(1.0 / (1.0 + math.exp(-min(max(z, -700.0), 700.0))), bounds[0]), bounds[1])
 
 
-def _distances(z: FloatArray, train: FloatArray, alone: bool = False) -> FloatArray:
+def pairwise_distances(z: FloatArray, train: FloatArray, alone: bool = False) -> FloatArray:
     """(q, n) Euclidean distances between the rows of ``z`` (q, F) and of ``train`` (n, F); ``alone``: each row bit for bit
     that of the row alone (:func:`row_dots`, :func:`rowwise_matmul`; else one matrix product)."""
     zz = row_dots(z, z) if alone else (z * z).sum(axis=1)  # numpy sums the rows of a block in another order than one row
@@ -1050,7 +1050,7 @@ def _nearest_mean(d: FloatArray, k: int) -> FloatArray:
 def knn_distance(z: FloatArray, train: FloatArray, k: int, alone: bool = False) -> FloatArray:
     """(q,) mean Euclidean distance of each row of ``z`` (q, F) to its ``k`` nearest rows of ``train`` (n, F) (k capped at n);
     ``alone``: each row bit for bit that of the row alone."""
-    return _nearest_mean(_distances(z, train, alone), k)
+    return _nearest_mean(pairwise_distances(z, train, alone), k)
 
 
 NOVELTY_SCORES = ("ratio", "distance", "combined")
@@ -1130,7 +1130,7 @@ def surface_distances(z: FloatArray, train: FloatArray, labels: npt.NDArray[Any]
                       groups: SurfaceGroups | None = None) -> FloatArray:
     """(q, S) for each row of ``z`` (q, F), the mean distance to the ``k`` nearest training rows (``train`` (n, F)) of each
     of the S surfaces of ``labels`` (n,), in sorted order; ``alone`` and ``groups`` as :func:`nearest_surface_distances`."""
-    d = _distances(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64), alone)
+    d = pairwise_distances(np.asarray(z, dtype=np.float64), np.asarray(train, dtype=np.float64), alone)
     columns, counts = groups if groups is not None else surface_groups(labels)
     return _nearest_per_surface(d, columns, counts, k)
 

@@ -90,6 +90,7 @@ from tactiled.learn.model import (
     nearest_surface_distances,
     novelty_parts,
     over_thresholds,
+    pairwise_distances,
     prefix_fused,
     softmax,
     surface_distances,
@@ -1010,10 +1011,12 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
         q = 1.0 - reject
         far = max(float(np.quantile(flagged[:, 1], q, method="higher")), float(np.quantile(have[:, 1], q, method="higher")), 1e-9)
         info["distance_threshold"] = far
-    info.update(threshold=threshold if math.isfinite(threshold) else None, known_rejected=float(np.mean(over_thresholds(have, threshold, far) > 1.0)),
-                unseen_flagged=float(np.mean(over_thresholds(flagged, threshold, far) > 1.0)) if len(flagged) else None)
-    if score == "spectrum":  # the threshold and scales are fitted on the slides counted above: count each recording left out instead
+    if score == "spectrum":  # its threshold and scales are fitted on the known slides: count each recording left out instead
         info.update(known_rejected=held_out_rejected(z, files, labels, k, per_known, reject), known_rejected_by="recording left out")
+    else:
+        info.update(known_rejected=float(np.mean(over_thresholds(have, threshold, far) > 1.0)))
+    info.update(threshold=threshold if math.isfinite(threshold) else None,
+                unseen_flagged=float(np.mean(over_thresholds(flagged, threshold, far) > 1.0)) if len(flagged) else None)
     return threshold, info
 
 
@@ -1030,7 +1033,7 @@ def held_out_rejected(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArra
     distances: with fewer than 20 slides, their largest) called none of them unknown, whatever a new recording does."""
     surfaces, which = np.unique(labels, return_inverse=True)
     which = which.reshape(-1)
-    d = np.sqrt(np.maximum((z * z).sum(axis=1)[:, None] - 2.0 * z @ z.T + (z * z).sum(axis=1)[None, :], 0.0))
+    d = pairwise_distances(z, z)
     d[files[:, None] == files[None, :]] = np.inf  # a slide is measured against other recordings only
     # per surface, each slide's nearest slides of it (enough that k stay once any one recording's are taken away), and their recordings
     top = k + max(Counter(zip(files.tolist(), labels.tolist(), strict=True)).values())
