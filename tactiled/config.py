@@ -324,6 +324,8 @@ def endpoint_problem(endpoint: str, any_port: bool = True, connect: bool = False
         host, colon, port = endpoint[len("tcp://"):].rpartition(":")
         if not colon or not host or (host.endswith(":") and not host.startswith("[")):  # tcp://HOST, tcp://:7350, tcp://::1
             return "a tcp:// endpoint needs a host and a port (tcp://127.0.0.1:7350)"
+        if connect and host == "*":
+            return "* is every interface, where a daemon binds; a subscriber connects to one host (tcp://127.0.0.1:PORT)"
         if port == "*" and any_port and not connect:
             return None
         low = 1 if connect else 0

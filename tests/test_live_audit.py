@@ -90,9 +90,24 @@ def test_monitor_refuses_an_endpoint_it_cannot_connect_to_in_one_line(connect: s
     assert code == 2 and err.startswith(f"tactiled: error: --connect {connect}: must be tcp://HOST:PORT or ipc://PATH") and err.count("\n") == 1
 
 
+def test_monitor_refuses_a_configs_endpoint_no_subscriber_can_connect_to_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A daemon may bind tcp://*:PORT; a subscriber cannot connect there (a UsageError traceback from the client library)."""
+    config = tmp_path / "c.toml"
+    config.write_text('[publish]\nendpoint = "tcp://*:7351"\nallow_remote = true\n')
+    code, err = cli(["monitor", "--config", str(config)], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith("tactiled: error: publish.endpoint tcp://*:7351 (a subscriber connects there): must be tcp://HOST:PORT or ipc://PATH"), err
+
+
 def test_connect_endpoints_no_daemon_can_be_at_are_refused() -> None:
     """ZeroMQ connects to these without a word (a port taken modulo 65536, an inproc name of the monitor's own process)."""
-    from tactiled.cli.cmd_live import check_connect
+    import argparse
+
+    from tactiled.cli.cmd_live import subscriber_endpoint
+    from tactiled.config import Config
+
+    def check_connect(connect: str) -> None:
+        subscriber_endpoint(argparse.Namespace(connect=connect), Config())
 
     for connect in ("tcp://127.0.0.1:70000", "tcp://127.0.0.1:0", "inproc://x", "tcp://127.0.0.1:*"):
         with pytest.raises(TactiledError, match="--connect"):

@@ -7,7 +7,7 @@ import sys
 
 from tactiled.cli import common as c
 from tactiled.cli.common import EXIT_FAIL, EXIT_OK, Sub, command, config_of, say
-from tactiled.config import endpoint_problem, subscribe_endpoint
+from tactiled.config import Config, endpoint_problem, subscribe_endpoint
 from tactiled.errors import TactiledError
 
 
@@ -54,36 +54,39 @@ def cmd_run(args: argparse.Namespace) -> int:
     return asyncio.run(main())
 
 
-def check_connect(connect: str | None) -> None:
-    """Refuse (one line) a ``--connect`` endpoint no subscriber can connect to (ZeroMQ would raise ``Invalid argument``):
-    not tcp://HOST:PORT (port 1..65535) or ipc://PATH."""
-    problem = endpoint_problem(connect, connect=True) if connect is not None else None
+def subscriber_endpoint(args: argparse.Namespace, config: Config, sensor: str | None = None) -> str:
+    """Where a subscribing command (monitor, a bridge) connects: ``--connect``, else the config's publish endpoint
+    (:func:`subscribe_endpoint`); refused in one line when no subscriber can connect there (ZeroMQ would raise ``Invalid
+    argument``, or take a port past 65535 modulo 65536): not tcp://HOST:PORT (port 1..65535) or ipc://PATH."""
+    endpoint: str = args.connect or subscribe_endpoint(config, sensor)
+    problem = endpoint_problem(endpoint, connect=True)
     if problem is not None:
-        raise TactiledError(f"--connect {connect}: must be tcp://HOST:PORT or ipc://PATH: {problem}")
+        where = f"--connect {endpoint}" if args.connect else f"publish.endpoint {endpoint} (a subscriber connects there)"
+        raise TactiledError(f"{where}: must be tcp://HOST:PORT or ipc://PATH: {problem}")
+    return endpoint
 
 
 def cmd_monitor(args: argparse.Namespace) -> int:
     """The terminal view of a running daemon."""
     from tactiled.apps.monitor import run_monitor
 
-    check_connect(args.connect)
-    return run_monitor(args.connect or subscribe_endpoint(config_of(args)), args.truth)
+    return run_monitor(subscriber_endpoint(args, config_of(args)), args.truth)
 
 
 def cmd_lsl(args: argparse.Namespace) -> int:
     """The LSL bridge, until stopped."""
     from tactiled.apps.bridges.cli import serve
 
-    check_connect(args.connect)
-    return serve("lsl", config_of(args), args.connect, args.sensor_id, nan_lost=args.nan_lost)
+    config = config_of(args)
+    return serve("lsl", config, subscriber_endpoint(args, config, args.sensor_id), args.sensor_id, nan_lost=args.nan_lost)
 
 
 def cmd_ros2(args: argparse.Namespace) -> int:
     """The ROS 2 bridge, until stopped."""
     from tactiled.apps.bridges.cli import serve
 
-    check_connect(args.connect)
-    return serve("ros2", config_of(args), args.connect, args.sensor_id, ros_args=args.ros_args)
+    config = config_of(args)
+    return serve("ros2", config, subscriber_endpoint(args, config, args.sensor_id), args.sensor_id, ros_args=args.ros_args)
 
 
 def check_demo_scene(spec: str) -> None:
