@@ -263,13 +263,19 @@ def _lines(fh: IO[bytes], path: Path) -> Iterator[bytes]:
         yield line
 
 
+def _is_time(value: Any) -> bool:
+    """Whether ``value`` is a number of seconds a clock can read: finite, within :data:`MAX_TIME_S` of 0, not a bool (NaN
+    fails the comparison too)."""
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and abs(value) <= MAX_TIME_S
+
+
 def _seconds(obj: dict[str, Any], name: str, default: float, where: str) -> float:
     """``obj[name]`` as seconds (``default`` when absent, null or 0), or :class:`LogError` naming ``where`` and the field if
     it is not a finite number within :data:`MAX_TIME_S`."""
     value = obj.get(name)
     if value is None:
         return default
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not abs(value) <= MAX_TIME_S:
+    if not _is_time(value):
         shown = f"a {type(value).__name__}" if isinstance(value, (dict, list)) else json.dumps(value)[:40]
         raise LogError(f"{where}: {name}: {shown} is not a time in seconds (a number within {MAX_TIME_S:g})")
     return float(value) or default
@@ -289,7 +295,7 @@ def _times_fault(time_mono: float, time_unix: float, last_mono: float | None) ->
     ``recv_mono`` in a session log (its monotonic clock neither goes back more than :data:`BACK_S` nor jumps more than
     :data:`MAX_GAP_S`), None to check the values alone."""
     for name, t in (("recv_mono", time_mono), ("recv_unix", time_unix)):
-        if isinstance(t, bool) or not isinstance(t, (int, float)) or not abs(t) <= MAX_TIME_S:  # NaN fails <= too
+        if not _is_time(t):
             return f"{name} {t!r:.40} is not a clock reading (a number of seconds within {MAX_TIME_S:g})"
     if last_mono is not None:
         step = time_mono - last_mono
