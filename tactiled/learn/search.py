@@ -832,12 +832,13 @@ def fit_model_novelty(model: Model, rows: FloatArray, labels: npt.NDArray[Any], 
     (:data:`NOVELTY_TESTS`; ``spectrum`` and ``far`` are stored as ``combined`` without its ratio threshold) and their
     thresholds (:func:`fit_novelty` at the share ``untaught`` of untaught slides, in ``summary``)."""
     if model.novelty_names is not None:
-        model.novelty_center = rows.mean(axis=0)
-        model.novelty_scale = np.maximum(rows.std(axis=0), SHAPE_SCALE_FLOOR)
+        model.novelty_center, model.novelty_scale = shape_standardisation(rows)
     z = model.novelty_standardise(rows)
     model.novelty_x, model.novelty_y, model.novelty_groups = z, labels, groups
     model.novelty_score = "combined" if score in ("far", "spectrum") else score
     model.novelty_threshold, info = fit_novelty(z, groups, labels, model.novelty_k, score=score, untaught=untaught)
+    if score == "spectrum" and model.novelty_names is not None:  # the standardisation, too, without the surface left out
+        info.update(unseen_flagged=left_out_flagged(rows, labels, groups, model.novelty_k), unseen_flagged_by="surface left out")
     scale = info.pop("surface_scale", None)
     model.novelty_surface_scale = np.asarray(scale, dtype=np.float64) if scale is not None else None
     far = info.get("distance_threshold")
@@ -955,7 +956,7 @@ def _logit(q: FloatArray) -> FloatArray:
 
 
 def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any], k: int, reject: float = 0.05,
-                score: str = "ratio", untaught: float = UNTAUGHT_SHARE) -> tuple[float, dict[str, Any]]:
+                score: str = "ratio", untaught: float = UNTAUGHT_SHARE, count: bool = True) -> tuple[float, dict[str, Any]]:
     """The novelty threshold of training slides ``z`` (n, F') (standardised mean features), and what cross-validation says of it.
 
     Each slide's :func:`~tactiled.learn.model.novelty_parts` against the slides of *other recordings* stands for a
@@ -967,8 +968,9 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
 
     ``spectrum``: only a threshold on the distance to the nearest surface (``info["distance_threshold"]``), the
     (1 - ``reject``) quantile of the known slides' distances: at most ``reject`` of a new recording's slides of a known
-    surface are called unknown. ``far``: ``combined`` without the ratio's threshold (inf), only the distance test below. ``combined``: the threshold is
-    the ratio's, and ``info["distance_threshold"]`` a second one on the distance to the
+    surface are called unknown (``count`` False: the threshold and scales without counting how many a new recording would
+    have called unknown, ``info["known_rejected"]`` None). ``far``: ``combined`` without the ratio's threshold (inf), only
+    the distance test below. ``combined``: the threshold is the ratio's, and ``info["distance_threshold"]`` a second one on the distance to the
     nearest surface (the ratio's numerator): the (1 - ``reject``) quantile of the left-out surfaces' distances, the
     distance from a taught slide to the nearest *other* surface (a step between taught surfaces), and never below the
     same quantile of the known slides' distances. A slide beyond it is farther from every taught surface than taught
@@ -1001,9 +1003,8 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     threshold = math.inf if score in ("far", "spectrum") else max(novelty_threshold(have[:, 0], flagged[:, 0], reject, untaught), 1e-9)
     far = math.inf
     if score == "spectrum":
-        far = max(float(np.quantile(have[:, 1], 1.0 - reject, method="higher")), 1e-9)
+        far, scale = spectrum_threshold(have[:, 1], per_known, labels, reject)
         info["distance_threshold"] = far
-        scale = own_scales(per_known, labels, far, reject)
         info["surface_scale"] = scale.tolist()
         known[:, 1], unseen[:, 1] = (per_known / scale).min(axis=1), (per_unseen / scale).min(axis=1)  # each over its own scale
         have, flagged = known[np.isfinite(known[:, 0])], unseen[np.isfinite(unseen[:, 0])]
@@ -1012,12 +1013,70 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
         far = max(float(np.quantile(flagged[:, 1], q, method="higher")), float(np.quantile(have[:, 1], q, method="higher")), 1e-9)
         info["distance_threshold"] = far
     if score == "spectrum":  # its threshold and scales are fitted on the known slides: count each recording left out instead
-        info.update(known_rejected=held_out_rejected(z, files, labels, k, per_known, reject), known_rejected_by="recording left out")
+        if count:
+            info.update(known_rejected=held_out_rejected(z, files, labels, k, per_known, reject), known_rejected_by="recording left out")
     else:
         info.update(known_rejected=float(np.mean(over_thresholds(have, threshold, far) > 1.0)))
     info.update(threshold=threshold if math.isfinite(threshold) else None,
                 unseen_flagged=float(np.mean(over_thresholds(flagged, threshold, far) > 1.0)) if len(flagged) else None)
     return threshold, info
+
+
+def shape_standardisation(rows: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(center, scale) (F'',) of spectral shapes ``rows`` (n, F''): their mean and standard deviation, the latter floored at
+    :data:`~tactiled.learn.model.SHAPE_SCALE_FLOOR` (a constant feature divides by the floor, not by 0)."""
+    return rows.mean(axis=0), np.maximum(rows.std(axis=0), SHAPE_SCALE_FLOOR)
+
+
+def left_out_flagged(rows: FloatArray, labels: npt.NDArray[Any], files: npt.NDArray[Any], k: int, reject: float = 0.05) -> float | None:
+    """The share of the slides of a surface left out of training that ``spectrum``'s test calls unknown, each surface left
+    out in turn of everything the test is fitted on: the standardisation of the spectral shapes ``rows`` (n, F'') (mean and
+    standard deviation over the other surfaces' slides, floored at :data:`~tactiled.learn.model.SHAPE_SCALE_FLOOR`), the
+    distance threshold and each taught surface's own scale (:func:`fit_novelty` on the other surfaces' slides); its slides
+    are then measured against the other surfaces' as a new slide is. None when no surface can be tested (fewer than two
+    surfaces, or no other surface with two recordings to set a threshold)."""
+    flagged = counted = 0
+    for surface in np.unique(labels):
+        out = labels == surface
+        rest = ~out
+        if not rest.any():
+            continue
+        center, spread = shape_standardisation(rows[rest])
+        z = (rows - center) / spread
+        per_known = other_recording_distances(z[rest], files[rest], labels[rest], k)
+        nearest = per_known.min(axis=1)
+        if not np.isfinite(nearest).any():
+            continue  # no taught surface has a second recording: nothing would be called unknown
+        far, scale = spectrum_threshold(nearest, per_known, labels[rest], reject)
+        per = surface_distances(z[out], z[rest], labels[rest], k) / scale
+        flagged += int(np.count_nonzero(per.min(axis=1) / far > 1.0))
+        counted += int(out.sum())
+    return flagged / counted if counted else None
+
+
+def other_recording_distances(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any], k: int) -> FloatArray:
+    """(n, S) each slide's mean distance to the ``k`` nearest slides of each surface (sorted) among the *other* recordings'
+    (fewer where the surface has fewer; inf where it has none): :func:`fit_novelty`'s ``per_known`` for ``spectrum``, all
+    slides at once (to rounding: one matrix product)."""
+    surfaces, which = np.unique(labels, return_inverse=True)
+    which = which.reshape(-1)
+    d = pairwise_distances(z, z)
+    d[files[:, None] == files[None, :]] = np.inf
+    out = np.full((len(z), len(surfaces)), np.inf)
+    for j in range(len(surfaces)):
+        near = np.sort(d[:, which == j], axis=1)[:, :k]
+        out[:, j] = _first_k_mean(near[:, None, :], np.isfinite(near)[:, None, :], k)[:, 0]
+    return out
+
+
+def spectrum_threshold(nearest: FloatArray, per_known: FloatArray, labels: npt.NDArray[Any], reject: float,
+                       surfaces: npt.NDArray[Any] | None = None) -> tuple[float, FloatArray]:
+    """(distance threshold, each surface's own scale (S,)) of ``spectrum``'s test from the known slides' distances: ``nearest``
+    (n,) to the nearest surface (inf: none to compare with, left out) and ``per_known`` (n, S) to every surface (surfaces
+    ``labels``; ``surfaces`` as :func:`own_scales`): the (1 - ``reject``) quantile of the finite nearest distances (at least
+    1e-9), and :func:`own_scales` over it."""
+    far = max(float(np.quantile(nearest[np.isfinite(nearest)], 1.0 - reject, method="higher")), 1e-9)
+    return far, own_scales(per_known, labels, far, reject, surfaces)
 
 
 def held_out_rejected(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any], k: int, per_known: FloatArray,
@@ -1069,8 +1128,7 @@ def held_out_rejected(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArra
         nearest_any = per.min(axis=1)
         if not np.isfinite(nearest_any).any():
             continue  # no other recording has a second one to fit a threshold on: nothing would be called unknown
-        far = max(float(np.quantile(nearest_any[np.isfinite(nearest_any)], 1.0 - reject, method="higher")), 1e-9)
-        scale = own_scales(per, labels[rest], far, reject, surfaces)
+        far, scale = spectrum_threshold(nearest_any, per, labels[rest], reject, surfaces)
         beyond = (per_known[held] / scale).min(axis=1) / far > 1.0
         rejected += int(beyond[taught].sum())
         counted += int(taught.sum())
