@@ -8,7 +8,9 @@ A journal is a header then chunks, each self-delimiting and guarded by a CRC-32:
             | s bytes of JSON (counters) | (rows - lost) x C int16 little-endian samples
 
 All integers little-endian. A chunk covers the rows ``position .. position + rows`` of the recording; its lost
-ranges (absolute positions) are not stored, its samples are the other rows in order. :class:`JournalWriter`
+ranges (absolute positions) are not stored, its samples are the other rows in order. The counters JSON may hold
+:data:`DISCONNECTED_KEY`: the positions (absolute, in ``position .. position + rows``, ends included) where the host lost
+the sensor's port, the recording's ``disconnected`` key; a chunk of no rows carries only such marks. :class:`JournalWriter`
 appends whole chunks and fsyncs each; :func:`read_journal` checks every chunk and drops the ones that fail
 (a torn last chunk after a kill or a power cut), in time linear in the journal's size, and :func:`recover` turns a
 journal into a normal recording without holding the samples in memory. A journal whose chunks declare more lost rows
@@ -48,6 +50,7 @@ _range = struct.Struct("<qq")
 ZERO_BLOCK = 1 << 16  # rows of zeros written at a time for lost rows
 MAX_JOURNAL_BYTES = MAX_FILE_BYTES  # a journal is streamed, never held: the limit of every tactiled file
 MIN_LOST_ROWS = 1 << 24  # lost rows recover writes for any journal (14 min at 20 kHz); more only for a journal of more bytes
+DISCONNECTED_KEY = "disconnected"  # in a chunk's counters JSON: the positions where the port was lost (not a counter: never in meta)
 
 
 def journal_path(out: str | Path) -> Path:
@@ -64,9 +67,10 @@ def encode_header(fs: float, channels: int, volts_per_count: float, label: str |
 
 
 def encode_chunk(position: int, index: int, rows: int, lost: list[tuple[int, int]], counters: dict[str, int],
-                 samples: npt.NDArray[np.int16]) -> bytes:
-    """One chunk: rows ``position .. position + rows``; ``samples`` (rows - lost, C) are the rows not in ``lost``."""
-    text = json.dumps(counters, sort_keys=True).encode()
+                 samples: npt.NDArray[np.int16], disconnected: list[int] | None = None) -> bytes:
+    """One chunk: rows ``position .. position + rows``; ``samples`` (rows - lost, C) are the rows not in ``lost``;
+    ``disconnected``: increasing positions in ``position .. position + rows`` where the port was lost (none: not written)."""
+    text = json.dumps({**counters, DISCONNECTED_KEY: disconnected} if disconnected else counters, sort_keys=True).encode()
     body = (_body.pack(position, index, rows, len(lost), len(text)) + b"".join(_range.pack(p, c) for p, c in lost) + text
             + np.ascontiguousarray(samples, dtype="<i2").tobytes())
     head = CHUNK_MAGIC + _u32.pack(len(body)) + body
@@ -147,6 +151,7 @@ class Chunk:
     counters: dict[str, int]
     offset: int  # of the samples in the file
     stored: int  # rows stored (rows - lost)
+    disconnected: list[int] = field(default_factory=list)  # positions where the port was lost, increasing, inside the chunk
 
 
 @dataclass
@@ -188,6 +193,11 @@ class JournalScan:
                     ranges.append([p, n])
             end = c.position + c.rows
         return np.asarray(ranges, dtype=np.int64).reshape(-1, 2)
+
+    def disconnected(self) -> npt.NDArray[np.int64]:
+        """(d,) positions where the port was lost: the chunks' marks in order, each position once (the recording's key)."""
+        marks = [p for c in self.chunks for p in c.disconnected]
+        return np.unique(np.asarray(marks, dtype=np.int64))
 
     def blocks(self) -> Iterator[npt.NDArray[np.int16]]:
         """All rows in order, lost ones as zeros, a chunk's worth at a time (bounded memory)."""
@@ -336,7 +346,11 @@ def _chunk_at(data: mmap.mmap, pos: int, n: int, channels: int) -> Chunk | None:
         end = p + c
     if position < 0 or stored < 0 or n - at - s != 2 * channels * stored or not isinstance(counters, dict):
         return None
-    return Chunk(position, index, rows, lost, counters, pos + 8 + at + s, stored)
+    marks = counters.pop(DISCONNECTED_KEY, [])
+    if not (isinstance(marks, list) and all(type(p) is int and position <= p <= position + rows for p in marks)
+            and marks == sorted(marks)):
+        return None
+    return Chunk(position, index, rows, lost, counters, pos + 8 + at + s, stored, marks)
 
 
 @dataclass
@@ -361,7 +375,8 @@ class Recovered:
 def recover(journal: str | Path, out: str | Path, extra_meta: dict[str, Any] | None = None, allow_empty: bool = False) -> Recovered:
     """Write the recording held by ``journal`` to ``out`` (.npz, docs/recordings.md), streaming the samples.
 
-    The recording's ``meta`` is the header's plus the last intact chunk's counters and ``extra_meta``.
+    The recording's ``meta`` is the header's plus the last intact chunk's counters and ``extra_meta``; its ``disconnected``
+    the marks of the intact chunks.
     Raises :class:`RecordingError` if the journal has no intact chunk (unless ``allow_empty``: a recording of
     no samples, what a recorder stopped before the first frame writes), or if a live recorder holds it (its lock).
     """
@@ -384,6 +399,6 @@ def recover(journal: str | Path, out: str | Path, extra_meta: dict[str, Any] | N
     meta = {**scan.meta, **(scan.chunks[-1].counters if scan.chunks else {}), **(extra_meta or {})}
     lost = scan.lost()
     rec = Recording(samples=np.zeros((0, scan.channels), dtype=np.int16), fs=scan.fs, volts_per_count=scan.volts_per_count,
-                    label=scan.label, meta=meta, first_index=scan.first_index, lost=lost)
+                    label=scan.label, meta=meta, first_index=scan.first_index, lost=lost, disconnected=scan.disconnected())
     save_recording(out, rec, StreamedArray((scan.rows, scan.channels), np.dtype("<i2"), scan.blocks()))
     return Recovered(scan.rows, int(lost[:, 1].sum()), len(scan.chunks), scan.dropped_chunks, scan.dropped_bytes, scan.fs)

@@ -24,7 +24,8 @@ import numpy.typing as npt
 from tactiled.errors import RecordingError, TactiledError
 from tactiled.files.npzio import NpzError, NpzReader, load_json_bounded, read_npz
 
-KEYS = ("samples", "fs", "volts_per_count", "first_index", "label", "meta", "lost", "slide_start", "slide_stop", "surface", "ra_um")
+KEYS = ("samples", "fs", "volts_per_count", "first_index", "label", "meta", "lost", "slide_start", "slide_stop", "surface", "ra_um",
+        "disconnected")
 MIN_FS, MAX_FS, MAX_CHANNELS = 1.0, 1e7, 64
 MAX_LABEL_CHARS = 256  # a surface name (label, surface[i]): longer ones are refused at load (a 4M-character label cost score 1 GB)
 MAX_VOLTS = 1e9  # |samples| in volts: 30x what a config's volts_per_count allows an int16 board; squares and sums stay far from overflow
@@ -46,6 +47,8 @@ class Recording:
     meta: dict[str, Any] = field(default_factory=dict)
     first_index: int = 0
     lost: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    # (d,) strictly increasing positions in [0, n]: at each the host lost the sensor's port (every row before it was read before)
+    disconnected: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     @property
     def channels(self) -> int:
@@ -214,6 +217,8 @@ def validate_arrays(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
         if lost.size and (np.any(lost[:, 0] < 0) or np.any(lost[:, 1] <= 0) or np.any(lost.sum(axis=1) > n)):
             raise _fail(path, "lost", "ranges must lie inside samples with count > 0")
         rec.lost = lost
+    if "disconnected" in a:
+        rec.disconnected = _disconnected(path, a["disconnected"], n)
     has_start, has_stop = "slide_start" in a, "slide_stop" in a
     if has_start != has_stop:
         raise _fail(path, "slide_stop" if has_start else "slide_start", "missing (slide_start and slide_stop go together)")
@@ -253,6 +258,18 @@ def validate_arrays(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
     return rec
 
 
+def _disconnected(path: object, marks: npt.NDArray[Any], n: int) -> npt.NDArray[np.int64]:
+    """The ``disconnected`` key checked: (d,) integers, strictly increasing, in [0, ``n``] (``n`` rows of samples)."""
+    if marks.ndim != 1 or marks.dtype.kind not in "iu":
+        raise _fail(path, "disconnected", f"must be (d,) integers, got {marks.shape} {marks.dtype}")
+    if marks.size and (marks.min() < 0 or marks.max() > n):
+        raise _fail(path, "disconnected", f"positions outside samples (0..{n})")
+    out = marks.astype(np.int64)
+    if np.any(np.diff(out) <= 0):
+        raise _fail(path, "disconnected", "positions must be strictly increasing")
+    return out
+
+
 @dataclass
 class StreamedArray:
     """An array written block by block (bounded memory): its final ``shape`` and ``dtype``, and ``blocks`` of rows.
@@ -287,6 +304,8 @@ def save_recording(path: str | Path, rec: Recording, samples: StreamedArray | No
         arrays["ra_um"] = np.asarray(rec.ra_um, dtype=np.float64)
     if rec.label is not None:
         arrays["label"] = np.str_(rec.label)
+    if len(rec.disconnected):  # only when there is one: a file without disconnections is what it was before the key
+        arrays["disconnected"] = np.asarray(rec.disconnected, dtype=np.int64).reshape(-1)
     atomic_savez(path, arrays)
 
 

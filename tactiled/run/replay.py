@@ -1,15 +1,17 @@
 """Replay: a recording or a raw capture through the daemon's own :class:`~tactiled.run.stream.Stream`.
 
 A recording becomes the same stream the daemon sees (blocks of samples at their sensor indices, lost rows
-marked: :func:`replay_recording`); a raw capture (``.bin``: the bytes read from the port) runs through the whole
-ingest core, decoder included (:func:`replay_capture`). Results come back in positions of the file, and are
-paired here with the file's ground truth (:func:`pair_results`, :func:`summary_line`).
+marked, the port's losses where the recorder marked them: :func:`replay_recording`); a raw capture (``.bin``: the
+bytes read from the port) runs through the whole ingest core, decoder included (:func:`replay_capture`). Results come
+back in positions of the file, and are paired here with the file's ground truth (:func:`pair_results`,
+:func:`summary_line`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -116,7 +118,11 @@ def replay_recording(rec: Recording, config: Config, model: Any | None, *, block
     """Run ``rec`` through a fresh :class:`~tactiled.run.stream.Stream` in blocks of ``block`` samples, then end it;
     returns every slide result, in positions of the file (provisional ones before their slide's final one).
 
-    Samples are fed at their sensor indices (``first_index + position``), exactly as the daemon saw them.
+    Samples are fed at their sensor indices (``first_index + position``), exactly as the daemon saw them. At each
+    position of ``rec.disconnected`` (the host lost the port there) a slide in progress ends as the daemon ended it
+    (:meth:`~tactiled.run.stream.Stream.disconnected`: reason ``disconnected``, its label from the rows before), and the
+    rows after go on; such a recording is fed block by block, cut at its marks (the daemon's path: about twice the time
+    of the whole-file replay of one without marks, measured).
     ``pacer`` paces the blocks (``--speed``); ``on_event`` sees every pipeline event as it happens (sensor indices);
     ``on_block`` every block before the pipeline does: (sensor index of its first row, samples (n, C), valid (n,) bool).
     """
@@ -133,13 +139,21 @@ def replay_recording(rec: Recording, config: Config, model: Any | None, *, block
             collect(results, ev, base)
 
     n = rec.samples.shape[0]
-    if pacer is not None and pacer.paced:  # block by block, as they come: the first events at once
-        for lo in range(0, n, block):
-            hi = min(lo + block, n)
-            pacer.wait(base + lo)
+    marks = [int(d) for d in rec.disconnected]
+    if (pacer is not None and pacer.paced) or marks:  # block by block, as they come: the first events at once
+        cuts = [*sorted({*range(0, n, block), *(d for d in marks if d < n)}), n]
+        k = 0  # marks handled
+        for lo, hi in pairwise(cuts):
+            while k < len(marks) and marks[k] <= lo:  # the port was lost after the rows before lo
+                handle(stream.disconnected().events)
+                k += 1
+            if pacer is not None:
+                pacer.wait(base + lo)
             if on_block:
                 on_block(base + lo, rec.samples[lo:hi], valid[lo:hi])
             handle(stream.feed_samples(base + lo, rec.samples[lo:hi], None if all_valid else valid[lo:hi]).events)
+        for _ in marks[k:]:  # lost after the last row
+            handle(stream.disconnected().events)
         handle(stream.finish().events)  # a slide still in progress at the end of the file ends there
         return results
     # as fast as possible: the whole file at once (the same events, each block's after on_block saw it)

@@ -11,6 +11,9 @@ pipeline by hand, and nobody has to remember what the end of a stream or a board
 - **Sample blocks** (:meth:`Stream.feed_samples`) go straight to the pipeline, at their sensor indices.
 - **The end** (:meth:`Stream.finish`) is explicit: what the decoder still held, then a slide in progress
   ends at the last sample fed (it gets its final result).
+- **A lost port** (:meth:`Stream.disconnected`: the daemon when its port goes, a replay at a recording's
+  ``disconnected`` mark) ends a slide in progress at the last sample fed, reason ``disconnected``, and the stream
+  goes on with the samples after it.
 
 Each call returns a :class:`Step`: the batches decoded (for a recorder or the samples topic), the live
 pipeline's events and, with a shadow model, the shadow pipeline's events. Sans-IO: nothing here reads a
@@ -20,15 +23,16 @@ port or a clock.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from tactiled_client import schema
 
 from tactiled.board.frames import DecoderStats
 from tactiled.config import Config
-from tactiled.core.events import PipelineEvent
+from tactiled.core.events import PipelineEvent, SlideEnded
 from tactiled.core.pipeline import Classifier, Pipeline
 from tactiled.files.recording import Recording
 from tactiled.run.ingest import Batch, Ingest, max_gap_for
@@ -160,6 +164,18 @@ class Stream:
         """The explicit end of the stream: what the decoder still held, then a slide in progress ends at the last sample."""
         step = self.process(self.ingest.flush())
         step += self._finish_pipelines()
+        return step
+
+    def disconnected(self) -> Step:
+        """The sensor's port is gone after the samples fed so far: a slide in progress (live or shadow) ends at the last sample
+        fed and gets its final result from the samples before, its end with reason ``schema.END_DISCONNECTED``; the detector goes
+        on with the samples fed after. Nothing happens without a slide in progress (an undecided detector is not ended)."""
+        step = Step()
+        if self.pipeline is not None and self.pipeline.sliding:
+            step.events = [replace(ev, reason=schema.END_DISCONNECTED) if isinstance(ev, SlideEnded) and ev.reason == "end_of_stream"
+                           else ev for ev in self.pipeline.finish()]
+        if self.shadow is not None and self.shadow.sliding:
+            step.shadow = self.shadow.finish()
         return step
 
     def _feed(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None) -> Step:

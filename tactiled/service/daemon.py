@@ -38,7 +38,7 @@ import os
 import signal
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import BinaryIO
 
 import numpy as np
@@ -48,7 +48,7 @@ from tactiled import __version__
 from tactiled.board.clockmap import ClockMap, rate_mismatch
 from tactiled.board.serialsource import CONNECTED, DISCONNECTED, ByteSource, SerialSource
 from tactiled.config import Config
-from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideResumed
+from tactiled.core.events import PipelineEvent, SlideResult, SlideResumed
 from tactiled.core.shadow import ShadowStats
 from tactiled.errors import ConfigError, TactiledError
 from tactiled.learn.cost import check_speed
@@ -305,21 +305,19 @@ class Daemon:
         published with reason ``schema.END_DISCONNECTED``, and gets its final label from the samples read (the live and shadow
         pipelines alike), as a gap longer than the ring ends one; the detector goes on with the samples after the
         reconnection. Nothing changes if no slide is in progress, nor on a stop (a slide under way is not ended), for a
-        finite source (its end is the end of the stream), or while shedding load (slides already ended)."""
-        live, shadow = self.stream.pipeline, self.stream.shadow
-        if self.stop_event.is_set() or self.state.shedding or not isinstance(self.source, SerialSource) or live is None:
+        finite source (its end is the end of the stream), or while shedding load (slides already ended). A recording
+        (``--record``) marks the disconnection after the rows read (its ``disconnected`` key): its replay ends the slide there too."""
+        if self.stop_event.is_set() or self.state.shedding or not isinstance(self.source, SerialSource) or self.stream.pipeline is None:
             return
         held = self.stream.held()  # decoded and counted, not yet handed over: recorded, published and analysed first
         self._take(held)
+        if self.recorder is not None:  # the recording marks it after those rows: its replay ends the slide there too
+            self.recorder.mark_disconnected()
         if self.config.publish.samples:
             self._publish_samples(held)
         now = time.perf_counter()
         step = self.stream.process(held)
-        if live.sliding:
-            step.events += [replace(ev, reason=schema.END_DISCONNECTED) if isinstance(ev, SlideEnded) and ev.reason == "end_of_stream" else ev
-                            for ev in live.finish()]
-        if shadow is not None and shadow.sliding:
-            step.shadow += shadow.finish()
+        step += self.stream.disconnected()
         self._publish(step.events, now)
         self._publish_shadow(step.shadow, now)
 

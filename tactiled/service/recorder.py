@@ -85,6 +85,9 @@ class RecordingSink:
     or broken board) ends the recording before it, never spliced and never written as gigabytes of zeros:
     :attr:`done` turns True, :attr:`ended_by_gap` holds the gap (also in the recording's ``meta``), and a warning
     says so.
+
+    :meth:`mark_disconnected` marks where the host lost the sensor's port (the recording's ``disconnected`` key), in
+    order with the rows, through the journal.
     """
 
     def __init__(self, out: str | Path, *, fs: float, channels: int, volts_per_count: float, label: str | None = None,
@@ -118,7 +121,9 @@ class RecordingSink:
             self._writer = JournalWriter(self.journal, header)
         except OSError as exc:
             raise OutputError(f"{self.journal}: cannot create: {exc.strerror or exc}") from None
-        self._batch: list[tuple[int, npt.NDArray[np.int16]]] = []  # (position, samples) the writer has not taken yet
+        # (position, samples) the writer has not taken yet; samples None: the port was lost at that position
+        self._batch: list[tuple[int, npt.NDArray[np.int16] | None]] = []
+        self._marked = -1  # the position of the newest disconnection marked
         self._queued = 0  # their bytes (bounded by QUEUE_BYTES)
         self._lock = threading.Lock()
         self._finishing = threading.Event()
@@ -166,10 +171,21 @@ class RecordingSink:
         self._gaps += gap
         self._stored += samples.nbytes
 
+    def mark_disconnected(self) -> None:
+        """The host lost the sensor's port after the rows added so far: their end is marked (the recording's ``disconnected``
+        key), in order with the rows. Nothing is marked before the first row (nothing to end), once the recording is done or
+        failed, or twice at one position (two reports with no row between)."""
+        if self.error is not None or self.done or self.first_index is None or self._end == self._marked:
+            return
+        self._marked = self._end
+        with self._lock:
+            self._batch.append((self._end, None))
+
     def _run(self) -> None:
         start = end = 0  # the next chunk's first row; the row after the newest placed
         pending: list[npt.NDArray[np.int16]] = []
         lost: list[tuple[int, int]] = []
+        marks: list[int] = []  # disconnections at positions start .. end
         nbytes = 0
         final = False
         while not final and self.error is None:
@@ -177,29 +193,34 @@ class RecordingSink:
             with self._lock:
                 batch, self._batch, self._queued = self._batch, [], 0
             for position, samples in batch:  # positions increase (the decoder's indices); add() keeps no empty rows
+                if samples is None:  # a disconnection after the rows placed (position == end)
+                    marks.append(position)
+                    continue
                 if position > end:
                     lost.append((end, position - end))
                 pending.append(samples)
                 nbytes += samples.nbytes
                 end = position + samples.shape[0]
                 if end - start >= self._commit_rows or nbytes >= MAX_CHUNK_BYTES:  # bounded chunks, even after a burst
-                    start = self._commit(start, end, pending, lost)
-                    pending, lost, nbytes = [], [], 0
-            if end > start:
-                start = self._commit(start, end, pending, lost)
-                pending, lost, nbytes = [], [], 0
+                    start = self._commit(start, end, pending, lost, marks)
+                    pending, lost, marks, nbytes = [], [], [], 0
+            if end > start or marks:  # marks after the last chunk: a chunk of no rows carries them
+                start = self._commit(start, end, pending, lost, marks)
+                pending, lost, marks, nbytes = [], [], [], 0
 
-    def _commit(self, start: int, end: int, pending: list[npt.NDArray[np.int16]], lost: list[tuple[int, int]]) -> int:
-        """Append rows ``start .. end`` as one chunk; returns where the next chunk starts (``end``, or ``start`` after an error)."""
+    def _commit(self, start: int, end: int, pending: list[npt.NDArray[np.int16]], lost: list[tuple[int, int]], marks: list[int]) -> int:
+        """Append rows ``start .. end`` (and the disconnections ``marks`` there) as one chunk; returns where the next chunk
+        starts (``end``, or ``start`` after an error)."""
         if self.error is not None:
             return start
-        received = np.concatenate(pending)  # never empty: a chunk ends on a row received
+        # a chunk of rows ends on a row received; one of no rows only carries marks
+        received = np.concatenate(pending) if pending else np.zeros((0, self.channels), dtype=np.int16)
         given = self._counters()
         counters = {**given, "restarts": self.restarts, "channel_errors": given.get("channel_errors", 0) + self.channel_errors,
                     "samples_dropped_writer_behind": self.queue_dropped}
         assert self.first_index is not None
         try:
-            self._writer.append(encode_chunk(start, self.first_index + start, end - start, lost, counters, received))
+            self._writer.append(encode_chunk(start, self.first_index + start, end - start, lost, counters, received, marks))
         except OSError as exc:
             self.error = (f"{self.journal}: {exc.strerror or exc}: capture stopped after {self._rows / self.fs:.3f} s, "
                           f"kept in the journal: tactiled recover {self.journal} -o {self.out}")
@@ -278,7 +299,8 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     another channel count are counted and skipped, and a forward jump of the index (an unplug, however long, as long as the
     board's counter can say how many) is a lost range of that length in the recording, never a splice: the rows after it
     keep their sensor time (``--seconds`` counts sensor time, the gap included). Only a board restart (the index back,
-    not a repeated frame) continues the rows, and is counted in ``meta["restarts"]``.
+    not a repeated frame) continues the rows, and is counted in ``meta["restarts"]``. Each loss of the port is marked
+    after the rows read before it (the recording's ``disconnected``), so a replay ends a slide there as the daemon does.
 
     The port and the output path are checked first (:class:`~tactiled.errors.DeviceError`,
     :class:`~tactiled.errors.OutputError`); a write error during the capture stops it and is returned in
@@ -288,7 +310,9 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     s = config.sensor
     check_label_option(label)  # else the file would not load (docs/recordings.md): said before the port opens
     check_port(s.port)
-    chunks: queue.Queue[bytes | None] = queue.Queue()
+    # the reader thread's bytes with the time of the read that returned their last byte (host monotonic, s), in order with
+    # None: the port was lost there
+    chunks: queue.Queue[tuple[bytes, float] | None] = queue.Queue()
     stream = Stream(config, analyse=False)
     source: SerialSource | None = None
 
@@ -298,18 +322,29 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     sink = RecordingSink(out, fs=s.fs, channels=s.channels, volts_per_count=s.volts_per_count, label=label,
                          meta={"sensor": s.id, "port": s.port}, limit=max(1, round(seconds * s.fs)), force=force, counters=counters)
 
-    def on_state(state: str, detail: str) -> None:
+    def on_bytes(data: bytes) -> None:  # on the reader thread, where read_at is valid
+        assert source is not None
+        chunks.put((data, source.read_at(len(data) - 1)))
+
+    def on_state(state: str, detail: str) -> None:  # on the reader thread: bytes read before may still be queued
         if state == DISCONNECTED:
             log.warning("%s: %s", s.port, detail)
+            chunks.put(None)
 
     channels_said = rate_said = False  # each said once
     # the rate's start: when samples first came, the index's advance by then (samples and lost: an unplug or dropped frames
     # are not a slower board), and the restarts and reconnects by then (either begins the measurement again)
     first: tuple[float, int, tuple[int, int]] | None = None
 
-    def take(data: bytes | None) -> None:
+    def take(item: tuple[bytes, float] | None) -> None:
         nonlocal channels_said, rate_said, first
-        for batch in stream.feed_bytes(data or b"").batches:
+        if item is None:  # the port went away after the bytes taken so far: what the decoder holds goes in first
+            for batch in stream.held():
+                sink.add(batch)
+            sink.mark_disconnected()
+            return
+        data, read_at = item
+        for batch in stream.feed_bytes(data).batches:
             sink.add(batch)
         if stream.stats.channel_errors and not channels_said:  # nothing of such a board is recorded: say so at once, not at the end
             channels_said = True
@@ -317,7 +352,8 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
         if rate_said:
             return
         st = stream.stats
-        now, n, epoch = time.monotonic(), st.samples + st.samples_lost, (st.restarts, source.reconnects if source is not None else 0)
+        # measured by when the bytes were read, not when they were taken off the queue (a lag would look like a rate)
+        now, n, epoch = read_at, st.samples + st.samples_lost, (st.restarts, source.reconnects if source is not None else 0)
         if n and (first is None or first[2] != epoch):
             first = (now, n, epoch)
         elif first is not None and now - first[0] >= RATE_AFTER_S:  # sensor.fs is written into the recording
@@ -330,17 +366,17 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}  # a flag: never interrupts a write
     try:
         c = config.serial
-        source = SerialSource(s.port, chunks.put, on_state, baudrate=s.baudrate, retry_initial_s=c.retry_initial_s, retry_max_s=c.retry_max_s,
+        source = SerialSource(s.port, on_bytes, on_state, baudrate=s.baudrate, retry_initial_s=c.retry_initial_s, retry_max_s=c.retry_max_s,
                               read_interval_s=c.read_interval_s)
         source.start()
         log.info("recording %s -> %s (Ctrl-C stops and saves)", s.port, out)
         try:
             while not sink.done and sink.error is None and not stop.is_set():
                 try:
-                    data = chunks.get(timeout=0.1)  # the stop flag's polling period
+                    item = chunks.get(timeout=0.1)  # the stop flag's polling period
                 except queue.Empty:
                     continue
-                take(data)
+                take(item)
             if stop.is_set():
                 log.info("stopped by a signal: saving what was captured")
         finally:
