@@ -70,6 +70,56 @@ def run_cli(*args: str, timeout: float = 120.0, **kw: object) -> subprocess.Comp
     return subprocess.run(tactiled_cmd(*args), capture_output=True, text=True, timeout=timeout, cwd=REPO, **kw)  # type: ignore[call-overload, no-any-return]
 
 
+def cli_here(capture: pytest.CaptureFixture[str] | None, *args: str) -> subprocess.CompletedProcess[str]:
+    """``tactiled ARGS`` run by :func:`tactiled.cli.main.main` in this process, as :func:`run_cli` reports it (exit code,
+    stdout, stderr): the same handler and lines without a new interpreter's start-up, and with this process's worker pool
+    (joblib's loky executor, started once per test process) instead of a new one per command. For a test about the
+    command's output, files and exit code, not about a process (signals, a daemon, start-up, the environment).
+
+    ``capture``: the test's ``capfd`` (output read at the file descriptors) or ``capsys``; None (in a fixture wider than a
+    test) redirects ``sys.stdout`` and ``sys.stderr`` instead. What a process would also have written to stderr is written
+    there: warnings as Python's default filters show them (pytest would otherwise keep them to its summary) and log
+    records as :func:`main`'s logging set-up prints them (pytest's handlers on the root logger make that set-up a no-op
+    here). An argparse exit is its code; cwd is this process's, so give paths in full."""
+    import io
+    import logging
+    import warnings
+
+    from tactiled.cli.main import main
+
+    if capture is not None:
+        capture.readouterr()  # what the test wrote before is not the command's
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.ExitStack() as stack:
+        if capture is None:
+            stack.enter_context(contextlib.redirect_stdout(out))
+            stack.enter_context(contextlib.redirect_stderr(err))
+        stack.enter_context(warnings.catch_warnings())
+        warnings.resetwarnings()  # Python's defaults (the warnings module's docs): shown once per place, but deprecations
+        warnings.simplefilter("default")
+        for category in (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning):
+            warnings.simplefilter("ignore", category)
+        warnings.showwarning = lambda message, category, filename, lineno, file=None, line=None: sys.stderr.write(
+            warnings.formatwarning(message, category, filename, lineno, line))
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("tactiled: %(levelname)s: %(message)s"))
+        handler.setLevel(logging.WARNING)  # main's level without -v (not for a command run with -v)
+        root = logging.getLogger()
+        root.addHandler(handler)
+        stack.callback(root.removeHandler, handler)
+        try:
+            code = main(list(args))
+        except SystemExit as exc:  # argparse: usage errors (2), --help and --version (0)
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        sys.stdout.flush()
+        sys.stderr.flush()
+    if capture is not None:
+        stdout, stderr = capture.readouterr()
+    else:
+        stdout, stderr = out.getvalue(), err.getvalue()
+    return subprocess.CompletedProcess(["tactiled", *args], code, stdout, stderr)
+
+
 def surfaces_but_one(root: Path, surfaces: int, seed: int) -> tuple[Path, list[Path], list[str]]:
     """A robot-scene dataset of ``surfaces`` surfaces (2 files x 3 slides each) simulated into ``root``/d: the folder, the files
     of every surface but the last (to train on), and the surface names in order (the last one left out)."""

@@ -17,7 +17,7 @@ from tactiled.errors import ModelError
 from tactiled.learn.elm import ELMClassifier
 from tactiled.learn.model import load_model
 from tactiled.sim.simulate import write_dataset
-from tests.conftest import REPO, run_cli, tactiled_cmd
+from tests.conftest import REPO, cli_here, run_cli, tactiled_cmd
 
 
 def _data(n: int = 60, d: int = 4, k: int = 3, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -78,7 +78,7 @@ def _rewrite(src: Path, dst: Path, change: dict) -> None:
     np.savez(dst, **arrays)
 
 
-def test_tampered_models_are_refused(tmp_path: Path) -> None:
+def test_tampered_models_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     src = Path(load_model().fingerprint and (REPO / "tactiled" / "data" / "default_model.npz"))
     header = json.loads(np.load(src)["header"].item())
     cases = {
@@ -93,7 +93,7 @@ def test_tampered_models_are_refused(tmp_path: Path) -> None:
         with pytest.raises(ModelError) as err:
             load_model(path)
         assert str(path) in str(err.value)
-        res = run_cli("replay", "--model", str(path), str(path))
+        res = cli_here(capsys, "replay", "--model", str(path), str(path))  # the refusal by main() in this process
         assert res.returncode == 2 and len(res.stderr.strip().splitlines()) >= 1
 
 
@@ -103,12 +103,14 @@ def test_model_for_other_rate_is_refused(tmp_path: Path) -> None:
         model.check_stream(2200.0, 2, "x")
 
 
-def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
+def test_train_and_score_one_channel_other_rate(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """Each command by main() in this process (cli_here): the same handlers, lines and files, and --jobs 2 still on worker
+    processes (this process's pool), without a new interpreter and pool per command (9 of them took 15 s of the 19)."""
     data = tmp_path / "data"
     write_dataset(data, scene="robot", surfaces="3", files_per_surface=2, slides_per_file=3, fs=2200.0, channels=1)
     model = tmp_path / "m.npz"
     files = sorted(str(p) for p in data.glob("*.npz"))
-    res = run_cli("train", *files, "-o", str(model), "--folds", "2", "--method", "quick")
+    res = cli_here(capfd, "train", *files, "-o", str(model), "--folds", "2", "--method", "quick")
     assert res.returncode == 0, res.stderr
     assert "leaderboard" in res.stdout and "nested CV" in res.stdout and "slides per surface" in res.stderr
     assert sum(line.startswith("* ") for line in res.stdout.splitlines()) == 1  # the choice is marked once
@@ -116,29 +118,29 @@ def test_train_and_score_one_channel_other_rate(tmp_path: Path) -> None:
     assert nov["score"] == "spectrum" and nov["threshold"] is None and nov["distance_threshold"] is not None  # the default: no ratio test
     assert load_model(model).novelty_names is not None  # one channel at 2.2 kHz: its psd bands
     assert "whose spectral shape is farther from every taught surface than 95 % of the slides" in res.stdout
-    res = run_cli("train", *files, "-o", str(tmp_path / "c.npz"), "--folds", "2", "--method", "quick", "--novelty", "combined")
+    res = cli_here(capfd, "train", *files, "-o", str(tmp_path / "c.npz"), "--folds", "2", "--method", "quick", "--novelty", "combined")
     nov = load_model(tmp_path / "c.npz").summary["novelty"]
     assert res.returncode == 0 and nov["score"] == "combined" and nov["untaught"] == 0.1, res.stderr
     assert ("distance-ratio test flags nothing" in res.stdout) == (nov["threshold"] is None)
-    res = run_cli("score", str(model), *files, "--json")
+    res = cli_here(capfd, "score", str(model), *files, "--json")
     assert res.returncode == 0, res.stderr
     report = json.loads(res.stdout)
     assert report["n"] == 18 and report["accuracy"] > 0.6 and report["coverage"] > 0.6
-    two = run_cli("score", str(model), *files, "--json", "--jobs", "2")  # two worker processes or this one: the same report
+    two = cli_here(capfd, "score", str(model), *files, "--json", "--jobs", "2")  # two worker processes or this one: the same report
     assert two.returncode == 0 and json.loads(two.stdout) == report, two.stderr
     for jobs in ("1", "2"):
-        res = run_cli("features", *files, "-o", str(tmp_path / f"f{jobs}.npz"), "--jobs", jobs)
+        res = cli_here(capfd, "features", *files, "-o", str(tmp_path / f"f{jobs}.npz"), "--jobs", jobs)
         assert res.returncode == 0, res.stderr
     with np.load(tmp_path / "f1.npz") as one, np.load(tmp_path / "f2.npz") as two:
         assert one.files == two.files and all(np.array_equal(one[k], two[k]) for k in one.files)
-    one, two = (run_cli("replay", "--json", "--model", str(model), *files, "--jobs", jobs) for jobs in ("1", "2"))
+    one, two = (cli_here(capfd, "replay", "--json", "--model", str(model), *files, "--jobs", jobs) for jobs in ("1", "2"))
     assert one.returncode == two.returncode == 0 and one.stderr == two.stderr, two.stderr
 
     def steady(out: str) -> list[dict[str, object]]:  # every field but the time each took
         return [{k: v if k != "quality" else {q: x for q, x in v.items() if q != "compute_ms"} for k, v in json.loads(line).items()
                  if k not in ("time_unix", "latency_ms")} for line in out.splitlines()]
     assert steady(one.stdout) == steady(two.stdout) and len(steady(one.stdout)) == 18  # the same slides and labels, in order
-    res = run_cli("replay", "--json", "--model", str(model), files[0])
+    res = cli_here(capfd, "replay", "--json", "--model", str(model), files[0])
     lines = [json.loads(line) for line in res.stdout.splitlines()]
     assert res.returncode == 0 and len(lines) == 3, res.stdout
     assert all(line["label"] for line in lines) and "3 slides, 3 labelled" in res.stderr
@@ -162,7 +164,7 @@ def test_choice_is_the_simplest_within_one_standard_error() -> None:
     assert choose([svm, svm], [[0.5, 0.6], [0.5, 0.6]]) == 0  # equal: the earlier
 
 
-def test_score_counts_every_true_slide_and_reads_file_labels(tmp_path: Path) -> None:
+def test_score_counts_every_true_slide_and_reads_file_labels(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     """A slide the model cannot label counts as wrong; a record --label file (no per-slide truth) is scored from detected slides."""
     from tactiled.core.events import SlideResult
     from tactiled.files.recording import Recording, load_recording, save_recording
@@ -187,11 +189,11 @@ def test_score_counts_every_true_slide_and_reads_file_labels(tmp_path: Path) -> 
     write_dataset(sim, scene="robot", surfaces="2", files_per_surface=2, slides_per_file=2)
     files = sorted(sim.glob("*.npz"))
     model = tmp_path / "m.npz"
-    assert run_cli("train", *map(str, files), "-o", str(model), "--folds", "2", "--method", "quick").returncode == 0
+    assert cli_here(capfd, "train", *map(str, files), "-o", str(model), "--folds", "2", "--method", "quick").returncode == 0  # in this process
     truth = load_recording(files[0])
     only_label = tmp_path / "label.npz"
     save_recording(only_label, Recording(truth.samples, truth.fs, truth.volts_per_count, label=str(truth.surface[0])))
-    res = run_cli("score", str(model), str(only_label), "--json")
+    res = cli_here(capfd, "score", str(model), str(only_label), "--json")
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout)
     assert out["n"] == 2 and out["correct"] == 2
@@ -273,10 +275,12 @@ def test_training_on_a_local_dask_cluster(tmp_path: Path, capsys: pytest.Capture
     write_dataset(data, scene="robot", surfaces="2", files_per_surface=2, slides_per_file=2)
     files = sorted(str(p) for p in data.glob("*.npz"))
     with distributed.LocalCluster(host="127.0.0.1", n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick", "--scheduler", cluster.scheduler_address,
-                      timeout=300)
+        # train by main() in this process (cli_here), its client on the cluster's workers: the same handler and lines, without a
+        # new interpreter for each run
+        res = cli_here(capsys, "train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick", "--scheduler",
+                       cluster.scheduler_address)
         assert res.returncode == 0, res.stderr
-        local = run_cli("train", *files, "-o", str(tmp_path / "m2.npz"), "--folds", "2", "--method", "quick")
+        local = cli_here(capsys, "train", *files, "-o", str(tmp_path / "m2.npz"), "--folds", "2", "--method", "quick")
     fp = [line.rsplit("fingerprint ", 1)[1] for out in (res.stdout, local.stdout) for line in out.splitlines() if "fingerprint" in line]
     assert len(fp) == 2 and fp[0] == fp[1]  # the same model, wherever the folds ran
     from tactiled.cli.main import main  # the refusals in this process: the same handler, without a second of start-up each
