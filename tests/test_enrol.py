@@ -11,24 +11,28 @@ from tactiled.config import Config
 from tactiled.errors import TactiledError
 from tactiled.learn.enrol import enrol
 from tactiled.learn.model import load_model
-from tests.conftest import run_cli, surfaces_but_one
+from tests.conftest import cli_here, surfaces_but_one
 
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[str]]:
-    """A model trained on two of three surfaces (robot scene), and the folder holding the recordings of all three."""
+    """A model trained on two of three surfaces (robot scene), and the folder holding the recordings of all three.
+
+    Every command of this module is run by main() in the test's process (cli_here): the same handlers, lines and files,
+    without a new interpreter and worker pool for each."""
     root = tmp_path_factory.mktemp("enrol")
     data, known, surfaces = surfaces_but_one(root, 3, seed=4)
-    res = run_cli("train", *map(str, known), "-o", str(root / "m.npz"), "--method", "quick", "--folds", "2")
+    res = cli_here(None, "train", *map(str, known), "-o", str(root / "m.npz"), "--method", "quick", "--folds", "2")
     assert res.returncode == 0, res.stderr
     return root / "m.npz", data, surfaces
 
 
-def test_enrol_adds_a_surface_from_six_slides_and_labels_it(trained: tuple[Path, Path, list[str]], tmp_path: Path) -> None:
+def test_enrol_adds_a_surface_from_six_slides_and_labels_it(trained: tuple[Path, Path, list[str]], tmp_path: Path,
+                                                            capfd: pytest.CaptureFixture[str]) -> None:
     model, data, surfaces = trained
     new = sorted(str(p) for p in data.glob(f"*_{surfaces[2]}_*.npz"))
     before = model.read_bytes()
-    res = run_cli("enrol", str(model), *new, "--label", "NEW", "-o", str(tmp_path / "m2.npz"))
+    res = cli_here(capfd, "enrol", str(model), *new, "--label", "NEW", "-o", str(tmp_path / "m2.npz"))
     assert res.returncode == 0, res.stderr
     assert "NEW: 6 slides (a new surface)" in res.stdout
     assert model.read_bytes() == before  # the input is never changed
@@ -40,22 +44,23 @@ def test_enrol_adds_a_surface_from_six_slides_and_labels_it(trained: tuple[Path,
     # the threshold fitted again on the new slides, at the share of untaught slides the model was trained with
     assert m2.summary["novelty"]["known_rejected"] is not None and m2.summary["novelty"]["untaught"] == old.summary["novelty"]["untaught"] == 0.1
     assert old.summary["early_calibration"]["prefixes"] > 0 and m2.early_calibration == old.early_calibration  # fitted in training, kept
-    relabelled = run_cli("replay", "--json", "--model", str(tmp_path / "m2.npz"), *new)
+    relabelled = cli_here(capfd, "replay", "--json", "--model", str(tmp_path / "m2.npz"), *new)
     finals = [json.loads(line) for line in relabelled.stdout.splitlines() if line.startswith("{") and '"final": true' in line]
     assert finals and sum(m.get("label") == "NEW" for m in finals) >= len(finals) - 1
 
 
-def test_enrol_refuses_too_few_slides_the_input_as_output_and_an_empty_label(trained: tuple[Path, Path, list[str]], tmp_path: Path) -> None:
+def test_enrol_refuses_too_few_slides_the_input_as_output_and_an_empty_label(trained: tuple[Path, Path, list[str]], tmp_path: Path,
+                                                                            capfd: pytest.CaptureFixture[str]) -> None:
     model, data, surfaces = trained
     one = sorted(str(p) for p in data.glob(f"*_{surfaces[2]}_*.npz"))[:1]
-    res = run_cli("enrol", str(model), *one, "--label", "NEW", "-o", str(tmp_path / "m2.npz"))
+    res = cli_here(capfd, "enrol", str(model), *one, "--label", "NEW", "-o", str(tmp_path / "m2.npz"))
     assert res.returncode == 2 and res.stderr.count("\n") == 1 and "NEW (3)" in res.stderr and "at least 5" in res.stderr, res.stderr
     assert not (tmp_path / "m2.npz").exists()
-    same = run_cli("enrol", str(model), *one, "--label", "NEW", "-o", str(model), "--force")
+    same = cli_here(capfd, "enrol", str(model), *one, "--label", "NEW", "-o", str(model), "--force")
     assert same.returncode == 2 and "never changes its input" in same.stderr
     with pytest.raises(TactiledError, match="--label: must not be empty"):
         enrol(model, one, Config(), label=" ")
-    twice = run_cli("enrol", str(model), *one, *one, "--label", "NEW", "-o", str(tmp_path / "m2.npz"))  # 6 slides, but 3 twice
+    twice = cli_here(capfd, "enrol", str(model), *one, *one, "--label", "NEW", "-o", str(tmp_path / "m2.npz"))  # 6 slides, but 3 twice
     assert twice.returncode == 2 and "hold the same samples" in twice.stderr and not (tmp_path / "m2.npz").exists(), twice.stderr
 
 
@@ -68,13 +73,14 @@ def test_enrol_adds_slides_of_known_surfaces_by_their_own_labels(trained: tuple[
     assert done.model.refit is not None and list(done.model.refit[1]).count(surfaces[0]) > list(load_model(model).refit[1]).count(surfaces[0])
 
 
-def test_train_novelty_distance_is_kept_in_the_file_and_through_enrolment(trained: tuple[Path, Path, list[str]], tmp_path: Path) -> None:
+def test_train_novelty_distance_is_kept_in_the_file_and_through_enrolment(trained: tuple[Path, Path, list[str]], tmp_path: Path,
+                                                                          capfd: pytest.CaptureFixture[str]) -> None:
     """train --novelty distance: the file says so, its threshold is fitted on that score, and enrol keeps the score it was trained with
     (and refits the default spectrum test's distance threshold on the spectral shape, with no ratio test: the default model's
     file says combined, its summary spectrum)."""
     model, data, surfaces = trained
     known = [str(p) for p in sorted(data.glob("*.npz")) if f"_{surfaces[2]}_" not in p.name]
-    res = run_cli("train", *known, "-o", str(tmp_path / "d.npz"), "--method", "quick", "--folds", "2", "--novelty", "distance")
+    res = cli_here(capfd, "train", *known, "-o", str(tmp_path / "d.npz"), "--method", "quick", "--folds", "2", "--novelty", "distance")
     assert res.returncode == 0, res.stderr
     combined, distance = load_model(model), load_model(tmp_path / "d.npz")
     assert (combined.novelty_score, distance.novelty_score) == ("combined", "distance")
@@ -83,15 +89,15 @@ def test_train_novelty_distance_is_kept_in_the_file_and_through_enrolment(traine
     assert combined.summary["novelty"]["score"] == "spectrum" and combined.novelty_threshold == float("inf")
     assert combined.novelty_names is not None and distance.novelty_names is None
     new = sorted(str(p) for p in data.glob(f"*_{surfaces[2]}_*.npz"))
-    assert run_cli("enrol", str(tmp_path / "d.npz"), *new, "--label", "NEW", "-o", str(tmp_path / "d2.npz")).returncode == 0
+    assert cli_here(capfd, "enrol", str(tmp_path / "d.npz"), *new, "--label", "NEW", "-o", str(tmp_path / "d2.npz")).returncode == 0
     assert load_model(tmp_path / "d2.npz").novelty_score == "distance"
-    assert run_cli("enrol", str(model), *new, "--label", "NEW", "-o", str(tmp_path / "c2.npz")).returncode == 0
+    assert cli_here(capfd, "enrol", str(model), *new, "--label", "NEW", "-o", str(tmp_path / "c2.npz")).returncode == 0
     enrolled = load_model(tmp_path / "c2.npz")
     assert enrolled.novelty_score == "combined" and enrolled.summary["novelty"]["distance_threshold"] == enrolled.novelty_distance_threshold
     assert enrolled.summary["novelty"]["score"] == "spectrum" and enrolled.novelty_threshold == float("inf")  # enrolment adds no ratio test
     assert enrolled.novelty_names == combined.novelty_names and enrolled.novelty_x is not None and enrolled.novelty_x.shape[1] == len(combined.novelty_names)
     assert enrolled.novelty_distance_threshold != combined.novelty_distance_threshold  # refitted with the new surface's slides
-    bad = run_cli("train", *known, "-o", str(tmp_path / "x.npz"), "--novelty", "cosine")
+    bad = cli_here(capfd, "train", *known, "-o", str(tmp_path / "x.npz"), "--novelty", "cosine")
     assert bad.returncode == 2 and "--novelty" in bad.stderr
 
 
