@@ -1,4 +1,7 @@
-"""`tactiled evaluate` end to end on a small simulated set, and the clustering pieces."""
+"""`tactiled evaluate` end to end on a small simulated set, and the clustering pieces.
+
+The commands run by main() in the test's process (cli_here): the same handlers, lines and files, without a new interpreter
+and worker pool for each."""
 
 from __future__ import annotations
 
@@ -6,10 +9,11 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from tactiled.learn.cluster import hungarian_accuracy, kmeans, som_clusters
 from tactiled.sim.simulate import write_dataset
-from tests.conftest import run_cli
+from tests.conftest import cli_here
 
 
 def test_hungarian_and_kmeans_metrics() -> None:
@@ -23,11 +27,11 @@ def test_hungarian_and_kmeans_metrics() -> None:
     assert hungarian_accuracy(np.array([1, 1, 0, 0]), np.array(["a", "a", "b", "b"])) == 1.0
 
 
-def test_evaluate_writes_all_six_experiments(tmp_path: Path) -> None:
+def test_evaluate_writes_all_six_experiments(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     data = tmp_path / "d"
     write_dataset(data, scene="robot", surfaces="3", files_per_surface=3, slides_per_file=3)
     report = tmp_path / "r"
-    res = run_cli("evaluate", *sorted(str(p) for p in data.glob("*.npz")), "--report", f"{report}/", "--quick", "--folds", "3", timeout=300)
+    res = cli_here(capfd, "evaluate", *sorted(str(p) for p in data.glob("*.npz")), "--report", f"{report}/", "--quick", "--folds", "3")
     assert res.returncode == 0, res.stderr
     assert res.stdout.startswith(f"{report}/report.md: 9 recordings")  # a clean path, whatever the folder's spelling
     out = json.loads((report / "report.json").read_text())
@@ -47,8 +51,8 @@ def test_evaluate_writes_all_six_experiments(tmp_path: Path) -> None:
     assert "expected calibration error" in md and (report / "reliability.png").stat().st_size > 10_000
 
 
-def test_evaluate_needs_ground_truth(tmp_path: Path) -> None:
-    res = run_cli("evaluate", str(tmp_path / "nope.npz"), "--report", str(tmp_path / "r"))
+def test_evaluate_needs_ground_truth(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    res = cli_here(capfd, "evaluate", str(tmp_path / "nope.npz"), "--report", str(tmp_path / "r"))
     assert res.returncode == 2 and "at least two readable recordings" in res.stderr
 
 
@@ -67,26 +71,26 @@ def _label_only(path: str, label: str | None) -> None:
     save_recording(path, replace(rec, slide_start=None, slide_stop=None, surface=None, ra_um=None, label=label))
 
 
-def test_features_refuse_recordings_of_two_rates_in_either_order(tmp_path: Path) -> None:
+def test_features_refuse_recordings_of_two_rates_in_either_order(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     fast = _files(tmp_path / "fast", surfaces="1")[0]
     slow = _files(tmp_path / "slow", surfaces="1", fs=2200.0)[0]
     for files in ([fast, slow], [slow, fast]):  # the first order raised from deep inside; the second wrote 2.2 kHz bands for both
         out = tmp_path / "f.npz"
-        res = run_cli("features", *files, "-o", str(out))
+        res = cli_here(capfd, "features", *files, "-o", str(out))
         lines = res.stderr.splitlines()  # train's check (tactiled.learn.train.check_recordings), one line
         assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith("tactiled: error: recordings differ in fs or channels ("), res.stderr
         assert f"{files[0]}: {'20000' if files[0] == fast else '2200'} Hz" in lines[0] and f"{files[1]}: " in lines[0], lines  # which files
         assert not out.exists()
 
 
-def test_evaluate_refuses_a_single_surface(tmp_path: Path) -> None:
+def test_evaluate_refuses_a_single_surface(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     report = tmp_path / "r"
-    res = run_cli("evaluate", *_files(tmp_path / "d", surfaces="1"), "--report", str(report), "--quick", "--experiments", "a")
+    res = cli_here(capfd, "evaluate", *_files(tmp_path / "d", surfaces="1"), "--report", str(report), "--quick", "--experiments", "a")
     assert res.returncode == 2 and res.stderr.splitlines()[-1].startswith("tactiled: error: evaluation needs at least two surfaces, got ['Ra"), res.stderr
     assert not (report / "report.md").exists()
 
 
-def test_evaluate_uses_label_only_recordings_and_names_one_without_ground_truth(tmp_path: Path) -> None:
+def test_evaluate_uses_label_only_recordings_and_names_one_without_ground_truth(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     files = _files(tmp_path / "d")
     for path in files[2:]:  # every recording of the second surface keeps only its file label
         _label_only(path, Path(path).name.split("_")[1])
@@ -95,7 +99,7 @@ def test_evaluate_uses_label_only_recordings_and_names_one_without_ground_truth(
     (tmp_path / "b" / next(p.name for p in (tmp_path / "b").glob("*.npz"))).rename(bare)
     _label_only(bare, None)
     report = tmp_path / "r"
-    res = run_cli("evaluate", *files, bare, "--report", str(report), "--quick", "--experiments", "a", "--folds", "2")
+    res = cli_here(capfd, "evaluate", *files, bare, "--report", str(report), "--quick", "--experiments", "a", "--folds", "2")
     assert res.returncode == 2, res.stderr  # the bare file was named and skipped
     assert f"tactiled: skipped: {bare}: no ground truth (neither per-slide surfaces nor a file label)" in res.stderr.splitlines()
     assert res.stdout.startswith(f"{report / 'report.md'}: 4 recordings")
@@ -103,9 +107,9 @@ def test_evaluate_uses_label_only_recordings_and_names_one_without_ground_truth(
     assert (out["files"], out["classifiers"]["surfaces"], out["classifiers"]["slides"]) == (4, 2, 4)
 
 
-def test_evaluate_sampling_rate_below_20_khz_and_the_folds_used(tmp_path: Path) -> None:
+def test_evaluate_sampling_rate_below_20_khz_and_the_folds_used(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     report = tmp_path / "r"
-    res = run_cli("evaluate", *_files(tmp_path / "d", fs=2200.0), "--report", str(report), "--quick", "--experiments", "c")
+    res = cli_here(capfd, "evaluate", *_files(tmp_path / "d", fs=2200.0), "--report", str(report), "--quick", "--experiments", "c")
     assert res.returncode == 0, res.stderr
     out = json.loads((report / "report.json").read_text())
     assert [r["fs"] for r in out["sampling_rate"]] == [2200.0, 550.0]  # the recordings' rate and a quarter of it
@@ -115,7 +119,7 @@ def test_evaluate_sampling_rate_below_20_khz_and_the_folds_used(tmp_path: Path) 
     assert "grouped 2-fold (5 asked for: the surface with fewest recordings has 2) cross-validation" in md and "| 550 Hz | 2 |" in md
 
 
-def test_evaluate_names_a_surface_whose_files_gave_no_slide(tmp_path: Path) -> None:
+def test_evaluate_names_a_surface_whose_files_gave_no_slide(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     """A surface named only by file labels of recordings where the detector found nothing (silence) is one line naming it,
     exit 2, with a line per such file; evaluate left it out without a word (an audit found it in train)."""
     from tactiled.files.recording import Recording, save_recording
@@ -125,7 +129,7 @@ def test_evaluate_names_a_surface_whose_files_gave_no_slide(tmp_path: Path) -> N
     for k, path in enumerate(silent):  # silence, not the same samples twice (that is refused as one recording given twice)
         save_recording(path, Recording(samples=np.full((40_000, 2), k, np.int16), fs=20_000.0, label="Glass"))
     report = tmp_path / "r"
-    res = run_cli("evaluate", *files, *silent, "--report", str(report), "--quick", "--experiments", "a", "--folds", "2")
+    res = cli_here(capfd, "evaluate", *files, *silent, "--report", str(report), "--quick", "--experiments", "a", "--folds", "2")
     lines = res.stderr.splitlines()
     assert res.returncode == 2 and lines[-1] == ("tactiled: error: surface(s) Glass: no slide detected in any of their recordings, "
                                                  "so nothing to evaluate them on"), res.stderr
