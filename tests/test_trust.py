@@ -1,4 +1,7 @@
-"""What a label's numbers mean: calibrated confidence, novelty (unknown surfaces), and training that refuses what it cannot estimate."""
+"""What a label's numbers mean: calibrated confidence, novelty (unknown surfaces), and training that refuses what it cannot estimate.
+
+The commands run by main() in the test's process (cli_here): the same handlers, lines and files, without a new interpreter
+and worker pool for each."""
 
 from __future__ import annotations
 
@@ -15,7 +18,7 @@ from tactiled.learn.model import Model, fit_pipeline, load_model, novelty_scores
 from tactiled.learn.score import calibration_scores
 from tactiled.learn.search import fit_calibration, fit_novelty, held_out_rejected
 from tactiled.sim.simulate import write_dataset
-from tests.conftest import run_cli
+from tests.conftest import cli_here
 
 NAMES = ("film1.psd.20-200Hz.power", "film1.psd.200-2000Hz.power", "film1.tex.centroid", "film1.tex.kurtosis")
 
@@ -136,8 +139,8 @@ def test_the_threshold_weighs_untaught_slides_by_their_expected_share() -> None:
     assert fit_novelty(z, np.arange(24) % 4, np.repeat([0, 1], 12), 3, untaught=0.3)[1]["untaught"] == 0.3
 
 
-def test_train_refuses_a_share_of_untaught_slides_outside_0_1(tmp_path: Path) -> None:
-    res = run_cli("train", str(tmp_path / "none.npz"), "-o", str(tmp_path / "m.npz"), "--untaught-share", "1.5")
+def test_train_refuses_a_share_of_untaught_slides_outside_0_1(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    res = cli_here(capfd, "train", str(tmp_path / "none.npz"), "-o", str(tmp_path / "m.npz"), "--untaught-share", "1.5")
     assert res.returncode == 2 and "--untaught-share" in res.stderr and len(res.stderr.strip().splitlines()) <= 2
 
 
@@ -393,23 +396,23 @@ def test_the_ece_a_calibrated_model_would_show_is_large_on_few_mid_range_slides_
     assert calibration_scores(np.array([]), np.array([], dtype=bool))["ece_calibrated"] is None
 
 
-def test_train_and_evaluate_refuse_a_surface_with_one_recording_train_allows_it_by_slide(tmp_path: Path) -> None:
+def test_train_and_evaluate_refuse_a_surface_with_one_recording_train_allows_it_by_slide(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     data = tmp_path / "data"
     write_dataset(data, scene="robot", surfaces="3", files_per_surface=1, slides_per_file=4, fs=2200.0, channels=1)
     files = sorted(str(p) for p in data.glob("*.npz"))
-    res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick")
+    res = cli_here(capfd, "train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick")
     assert res.returncode == 2 and not (tmp_path / "m.npz").exists()
     error = res.stderr.strip().splitlines()[-1]
     assert "single recording" in error and "Ra0.44" in error and "--group-by slide" in error
-    res = run_cli("train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick", "--group-by", "slide")
+    res = cli_here(capfd, "train", *files, "-o", str(tmp_path / "m.npz"), "--folds", "2", "--method", "quick", "--group-by", "slide")
     assert res.returncode == 0, res.stderr
     assert "optimistic" in res.stderr and "confidence: calibrated" in res.stdout and load_model(tmp_path / "m.npz").novelty_x is not None
-    res = run_cli("evaluate", *files, "--report", str(tmp_path / "report"), "--quick", "--experiments", "a")  # it printed 0.0 % for all
+    res = cli_here(capfd, "evaluate", *files, "--report", str(tmp_path / "report"), "--quick", "--experiments", "a")  # it printed 0.0 % for all
     assert res.returncode == 2 and not (tmp_path / "report").exists()
     assert "single recording" in res.stderr.strip().splitlines()[-1] and "--group-by" not in res.stderr
 
 
-def test_train_and_evaluate_refuse_a_recording_given_twice(tmp_path: Path) -> None:
+def test_train_and_evaluate_refuse_a_recording_given_twice(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     """The same samples under two names (a copy, or one file matched by two globs): grouped folds would test a recording on
     its copy (cross-validation then promised 100 % on the hand scene), so train and evaluate stop with one line naming both."""
     data = tmp_path / "data"
@@ -419,19 +422,19 @@ def test_train_and_evaluate_refuse_a_recording_given_twice(tmp_path: Path) -> No
     copy.write_bytes(files[0].read_bytes())
     argv = [*map(str, files), str(copy)]
     for command in (["train", *argv, "-o", str(tmp_path / "m.npz")], ["evaluate", *argv, "--report", str(tmp_path / "r")]):
-        res = run_cli(*command)
+        res = cli_here(capfd, *command)
         line = res.stderr.strip().splitlines()[-1]
         assert res.returncode == 2 and "hold the same samples" in line and files[0].name in line and "copy.npz" in line, res.stderr
     assert not (tmp_path / "m.npz").exists() and not (tmp_path / "r").exists()
 
 
-def test_train_on_unlabelled_recordings_says_so_at_once(tmp_path: Path) -> None:
+def test_train_on_unlabelled_recordings_says_so_at_once(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     from tactiled.files.recording import Recording, save_recording
 
     rng = np.random.default_rng(0)
     for i in range(2):
         save_recording(tmp_path / f"u{i}.npz", Recording(samples=(rng.standard_normal((22000, 1)) * 100).astype(np.int16), fs=2200.0))
-    res = run_cli("train", str(tmp_path / "u0.npz"), str(tmp_path / "u1.npz"), "-o", str(tmp_path / "m.npz"))
+    res = cli_here(capfd, "train", str(tmp_path / "u0.npz"), str(tmp_path / "u1.npz"), "-o", str(tmp_path / "m.npz"))
     assert res.returncode == 2 and "no labelled slides" in res.stderr.strip().splitlines()[-1]
 
 
