@@ -97,8 +97,10 @@ def test_run_record_marks_the_unplug_and_its_replay_gives_the_live_daemons_event
         asyncio.run(main())
     assert daemon.recording_error is None and not daemon.state.overloaded
     ends = [e for e in seen if isinstance(e, SlideEnded)]
-    assert [e.reason for e in ends] == ["disconnected", "quiet"], ends
+    last = {e.slide_id: e.reason for e in ends}  # a slide's last end (on a loaded machine the board may overrun: a gap in
+    assert list(last.values()) == ["disconnected", "quiet"], ends  # the second slide is a dip, an end withdrawn and made again)
     cut = ends[0]
+    assert cut.reason == "disconnected", ends
     assert any(isinstance(e, SlideResult) and e.final and e.slide_id == cut.slide_id and e.quality["windows"] >= 1 for e in seen)
 
     rec = load_recording(out)

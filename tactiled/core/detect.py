@@ -62,7 +62,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.config import DetectorConfig
-from tactiled.core.events import DetectorEvent, Offset, Onset, Pause, Resume
+from tactiled.core.events import DetectorEvent, Loud, Offset, Onset, Pause, Quiet, Resume
 from tactiled.core.spikes import median_last
 
 CHUNK = 16384  # samples per step of the envelope's front end (its arrays stay in a core's cache)
@@ -286,7 +286,9 @@ class SlideDetector:
                     at += hop
                     continue
                 if sliding and smooth >= off * floor and not paused and at + hop - self._start < longest:  # a slide goes on (as _in_slide)
-                    self._quiet_since = None
+                    if self._quiet_since is not None:  # after a dip
+                        self._quiet_since = None
+                        events.append(Loud(self._start, at + hop))
                     recent.append((at, smooth))
                     envelope = env
                     at += hop
@@ -464,22 +466,25 @@ class SlideDetector:
         c = self.c
         assert self._floor is not None
         end = at + self.hop
+        events: list[DetectorEvent] = []
         if env < c.off_factor * self._floor:
             if self._quiet_since is None:
                 self._quiet_since = at
+                events.append(Quiet(self._start, at))
             if end - self._quiet_since >= c.off_hold_s * self.fs:
-                return self._finish_at(self._start, self._quiet_since, "quiet")
+                return events + self._finish_at(self._start, self._quiet_since, "quiet")
             if (not self._paused and end - self._quiet_since >= self._end_hold
                     and self._quiet_since - self._start >= c.min_slide_s * self.fs):
                 self._paused = True
                 self._recent.append((at, env))
-                return [Pause(self._start, self._quiet_since)]
+                return [*events, Pause(self._start, self._quiet_since)]
         else:
-            events: list[DetectorEvent] = []
             if self._paused:
                 assert self._quiet_since is not None
                 events.append(Resume(self._start, self._quiet_since))
                 self._paused = False
+            elif self._quiet_since is not None:  # a dip shorter than the pause
+                events.append(Loud(self._start))
             self._quiet_since = None
             if c.max_slide_s > 0 and end - self._start >= c.max_slide_s * self.fs:
                 return events + self._finish_at(self._start, end, "max_duration")
@@ -487,7 +492,7 @@ class SlideDetector:
                 self._recent.append((at, env))
                 return events
         self._recent.append((at, env))
-        return []
+        return events
 
     def _finish_at(self, start: int, stop: int, reason: str) -> list[DetectorEvent]:
         self.sliding = False

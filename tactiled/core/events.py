@@ -2,8 +2,9 @@
 
 Two levels, both in absolute sample indices (the sensor's index on the host's timeline, samples at ``fs``):
 
-- the **detector's** decisions (:class:`Onset`, :class:`Offset`), from tactiled/core/detect.py: where a slide
-  began and ended, and the index up to which the detector had seen samples when it decided (``at``);
+- the **detector's** decisions (:class:`Onset`, :class:`Offset`; :class:`Quiet`, :class:`Loud`, :class:`Pause` and
+  :class:`Resume` within a slide), from tactiled/core/detect.py: where a slide began and ended, and the index up to
+  which the detector had seen samples when it decided (``at``);
 - the **pipeline's** events (:class:`SlideStarted`, :class:`SlideEnded`, :class:`SlideResult`), from
   tactiled/core/pipeline.py: numbered slides and their labels, what the daemon publishes (the wire messages
   of ``tactiled_client.schema``: ``Slide`` and ``Roughness``) and what replay returns.
@@ -64,7 +65,27 @@ class Resume:
     at: int = -1
 
 
-DetectorEvent = Onset | Offset | Pause | Resume
+@dataclass(frozen=True)
+class Quiet:
+    """A slide in progress went quiet at ``stop`` (its end, or a dip: a :class:`Pause`, an :class:`Offset` or a
+    :class:`Loud` follows); ``at`` as in :class:`Onset`. The pipeline holds back the provisional labels of windows that
+    reach past ``stop`` until it knows which."""
+
+    start: int
+    stop: int
+    at: int = -1
+
+
+@dataclass(frozen=True)
+class Loud:
+    """The quiet of a slide in progress (its :class:`Quiet`) ended before a :class:`Pause`: a dip, and the slide goes on;
+    ``at`` as in :class:`Onset`."""
+
+    start: int
+    at: int = -1
+
+
+DetectorEvent = Onset | Offset | Pause | Resume | Quiet | Loud
 
 
 @dataclass

@@ -10,7 +10,9 @@ far are combined (:meth:`Classifier.assess_many`: probabilities, the calibrated 
 top class is right, and the novelty); when the confidence first reaches
 ``classifier.provisional_confidence`` (and again whenever the leading label changes
 while above it) and the slide is not novel, a provisional :class:`SlideResult` (``final=False``)
-is emitted. When the slide ends, the windows that lie inside it are fused into the final
+is emitted; not from windows that reach into a quiet of the slide (:class:`~tactiled.core.events.Quiet`) until the
+slide turns out to go on (:class:`~tactiled.core.events.Loud`): a window past the slide's end would give its last
+provisional label from the lift-off. When the slide ends, the windows that lie inside it are fused into the final
 result. The end is published as soon as the detector's short quiet (:class:`~tactiled.core.events.Pause`,
 ``detector.end_hold_s``) says it probably came, not after the whole ``off_hold_s``: if the slide goes on, a
 :class:`SlideResumed` withdraws that end and label, and a new pair follows when it really ends. In the final result, a novelty above 1 gives no label, with
@@ -33,7 +35,20 @@ import numpy.typing as npt
 from tactiled.config import Config
 from tactiled.core.analysis import Analyser, AnalysisSettings, WindowResult
 from tactiled.core.detect import SlideDetector
-from tactiled.core.events import DetectorEvent, Offset, Onset, Pause, PipelineEvent, Resume, SlideEnded, SlideResult, SlideResumed, SlideStarted
+from tactiled.core.events import (
+    DetectorEvent,
+    Loud,
+    Offset,
+    Onset,
+    Pause,
+    PipelineEvent,
+    Quiet,
+    Resume,
+    SlideEnded,
+    SlideResult,
+    SlideResumed,
+    SlideStarted,
+)
 from tactiled.core.ringbuffer import HeldSamples, RingBuffer
 from tactiled.errors import OverwrittenError, WindowError
 
@@ -136,6 +151,8 @@ class Pipeline:
         self._next: tuple[int, int] | None = None  # the next window of the slide in progress
         self._provisional: str | None = None
         self._paused: SlideResult | None = None  # the final result published at a Pause, while the quiet lasts
+        self._quiet: int | None = None  # where the slide in progress went quiet (a Quiet not yet followed by Loud, Pause or Offset)
+        self._held = 0  # usable windows since then, whose provisional results wait for the quiet to turn out a dip
 
     @property
     def slides(self) -> int:
@@ -299,20 +316,28 @@ class Pipeline:
         for ev in detector_events:
             # windows the ring held when the detector decided come first: the same order whatever the block size
             events += self._analyse_ready(until=ev.at if ev.at >= 0 else None)
-            if isinstance(ev, Onset):
+            if isinstance(ev, Quiet):
+                self._quiet, self._held = ev.stop, 0
+            elif isinstance(ev, Loud):  # a dip: the windows held over it are the slide's, and get their provisional results
+                held, self._quiet, self._held = self._held, None, 0
+                events += self._provisional_results(time.perf_counter(), held)
+            elif isinstance(ev, Onset):
                 self._slide_id += 1
                 self._onset = ev.start
                 self._windows = []
                 self._provisional = None
+                self._quiet, self._held = None, 0
                 self._next = self.settings.first_span(ev.start, self.fs)
                 events.append(SlideStarted(self._slide_id, ev.start))
                 events += self._analyse_ready(until=ev.at if ev.at >= 0 else None)
             elif isinstance(ev, Pause):
+                self._held = 0  # windows past the slide's end: no provisional label from them
                 events.append(SlideEnded(self._slide_id, ev.start, ev.stop, "quiet"))
                 self._paused = self._final(ev.start, ev.stop)
                 self.counts.add(self._paused)
                 events.append(self._paused)
             elif isinstance(ev, Resume):
+                self._quiet, self._held = None, 0
                 if self._paused is not None:
                     self.counts.withdraw(self._paused)
                     events.append(SlideResumed(self._slide_id, ev.start, ev.stop))
@@ -330,6 +355,7 @@ class Pipeline:
                         events.append(final)
                 self._onset = None
                 self._next = None
+                self._quiet, self._held = None, 0
                 self._take_pending_model()
                 self._windows = []
         return events
@@ -404,6 +430,9 @@ class Pipeline:
         analysed), in order: the slide's windows up to each assessed in one call (offline, a block holds many; the daemon, one)."""
         if (self.model is None or self._onset is None or self.provisional_confidence >= 1.0 or self._paused is not None
                 or not fresh):
+            return []
+        if self._quiet is not None:  # the windows reach into a quiet that may be the slide's end: held until it is known
+            self._held += fresh
             return []
         used = [w for w in self._windows if w.usable]
         ends = range(len(used) - fresh + 1, len(used) + 1)
