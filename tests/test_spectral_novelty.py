@@ -18,7 +18,7 @@ from tactiled.errors import ModelError
 from tactiled.learn.model import default_model_path, load_model, nearest_surface_distances
 from tactiled.learn.search import fit_novelty
 from tactiled.sim.simulate import write_dataset
-from tests.conftest import run_cli
+from tests.conftest import cli_here
 
 NAMES = family_names("psd", 2, 20_000.0)
 
@@ -81,19 +81,21 @@ def grades_and_gratings(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path,
             "grating": ("robot,grating", "G1.00mm", "3", "1")}
     for name, (scene, surfaces, seed, files) in sets.items():
         write_dataset(root / name, scene=scene, surfaces=surfaces, seed=int(seed), files_per_surface=int(files), slides_per_file=3)
-    res = run_cli("train", *map(str, sorted((root / "train").glob("*.npz"))), "-o", str(root / "m.npz"), "--method", "quick", "--folds", "3")
+    # train and replay by main() in the test's process (cli_here): the same handlers, lines and files, without a new interpreter each
+    res = cli_here(None, "train", *map(str, sorted((root / "train").glob("*.npz"))), "-o", str(root / "m.npz"), "--method", "quick", "--folds", "3")
     assert res.returncode == 0, res.stderr
     assert "whose spectral shape is farther from every taught surface" in res.stdout
     return root / "m.npz", root / "train", root / "known", root / "grating"
 
 
-def _finals(model: Path, folder: Path) -> list[dict[str, Any]]:
-    res = run_cli("replay", "--json", "--model", str(model), *map(str, sorted(folder.glob("*.npz"))))
+def _finals(model: Path, folder: Path, capfd: pytest.CaptureFixture[str]) -> list[dict[str, Any]]:
+    res = cli_here(capfd, "replay", "--json", "--model", str(model), *map(str, sorted(folder.glob("*.npz"))))
     assert res.returncode == 0, res.stderr
     return [m for m in map(json.loads, res.stdout.splitlines()) if m.get("final")]
 
 
-def test_a_grating_comes_out_unknown_and_new_recordings_of_taught_grades_keep_their_labels(grades_and_gratings: tuple[Path, ...]) -> None:
+def test_a_grating_comes_out_unknown_and_new_recordings_of_taught_grades_keep_their_labels(grades_and_gratings: tuple[Path, ...],
+                                                                                          capfd: pytest.CaptureFixture[str]) -> None:
     """End to end: a model of three grades, with train's defaults, replayed on a surface of another family (a 1 mm grating,
     whose spectrum has lines no grade has; a fine one, 0.1 mm, has the shape of a grade here and is not caught) and on new
     recordings of its own; every message carries the novelty."""
@@ -101,7 +103,7 @@ def test_a_grating_comes_out_unknown_and_new_recordings_of_taught_grades_keep_th
     loaded = load_model(model)
     assert loaded.novelty_names is not None and loaded.summary["novelty"]["score"] == "spectrum"
     assert set(loaded.inputs) | set(loaded.novelty_names) == set(loaded.names)
-    far, near = _finals(model, grating), _finals(model, known)
+    far, near = _finals(model, grating, capfd), _finals(model, known, capfd)
     assert len(far) == 3 and len(near) == 9 and all(m["novelty"] is not None and math.isfinite(m["novelty"]) for m in far + near)
     assert all(m["label"] is None and m["reason"] == "unknown_surface" and m["novelty"] > 1 for m in far)
     assert sum(m["reason"] == "unknown_surface" for m in near) <= 1 and sum(m["label"] is not None for m in near) >= 8
