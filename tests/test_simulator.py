@@ -12,7 +12,7 @@ import pytest
 
 from tactiled.files.recording import load_recording
 from tactiled.sim.physics import SensorSimulator, SimParams, Surface, _self_affine_profile, default_surfaces, simulate_file
-from tests.conftest import run_cli
+from tests.conftest import cli_here
 
 QUIET = dict(noise_v=0.0, mains_v=0.0, drift_v=0.0, spike_rate_hz=0.0, stick_slip=False)
 
@@ -99,8 +99,9 @@ def test_a_virtual_board_of_a_float_scene_sends_its_signal_in_counts() -> None:
     assert np.abs(counts * params.volts_per_count - expected).max() <= params.volts_per_count
 
 
-def test_dataset_cli(tmp_path: Path) -> None:
-    res = run_cli("simulate", "dataset", "--out", str(tmp_path), "--surfaces", "Ra0.44,Ra4.43", "--files-per-surface", "1",
+def test_dataset_cli(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    # by main() in the test's process (cli_here): the same handler, lines and files; --jobs 2 still on worker processes
+    res = cli_here(capfd, "simulate", "dataset", "--out", str(tmp_path), "--surfaces", "Ra0.44,Ra4.43", "--files-per-surface", "1",
                   "--slides-per-file", "2", "--scene", "robot")
     assert res.returncode == 0, res.stderr
     files = sorted(tmp_path.glob("*.npz"))
@@ -109,11 +110,11 @@ def test_dataset_cli(tmp_path: Path) -> None:
     assert rec.surface is not None and list(rec.surface) == ["Ra0.44", "Ra0.44"] and rec.meta["simulator"]["mode"] == "robot"
     assert np.all(rec.slide_stop > rec.slide_start)
     # worker processes write the same files, and say each surface done in order
-    two = run_cli("simulate", "dataset", "--out", str(tmp_path / "two"), "--surfaces", "Ra0.44,Ra4.43", "--files-per-surface", "1",
+    two = cli_here(capfd, "simulate", "dataset", "--out", str(tmp_path / "two"), "--surfaces", "Ra0.44,Ra4.43", "--files-per-surface", "1",
                   "--slides-per-file", "2", "--scene", "robot", "--jobs", "2")
     assert two.returncode == 0 and two.stderr.splitlines() == ["simulate: Ra0.44 (1/2)", "simulate: Ra4.43 (2/2)"], two.stderr
     assert [f.read_bytes() for f in files] == [(tmp_path / "two" / f.name).read_bytes() for f in files]
-    bad = run_cli("simulate", "dataset", "--out", str(tmp_path), "--surfaces", "Ra9")
+    bad = cli_here(capfd, "simulate", "dataset", "--out", str(tmp_path), "--surfaces", "Ra9")
     assert bad.returncode == 2 and "unknown surface 'Ra9'" in bad.stderr
 
 
