@@ -31,7 +31,7 @@ from tactiled.learn.feature_table import load_features
 from tactiled.learn.model import load_model, softmax
 from tactiled.service.publish import Publisher
 from tactiled.sim.simulate import write_dataset
-from tests.conftest import REPO, run_cli, tactiled_cmd, usage_error, wait_for
+from tests.conftest import REPO, cli_here, run_cli, tactiled_cmd, usage_error, wait_for
 
 CORPUS = REPO / "tests" / "hostile"
 GOOD_REC, GOOD_MODEL = str(CORPUS / "rec-good.npz"), str(CORPUS / "model-good.npz")
@@ -126,12 +126,14 @@ def labelled_good(tmp_path_factory: pytest.TempPathFactory) -> str:
 
 
 @pytest.mark.parametrize("command", ["replay", "features", "score"])
-def test_multi_file_run_names_each_hostile_recording_once_and_goes_on(command: str, labelled_good: str, tmp_path: Path) -> None:
-    """Every hostile recording (the 2 kB bzip2 bomb among them) is one line naming it; the valid file after them is still processed; exit 2."""
+def test_multi_file_run_names_each_hostile_recording_once_and_goes_on(command: str, labelled_good: str, tmp_path: Path,
+                                                                     capfd: pytest.CaptureFixture[str]) -> None:
+    """Every hostile recording (the 2 kB bzip2 bomb among them) is one line naming it; the valid file after them is still processed; exit 2.
+    (By main() in the test's process, cli_here: the same handler and lines.)"""
     files = [str(CORPUS / n) for n in RECORDINGS] + [labelled_good]
     argv = {"replay": ["replay", "--no-model", *files], "features": ["features", *files, "-o", str(tmp_path / "f.npz")],
             "score": ["score", GOOD_MODEL, *files]}[command]
-    res = run_cli(*argv, timeout=120)
+    res = cli_here(capfd, *argv)
     assert res.returncode == 2, res.stderr[-3000:]
     errors = _errors(res)
     assert len(errors) == len(RECORDINGS), errors
@@ -145,9 +147,9 @@ def test_multi_file_run_names_each_hostile_recording_once_and_goes_on(command: s
         assert res.stdout.startswith("accuracy ") and "of 1 true slides" in res.stdout
 
 
-def test_train_names_the_bomb_and_writes_nothing(labelled_good: str, tmp_path: Path) -> None:
+def test_train_names_the_bomb_and_writes_nothing(labelled_good: str, tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "m.npz"
-    res = run_cli("train", str(CORPUS / "rec-bomb-bzip2.npz"), labelled_good, "-o", str(out), "--method", "quick")
+    res = cli_here(capfd, "train", str(CORPUS / "rec-bomb-bzip2.npz"), labelled_good, "-o", str(out), "--method", "quick")
     assert res.returncode == 2 and not out.exists()
     bomb = CORPUS / "rec-bomb-bzip2.npz"
     named = [line for line in res.stderr.splitlines() if str(bomb) in line]
@@ -155,10 +157,10 @@ def test_train_names_the_bomb_and_writes_nothing(labelled_good: str, tmp_path: P
     assert _errors(res) == ["tactiled: error: unreadable recordings (listed above); nothing written"]
 
 
-def test_evaluate_skips_the_bomb_reports_on_the_rest_and_exits_2(tmp_path: Path) -> None:
+def test_evaluate_skips_the_bomb_reports_on_the_rest_and_exits_2(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     files = [str(p) for p in write_dataset(tmp_path / "sim", scene="robot", surfaces="2", files_per_surface=2, slides_per_file=2)]
-    res = run_cli("evaluate", str(CORPUS / "rec-bomb-bzip2.npz"), *files, "--report", str(tmp_path / "rep"), "--experiments", "e", "--quick",
-                  "--folds", "2")
+    res = cli_here(capfd, "evaluate", str(CORPUS / "rec-bomb-bzip2.npz"), *files, "--report", str(tmp_path / "rep"), "--experiments", "e",
+                   "--quick", "--folds", "2")  # by main() in this process: the same handler and lines
     assert res.returncode == 2
     errors = _errors(res)
     assert len(errors) == 1 and errors[0].startswith(f"tactiled: skipped: {CORPUS / 'rec-bomb-bzip2.npz'}: samples: compression method bzip2")
@@ -166,18 +168,19 @@ def test_evaluate_skips_the_bomb_reports_on_the_rest_and_exits_2(tmp_path: Path)
 
 
 @pytest.mark.parametrize("name", ["model-temperature-zero.npz", "model-header-nested.npz", "model-svm-huge.npz"])
-def test_hostile_model_is_one_line_for_replay_score_and_run(name: str, tmp_path: Path) -> None:
+def test_hostile_model_is_one_line_for_replay_score_and_run(name: str, tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     path = str(CORPUS / name)
     for argv in (["replay", "--model", path, GOOD_REC], ["score", path, GOOD_REC],
                  ["run", "--model", path, "--port", str(tmp_path / "no-port"), "--publish", f"ipc://{tmp_path}/pub"]):
-        res = run_cli(*argv, timeout=60)
+        # replay and score by main() in this process (cli_here: the same handler and lines); run, the daemon, as a process
+        res = run_cli(*argv, timeout=60) if argv[0] == "run" else cli_here(capfd, *argv)
         errors = _errors(res)
         assert res.returncode == 2 and len(errors) == 1 and f"{path}: {EXPECTED[name]}" in errors[0], (argv, res.stderr[-2000:])
 
 
 @pytest.mark.parametrize("name", CONFIGS)
-def test_hostile_config_is_one_line_naming_the_key_for_check_config(name: str) -> None:
-    res = run_cli("check-config", str(CORPUS / name), timeout=60)
+def test_hostile_config_is_one_line_naming_the_key_for_check_config(name: str, capfd: pytest.CaptureFixture[str]) -> None:
+    res = cli_here(capfd, "check-config", str(CORPUS / name))  # by main() in this process: the same handler and lines
     errors = _errors(res)
     assert res.returncode == 2 and len(errors) == 1 and errors[0].startswith(f"tactiled: error: {CORPUS / name}: {EXPECTED[name]}"), res.stderr
 
@@ -334,9 +337,9 @@ def test_confidences_are_always_probabilities(z: list[float], temperature: float
     assert np.all(np.isfinite(p)) and np.all((p >= 0) & (p <= 1)) and abs(p.sum() - 1) < 1e-9
 
 
-def test_a_model_that_loads_labels_a_slide(tmp_path: Path) -> None:
+def test_a_model_that_loads_labels_a_slide(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     """The corpus' valid model gives finite confidences in [0, 1] on a real recording (replay --json is valid JSON)."""
-    res = run_cli("replay", "--json", "--model", GOOD_MODEL, str(REPO / "tests" / "hostile" / "rec-good.npz"))
+    res = cli_here(capfd, "replay", "--json", "--model", GOOD_MODEL, str(REPO / "tests" / "hostile" / "rec-good.npz"))
     assert res.returncode == 0, res.stderr
     for line in res.stdout.splitlines():
         obj = json.loads(line)
@@ -474,22 +477,22 @@ def test_run_record_never_replaces_a_file_unasked_nor_writes_a_device(target: st
         assert out.read_bytes() == b"a recording a lab cares about"
 
 
-def test_a_recording_given_as_a_model_is_named_as_such() -> None:
-    res = run_cli("replay", "--model", str(CORPUS / "rec-good.npz"), str(CORPUS / "rec-good.npz"), timeout=60)
+def test_a_recording_given_as_a_model_is_named_as_such(capfd: pytest.CaptureFixture[str]) -> None:
+    res = cli_here(capfd, "replay", "--model", str(CORPUS / "rec-good.npz"), str(CORPUS / "rec-good.npz"))  # by main() in this process
     assert res.returncode == 2 and "a recording (it holds samples), not a model file" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
 
 
-def test_a_rate_too_low_for_the_features_is_one_line_naming_the_file(tmp_path: Path) -> None:
+def test_a_rate_too_low_for_the_features_is_one_line_naming_the_file(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     from tactiled.files.recording import Recording, save_recording
 
     save_recording(tmp_path / "slow.npz", Recording((np.random.default_rng(0).standard_normal((4000, 1)) * 100).astype(np.int16), 40.0, label="a"))
-    res = run_cli("replay", "--no-model", str(tmp_path / "slow.npz"), str(CORPUS / "rec-good.npz"), timeout=60)
+    res = cli_here(capfd, "replay", "--no-model", str(tmp_path / "slow.npz"), str(CORPUS / "rec-good.npz"))  # by main() in this process
     assert res.returncode == 2 and "Traceback" not in res.stderr
     errors = [line for line in res.stderr.splitlines() if "error" in line]
     assert len(errors) == 1 and "slow.npz" in errors[0] and "is too short for features.families" in errors[0] and "40 Hz" in errors[0]
     assert "rec-good.npz:" in res.stdout  # the other file is still replayed
-    res = run_cli("features", str(tmp_path / "slow.npz"), "-o", str(tmp_path / "f.npz"), timeout=60)
+    res = cli_here(capfd, "features", str(tmp_path / "slow.npz"), "-o", str(tmp_path / "f.npz"))
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and "slow.npz: " in lines[0] and "40 Hz" in lines[0], res.stderr
 
@@ -510,9 +513,9 @@ def test_config_files_that_are_not_regular_files_are_refused_by_check_config_and
         assert f"{section}.{key}: {path}" in res.stderr and ("not a regular file" in res.stderr or "does not exist" in res.stderr)
 
 
-def test_a_model_given_as_a_recording_is_named_as_such() -> None:
+def test_a_model_given_as_a_recording_is_named_as_such(capfd: pytest.CaptureFixture[str]) -> None:
     from tactiled.learn.model import default_model_path
 
-    res = run_cli("replay", str(default_model_path()), timeout=60)
+    res = cli_here(capfd, "replay", str(default_model_path()))  # by main() in this process: the same handler and lines
     assert res.returncode == 2 and "a model or features file (it has a header and no samples), not a recording" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
