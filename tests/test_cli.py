@@ -17,7 +17,7 @@ from tactiled.cli.main import build_parser, main, subcommands
 from tactiled.errors import TactiledError
 from tactiled.learn.model import load_model
 from tactiled.sim.physics import pick_surfaces
-from tests.conftest import REPO, run_cli, tactiled_cmd, usage_error
+from tests.conftest import REPO, cli_here, tactiled_cmd, usage_error
 
 COMMANDS = subcommands(build_parser())
 
@@ -149,7 +149,7 @@ def test_simulate_and_train_give_the_same_fingerprint_in_another_process(tmp_pat
     assert load_model(tmp_path / "m1.npz").fingerprint == fingerprints[0][0]  # the file written loads back as the model printed
 
 
-def test_a_model_says_once_that_the_configs_analysis_sections_are_not_used(tmp_path: Path) -> None:
+def test_a_model_says_once_that_the_configs_analysis_sections_are_not_used(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     from tactiled.files.recording import Recording, save_recording
     from tactiled.sim.physics import SimParams, simulate_file
 
@@ -160,11 +160,11 @@ def test_a_model_says_once_that_the_configs_analysis_sections_are_not_used(tmp_p
         save_recording(f, Recording(sim.samples, params.fs, params.volts_per_count))
     config = tmp_path / "c.toml"
     config.write_text("[window]\nduration_s = 0.25\n\n[spikes]\nmethod = \"none\"\n")
-    res = run_cli("replay", "--config", str(config), *files)
+    res = cli_here(capfd, "replay", "--config", str(config), *files)  # by main() in this process: the same handler and lines
     assert res.returncode == 0, res.stderr
     said = [line for line in res.stderr.splitlines() if "its own settings" in line]
     assert len(said) == 1 and said[0].endswith("the config's [window], [spikes]"), res.stderr
-    plain = run_cli("replay", *files)
+    plain = cli_here(capfd, "replay", *files)
     assert plain.returncode == 0 and "its own settings" not in plain.stderr
 
 
@@ -174,8 +174,10 @@ def test_a_model_says_once_that_the_configs_analysis_sections_are_not_used(tmp_p
     (("features", "tests/hostile/rec-good.npz", "-o", "/no/such/folder/f.npz"), "folder /no/such/folder does not exist"),
     (("train", "tests/hostile/rec-good.npz", "-o", "/no/such/folder/m.npz"), "folder /no/such/folder does not exist"),
 ])
-def test_first_day_mistakes_get_one_line_before_any_work(argv: tuple[str, ...], message: str) -> None:
-    res = run_cli(*argv, timeout=60)
+def test_first_day_mistakes_get_one_line_before_any_work(argv: tuple[str, ...], message: str, capfd: pytest.CaptureFixture[str],
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(REPO)  # the paths are the checkout's
+    res = cli_here(capfd, *argv)  # by main() in this process: the same handler and line
     assert res.returncode == 2 and message in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
 
 
