@@ -20,7 +20,7 @@ from tactiled.files.recording import load_recording
 from tactiled.service.recorder import RecordingSink
 from tactiled.sim.physics import SensorSimulator, SimParams, Surface, default_surfaces
 from tactiled.sim.virtualboard import VirtualBoard, read_log
-from tests.conftest import REPO, run_cli, running, tactiled_cmd, wait_for
+from tests.conftest import REPO, cli_here, run_cli, running, tactiled_cmd, wait_for
 
 SURFACES = default_surfaces()[:2]
 
@@ -111,29 +111,29 @@ def test_record_keeps_every_intact_sample_through_faults_and_unplug(tmp_path: Pa
     assert any(e["event"] == "unplug" for e in events) and any(e["event"] == "corrupt" for e in events)
 
 
-def test_record_missing_port_is_one_line_and_no_file(tmp_path: Path) -> None:
+def test_record_missing_port_is_one_line_and_no_file(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "x.npz"
-    res = run_cli("record", "--port", str(tmp_path / "nope"), "--seconds", "1", "-o", str(out))
+    res = cli_here(capfd, "record", "--port", str(tmp_path / "nope"), "--seconds", "1", "-o", str(out))
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [f"tactiled: error: {tmp_path / 'nope'}: no such serial device"]
     assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("label", ["", "a\nb"])
-def test_record_refuses_a_label_its_file_could_not_load_with(tmp_path: Path, label: str) -> None:
+def test_record_refuses_a_label_its_file_could_not_load_with(tmp_path: Path, label: str, capfd: pytest.CaptureFixture[str]) -> None:
     """A recording's label follows the surface-name rule (docs/recordings.md); record wrote such a file, which train,
     score and replay then refused."""
     out = tmp_path / "x.npz"
-    res = run_cli("record", "--port", str(tmp_path / "nope"), "--seconds", "1", "--label", label, "-o", str(out))
+    res = cli_here(capfd, "record", "--port", str(tmp_path / "nope"), "--seconds", "1", "--label", label, "-o", str(out))
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith("tactiled: error: --label: "), res.stderr
     assert list(tmp_path.iterdir()) == []
 
 
-def test_record_bad_config_value(tmp_path: Path) -> None:
+def test_record_bad_config_value(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     cfg = tmp_path / "c.toml"
     cfg.write_text("[sensor]\nchannels = 0\n")
-    res = run_cli("record", "--config", str(cfg), "--port", "/dev/null", "--seconds", "1", "-o", str(tmp_path / "x.npz"))
+    res = cli_here(capfd, "record", "--config", str(cfg), "--port", "/dev/null", "--seconds", "1", "-o", str(tmp_path / "x.npz"))
     assert res.returncode == 2
     assert "sensor.channels: must be in 1..8" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
@@ -262,10 +262,10 @@ def test_recover_refuses_the_journal_of_a_running_recorder(tmp_path: Path, capsy
     assert recover(journal, out).samples == 1000
 
 
-def test_recover_refuses_what_is_not_a_journal(tmp_path: Path) -> None:
+def test_recover_refuses_what_is_not_a_journal(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     bad = tmp_path / "x.journal"
     bad.write_bytes(b"PK\x03\x04 not a journal")
-    res = run_cli("recover", str(bad), "-o", str(tmp_path / "x.npz"))
+    res = cli_here(capfd, "recover", str(bad), "-o", str(tmp_path / "x.npz"))
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [f"tactiled: error: {bad}: not a tactiled journal (no TACTJNL header)"]
     assert not (tmp_path / "x.npz").exists()
