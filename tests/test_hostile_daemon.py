@@ -12,6 +12,7 @@ import os
 import socket
 import subprocess
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -224,8 +225,9 @@ def test_connections_over_the_cap_are_dropped_and_those_within_it_are_served(tmp
 
 def test_hundreds_of_silent_peers_do_not_stop_the_port_reopening_after_an_unplug(tmp_path: Path) -> None:
     """600 local peers connect and never speak (the cap is 64): the daemon holds at most the cap, keeps its descriptors
-    bounded, and reopens the serial port after an unplug with status flowing."""
-    with board_and_daemon(tmp_path, surfaces=2, unplug_at=[30.0], unplug_s=1.5) as live, \
+    bounded, and reopens the serial port after an unplug with status flowing. The unplug comes 6 s after the board starts (18 s
+    of samples at 3 x real time): the daemon's first status, before the peers connect, must still show no reconnect."""
+    with board_and_daemon(tmp_path, surfaces=2, unplug_at=[18.0], unplug_s=1.5) as live, \
             BlockingSubscriber(live.endpoint, topics=["status"], timeout=30) as sub:
         first = sub.receive()
         assert isinstance(first, Status) and first.reconnects == 0
@@ -268,7 +270,9 @@ def test_frames_of_another_channel_count_are_counted_and_said_once(tmp_path: Pat
 
 def test_a_board_at_another_rate_than_configured_is_said_once(tmp_path: Path) -> None:
     """The virtual board at 3 x real time is a board at 60 kHz on a port configured for 20 kHz: once the clock map has
-    measured the rate for a few seconds, the daemon says so once, naming both rates, however long it goes on."""
+    measured the rate for a few seconds, the daemon says so once, naming both rates, however long it goes on. Status every
+    0.1 s (publish.status_interval_s), so that the RATE_INTERVALS intervals it waits take 1 s, not 5, and the six seconds
+    after it hold 60 intervals, not 12."""
     lines: list[str] = []
     said_it = threading.Event()
 
@@ -279,14 +283,17 @@ def test_a_board_at_another_rate_than_configured_is_said_once(tmp_path: Path) ->
             if "samples arrive at about" in line:
                 said_it.set()
 
-    with board_and_daemon(tmp_path, "--no-model", speed=3.0) as live, \
+    config = tmp_path / "c.toml"
+    config.write_text("[publish]\nstatus_interval_s = 0.1\n")
+    with board_and_daemon(tmp_path, "--no-model", "--config", str(config), speed=3.0) as live, \
             BlockingSubscriber(live.endpoint, topics=["status"], timeout=30) as sub:
         reader = threading.Thread(target=read_stderr, args=(live.proc,), daemon=True)
         reader.start()
         status_where(sub, lambda m: m.fs_clock > 1.5 * m.fs_nominal, 60, "the rate measured")
-        # said after RATE_INTERVALS status intervals running off (5 s at the default), later on a loaded host
+        # said after RATE_INTERVALS status intervals running off (1 s here, 5 s at the default), later on a loaded host
         assert said_it.wait(60), "".join(lines)
-        now = status_where(sub, lambda m: True, 30, "a status")
+        said_at = time.time()  # the six seconds count from a status sent after the line, not from one queued before it
+        now = status_where(sub, lambda m: m.time_unix >= said_at, 30, "a status sent after it was said")
         status_where(sub, lambda m: m.uptime_s > now.uptime_s + 6.0, 30, "six more seconds of it")  # and not said again
         live.proc.terminate()
         live.proc.wait(30)
