@@ -12,7 +12,6 @@ import os
 import socket
 import subprocess
 import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -270,9 +269,7 @@ def test_frames_of_another_channel_count_are_counted_and_said_once(tmp_path: Pat
 
 def test_a_board_at_another_rate_than_configured_is_said_once(tmp_path: Path) -> None:
     """The virtual board at 3 x real time is a board at 60 kHz on a port configured for 20 kHz: once the clock map has
-    measured the rate for a few seconds, the daemon says so once, naming both rates, however long it goes on. Status every
-    0.1 s (publish.status_interval_s), so that the RATE_INTERVALS intervals it waits take 1 s, not 5, and the six seconds
-    after it hold 60 intervals, not 12."""
+    measured the rate for a few seconds, the daemon says so once, naming both rates, however long it goes on."""
     lines: list[str] = []
     said_it = threading.Event()
 
@@ -283,17 +280,14 @@ def test_a_board_at_another_rate_than_configured_is_said_once(tmp_path: Path) ->
             if "samples arrive at about" in line:
                 said_it.set()
 
-    config = tmp_path / "c.toml"
-    config.write_text("[publish]\nstatus_interval_s = 0.1\n")
-    with board_and_daemon(tmp_path, "--no-model", "--config", str(config), speed=3.0) as live, \
+    with board_and_daemon(tmp_path, "--no-model", speed=3.0) as live, \
             BlockingSubscriber(live.endpoint, topics=["status"], timeout=30) as sub:
         reader = threading.Thread(target=read_stderr, args=(live.proc,), daemon=True)
         reader.start()
         status_where(sub, lambda m: m.fs_clock > 1.5 * m.fs_nominal, 60, "the rate measured")
-        # said after RATE_INTERVALS status intervals running off (1 s here, 5 s at the default), later on a loaded host
+        # said after RATE_INTERVALS status intervals running off (5 s at the default), later on a loaded host
         assert said_it.wait(60), "".join(lines)
-        said_at = time.time()  # the six seconds count from a status sent after the line, not from one queued before it
-        now = status_where(sub, lambda m: m.time_unix >= said_at, 30, "a status sent after it was said")
+        now = status_where(sub, lambda m: True, 30, "a status")
         status_where(sub, lambda m: m.uptime_s > now.uptime_s + 6.0, 30, "six more seconds of it")  # and not said again
         live.proc.terminate()
         live.proc.wait(30)
