@@ -49,6 +49,7 @@ async def main(args: argparse.Namespace) -> None:
     source = Replay(args.replay, topics=topics, timeout=3.0) if args.replay else Subscriber(args.endpoint, topics=topics, timeout=3.0)
     rough = {name for name in args.rough.split(",") if name}
     async with source as sub:
+        print(f"controller: labels from {args.replay or args.endpoint} (Ctrl-C stops)", flush=True)
         while True:
             try:
                 msg = await sub.receive()
@@ -85,4 +86,7 @@ if __name__ == "__main__":
     parsed = ap.parse_args()
     if not parsed.replay and not parsed.endpoint:
         ap.error("give the daemon's endpoint, or --replay LOG")
-    asyncio.run(main(parsed))
+    try:
+        asyncio.run(main(parsed))
+    except KeyboardInterrupt:  # Ctrl-C: how it is stopped
+        print("stopped", flush=True)
