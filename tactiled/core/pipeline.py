@@ -23,6 +23,7 @@ a slide still running is analysed as far as it goes.
 
 from __future__ import annotations
 
+import copy
 import time
 from collections import Counter
 from collections.abc import Iterable, Iterator, Sequence
@@ -191,6 +192,21 @@ class Pipeline:
         self._pending_model = model
         if self._onset is None:
             self._take_pending_model()
+
+    def follow(self, other: Pipeline) -> None:
+        """Go on in step with ``other``, the live pipeline of the same stream (the same detector settings), between its slides:
+        a shadow model started mid-stream. A copy of its detector, so that the samples fed to both from now on give the
+        same slides; its slide count, so that they have the same ``slide_id``; and the samples its ring holds, so that a
+        slide whose onset lies before the next samples is read in full."""
+        if other.sliding:
+            raise ValueError("Pipeline.follow: the pipeline to follow has a slide in progress (a shadow starts between slides)")
+        self.detector = copy.deepcopy(other.detector)
+        self._fresh_detector = other._fresh_detector
+        self._slide_id = other._slide_id
+        ring = other.ring
+        if ring.end > ring.oldest:
+            samples, valid = ring.read(ring.oldest, ring.end)
+            self.ring.write(ring.oldest, samples, valid)
 
     def _take_pending_model(self) -> None:
         if self._pending_model is None:

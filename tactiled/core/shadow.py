@@ -1,7 +1,8 @@
 """A candidate model in the shadow of the live one: how often they agree, and how sure and how often unsure the candidate is.
 
-The daemon runs the candidate through a second pipeline on the same samples (the same detector settings, so the
-same slides); its final results are compared here with the live model's, slide by slide, paired by overlap.
+The daemon runs the candidate through a second pipeline on the same samples, which goes on from the live one's detector
+(tactiled.run.stream.Stream.set_shadow: the same slides, under the same ids); its final results are compared here with
+the live model's, slide by slide, paired by overlap.
 Nothing here publishes: the candidate's labels go to their own topic, never as the live ones.
 """
 
@@ -51,8 +52,8 @@ class ShadowStats:
         self._pair(result, self._shadow, self._live)
 
     def _pair(self, result: SlideResult, mine: dict[int, SlideResult], other: dict[int, SlideResult]) -> None:
-        """Pair ``result`` with the other model's result of an overlapping slide (a shadow started mid-stream has its
-        own detector history, so its slides can start a hop apart from the live ones), else keep it waiting."""
+        """Pair ``result`` with the other model's result of an overlapping slide (the same slide: both pipelines' slides are
+        the same), else keep it waiting."""
         key = next((k for k, r in other.items() if min(r.stop, result.stop) > max(r.start, result.start)), None)
         match = other.pop(key) if key is not None else None
         if match is None:

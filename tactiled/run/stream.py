@@ -78,7 +78,11 @@ class Stream:
         self.long_gap = max_gap_for(config.ring.seconds, self.fs)  # a gap longer than this ends a slide in progress
         self.pipeline = self._pipeline(model) if analyse else None
         self.shadow: Pipeline | None = None
+        self._shadow_asked: tuple[int, Classifier | None] = (0, None)  # the last set_shadow: (its number, its model)
+        self._shadow_taken = 0  # the number of the last set_shadow applied (_take_shadow)
+        self._shadow_waiting: Classifier | None = None  # a shadow model applied, waiting for the live slide in progress to end
         self.set_shadow(shadow)
+        self._take_shadow()
 
     @classmethod
     def for_recording(cls, rec: Recording, config: Config, model: Classifier | None = None) -> Stream:
@@ -101,9 +105,25 @@ class Stream:
         return self.pipeline
 
     def set_shadow(self, model: Classifier | None) -> None:
-        """Run ``model`` in the shadow of the live one from the next samples on (None: no shadow). Its pipeline has its own
-        detector history, so a shadow started mid-stream may see a slide in progress start a hop later."""
-        self.shadow = self._pipeline(model) if model is not None and self.pipeline is not None else None
+        """Run ``model`` in the shadow of the live one (None: no shadow) from the next samples fed on: a shadow running stops
+        there, and ``model``'s starts there if no live slide is in progress, else once it has ended. Its pipeline goes on
+        from the live one's detector, slide count and ring (:meth:`Pipeline.follow`): the same samples give it the same
+        slides, under the same ``slide_id``. Only records the request (one assignment), so it is safe while another thread
+        feeds the stream (the daemon answers a control request while a batch is analysed off its loop)."""
+        self._shadow_asked = (self._shadow_asked[0] + 1, model)
+
+    def _take_shadow(self) -> None:
+        """Apply the last :meth:`set_shadow` not applied yet, then start the shadow model waiting if no live slide is in
+        progress: what feeds or ends the stream calls this first."""
+        number, model = self._shadow_asked
+        if number != self._shadow_taken:
+            self._shadow_taken = number
+            self.shadow, self._shadow_waiting = None, model
+        live = self.pipeline
+        if self._shadow_waiting is not None and live is not None and not live.sliding:
+            self.shadow = self._pipeline(self._shadow_waiting)
+            self.shadow.follow(live)
+            self._shadow_waiting = None
 
     def swap_model(self, model: Classifier) -> None:
         """The live model from the next slide on (at once between slides): a slide ends with the model it began with."""
@@ -137,6 +157,7 @@ class Stream:
         results; the next batch processed, at any later index, starts new detectors there (tactiled.core.pipeline.Pipeline.shed)."""
         if self.pipeline is None:
             return Step()
+        self._take_shadow()
         return Step(events=self.pipeline.shed(), shadow=self.shadow.shed() if self.shadow is not None else [])
 
     def feed_bytes(self, data: bytes | bytearray | memoryview) -> Step:
@@ -156,6 +177,7 @@ class Stream:
         then (n, the end's step). The stream is used up."""
         if self.pipeline is None:
             return
+        self._take_shadow()
         shadow = self.shadow.replay(index, samples, valid, block) if self.shadow is not None else None
         for lo, events in self.pipeline.replay(index, samples, valid, block):
             yield lo, Step(events=events, shadow=next(shadow)[1] if shadow is not None else [])
@@ -171,6 +193,7 @@ class Stream:
         fed and gets its final result from the samples before, its end with reason ``schema.END_DISCONNECTED``; the detector goes
         on with the samples fed after. Nothing happens without a slide in progress (an undecided detector is not ended)."""
         step = Step()
+        self._take_shadow()
         if self.pipeline is not None and self.pipeline.sliding:
             step.events = [replace(ev, reason=schema.END_DISCONNECTED) if isinstance(ev, SlideEnded) and ev.reason == "end_of_stream"
                            else ev for ev in self.pipeline.finish()]
@@ -181,10 +204,12 @@ class Stream:
     def _feed(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None) -> Step:
         if self.pipeline is None:
             return Step()
+        self._take_shadow()
         return Step(events=self.pipeline.feed(index, samples, valid),
                     shadow=self.shadow.feed(index, samples, valid) if self.shadow is not None else [])
 
     def _finish_pipelines(self) -> Step:
         if self.pipeline is None:
             return Step()
+        self._take_shadow()
         return Step(events=self.pipeline.finish(), shadow=self.shadow.finish() if self.shadow is not None else [])

@@ -14,9 +14,10 @@ detection-only batches run inline; ``status`` (at least once a
 second, and the systemd watchdog, fed only while the reader is alive and the daemon keeps up); ``stop`` (SIGTERM,
 SIGINT). A finite source (tests) ends the stream explicitly and the daemon stops. SIGHUP
 (``systemctl reload``) loads the model file again (``model.path`` or ``run --model``, even after a control request
-loaded another: that one runs until the next reload or restart): validated as at start-up (a bad file is refused
-in one line and the running model stays), it takes over at the next slide, so a slide in progress
-ends with the model it began with and no sample is lost.
+loaded another: that one runs until the next reload or restart): validated as at start-up (a bad file, or one whose
+windows the running ring cannot hold, is refused in one line and the running model stays), it takes over at the next
+slide, so a slide in progress ends with the model it began with and no sample is lost. Of loads that overlap (SIGHUP or
+control), the last requested wins: one still being checked when another is requested is not swapped in.
 
 The loop always turns, whatever the input costs: the source yields after every item it hands over, and
 the bytes of one item are decoded in slices of :data:`SLICE_BYTES` and their batches processed one at a
@@ -50,7 +51,7 @@ from tactiled.board.serialsource import CONNECTED, DISCONNECTED, ByteSource, Ser
 from tactiled.config import Config
 from tactiled.core.events import PipelineEvent, SlideResult, SlideResumed
 from tactiled.core.shadow import ShadowStats
-from tactiled.errors import ConfigError, TactiledError
+from tactiled.errors import ConfigError, TactiledError, WindowError
 from tactiled.learn.cost import check_speed
 from tactiled.learn.model import Model, load_model
 from tactiled.run.ingest import Batch
@@ -100,6 +101,9 @@ class Daemon:
         self.config = config
         self.model = model
         self.model_path = model_path  # what SIGHUP loads again: the config's model.path (or run --model), whatever a control request loaded
+        self._loads = 0  # model loads requested so far (SIGHUP or control): the last one wins (load)
+        self._last_load = ""  # ... and the last one, for the line that says an earlier one was overtaken
+        self._reloads: set[asyncio.Task[bool]] = set()  # SIGHUP reloads under way
         self.force = force  # run a model even if its analysis cannot keep up with the sensor (tactiled/learn/cost.py)
         if model is not None and not force:
             check_speed(model, model_path or "model")
@@ -165,7 +169,7 @@ class Daemon:
         for sig in STOP_SIGNALS:
             if sig != signal.SIGHUP:
                 loop.add_signal_handler(sig, self.stop_event.set)
-        loop.add_signal_handler(signal.SIGHUP, lambda: loop.create_task(self.reload()))
+        loop.add_signal_handler(signal.SIGHUP, self._on_sighup)
         log.info("tactiled %s: sensor %s on %s, publishing on %s, model %s", __version__, s.id, s.port, self.endpoint, self.fingerprint or "none")
         sd_notify("READY=1")
         try:
@@ -201,29 +205,58 @@ class Daemon:
             for sig in STOP_SIGNALS:  # SIGHUP (reload) among them
                 loop.remove_signal_handler(sig)
 
+    def _on_sighup(self) -> None:
+        """SIGHUP: :meth:`reload` in a task of its own; whatever it raises is said in one line (the old model stays)."""
+        task = asyncio.get_running_loop().create_task(self.reload(), name="reload")
+        self._reloads.add(task)
+        task.add_done_callback(self._reloaded)
+
+    def _reloaded(self, task: asyncio.Task[bool]) -> None:
+        """A SIGHUP reload's task has ended: forgotten, and an exception it raised said in one line."""
+        self._reloads.discard(task)
+        exc = None if task.cancelled() else task.exception()
+        if exc is not None:  # a failure the checks did not foresee: one line, as a control request's, and the daemon runs on
+            log.error("reload of %s refused, model %s stays: %s: %s", self.model_path, self.fingerprint or "none", type(exc).__name__, exc)
+
     async def reload(self) -> bool:
         """Load :attr:`model_path` (the config's ``model.path``, or ``run --model``) again and swap it in at the next slide; a
         bad file is refused in one line (the old model stays). A model loaded by a control request is replaced by it."""
         if not self.model_path:
             log.error("reload: no model file to load (the daemon runs without a model)")
             return False
-        return await self.load(self.model_path) is None
+        return await self.load(self.model_path, by="SIGHUP") is None
 
-    async def load(self, path: str) -> str | None:
-        """Load ``path``, check it as at start-up (stream, probe, speed) and swap it in at the next slide (a slide in
-        progress finishes with the model it started with). None, or why it was refused (logged; the old model stays).
+    async def load(self, path: str, by: str = "control") -> str | None:
+        """Load ``path``, check it as at start-up (stream, probe, speed) and against the running ring, and swap it in at the next
+        slide (a slide in progress finishes with the model it started with). None, or why it was refused (logged; the old
+        model stays). ``by``: who asked (SIGHUP, control), for the lines.
 
-        A model loaded from another file than :attr:`model_path` (a control request) runs until the next reload (SIGHUP,
-        which loads :attr:`model_path`) or restart."""
+        The last request wins: a load still being checked when another is requested is not swapped in (its reply and a line
+        say so), whether the later one is then swapped in or refused. A model loaded from another file than :attr:`model_path` (a
+        control request) runs until the next reload (SIGHUP, which loads :attr:`model_path`) or restart."""
+        self._loads += 1
+        ticket, self._last_load = self._loads, f"{by} load of {path}"
         try:
             model = await self._checked(path)
         except TactiledError as exc:
-            log.error("reload refused, model %s stays: %s", self.fingerprint or "none", exc)
-            return str(exc)
-        self.stream.swap_model(model)
+            return self._refused(str(exc))
+        if ticket != self._loads:
+            log.warning("reload: model %s from %s (%s) not swapped in: a later request (%s) came while it was checked; model %s runs",
+                        model.fingerprint, path, by, self._last_load, self.fingerprint or "none")
+            return f"{path}: not swapped in: a later request ({self._last_load}) came while it was checked (the last request wins)"
+        try:
+            self.stream.swap_model(model)
+        except WindowError as exc:  # windows longer than the running ring holds: only a start sizes the ring for its model
+            return self._refused(f"{path}: {exc}, or restart the daemon with it (a start sizes the ring for its model; "
+                                 "a running one's does not grow)")
         log.info("reload: model %s from %s takes over at the next slide (was %s)", model.fingerprint, path, self.fingerprint or "none")
         self.model, self.fingerprint = model, model.fingerprint
         return None
+
+    def _refused(self, error: str) -> str:
+        """A load refused: ``error`` logged in one line (the old model stays) and returned."""
+        log.error("reload refused, model %s stays: %s", self.fingerprint or "none", error)
+        return error
 
     async def _checked(self, path: str) -> Model:
         """A model file loaded and checked for this stream, as at start-up (off the event loop)."""
@@ -234,7 +267,8 @@ class Daemon:
         return model
 
     def set_shadow(self, model: Model | None) -> None:
-        """Run ``model`` in the shadow of the live one from the next samples on (None: stop the shadow)."""
+        """Run ``model`` in the shadow of the live one from the next live slide on, under the live slides' ids (None: stop the
+        shadow; a shadow running stops at once)."""
         self.stream.set_shadow(model)
         self.shadow_stats = ShadowStats(model=model.fingerprint) if model is not None else None
 
@@ -268,7 +302,7 @@ class Daemon:
         except TactiledError as exc:
             return reply(False, error=str(exc))
         self.set_shadow(candidate)
-        log.info("shadow: %s", f"model {candidate.fingerprint} from {path}" if candidate else "stopped")
+        log.info("shadow: %s", f"model {candidate.fingerprint} from {path}, from the next slide on" if candidate else "stopped")
         return reply(True, shadow=candidate.fingerprint if candidate else None)
 
     def _status_now(self) -> schema.Status:
