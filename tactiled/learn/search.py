@@ -967,7 +967,8 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     inf (never unknown) when no slide has another recording to compare with.
 
     ``spectrum``: only a threshold on the distance to the nearest surface (``info["distance_threshold"]``), the
-    (1 - ``reject``) quantile of the known slides' distances: at most ``reject`` of a new recording's slides of a known
+    (1 - ``reject``) quantile of the known slides' distances (of the slides whose surface has another recording:
+    :func:`spectrum_threshold`; none such, inf): at most ``reject`` of a new recording's slides of a known
     surface are called unknown (``count`` False: the threshold and scales without counting how many a new recording would
     have called unknown, ``info["known_rejected"]`` None). ``far``: ``combined`` without the ratio's threshold (inf), only
     the distance test below. ``combined``: the threshold is the ratio's, and ``info["distance_threshold"]`` a second one on the distance to the
@@ -1003,7 +1004,9 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
     threshold = math.inf if score in ("far", "spectrum") else max(novelty_threshold(have[:, 0], flagged[:, 0], reject, untaught), 1e-9)
     far = math.inf
     if score == "spectrum":
-        far, scale = spectrum_threshold(have[:, 1], per_known, labels, reject)
+        far, scale = spectrum_threshold(per_known.min(axis=1), per_known, labels, reject)
+        if not math.isfinite(far):  # no surface has two recordings: nothing to set a threshold by
+            return math.inf, info
         info["distance_threshold"] = far
         info["surface_scale"] = scale.tolist()
         known[:, 1], unseen[:, 1] = (per_known / scale).min(axis=1), (per_unseen / scale).min(axis=1)  # each over its own scale
@@ -1044,10 +1047,9 @@ def left_out_flagged(rows: FloatArray, labels: npt.NDArray[Any], files: npt.NDAr
         center, spread = shape_standardisation(rows[rest])
         z = (rows - center) / spread
         per_known = other_recording_distances(z[rest], files[rest], labels[rest], k)
-        nearest = per_known.min(axis=1)
-        if not np.isfinite(nearest).any():
+        far, scale = spectrum_threshold(per_known.min(axis=1), per_known, labels[rest], reject)
+        if not math.isfinite(far):
             continue  # no taught surface has a second recording: nothing would be called unknown
-        far, scale = spectrum_threshold(nearest, per_known, labels[rest], reject)
         per = surface_distances(z[out], z[rest], labels[rest], k) / scale
         flagged += int(np.count_nonzero(per.min(axis=1) / far > 1.0))
         counted += int(out.sum())
@@ -1073,9 +1075,20 @@ def spectrum_threshold(nearest: FloatArray, per_known: FloatArray, labels: npt.N
                        surfaces: npt.NDArray[Any] | None = None) -> tuple[float, FloatArray]:
     """(distance threshold, each surface's own scale (S,)) of ``spectrum``'s test from the known slides' distances: ``nearest``
     (n,) to the nearest surface (inf: none to compare with, left out) and ``per_known`` (n, S) to every surface (surfaces
-    ``labels``; ``surfaces`` as :func:`own_scales`): the (1 - ``reject``) quantile of the finite nearest distances (at least
-    1e-9), and :func:`own_scales` over it."""
-    far = max(float(np.quantile(nearest[np.isfinite(nearest)], 1.0 - reject, method="higher")), 1e-9)
+    ``labels``; ``surfaces`` as :func:`own_scales`): the (1 - ``reject``) quantile of the nearest distances of the slides
+    whose own surface has another recording (a finite distance to it in ``per_known``; at least 1e-9), and
+    :func:`own_scales` over it. (inf, ones (S,)) when no slide's surface has another recording.
+
+    A slide whose surface no other recording holds stands for an untaught surface, not a new recording of a taught one: its
+    nearest surface is another, far one, and counting it would loosen the test for every surface (one 6-slide recording of
+    a grating enrolled into a model of 8 hand-scene grades took the threshold from 5.68 to 11.59)."""
+    if surfaces is None:
+        surfaces = np.unique(labels)
+    own = per_known[np.arange(len(labels)), np.searchsorted(surfaces, labels)]
+    counted = nearest[np.isfinite(nearest) & np.isfinite(own)]
+    if not len(counted):
+        return math.inf, np.ones(len(surfaces))
+    far = max(float(np.quantile(counted, 1.0 - reject, method="higher")), 1e-9)
     return far, own_scales(per_known, labels, far, reject, surfaces)
 
 
@@ -1125,10 +1138,9 @@ def held_out_rejected(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArra
             a, b = pairs[:, 0], pairs[:, 1]
             per[a, b] = _first_k_mean(dist[a, b][:, None, :], ((of[a, b] != r) & np.isfinite(dist[a, b]))[:, None, :], k)[:, 0]
         per = per[rest]
-        nearest_any = per.min(axis=1)
-        if not np.isfinite(nearest_any).any():
-            continue  # no other recording has a second one to fit a threshold on: nothing would be called unknown
-        far, scale = spectrum_threshold(nearest_any, per, labels[rest], reject, surfaces)
+        far, scale = spectrum_threshold(per.min(axis=1), per, labels[rest], reject, surfaces)
+        if not math.isfinite(far):
+            continue  # no surface of the other recordings has a second one to fit a threshold on: nothing would be called unknown
         beyond = (per_known[held] / scale).min(axis=1) / far > 1.0
         rejected += int(beyond[taught].sum())
         counted += int(taught.sum())
