@@ -68,8 +68,27 @@ class AnalysisSettings:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> AnalysisSettings:
-        """Settings from a dict of :meth:`to_dict`."""
+    def from_dict(cls, d: Any) -> AnalysisSettings:
+        """Settings from a dict of :meth:`to_dict` (a model file's ``settings``).
+
+        Every key a model file has always had (every format tactiled reads, 2 on) must be there: a default in its place would
+        analyse with windows the model was not trained on, silently (a file without ``duration_s`` was read with 0.5 s
+        windows where its model had 0.25 s ones, and labelled every Ra0.44 slide of an audit Ra0.85). ``fusion`` (since 2026-11-23)
+        and ``centred`` (2026-11-27), which older files lack, keep their defaults (scores; not centred). Raises
+        :class:`ValueError` naming the key (``settings.duration_s: missing``) for a missing or unknown key, ``d`` not an
+        object or ``names`` not a list."""
+        if not isinstance(d, dict):
+            raise ValueError("settings: must be an object")
+        required = ("start_s", "duration_s", "hop_s", "max_windows", "spikes", "half_width", "nsigma", "wavelet", "level", "mode", "names")
+        missing = [k for k in required if k not in d]
+        if missing:
+            raise ValueError(f"settings.{missing[0]}: missing (every model file has it; the file is damaged or not tactiled's)"
+                             if len(missing) == 1 else f"settings: {', '.join(missing)} missing (every model file has them)")
+        unknown = sorted(set(d) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise ValueError(f"settings.{unknown[0]}: not a setting this tactiled knows (a model file of a later version?)")
+        if not isinstance(d["names"], list):
+            raise ValueError("settings.names: must be a list of feature names")
         return cls(**{**d, "names": tuple(d["names"])})
 
     def hop(self) -> float:

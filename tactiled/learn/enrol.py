@@ -28,7 +28,7 @@ from tactiled.errors import ModelError, TactiledError
 from tactiled.files.recording import check_label_option
 from tactiled.learn.dataset import Progress, WindowSet, check_distinct, collect_windows, find_slides, load_recordings, speed_ratios
 from tactiled.learn.model import MAX_CLASSES, FloatArray, Model, fit_pipeline, load_model, take_columns
-from tactiled.learn.search import PARAMS, fit_model_novelty, reasons_text
+from tactiled.learn.search import NOVELTY_TESTS, PARAMS, fit_model_novelty, reasons_text
 
 MIN_SLIDES = 5
 
@@ -54,11 +54,12 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     if old.refit is None or old.novelty_x is None or old.novelty_y is None or old.novelty_groups is None:
         raise ModelError(f"{where}: an older model file keeps no training rows; retrain it with this tactiled to enrol into it")
     check_label_option(label)  # the rule a recording's label follows (docs/recordings.md)
+    score, untaught, enrolled = _summary_read(old, where)
     recs = load_recordings(paths, say)
     if len(recs) != len(paths):
         raise TactiledError(f"{len(paths) - len(recs)} of {len(paths)} recordings unreadable (named above); nothing enrolled")
     for name, rec in recs:
-        old.check_stream(rec.fs, rec.channels, name)
+        old.check_stream(rec.fs, rec.channels, name, where)
     check_distinct(recs)  # a copy would count its slides twice towards min_slides
     per_file, counts = find_slides(recs, config)
     if label is not None:
@@ -85,7 +86,7 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     pipe, refit, params = _grown(old, slides if old.settings.fusion == "features" else ws, old.names)
     files = [Path(n).name for n, _ in recs]
     record = {"from": old.fingerprint, "slides": added, "files": files}
-    summary: dict[str, Any] = {**old.summary, "enrolled": [*old.summary.get("enrolled", []), record]}
+    summary: dict[str, Any] = {**old.summary, "enrolled": [*enrolled, record]}
     new = replace(old, params=params, classes=[str(k) for k in pipe[-1].classes_], pipeline=pipe, summary=summary, fingerprint="", refit=refit)
     if old.partner is not None:  # an ensemble: its second member learns the same slides (its own columns and fusion)
         p = old.partner
@@ -95,11 +96,27 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     groups = np.concatenate([old.novelty_groups, slides.groups[labelled] + int(old.novelty_groups.max(initial=-1)) + 1])
     labels = np.concatenate([old.novelty_y, slides.y[labelled]]).astype(np.str_)
     new.novelty_k, new.early_calibration = old.novelty_k, old.early_calibration
-    # the tests and the share of untaught slides the model was trained with (the summary says "far" where the model file says
-    # "combined" without a ratio threshold; a model from before the share: Youden's J, 0.5)
-    trained = old.summary.get("novelty", {})
-    fit_model_novelty(new, rows, labels, groups, str(trained.get("score", old.novelty_score)), float(trained.get("untaught", 0.5)))
+    fit_model_novelty(new, rows, labels, groups, score, untaught)
     return Enrolled(new, added, files, [k for k in added if k not in old.classes])
+
+
+def _summary_read(model: Model, where: str | Path) -> tuple[str, float, list[Any]]:
+    """What enrolment reads of ``model``'s training summary, checked (one line naming the file and key; the loader checks only
+    what every command reads): the unknown-surface test and the share of untaught slides it was trained with (the summary
+    says "far" or "spectrum" where the model file says "combined" without a ratio threshold; a model from before the share:
+    Youden's J, 0.5), and the earlier enrolments' records."""
+    trained = model.summary.get("novelty", {})
+    if not isinstance(trained, dict):
+        raise ModelError(f"{where}: header.summary.novelty: must be an object")
+    score, untaught = trained.get("score", model.novelty_score), trained.get("untaught", 0.5)
+    if score not in NOVELTY_TESTS:
+        raise ModelError(f"{where}: header.summary.novelty.score: must be one of {', '.join(NOVELTY_TESTS)}")
+    if not (isinstance(untaught, (int, float)) and not isinstance(untaught, bool) and 0.0 < untaught < 1.0):
+        raise ModelError(f"{where}: header.summary.novelty.untaught: must be a number in (0, 1)")
+    enrolled = model.summary.get("enrolled", [])
+    if not isinstance(enrolled, list):
+        raise ModelError(f"{where}: header.summary.enrolled: must be a list of the earlier enrolments")
+    return str(score), float(untaught), enrolled
 
 
 def _grown(member: Model, rows: WindowSet, names: tuple[str, ...]) -> tuple[Any, tuple[FloatArray, npt.NDArray[np.str_]], dict[str, Any]]:

@@ -191,7 +191,7 @@ def anova_f(x: Any, y: Any) -> tuple[FloatArray, FloatArray]:
     from sklearn.feature_selection import f_classif
 
     with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
-        warnings.filterwarnings("ignore", r"Features .* are constant", UserWarning)
+        warnings.filterwarnings("ignore", r"(?s)Features .* are constant", UserWarning)  # (?s): the index list may wrap onto new lines
         f_stat, p = f_classif(x, y)
     return np.asarray(f_stat, dtype=np.float64), np.asarray(p, dtype=np.float64)
 
@@ -544,12 +544,14 @@ class Model:
         """Labels (n,) of single windows from raw features x (n, F): the class with the largest probability."""
         return np.asarray(self.classes)[np.argmax(self.predict_proba(x), axis=1)]
 
-    def check_stream(self, fs: float, channels: int, where: str = "stream") -> None:
-        """Refuse a stream of another rate or channel count (one line)."""
+    def check_stream(self, fs: float, channels: int, where: str = "stream", model: str | Path | None = None) -> None:
+        """Refuse a stream (``where``) of another rate ``fs`` (Hz) or fewer ``channels``: one line naming the stream and, when
+        given, the model file ``model`` (``model.npz: model trained at fs 2200 Hz, sensor ft is 20000 Hz``)."""
+        named = f"{model}: " if model is not None else ""
         if abs(fs - self.fs) > 1e-6 * self.fs:
-            raise ModelError(f"model trained at fs {self.fs:g} Hz, {where} is {fs:g} Hz")
+            raise ModelError(f"{named}model trained at fs {self.fs:g} Hz, {where} is {fs:g} Hz")
         if channels < self.channels:
-            raise ModelError(f"model needs {self.channels} channels, {where} has {channels}")
+            raise ModelError(f"{named}model needs {self.channels} channels, {where} has {channels}")
 
     def describe(self) -> str:
         """One line: method, classifier(s), features, windows, cross-validated accuracy."""
@@ -849,7 +851,10 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
     _need(_is_number(fs) and 100 <= fs <= 1e6 and isinstance(channels, int) and 1 <= channels <= 8, path,
           "header: fs must be in 100 Hz..1 MHz and channels in 1..8")
     fs = float(fs)
-    settings = AnalysisSettings.from_dict(header["settings"])
+    try:
+        settings = AnalysisSettings.from_dict(header["settings"])  # a key every file has had, missing: not a default's windows
+    except ValueError as exc:
+        raise ModelError(f"{path}: {exc}") from None
     _check_settings(path, settings, fs, channels)
     _need(isinstance(header["classes"], list), path, "header.classes: must be a list")
     classes = [str(c) for c in header["classes"]]
