@@ -326,10 +326,11 @@ def test_headless_demo_without_labels_exits_1_quoting_the_daemons_last_line(tmp_
     assert len(line.splitlines()) == 1 and "no label in 2 s; the daemon's last words:" in line and f"cannot bind {endpoint}" in line, line
 
 
-def test_demo_refuses_a_scene_its_daemon_cannot_read() -> None:
+def test_demo_refuses_a_scene_its_daemon_cannot_read(capfd: pytest.CaptureFixture[str]) -> None:
     """The one-channel scene streams 1 channel at 2.2 kHz, the demo's daemon and the shipped model expect 2 at 20 kHz: one
-    line saying so, exit 2, at once (it ran for --seconds and said only the daemon's start-up line)."""
-    res = run_cli("demo", "--headless", "--seconds", "30", "--scene", "fluctuating,one-channel", timeout=60)
+    line saying so, exit 2, at once (it ran for --seconds and said only the daemon's start-up line). By main() in this
+    process (cli_here): the same handler and line, said before any board or daemon starts."""
+    res = cli_here(capfd, "demo", "--headless", "--seconds", "30", "--scene", "fluctuating,one-channel")
     assert res.returncode == 2 and res.stdout == ""
     line = res.stderr.strip()
     assert len(line.splitlines()) == 1 and "1 channel(s) at 2200 Hz" in line and "expect 2 at 20000 Hz" in line, line
