@@ -1,11 +1,12 @@
-"""An outside audit of learning: the spectrum test's threshold, model headers enrol and the
-loader read, a rate refusal that names the model file, and scikit-learn's constant-feature warning over several lines.
+"""An outside audit of learning: enrol and the recordings a model learnt, the spectrum test's threshold, model headers enrol
+and the loader read, a rate refusal that names the model file, and scikit-learn's constant-feature warning over several lines.
 
 Every command runs by main() in the test's process (cli_here): the same handlers, lines and files."""
 
 from __future__ import annotations
 
 import math
+import shutil
 import warnings
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,30 @@ def taught(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[Path], 
     other = root / "other"
     write_dataset(other, scene="robot", surfaces="3", files_per_surface=2, slides_per_file=3, seed=5)
     return root / "m.npz", known, other, names[0]
+
+
+def test_enrol_refuses_recordings_the_model_learnt_by_their_samples_not_their_names(
+        taught: tuple[Path, list[Path], Path, str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The audit enrolled a model's own 24 training files into it (exit 0): each slide then had a copy at distance 0 in
+    "another recording", the unknown-surface threshold fell from 5.68 to 3.98, and 23 of 96 new slides were called unknown.
+    A training file, a copy of one under another name, and recordings enrolled once already are refused in one line naming
+    them (exit 2, nothing written); other recordings that share the training files' names are enrolled."""
+    model, known, other, surface = taught
+    out = tmp_path / "e.npz"
+    res = cli_here(capsys, "enrol", str(model), *map(str, known), "-o", str(out))
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and not out.exists(), res.stderr
+    assert "already learnt" in res.stderr and all(str(p) in res.stderr for p in known) and str(model) in res.stderr
+    copy = tmp_path / "renamed.npz"
+    shutil.copy(known[0], copy)
+    res = cli_here(capsys, "enrol", str(model), str(copy), "-o", str(out))
+    assert res.returncode == 2 and f"{copy}: {model} already learnt 3 of their 3 slides" in res.stderr and not out.exists(), res.stderr
+    same_names = sorted(str(p) for p in other.glob(f"*_{surface}_*.npz"))
+    assert {Path(p).name for p in same_names} <= {p.name for p in known}  # the names of training files, other samples
+    res = cli_here(capsys, "enrol", str(model), *same_names, "-o", str(out))
+    assert res.returncode == 0 and f"{surface}: 6 slides added to a known surface" in res.stdout, res.stderr
+    again = cli_here(capsys, "enrol", str(out), *same_names, "-o", str(tmp_path / "twice.npz"))
+    assert again.returncode == 2 and again.stderr.count("\n") == 1 and "already learnt 6 of their 6 slides" in again.stderr, again.stderr
+    assert all(p in again.stderr for p in same_names) and not (tmp_path / "twice.npz").exists()
 
 
 def _clusters(surfaces: int, recordings: int, slides: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -66,8 +66,11 @@ def test_enrol_refuses_too_few_slides_the_input_as_output_and_an_empty_label(tra
 
 def test_enrol_adds_slides_of_known_surfaces_by_their_own_labels(trained: tuple[Path, Path, list[str]], tmp_path: Path) -> None:
     """Without --label (recordings of known surfaces, e.g. from another unit of the sensor): rows added to those classes."""
-    model, data, surfaces = trained
-    known = sorted(str(p) for p in data.glob(f"*_{surfaces[0]}_*.npz"))
+    model, _, surfaces = trained
+    from tactiled.sim.simulate import write_dataset
+
+    write_dataset(tmp_path / "new", scene="robot", surfaces="3", files_per_surface=2, slides_per_file=3, seed=5)  # not the learnt ones
+    known = sorted(str(p) for p in (tmp_path / "new").glob(f"*_{surfaces[0]}_*.npz"))
     done = enrol(model, known, Config())
     assert done.added == {surfaces[0]: 6} and done.new_classes == [] and done.model.classes == load_model(model).classes
     assert done.model.refit is not None and list(done.model.refit[1]).count(surfaces[0]) > list(load_model(model).refit[1]).count(surfaces[0])

@@ -85,7 +85,8 @@ def test_train_learns_long_slides_in_pieces_and_scores_them_whole(continuous: li
     assert m.refit is not None and len(m.refit[1]) >= 6 * 3  # each slide of ~7 s also learnt as its pieces of ~1 s
     path = tmp_path / "m.npz"
     m.save(path)
-    done = enrol(path, continuous[:2], config, label="NEW", min_slides=2)
+    new = write_dataset(tmp_path / "new", scene="continuous", seed=4, surfaces="3", files_per_surface=1)[:2]  # recordings it has not learnt
+    done = enrol(path, new, config, label="NEW", min_slides=2)
     assert done.added == {"NEW": 2}  # slides counted as recorded, learnt with their pieces
     assert done.model.refit is not None and list(done.model.refit[1]).count("NEW") >= 2 * 3
 

@@ -90,7 +90,8 @@ def test_train_learns_from_copies_and_measures_the_slides_as_recorded(robot: lis
     assert len(copied.refit[1]) > 2.5 * len(plain.refit[1])  # the classifier learnt from the copies too
     path = tmp_path / "m.npz"
     copied.save(path)
-    done = enrol(path, robot[:2], config, label="NEW", min_slides=2)
+    new = write_dataset(tmp_path / "new", scene="robot", seed=6, surfaces="3", files_per_surface=1, slides_per_file=2)[:2]  # not learnt
+    done = enrol(path, new, config, label="NEW", min_slides=2)
     assert done.added == {"NEW": 4}  # slides counted as recorded
     assert done.model.refit is not None and list(done.model.refit[1]).count("NEW") > 2.5 * 4  # and learnt with their copies
     hostile = load_model(path)
@@ -98,7 +99,7 @@ def test_train_learns_from_copies_and_measures_the_slides_as_recorded(robot: lis
     hostile.fingerprint = ""
     hostile.save(tmp_path / "bad.npz")
     with pytest.raises(ModelError, match="speed_copies"):
-        enrol(tmp_path / "bad.npz", robot[:2], config, label="NEW", min_slides=2)
+        enrol(tmp_path / "bad.npz", new, config, label="NEW", min_slides=2)
 
 
 def test_train_refuses_a_speed_it_cannot_resample_in_one_line(robot: list[Path], tmp_path: Path) -> None:

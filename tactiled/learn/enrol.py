@@ -11,6 +11,13 @@ its own fusion; the members' and the ensemble's temperatures are kept with the c
 
 A surface needs at least :data:`MIN_SLIDES` usable slides. Without a ``label`` the recordings' own labels are used:
 that is how recordings of known surfaces made with *another unit* of the sensor are added, after a fingertip swap.
+
+A recording the model already learnt (trained or enrolled before) is refused, as ``train`` refuses two files of the same
+samples: its slides would sit at distance 0 from "another recording" and shrink the unknown-surface threshold (an audit's
+model of 8 grades enrolled with its own 24 training files: 88 -> 66 of 96 new slides right, 23 called unknown). The model
+file keeps no digest of its recordings, but it keeps every learnt slide's novelty row (format 4 on, all enrol accepts):
+a slide whose row equals one of them, to rounding (:data:`SAME_SLIDE`), is one it learnt. File names are not compared:
+two recordings of different days may share one.
 """
 
 from __future__ import annotations
@@ -31,6 +38,7 @@ from tactiled.learn.model import MAX_CLASSES, FloatArray, Model, fit_pipeline, l
 from tactiled.learn.search import NOVELTY_TESTS, PARAMS, fit_model_novelty, reasons_text
 
 MIN_SLIDES = 5
+SAME_SLIDE = 1e-6  # standardised novelty units: a learnt slide analysed again differs by 0 to 4e-16; another recording's by > 0.5
 
 
 @dataclass
@@ -71,6 +79,12 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
         raise ModelError(f"{where}: summary speed_copies: {exc}") from None
     ws = collect_windows(recs, config, old.settings, found=(per_file, counts), speeds=speeds)
     slides = ws.averaged()  # one row per slide with a usable window (and per copy of it)
+    learnt = learnt_recordings(old, slides)
+    if learnt:
+        n, m = (sum(v[i] for v in learnt.values()) for i in (0, 1))
+        raise TactiledError(f"{', '.join(recs[g][0] for g in learnt)}: {where} already learnt {n} of their {m} slides (the same samples, trained "
+                            "or enrolled before): enrolled again they would count twice and shrink its unknown-surface threshold; give only "
+                            "recordings it has not learnt")
     labelled = (slides.y != "") & slides.originals()
     table = ws.per_class()  # {surface: (slides, slides with a usable window, files)}, a surface none of whose slides is usable too
     if not table:
@@ -117,6 +131,20 @@ def _summary_read(model: Model, where: str | Path) -> tuple[str, float, list[Any
     if not isinstance(enrolled, list):
         raise ModelError(f"{where}: header.summary.enrolled: must be a list of the earlier enrolments")
     return str(score), float(untaught), enrolled
+
+
+def learnt_recordings(model: Model, slides: WindowSet) -> dict[int, tuple[int, int]]:
+    """{recording: (slides the model already learnt, its slides)} of the recordings (``slides.groups``) of which ``model``
+    learnt a slide: one whose novelty row (:meth:`~tactiled.learn.model.Model.novelty_features` of its mean raw features,
+    standardised as the model's) is within :data:`SAME_SLIDE` of one of ``model.novelty_x`` (n, F''), in every column.
+    ``slides``: one row per slide (:meth:`WindowSet.averaged`; speed copies are not compared). Empty when none."""
+    if model.novelty_x is None or not len(model.novelty_x):
+        return {}
+    keep = slides.originals()
+    z = model.novelty_standardise(model.novelty_features(slides.x[keep]))
+    same = np.array([bool(np.abs(model.novelty_x - row).max(axis=1).min() <= SAME_SLIDE) for row in z], dtype=bool)
+    groups = slides.groups[keep]
+    return {int(g): (int(same[groups == g].sum()), int(np.count_nonzero(groups == g))) for g in np.unique(groups[same])}
 
 
 def _grown(member: Model, rows: WindowSet, names: tuple[str, ...]) -> tuple[Any, tuple[FloatArray, npt.NDArray[np.str_]], dict[str, Any]]:
