@@ -104,7 +104,8 @@ def test_check_config_says_whether_run_would_find_a_model(tmp_path: Path) -> Non
     named.write_text(sensor + f'[model]\npath = "{REPO / "tactiled" / "data" / "default_model.npz"}"\n')
     res = run_cli("check-config", str(named))
     assert res.returncode == 2 and res.stderr.strip().splitlines() == [
-        f"tactiled: error: {named}: model.path: model trained at fs 20000 Hz, sensor fingertip0 is 2200 Hz"], res.stderr
+        f"tactiled: error: {named}: model.path: {REPO / 'tactiled' / 'data' / 'default_model.npz'}: model trained at fs 20000 Hz, sensor fingertip0 is "
+        "2200 Hz"], res.stderr
     assert run_cli("check-config", str(REPO / "configs" / "tactiled.toml")).stderr == ""  # the shipped model fits: nothing to say
     lazy = tmp_path / "lazy.toml"  # 0.05 s between reads: 4.5 KiB of the standard board's frames wait, more than a tty holds
     lazy.write_text("[serial]\nread_interval_s = 0.05\n")

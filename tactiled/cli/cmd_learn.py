@@ -132,7 +132,7 @@ def cmd_score(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     recs = load_recordings(args.files, say)
     for name, rec in recs:
-        model.check_stream(rec.fs, rec.channels, name)
+        model.check_stream(rec.fs, rec.channels, name, args.model)
     scored = [(n, r) for n, r in recs if r.slides() or r.label is not None]
     if not scored:
         raise TactiledError("no recording with ground truth (per-slide surfaces or a file label) to score")

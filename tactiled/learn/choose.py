@@ -59,7 +59,7 @@ class ModelChoice:
         if model is None:
             return None
         try:
-            model.check_stream(fs, channels, where)
+            model.check_stream(fs, channels, where, self.path or None)
         except ModelError as exc:
             if self.path:
                 raise

@@ -262,7 +262,7 @@ class Daemon:
         """A model file loaded and checked for this stream, as at start-up (off the event loop)."""
         s = self.config.sensor
         model = await asyncio.to_thread(load_model, path)
-        model.check_stream(s.fs, s.channels, f"sensor {s.id}")
+        model.check_stream(s.fs, s.channels, f"sensor {s.id}", path)
         await asyncio.to_thread(check_speed, model, path, self.force)
         return model
 
