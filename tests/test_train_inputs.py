@@ -148,3 +148,20 @@ def test_a_surface_whose_label_only_files_give_no_slide_is_named_not_dropped_sil
     res = train([*good, *glass], Config(), drop_rare=True, candidates=quick_candidates()[:1], folds=2, progress=said.append)
     assert res.model.summary["dropped"] == ["Glass"] and "Glass" not in res.model.classes, res.model.summary["dropped"]
     assert "training without Glass (0 slides) (--drop-rare)" in said, said
+
+
+def test_train_says_slides_of_a_recording_without_a_surface_are_not_learnt(data: tuple[list[str], list[str]],
+                                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """A recording that names no surface among labelled ones: its slides were said to be "without a usable window:
+    unlabelled N", as if their windows had failed. Now they are said to have no surface."""
+    good, _ = data
+    rec = load_recording(good[0])
+    bare = Path(good[0]).parent / "bare.npz"
+    save_recording(bare, Recording(samples=(-rec.samples.astype(np.int32)).clip(-32768, 32767).astype(np.int16), fs=rec.fs,
+                                   volts_per_count=rec.volts_per_count))
+    out = bare.parent / "bare_model.npz"
+    code = main(["train", *good, str(bare), "-o", str(out), "--method", "quick"])
+    err = capsys.readouterr().err.splitlines()
+    assert code == 0, err
+    assert any("slides without a surface (their recordings name none) are not learnt" in line for line in err), err
+    assert not any("unlabelled" in line for line in err), err

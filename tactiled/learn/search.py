@@ -554,8 +554,12 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
             if st is not None:
                 say(f"features of {c.duration_s:g} s windows from {c.start_s:g} s ({len(st.names)} features)")
                 sets[full] = (st, collect_windows(recs, config, st, progress, found=found, jobs=None, speeds=speeds))
-                if sets[full][1].skipped:
-                    say(f"  slides without a usable {c.duration_s:g} s window: {reasons_text(sets[full][1].skipped)}")
+                skipped = dict(sets[full][1].skipped)
+                unlabelled = skipped.pop("unlabelled", 0)
+                if unlabelled:
+                    say(f"  {unlabelled} slides without a surface (their recordings name none) are not learnt")
+                if skipped:
+                    say(f"  slides without a usable {c.duration_s:g} s window: {reasons_text(skipped)}")
         if full in sets and all(any(name_family(n) == f for n in sets[full][1].names) for f in base_families(c.families)):
             if c.fusion == "features":
                 key = (*key, "features")
