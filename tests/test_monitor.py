@@ -70,3 +70,18 @@ def test_monitor_highlights_abstentions_and_provisional_labels() -> None:
     assert " DISCONNECTED " in lines[1] and any("samples_lost" in line for line in lines) and any("prov." in line for line in lines)
     assert lines[3].startswith("discarded at start 68040 bytes") and "…" not in lines[3]
     assert lines[4].startswith("300 frames of another channel count skipped")
+
+
+def test_the_rate_shown_is_the_clock_maps_not_one_intervals_count() -> None:
+    """At rest the daemon hands samples over every 0.2 s, so the samples counted in one 0.5 s status interval swing
+    (12 000 to 27 000 Hz on a steady 20 kHz board, seen by an audit): the monitor leads with the clock map's rate."""
+    from tactiled_client import schema
+
+    from tactiled.apps.monitor import rate
+
+    model = MonitorState()
+    steady = schema.status("s", fs_nominal=20_000.0, fs_measured=11_928.0, fs_clock=20_000.4)
+    assert rate(model, steady, full=False) == "20000 Hz"
+    assert rate(model, steady, full=True) == "rate 20000.4 Hz (last interval 11928 Hz, nominal 20000 Hz)"
+    unready = schema.status("s", fs_nominal=20_000.0, fs_measured=19_950.0, fs_clock=0.0)  # the map not ready yet
+    assert rate(model, unready, full=False) == "19950 Hz"

@@ -172,10 +172,14 @@ def other_losses(s: Status) -> str:
 
 
 def rate(model: MonitorState, s: Status, full: bool) -> str:
-    """The measured rate, or a dash and how long nothing has come once the figures are stale."""
+    """The board's rate as the daemon's clock map measures it (steady; until the map is ready, the samples counted over the
+    last status interval, which swing with the hand-overs at rest), or a dash and how long nothing has come once the
+    figures are stale."""
     if model.stale_s:
         return f"rate - (no data for {model.stale_s:.0f} s)" if full else "- Hz"
-    return f"rate {s.fs_measured:.1f} Hz (clock {s.fs_clock:.1f} Hz, nominal {s.fs_nominal:g} Hz)" if full else f"{s.fs_measured:.0f} Hz"
+    steady = s.fs_clock if s.fs_clock > 0 else s.fs_measured
+    return (f"rate {steady:.1f} Hz (last interval {s.fs_measured:.0f} Hz, nominal {s.fs_nominal:g} Hz)" if full
+            else f"{steady:.0f} Hz")
 
 
 def render(model: MonitorState, endpoint: str, width: int = 140, height: int = 50) -> Any:
