@@ -79,7 +79,7 @@ def test_the_last_load_requested_wins_over_an_earlier_one_still_being_checked(tm
             held = asyncio.create_task(requests[first]())
             assert await asyncio.to_thread(entered.wait, 30), "the slow load never started"
             later = await asyncio.wait_for(requests[second](), 30)  # requested while the first is being checked, and done
-            assert daemon.fingerprint == fast and daemon.pipeline.model is not None and daemon.pipeline.model.fingerprint == fast
+            assert daemon.fingerprint == fast and daemon.stream.next_model is not None and daemon.stream.next_model.fingerprint == fast
             release.set()
             earlier = await asyncio.wait_for(held, 30)
         finally:
@@ -89,7 +89,7 @@ def test_the_last_load_requested_wins_over_an_earlier_one_still_being_checked(tm
 
     daemon, earlier, later = asyncio.run(main())
     assert daemon.fingerprint == fast and daemon.model is not None and daemon.model.fingerprint == fast  # the last request's
-    assert daemon.pipeline.model is not None and daemon.pipeline.model.fingerprint == fast
+    assert daemon.stream.next_model is not None and daemon.stream.next_model.fingerprint == fast
     said = [r.getMessage() for r in caplog.records if "not swapped in" in r.getMessage()]
     assert len(said) == 1 and "\n" not in said[0] and str(tmp_path / "slow.npz") in said[0] and slow in said[0], said
     if first == "control":
@@ -205,6 +205,27 @@ def test_a_sighup_to_a_model_whose_windows_the_ring_cannot_hold_is_refused_in_on
                 "(a start sizes the ring for its model; a running one's does not grow)")
     assert refusals() == [f"reload refused, model {shipped.fingerprint} stays: {expected}"] * 2, refusals()
     assert answers == [{"ok": False, "error": expected}], answers
-    assert daemon.fingerprint == shipped.fingerprint != long and daemon.pipeline.model is shipped
+    assert daemon.fingerprint == shipped.fingerprint != long and daemon.stream.next_model is shipped
     assert not [r for r in caplog.records if r.levelno >= logging.ERROR and "reload refused" not in r.getMessage()], caplog.text
     assert daemon.last_status is not None and daemon.last_status.samples > 0.9 * 0.5 * FS
+
+
+def test_a_swap_is_recorded_by_the_stream_and_applied_by_what_feeds_it_next() -> None:
+    """The daemon asks for a swap on its event loop while a worker thread may be feeding the stream a batch: the stream
+    only records it (a model whose windows the ring cannot hold is refused at once) and the next feed applies it, on the
+    feeding thread, so the pipeline never changes model under a batch being analysed."""
+    from tactiled.errors import WindowError
+    from tactiled.run.stream import Stream
+
+    old, new = load_model(), load_model()
+    stream = Stream(Config(), old, fs=old.fs, channels=old.channels)
+    stream.swap_model(new)
+    assert stream.live.model is old and stream.next_model is new  # recorded, not applied
+    stream.feed_samples(0, np.zeros((400, old.channels), dtype=np.int16))
+    assert stream.live.model is new  # applied by the next feed (no slide in progress)
+    huge = load_model()
+    huge.settings = replace(huge.settings, duration_s=60.0)
+    with pytest.raises(WindowError, match="do not fit the ring"):
+        stream.swap_model(huge)
+    stream.feed_samples(400, np.zeros((400, old.channels), dtype=np.int16))
+    assert stream.live.model is new

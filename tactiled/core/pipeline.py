@@ -185,13 +185,17 @@ class Pipeline:
 
         The new model's windows and features replace the old ones with it; the ring must hold two of its windows.
         """
+        self.check_model(model)
+        self._pending_model = model
+        if self._onset is None:
+            self._take_pending_model()
+
+    def check_model(self, model: Classifier) -> None:
+        """Raise :class:`WindowError` if the ring cannot hold two of ``model``'s windows (:meth:`swap_model` would refuse it)."""
         window = round(model.settings.duration_s * self.fs)
         if 2 * window > self.ring.capacity:
             raise WindowError("window_too_short", f"the model's {model.settings.duration_s:g} s windows do not fit the ring "
                               f"({self.ring.capacity / self.fs:g} s): raise ring.seconds")
-        self._pending_model = model
-        if self._onset is None:
-            self._take_pending_model()
 
     def follow(self, other: Pipeline) -> None:
         """Go on in step with ``other``, the live pipeline of the same stream (the same detector settings), between its slides:

@@ -81,6 +81,8 @@ class Stream:
         self._shadow_asked: tuple[int, Classifier | None] = (0, None)  # the last set_shadow: (its number, its model)
         self._shadow_taken = 0  # the number of the last set_shadow applied (_take_shadow)
         self._shadow_waiting: Classifier | None = None  # a shadow model applied, waiting for the live slide in progress to end
+        self._swap_asked: tuple[int, Classifier | None] = (0, None)  # the last swap_model: (its number, its model)
+        self._swap_taken = 0  # the number of the last swap_model applied
         self.set_shadow(shadow)
         self._take_shadow()
 
@@ -113,8 +115,13 @@ class Stream:
         self._shadow_asked = (self._shadow_asked[0] + 1, model)
 
     def _take_shadow(self) -> None:
-        """Apply the last :meth:`set_shadow` not applied yet, then start the shadow model waiting if no live slide is in
-        progress: what feeds or ends the stream calls this first."""
+        """Apply the last :meth:`swap_model` and :meth:`set_shadow` not applied yet, then start the shadow model waiting if no
+        live slide is in progress: what feeds or ends the stream calls this first."""
+        number, swap = self._swap_asked
+        if number != self._swap_taken:
+            self._swap_taken = number
+            if swap is not None and self.pipeline is not None:
+                self.pipeline.swap_model(swap)
         number, model = self._shadow_asked
         if number != self._shadow_taken:
             self._shadow_taken = number
@@ -126,8 +133,18 @@ class Stream:
             self._shadow_waiting = None
 
     def swap_model(self, model: Classifier) -> None:
-        """The live model from the next slide on (at once between slides): a slide ends with the model it began with."""
-        self.live.swap_model(model)
+        """The live model from the next slide on (from the next samples fed between slides): a slide ends with the model it
+        began with. Checked at once (:class:`WindowError` if the ring cannot hold its windows: :meth:`Pipeline.check_model`);
+        otherwise only recorded (one assignment) and applied by what next feeds or ends the stream, so it is safe while
+        another thread feeds the stream (the daemon answers a reload while a batch is analysed off its loop)."""
+        self.live.check_model(model)
+        self._swap_asked = (self._swap_asked[0] + 1, model)
+
+    @property
+    def next_model(self) -> Classifier | None:
+        """The live model from the next slide on: the last :meth:`swap_model` asked, applied or not, else the live pipeline's."""
+        number, model = self._swap_asked
+        return model if number != self._swap_taken else self.live.model
 
     def will_analyse(self, end: int) -> bool:
         """True if samples up to absolute index ``end`` complete an analysis window (live or shadow): feature work ahead."""
