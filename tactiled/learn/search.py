@@ -781,12 +781,13 @@ def fit_prefix_novelty(model: Model, windows: WindowSet, reject: float = 0.05, m
     fitted: a slide's first w windows estimate its spectrum less well than all of them, so their distance to the taught
     surfaces runs larger. For w = 1, 2, ... (at most ``most``, while ``fewest`` slides have w windows), the (1 - ``reject``)
     quantile of the distances from the first w windows of each training slide (``windows``: one row per window) to the
-    other recordings' slides, as a multiple (at least 1) of the whole-slide threshold."""
+    other recordings' slides, as a multiple (at least 1) of the whole-slide threshold; as that threshold, over the slides
+    whose surface another recording holds (at least ``fewest`` of them)."""
     if model.novelty_x is None or model.novelty_y is None or model.novelty_groups is None or not math.isfinite(model.novelty_distance_threshold):
         return
     keep = np.flatnonzero((windows.y != "") & windows.originals())
     keep = keep[np.lexsort((windows.spans[keep, 0], windows.slide[keep]))]  # each slide's windows together, in time order
-    x, slide, group = take_columns(windows.x[keep], windows.names, model.names), windows.slide[keep], windows.groups[keep]
+    x, slide, group, surface = take_columns(windows.x[keep], windows.names, model.names), windows.slide[keep], windows.groups[keep], windows.y[keep]
     starts = np.flatnonzero(np.r_[True, slide[1:] != slide[:-1]])
     lengths = np.diff(np.r_[starts, len(slide)])
     sums = np.zeros((len(starts), x.shape[1]))
@@ -802,13 +803,17 @@ def fit_prefix_novelty(model: Model, windows: WindowSet, reject: float = 0.05, m
             break
         sums[have] += x[starts[have] + w - 1]
         z = model.novelty_standardise(model.novelty_features(sums[have] / w))
-        groups = group[starts[have]]
-        dist = np.zeros(len(z))  # a recording with no other to compare with: 0
-        for g in np.unique(groups):
+        groups, surfaces_of = group[starts[have]], surface[starts[have]]
+        dist = np.zeros(len(z))
+        counted = np.zeros(len(z), dtype=bool)  # as the whole-slide threshold (spectrum_threshold): only a slide whose surface
+        for g in np.unique(groups):  # another recording holds (else its nearest surface is another, and it stands for an untaught one)
             if g in others:
                 mine, (ref, labels, scale) = groups == g, others[g]
                 dist[mine] = nearest_surface_distances(z[mine], ref, labels, model.novelty_k, scale=scale)[:, 0]
-        factors.append(max(float(np.quantile(dist, 1.0 - reject, method="higher")) / model.novelty_distance_threshold, 1.0))
+                counted[mine] = np.isin(surfaces_of[mine], labels)
+        if counted.sum() < fewest:
+            break
+        factors.append(max(float(np.quantile(dist[counted], 1.0 - reject, method="higher")) / model.novelty_distance_threshold, 1.0))
     model.novelty_prefix = tuple(factors)
 
 
