@@ -456,11 +456,15 @@ def test_nested_estimate_with_one_slide_per_surface_and_recording(tmp_path: Path
     candidate's, 58.3 % for a model every outer fold scored 100 %); an F statistic over one row per class warns nothing."""
     import warnings
 
+    from joblib.externals.loky import get_reusable_executor
+
     from tactiled.config import Config
     from tactiled.learn.train import train
 
     paths = write_dataset(tmp_path, scene="continuous", seed=4, surfaces="4", files_per_surface=2, slides_per_file=1)
     said: list[str] = []
+    # workers an earlier test started write to the stderr they inherited, not this test's: start this test's own
+    get_reusable_executor().shutdown(wait=True)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         res = train(paths, Config(), progress=said.append)
