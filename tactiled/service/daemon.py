@@ -71,7 +71,8 @@ RESUME_BELOW_S = 0.1  # ... until the oldest input waiting is younger than this
 RATE_INTERVALS = 10  # a rate off sensor.fs (rate_mismatch) is said after this many status intervals running (5 s at the default)
 KEEPING_UP = 0.5  # the watchdog is fed only while samples are handled at no less than this fraction of real time
 INLINE_ANALYSIS_S = 0.005  # a batch that completes a window is analysed on the loop if the last such batch took at most this, s
-STOP_READER_S = 5.0  # on SIGTERM, the longest wait for what the source has read to be analysed and recorded before it is cancelled
+STOP_READER_S = 1.5  # on SIGTERM, the longest wait for what the source has read to be analysed and recorded before it is cancelled
+# (a batch or two in normal running: milliseconds; a backlog of costly input takes longer, and a stop must take at most 2 s)
 
 
 @dataclass
@@ -185,6 +186,9 @@ class Daemon:
                 if not self._reader.done():  # stopped: what the source read is analysed and recorded first (bounded wait)
                     self.source.request_stop()
                     await asyncio.wait([self._reader], timeout=STOP_READER_S)
+                    if not self._reader.done():  # input that costs more than it takes to arrive: a stop takes at most 2 s
+                        log.warning("stopping before all that was read could be processed (%g s): the samples after index %s "
+                                    "are neither analysed nor recorded", STOP_READER_S, self.state.last_index)
                 for t in tasks:
                     t.cancel()
         finally:
