@@ -12,6 +12,7 @@ import os
 import socket
 import subprocess
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -95,7 +96,11 @@ def test_status_keeps_coming_and_sigterm_stops_the_daemon_under_input_that_costs
         if flood is gap_frames:  # the pipeline cannot keep up: analysis is shed, counted, and every sample is still decoded
             status_where(sub, lambda m: m.overloaded > 0, 30, "load shed")
         proc.terminate()
-        proc.wait(10)  # SIGTERM honoured (generous bound: the requirement is 2 s), never a kill
+        asked = time.monotonic()
+        proc.wait(10)  # SIGTERM honoured, never a kill
+        # within 2 s (the daemon stops processing what it read after 1.5 s); 4 s here for a loaded test host: a stop that
+        # processed the flood's backlog for 5 s (071e496 to fd17946) fails
+        assert time.monotonic() - asked < 4.0
         assert proc.returncode == 0, proc.stderr.read() if proc.stderr else ""
     if flood is gap_frames:
         assert "overloaded" in (proc.stderr.read() if proc.stderr else "")
