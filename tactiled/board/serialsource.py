@@ -48,11 +48,13 @@ from __future__ import annotations
 import asyncio
 import bisect
 import contextlib
+import errno
 import inspect
 import itertools
 import logging
 import os
 import select
+import stat
 import threading
 import time
 from collections import deque
@@ -117,9 +119,13 @@ class KeepInputSerial(serial.Serial):
             super()._reset_input_buffer()  # type: ignore[misc]
 
 
+NOT_A_TTY = "not a serial port (a tty)"
+
+
 def check_port(path: str) -> None:
     """Raise :class:`DeviceError` naming ``path`` if it cannot be opened now (a URL: opened and closed again, so a
-    ``socket://`` bridge sees one connection more)."""
+    ``socket://`` bridge sees one connection more); a path that is not a serial port (a regular file, a folder, a device
+    that is not a terminal) is said so plainly (:func:`not_a_tty`)."""
     if "://" in path:
         try:
             serial.serial_for_url(path, timeout=0).close()
@@ -128,17 +134,49 @@ def check_port(path: str) -> None:
         return
     if not os.path.exists(path):
         raise DeviceError(f"{path}: no such serial device")
+    kind = not_a_tty(path)
+    if kind is not None:
+        raise DeviceError(f"{path}: {NOT_A_TTY}: {kind}")
     try:
         port = serial.Serial(path, timeout=0, exclusive=True)
     except (serial.SerialException, OSError) as exc:
-        raise DeviceError(f"{path}: cannot open serial device: {open_error(exc)}") from None
+        why = open_error(exc, path)
+        raise DeviceError(f"{path}: {why}" if why.startswith(NOT_A_TTY) else f"{path}: cannot open serial device: {why}") from None
     port.close()
 
 
-def open_error(exc: BaseException) -> str:
-    """Why a port did not open, for the user: pyserial's lock failure (ports are opened exclusively) said plainly."""
+def not_a_tty(path: str) -> str | None:
+    """What ``path`` is when it cannot be a serial port, without opening it ("a regular file of 12 bytes", "a folder", ...);
+    None for a character device (a tty, or one that only opening can tell from one) or a path that cannot be examined."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    mode = st.st_mode
+    if stat.S_ISCHR(mode):
+        return None
+    if stat.S_ISREG(mode):
+        return f"a regular file of {st.st_size} bytes"
+    if stat.S_ISDIR(mode):
+        return "a folder"
+    if stat.S_ISFIFO(mode):
+        return "a named pipe"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    if stat.S_ISBLK(mode):
+        return "a block device"
+    return "not a character device"
+
+
+def open_error(exc: BaseException, path: str | None = None) -> str:
+    """Why a port did not open, for the user: pyserial's lock failure (ports are opened exclusively) and a ``path`` that is
+    not a terminal (pyserial: "Could not configure port: (25, 'Inappropriate ioctl for device')") said plainly."""
     if "exclusively lock" in str(exc):
         return "another process has it open (a running daemon or recorder?): a port has one reader, or each gets part of its bytes"
+    if path is not None and (kind := not_a_tty(path)) is not None:
+        return f"{NOT_A_TTY}: {kind}"
+    if getattr(exc, "errno", None) == errno.ENOTTY or "Inappropriate ioctl for device" in str(exc):
+        return f"{NOT_A_TTY}: a character device that is not a terminal"
     return str(exc)
 
 
@@ -343,7 +381,7 @@ class SerialSource:
                 port = self._open()
             except (serial.SerialException, OSError, ValueError, OverflowError) as exc:
                 if not reported:
-                    deliver((DISCONNECTED, f"cannot open: {open_error(exc)}; retrying"))
+                    deliver((DISCONNECTED, f"cannot open: {open_error(exc, None if self._url else self.path)}; retrying"))
                     reported = True
                 self._stop.wait(delay)  # capped backoff between failing opens, not synchronisation
                 delay = min(delay * 2, self._retry[1])

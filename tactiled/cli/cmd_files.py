@@ -14,6 +14,8 @@ from tactiled.config import Config
 from tactiled.errors import TactiledError
 
 if TYPE_CHECKING:
+    from tactiled.core.events import SlideResult
+    from tactiled.files.recording import Recording
     from tactiled.learn.choose import ModelChoice
 
 
@@ -25,7 +27,12 @@ def _choice(args: argparse.Namespace, config: Config) -> ModelChoice:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    """Record the port into a recording (``--format mcap``: the .npz beside it too, converted at the end)."""
+    """Record the port into a recording (``--format mcap``: the .npz beside it too, converted at the end).
+
+    Everything the end needs is checked before the port opens: the outputs, and with ``--format mcap`` the ``mcap`` extra
+    and the model (``--model``: it loads, fits the sensor's rate and channels, and keeps up). A recording of no sample
+    writes no file and exits 1 (:meth:`~tactiled.service.recorder.RecordSummary.nothing_line`)."""
+    from tactiled.extras import need
     from tactiled.files.outputs import check_output
     from tactiled.service.mcap_export import export_recording
     from tactiled.service.recorder import record
@@ -34,14 +41,22 @@ def cmd_record(args: argparse.Namespace) -> int:
                               "sensor.channels": args.channels})
     npz = args.output if args.format == "npz" else str(Path(args.output).with_suffix(".npz"))
     check_output(args.output, args.force, (f".{args.format}",))
+    choice = None
     if args.format == "mcap":
         check_output(npz, args.force)
+        need("mcap.writer", "mcap")  # before the recording, not after it
+        choice = _choice(args, config)
+        if args.model:  # an explicit model that cannot be used is refused now (the shipped one that does not fit is said at the end)
+            choice.for_stream(config.sensor.fs, config.sensor.channels, args.model)
     summary = record(config, args.seconds, npz, label=args.label, force=args.force)
     if summary.error is not None:  # a full disk: the capture stopped, the journal keeps what was written
         say(f"error: {summary.error}")
         return EXIT_FAIL
-    if args.format == "mcap":
-        counts = export_recording(npz, args.output, config, _choice(args, config), force=args.force)
+    if not summary.samples:  # the port gave nothing to record: no file, said in one line
+        say(f"error: {summary.nothing_line(args.output)}")
+        return EXIT_FAIL
+    if choice is not None:
+        counts = export_recording(npz, args.output, config, choice, force=args.force)
         print(f"{args.output}: {summary.line()}; {counts['roughness']} roughness messages; the recording stays in {npz}")
     else:
         print(f"{args.output}: {summary.line()}")
@@ -76,31 +91,47 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    """Recordings and captures through the daemon's pipeline: a line (or a JSON object) per slide, a summary per file."""
-    from tactiled.run.replay import BLOCK, by_slide, result_record, summary_line
-    from tactiled.service.replay_files import replay_files
+    """Recordings and captures through the daemon's pipeline: a line (or a JSON object) per slide, a summary per file.
+
+    Paced (``--speed``), each slide is printed as its final result stands, while the file plays; Ctrl-C there prints the
+    summary of the file so far (the slides ended by then already printed) and exits 1, as a command interrupted does
+    (:func:`tactiled.cli.main.main`). As fast as possible, a file's slides are printed once it has played (possibly in a
+    worker process)."""
+    from tactiled.run.replay import by_slide, result_record, summary_line
+    from tactiled.service.replay_files import interrupted_line, replay_files
 
     config = config_of(args)
+    summaries = sys.stderr if args.json else sys.stdout
+
+    def show(path: str, rec: Recording, r: SlideResult, provisional: list[SlideResult], model: str) -> None:
+        obj = result_record(path, rec, r, provisional, config.sensor.id, model)
+        if args.json:
+            print(json.dumps(obj.to_map()), flush=True)
+            return
+        conf = "" if r.confidence is None else f" ({r.confidence:.2f})"
+        why = f" [{r.reason}]" if r.reason else ""
+        truth = f", truth {obj.truth}" if obj.truth else ""
+        early = f", provisional {provisional[0].label or '-'} at {provisional[0].used_s:.2f} s" if provisional else ""
+        print(f"{path}: slide {r.slide_id}: {r.start}-{r.stop} ({obj.duration_s:.2f} s), {r.quality.get('windows', 0)} windows: "
+              f"{r.label or '-'}{conf}{why}{early}{truth}", flush=True)
+
+    paced = args.speed is not None
     failed = 0
-    for done in replay_files(args.files, config, _choice(args, config), block=args.block or BLOCK, speed=args.speed,
-                             publish=args.publish, wait_subscriber_s=args.wait_subscriber, samples=args.samples, jobs=args.jobs):
+    for done in replay_files(args.files, config, _choice(args, config), block=args.block, speed=args.speed, publish=args.publish,
+                             wait_subscriber_s=args.wait_subscriber, samples=args.samples, jobs=args.jobs, on_slide=show if paced else None):
         if done.error is not None or done.rec is None:
             say(f"error: {done.error}")
             failed += 1
             continue
         path, rec = done.path, done.rec
-        for r, provisional in by_slide(done.results):
-            obj = result_record(path, rec, r, provisional, config.sensor.id, done.model)
-            if args.json:
-                print(json.dumps(obj.to_map()), flush=True)
-                continue
-            conf = "" if r.confidence is None else f" ({r.confidence:.2f})"
-            why = f" [{r.reason}]" if r.reason else ""
-            truth = f", truth {obj.truth}" if obj.truth else ""
-            early = f", provisional {provisional[0].label or '-'} at {provisional[0].used_s:.2f} s" if provisional else ""
-            print(f"{path}: slide {r.slide_id}: {r.start}-{r.stop} ({obj.duration_s:.2f} s), {r.quality.get('windows', 0)} windows: "
-                  f"{r.label or '-'}{conf}{why}{early}{truth}", flush=True)
-        print(f"{path}: {summary_line(done.results, rec)}", file=sys.stderr if args.json else sys.stdout, flush=True)
+        if done.interrupted_at is not None:  # Ctrl-C: what was done in this file, and no file after it
+            size = rec.samples.shape[0] or None  # a capture's: not known (its recording has no samples yet)
+            print(f"{path}: {interrupted_line(done.results, rec, done.interrupted_at, size)}", file=summaries, flush=True)
+            return EXIT_FAIL
+        if not paced:  # paced, each slide was printed as it stood
+            for r, provisional in by_slide(done.results):
+                show(path, rec, r, provisional, done.model)
+        print(f"{path}: {summary_line(done.results, rec)}", file=summaries, flush=True)
     return EXIT_USAGE if failed else EXIT_OK
 
 
@@ -110,7 +141,9 @@ def add_commands(sub: Sub) -> None:
                 "tactiled record --port /dev/ttyACM0 --seconds 60 --label P120 -o p120_01.npz")
     p.add_argument("--config", help=c.CONFIG_HELP)
     p.add_argument("--port", help="serial device path " + c.overrides("sensor.port"))
-    p.add_argument("--seconds", type=c.positive, required=True, help="sensor time to record, s")
+    p.add_argument("--seconds", type=c.positive, required=True,
+                   help="sensor time to record, s (a port that gives nothing to record is said after 5 s; if nothing was recorded "
+                        "when it stops, no file is written and the exit code is 1)")
     p.add_argument("-o", "--output", required=True, help="recording file to write (.npz, or .mcap with --format mcap)")
     p.add_argument("--label", help="surface of the whole file (its ground truth for train and score; default: none, the file is unlabelled)")
     p.add_argument("--fs", type=c.positive, help="sample rate, Hz " + c.overrides("sensor.fs"))
@@ -147,7 +180,9 @@ def add_commands(sub: Sub) -> None:
                                             "config's sensor), one after the other")
     p.add_argument("--config", help=c.CONFIG_HELP)
     p.add_argument("--json", action="store_true", help="one JSON object per slide")
-    p.add_argument("--speed", type=c.positive, default=None, help="pace at X times real time (default: as fast as possible)")
+    p.add_argument("--speed", type=c.positive, default=None,
+                   help="pace at X times real time, each slide printed as its final result stands (Ctrl-C: the file's summary so far, "
+                        "exit 1) (default: as fast as possible)")
     p.add_argument("--model", help=c.MODEL_HELP)
     p.add_argument("--no-model", action="store_true", help="no classification (labels are null)")
     p.add_argument("--publish", help="also publish the daemon's messages on this ZeroMQ endpoint: slides, labels and status (and the "
@@ -156,6 +191,7 @@ def add_commands(sub: Sub) -> None:
                    help="with --publish: wait up to S s for a first subscriber before sending, so that one already started misses "
                         "nothing (0: send at once)")
     p.add_argument("--samples", action="store_true", help="with --publish: also publish the raw samples on samples/<id>, as run --samples")
-    p.add_argument("--block", type=c.count, default=None, help="samples per block fed to the pipeline (default 65536)")
+    p.add_argument("--block", type=c.count, default=None,
+                   help="samples per block fed to the pipeline (default 65536; with --speed, about 40 ms of wall time each, as the daemon's batches)")
     p.add_argument("--jobs", type=c.jobs, default=0, metavar="N", help=c.JOBS_HELP + "; not with --speed or --publish, which play the files in turn")
     p.add_argument("--force", action="store_true", help="run a model whose analysis cannot keep up with real time (below 5x on this machine)")

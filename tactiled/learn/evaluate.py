@@ -359,6 +359,8 @@ def run_evaluation(recs: Sequence[tuple[str, Recording]], config: Config, report
     report.mkdir(parents=True, exist_ok=True)
     (report / "report.json").write_text(json.dumps(results, indent=1))
     figures = write_figures(results, report)
+    if figures is None and progress is not None:  # matplotlib missing: the command says so, as the report does
+        progress(FIGURES_NOT_DRAWN)
     (report / "report.md").write_text(markdown(results, figures))
     return results
 
@@ -367,8 +369,9 @@ def _pm(r: dict[str, Any]) -> str:
     return f"{100 * r['mean']:.1f} ± {100 * r['sd']:.1f} %"
 
 
-def markdown(res: dict[str, Any], figures: list[str]) -> str:
-    """report.md: the results of :func:`run_evaluation` as Markdown sections and tables, then the ``figures`` (PNG names)."""
+def markdown(res: dict[str, Any], figures: list[str] | None) -> str:
+    """report.md: the results of :func:`run_evaluation` as Markdown sections and tables, then the ``figures`` (PNG names;
+    None: they were not drawn, matplotlib missing, which the report says)."""
     out = [f"# Evaluation report\n\n{res['files']} recordings at {res['fs']:g} Hz, {res['channels']} channels; grouped {res['folds']}-fold{_folds_note(res)} "
            f"cross-validation (mean ± sd over folds; slides from the daemon's detector paired with the ground truth, every true slide counted); "
            f"{res['seconds']:.0f} s."
@@ -431,7 +434,9 @@ def markdown(res: dict[str, Any], figures: list[str]) -> str:
                        "| confidence bin | slides | mean confidence | accuracy |\n|---|---|---|---|")
             out += [f"| {lo:.1f}–{lo + 0.1:.1f} | {n} | {c:.3f} | {a:.3f} |" for lo, n, c, a in cal["reliability"]]
         out.append("")
-    out += [f"![{f}]({f})\n" for f in figures]
+    if figures is None:
+        out.append(f"F{FIGURES_NOT_DRAWN[1:]}.\n")
+    out += [f"![{f}]({f})\n" for f in figures or []]
     return "\n".join(out) + "\n"
 
 
@@ -447,15 +452,21 @@ def _calibrated(cal: dict[str, Any]) -> str:
     return f"; a perfectly calibrated model would show {null[0]:.3f}, and up to {null[1]:.3f} in 95 % of draws, on these slides" if null else ""
 
 
-def write_figures(res: dict[str, Any], report: Path) -> list[str]:
-    """error_vs_decision_time.png and reliability.png ((g)) and error_vs_runtime.png ((f)); [] when matplotlib is missing."""
+FIGURES_NOT_DRAWN = "figures not drawn: matplotlib is not installed; to get them: pip install 'tactiled[report]'"
+
+
+def write_figures(res: dict[str, Any], report: Path) -> list[str] | None:
+    """error_vs_decision_time.png and reliability.png ((g)) and error_vs_runtime.png ((f)), their names; None when there
+    are figures to draw and matplotlib is missing (:data:`FIGURES_NOT_DRAWN`)."""
+    if "default_method" not in res and "window_grid" not in res:
+        return []
     try:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        return []
+        return None
     names = []
     if "default_method" in res:
         g = res["default_method"]

@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 
 COMMIT_S = 0.5  # the commit period, s of wall time: about what a kill or a power cut can lose
 MAX_CHUNK_BYTES = 4 << 20  # a chunk is committed at this size at the latest
+SILENT_AFTER_S = 5.0  # record says once that the port has given nothing to record for this long (host time) from the start
 RATE_AFTER_S = 5.0  # the recorder measures the board's sample rate over this long from its first samples (rate_mismatch)
 QUEUE_BYTES = 64 << 20  # samples waiting for the writer (a disk stalled 13 min at 20 kHz x 2 channels); beyond, frames are lost, counted
 
@@ -263,10 +264,21 @@ class RecordingSink:
         fsync_dir(self.journal.parent)
         return SinkResult(self._rows, self._lost)
 
+    def discard(self) -> None:
+        """End a sink that was given no row (:attr:`first_index` None): its writer stops, its journal (a header only) is
+        removed, and ``out`` is neither written nor touched, so a file already there stays as it was."""
+        assert self.first_index is None, "a sink with rows is finished (finish), never discarded"
+        self._finishing.set()
+        self._thread.join()
+        self._writer.close()
+        os.unlink(self.journal)
+        fsync_dir(self.journal.parent)
+
 
 @dataclass
 class RecordSummary:
-    """What :func:`record` did: seconds (of sensor time) and samples saved, samples lost, CRC failures, reconnects, and a write error."""
+    """What :func:`record` did: seconds (of sensor time) and samples saved, samples lost, CRC failures, reconnects, and a write error;
+    and, for a recording of no sample (nothing written: :meth:`nothing_line`), what the port gave instead."""
 
     seconds: float
     samples: int
@@ -275,12 +287,33 @@ class RecordSummary:
     reconnects: int
     error: str | None = None  # the capture stopped on a write error (the journal keeps what was written)
     channel_errors: int = 0  # intact frames of another channel count, skipped
+    port: str = ""
+    bytes_read: int = 0  # bytes the port gave (stale bytes discarded at the first open not included)
+    wall_s: float = 0.0  # how long the port was read, s of host time
+    seen: str = ""  # what the port gave when no sample was recorded (:func:`port_seen`)
 
     def line(self) -> str:
         """One line for the user: seconds, samples, lost, CRC failures and reconnects (and frames skipped for their channel count)."""
         skipped = f", {self.channel_errors} frames of another channel count skipped" if self.channel_errors else ""
         return (f"recorded {self.seconds:.3f} s: {self.samples} samples, {self.samples_lost} lost, "
                 f"{self.crc_errors} CRC failures, {self.reconnects} reconnects{skipped}")
+
+    def nothing_line(self, out: str | Path) -> str:
+        """The one line of a recording of no sample (no file written): the port, how long it was read, what it gave."""
+        return f"{out}: nothing recorded, no file written: {self.port}, read for {self.wall_s:.1f} s: {self.seen}"
+
+
+def port_seen(bytes_read: int, stats: DecoderStats, channels: int, foreign: int = 0, discarded_at_start: int = 0) -> str:
+    """What a port gave that held no sample to record, in a few words: no bytes, bytes with no valid sensor frame, or
+    frames of another channel count (``foreign``, when known) than ``channels`` (sensor.channels)."""
+    stale = f" ({discarded_at_start} stale bytes discarded at the open)" if discarded_at_start else ""
+    if stats.channel_errors:
+        board = f"the board sends {foreign} channels, " if foreign else ""
+        return f"{stats.channel_errors} frames of another channel count skipped ({board}sensor.channels is {channels})"
+    if not bytes_read:
+        return f"no bytes{stale} (is the board on and streaming, and is this its port?)"
+    failures = "".join(f", {n} {what}" for n, what in ((stats.crc_errors, "CRC failures"), (stats.bad_headers, "bad headers")) if n)
+    return f"{bytes_read} bytes but no valid sensor frame{failures}{stale} (another device, or another baud rate than sensor.baudrate?)"
 
 
 def link_counters(stats: DecoderStats, source: ByteSource | None) -> dict[str, int]:
@@ -306,6 +339,11 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     :class:`~tactiled.errors.OutputError`); a write error during the capture stops it and is returned in
     :attr:`RecordSummary.error`, the journal keeping what was written. Stop signals stay caught until the recording
     is saved, so a second Ctrl-C never leaves a half-written file.
+
+    A port that gives no sample to record for :data:`SILENT_AFTER_S` of host time from the start (no bytes, bytes with no
+    valid frame, frames of another channel count) is said once, naming the port and what it gave; a recording that ends
+    with no sample is not written (a file already at ``out`` stays as it was): :attr:`RecordSummary.samples` is 0 and
+    :meth:`RecordSummary.nothing_line` says what the port gave.
     """
     s = config.sensor
     check_label_option(label)  # else the file would not load (docs/recordings.md): said before the port opens
@@ -332,18 +370,20 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
             chunks.put(None)
 
     channels_said = rate_said = False  # each said once
+    bytes_read = 0
     # the rate's start: when samples first came, the index's advance by then (samples and lost: an unplug or dropped frames
     # are not a slower board), and the restarts and reconnects by then (either begins the measurement again)
     first: tuple[float, int, tuple[int, int]] | None = None
 
     def take(item: tuple[bytes, float] | None) -> None:
-        nonlocal channels_said, rate_said, first
+        nonlocal channels_said, rate_said, first, bytes_read
         if item is None:  # the port went away after the bytes taken so far: what the decoder holds goes in first
             for batch in stream.held():
                 sink.add(batch)
             sink.mark_disconnected()
             return
         data, read_at = item
+        bytes_read += len(data)
         for batch in stream.feed_bytes(data).batches:
             sink.add(batch)
         if stream.stats.channel_errors and not channels_said:  # nothing of such a board is recorded: say so at once, not at the end
@@ -369,9 +409,16 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
         source = SerialSource(s.port, on_bytes, on_state, baudrate=s.baudrate, retry_initial_s=c.retry_initial_s, retry_max_s=c.retry_max_s,
                               read_interval_s=c.read_interval_s)
         source.start()
+        started = time.monotonic()
+        silent_said = False
         log.info("recording %s -> %s (Ctrl-C stops and saves)", s.port, out)
         try:
             while not sink.done and sink.error is None and not stop.is_set():
+                if not silent_said and sink.first_index is None and time.monotonic() - started >= SILENT_AFTER_S:
+                    silent_said = True  # once: a port that gives nothing to record is said, not waited on in silence
+                    log.warning("%s: nothing to record after %.0f s: %s; still waiting (Ctrl-C stops)", s.port, SILENT_AFTER_S,
+                                port_seen(bytes_read, stream.stats, s.channels, stream.ingest.decoder.foreign_channels or 0,
+                                          source.discarded_at_start))
                 try:
                     item = chunks.get(timeout=0.1)  # the stop flag's polling period
                 except queue.Empty:
@@ -385,10 +432,17 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
             take(chunks.get_nowait())
         for batch in stream.finish().batches:
             sink.add(batch)
-        result = sink.finish()
+        wall_s = time.monotonic() - started
+        if sink.first_index is None and sink.error is None:  # not one sample: no file (an empty recording is no recording)
+            sink.discard()
+            result = SinkResult(0, 0)
+        else:
+            result = sink.finish()
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     stats = stream.stats
+    seen = "" if result.samples else port_seen(bytes_read, stats, s.channels, stream.ingest.decoder.foreign_channels or 0,
+                                               source.discarded_at_start)
     return RecordSummary(result.samples / s.fs, result.samples, result.samples_lost, stats.crc_errors, source.reconnects, result.error,
-                         stats.channel_errors)
+                         stats.channel_errors, port=s.port, bytes_read=bytes_read, wall_s=wall_s, seen=seen)
