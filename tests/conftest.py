@@ -169,6 +169,25 @@ def live_events(rec: Recording, config: Any, model: Any, block: int = 800) -> li
     return events + stream.finish().events
 
 
+def memory_daemon(config: Any, model: Any, data: bytes, chunk: int, probe: Callable[[Any], None], **kwargs: Any) -> Any:
+    """A :class:`~tactiled.service.daemon.Daemon` (not yet run) on a memory source of the board's bytes ``data`` in chunks
+    of ``chunk`` bytes, ``probe(daemon)`` called after each chunk it consumed; ``kwargs`` to the daemon."""
+    from tactiled.board.serialsource import MemorySource
+    from tactiled.service.daemon import Daemon
+
+    box: list[Daemon] = []
+
+    def factory(on_bytes: Callable[[bytes], Any], on_state: Callable[[str, str], None]) -> MemorySource:
+        async def consume(b: bytes) -> None:
+            await on_bytes(b)
+            probe(box[0])
+
+        return MemorySource((data[i:i + chunk] for i in range(0, len(data), chunk)), consume, on_state)
+
+    box.append(Daemon(config, model, source_factory=factory, **kwargs))
+    return box[0]
+
+
 class BridgeSink:
     """What a bridge hands to its outlets, kept: every samples, roughness and status message in order (``got``);
     ``stopping`` is set at the daemon's last status, ``closed`` when the bridge closes its outlets."""

@@ -28,6 +28,7 @@ from tactiled.board.serialsource import MemorySource
 from tactiled.config import Config
 from tactiled.learn.model import Model, load_model
 from tactiled.service.daemon import Daemon
+from tests.conftest import memory_daemon
 
 FS = 20_000
 
@@ -113,17 +114,7 @@ def _run(config: Config, model: Model, data: bytes, between: Callable[[Daemon], 
     """``data`` (the board's bytes) through a daemon in this process; ``between(daemon)`` after each chunk it took in. Every
     message it published, in order."""
     sent: list[Any] = []
-    box: list[Daemon] = []
-
-    def factory(on_bytes: Callable[[bytes], Awaitable[None]], on_state: Callable[[str, str], None]) -> MemorySource:
-        async def consume(b: bytes) -> None:
-            await on_bytes(b)
-            between(box[0])
-
-        return MemorySource((data[i:i + chunk] for i in range(0, len(data), chunk)), consume, on_state)
-
-    daemon = Daemon(config, model, source_factory=factory, **kwargs)
-    box.append(daemon)
+    daemon: Daemon = memory_daemon(config, model, data, chunk, between, **kwargs)
     publish = daemon.publisher.publish
 
     def keep(msg: Any) -> Any:

@@ -7,17 +7,18 @@ import asyncio
 import os
 import threading
 import tty
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from typing import Any
 
 import pytest
 
 import tactiled.service.daemon as daemon_module
-from tactiled.board.serialsource import CONNECTED, MemorySource, SerialSource
+from tactiled.board.serialsource import CONNECTED, SerialSource
 from tactiled.config import Config
 from tactiled.learn.model import load_model
 from tactiled.run.stream import Stream
 from tactiled.service.daemon import Daemon
+from tests.conftest import memory_daemon
 from tests.test_ingest import _stream
 
 
@@ -73,17 +74,7 @@ def test_the_hand_over_period_changes_while_the_source_reads() -> None:
 def _run_daemon(config: Config, chunk: int, probe: Callable[[Daemon], None]) -> Daemon:
     """The daemon on a memory source of a few seconds of slides, ``probe(daemon)`` called after each chunk it consumed."""
     data, _ = _stream(seed=6)
-    box: list[Daemon] = []
-
-    def factory(on_bytes: Callable[[bytes], Awaitable[None]], on_state: Callable[[str, str], None]) -> MemorySource:
-        async def consume(b: bytes) -> None:
-            await on_bytes(b)
-            probe(box[0])
-
-        return MemorySource((data[i:i + chunk] for i in range(0, len(data), chunk)), consume, on_state)
-
-    daemon = Daemon(config, load_model(), source_factory=factory)
-    box.append(daemon)
+    daemon: Daemon = memory_daemon(config, load_model(), data, chunk, probe)
     asyncio.run(daemon.run())
     return daemon
 
