@@ -181,6 +181,8 @@ def pick_surfaces(spec: str | int | None, family: str = "self-affine", specimen:
     for name in str(spec).split(","):
         if name.strip() not in by_name:
             raise ValueError(f"--surfaces: unknown surface {name.strip()!r}; known: {', '.join(by_name)}")
+        if by_name[name.strip()] in out:  # its files would overwrite the first's (named by surface and number)
+            raise ValueError(f"--surfaces: {name.strip()!r} is named twice")
         out.append(by_name[name.strip()])
     return out
 

@@ -194,8 +194,8 @@ def write_figure(out: Path, scene: str | None = None, seed: int = 0, mode: str |
         import matplotlib.pyplot as plt
     except ImportError:
         raise TactiledError("the figure needs matplotlib: pip install 'tactiled[report]'") from None
-    _, params = scene_for(scene, mode)
-    surfaces = pick_surfaces(None)
+    scene_name, params = scene_for(scene, mode)
+    surfaces = pick_surfaces(None, params.family)
     fig, axes = plt.subplots(len(surfaces), 2, figsize=(11, 1.1 * len(surfaces)), sharex="col")
     for row, surface in enumerate(surfaces):
         model = SensorSimulator(params, seed + row)
@@ -215,7 +215,7 @@ def write_figure(out: Path, scene: str | None = None, seed: int = 0, mode: str |
         axes[row, 1].set_ylim(1e-6, 1e-1)
     axes[-1, 0].set_xlabel("time, s (shaded: ground-truth slide)")
     axes[-1, 1].set_xlabel("frequency, Hz (window 0.3-0.8 s after the start of motion)")
-    axes[0, 0].set_title(f"film 1, volts ({mode} sliding)")
+    axes[0, 0].set_title(f"film 1, volts (scene {scene_name})")
     axes[0, 1].set_title("amplitude spectrum, V")
     fig.tight_layout()
     fig.savefig(out, dpi=90)
