@@ -4,7 +4,7 @@
     model, and the papers' plain ELM (Huang's U(−1, 1) weights, pseudo-inverse, no ridge);
 (b) start point × duration of the analysis window;
 (c) sampling rate: the recordings' own rate decimated with anti-aliasing (scipy.signal.decimate) by 2, 4, 10 and 20
-    (from 20 kHz: 10, 5, 2, 1 kHz; ``--quick``: by 4);
+    (from 20 kHz: 10, 5, 2, 1 kHz; ``--quick``: by 4); lost samples stay lost, with every row the filter carries them to;
 (d) number of selected features;
 (e) without labels: K-means (squared Euclidean, cityblock, cosine) and a SOM, Hungarian-scored;
 (f) error against run time: accuracy beside the compute time per slide (features + inference)
@@ -22,6 +22,7 @@ for, and the report gives the number used. Every input needs two surfaces, each 
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from collections.abc import Sequence
@@ -29,13 +30,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from scipy import signal
 
 from tactiled.config import Config
 from tactiled.core.analysis import AnalysisSettings
 from tactiled.core.features import FeaturePlan, classifier_inputs
 from tactiled.errors import TactiledError
-from tactiled.files.recording import Recording
+from tactiled.files.recording import Recording, merge_ranges
 from tactiled.learn.cluster import hungarian_accuracy, kmeans, som_clusters
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, check_distinct, collect_windows, find_slides
 from tactiled.learn.model import decision_scores, fit_pipeline, softmax
@@ -286,8 +288,9 @@ class Evaluator:
                           "windows": float(n_used[decided].mean()) if decided.any() else 0.0,
                           "compute_ms": float((feat_ms + infer_ms) * (n_used[decided].mean() if decided.any() else 0.0))})
         self.progress(f"(g) default method {res.winner}: nested CV {res.nested['mean']:.3f}")
-        return {"winner": res.winner, "nested": res.nested, "leaderboard": res.leaderboard, "feature_ms": feat_ms, "infer_ms": infer_ms,
-                "curve": curve, "calibration": self.calibration(res)}
+        why = optimistic_reason(res.nested)
+        return {"winner": res.winner, "nested": res.nested, "optimistic": why is not None, **({"optimistic_reason": why} if why else {}),
+                "leaderboard": res.leaderboard, "feature_ms": feat_ms, "infer_ms": infer_ms, "curve": curve, "calibration": self.calibration(res)}
 
     def calibration(self, res: Any) -> dict[str, Any]:
         """(g) ECE, Brier and the reliability table of the chosen model's confidence, cross-fitted: each outer fold's slides
@@ -306,13 +309,60 @@ class Evaluator:
         return calibration_scores(confidence[ok], right[ok])
 
 
+def optimistic_reason(nested: dict[str, Any]) -> str | None:
+    """Why the nested CV accuracy ``nested`` (search's) is optimistic, in the words ``train`` prints (Model.describe), or None."""
+    if nested.get("grouped_by") == "slide":
+        return "train --group-by slide: the folds split recordings"
+    if nested.get("inner_grouped_by") == "none":
+        return "one slide of a surface in a fold: no choice inside it"
+    return None
+
+
+LOST_REACH_TOL = 1e-5  # decimate: an output row is lost where lost input rows can move it by this share of their largest |value| or more
+
+
+@functools.cache
+def decimation_reach(step: int) -> int:
+    """Input rows either side of a row that one stage of :func:`decimate` (scipy.signal.decimate by ``step``: an order-8
+    Chebyshev I filter run forward and backward, sosfiltfilt) lets it move by :data:`LOST_REACH_TOL` or more of the
+    input's range: the sum of |impulse response| beyond it is smaller. Plus sosfiltfilt's edge padding, whose odd
+    extension carries the rows near an end (the first one into the whole pad) further in."""
+    sos = signal.cheby1(8, 0.05, 0.8 / step, output="sos")  # what scipy.signal.decimate uses for ftype="iir"
+    half = 400 * step  # the response falls below 1e-6 within ~80 steps
+    impulse = np.zeros(2 * half + 1)
+    impulse[half] = 1.0
+    h = np.abs(signal.sosfiltfilt(sos, impulse))
+    by_distance = h[half:].copy()
+    by_distance[1:] += h[:half][::-1]
+    tail = np.cumsum(by_distance[::-1])[::-1]  # tail[d]: the sum of |h| at distances d and more
+    padlen = 3 * (2 * len(sos) + 1 - min(int((sos[:, 2] == 0).sum()), int((sos[:, 5] == 0).sum())))  # sosfiltfilt's default
+    return int(np.count_nonzero(tail >= LOST_REACH_TOL)) + padlen
+
+
+def _decimated_lost(lost: npt.NDArray[np.int64], n: int, stages: Sequence[int]) -> npt.NDArray[np.int64]:
+    """``lost`` ranges of ``n`` input rows after :func:`decimate`'s ``stages``: every output row a lost input row reaches."""
+    ranges = merge_ranges(lost)
+    for step in stages:
+        reach = decimation_reach(step)
+        lo = np.clip(ranges[:, 0] - reach, 0, n)
+        hi = np.clip(ranges[:, 0] + ranges[:, 1] + reach, 0, n)
+        lo, hi = -(-lo // step), -(-hi // step)  # output row j is input row j * step
+        keep = hi > lo
+        ranges = merge_ranges(np.column_stack([lo[keep], hi[keep] - lo[keep]]))
+        n = -(-n // step)
+    return ranges.astype(np.int64).reshape(-1, 2)
+
+
 def decimate(rec: Recording, rate: float) -> Recording:
-    """``rec`` at ``rate`` Hz: anti-aliased decimation (scipy.signal.decimate, zero phase) of the volts."""
+    """``rec`` at ``rate`` Hz: anti-aliased decimation (scipy.signal.decimate, zero phase) of the volts. Every output row
+    a lost input row reaches through the filter (:func:`decimation_reach`) is lost, so a window is refused for lost
+    samples at every rate alike; ``disconnected`` positions move to the first output row after them."""
     factor = rec.fs / rate
     if abs(factor - round(factor)) > 1e-9:
         raise ValueError(f"{rate:g} Hz is not an integer division of {rec.fs:g} Hz")
     q = round(factor)
     volts = rec.volts()
+    n = volts.shape[0]
     stages = []
     while q > 1:  # decimate in stages of at most 10, as scipy recommends
         step = next(s for s in (10, 5, 4, 2, q) if q % s == 0)
@@ -325,8 +375,10 @@ def decimate(rec: Recording, rate: float) -> Recording:
     if rec.slide_start is not None and rec.slide_stop is not None:
         start = rec.slide_start // total
         stop = np.maximum(rec.slide_stop // total, start + 1)
+    lost = _decimated_lost(rec.lost, n, stages) if len(rec.lost) else np.zeros((0, 2), dtype=np.int64)
+    disconnected = np.unique(-(-np.asarray(rec.disconnected, dtype=np.int64) // total))
     return Recording(samples=np.ascontiguousarray(volts), fs=rate, slide_start=start, slide_stop=stop, surface=rec.surface, label=rec.label,
-                     meta=rec.meta)
+                     meta=rec.meta, lost=lost, disconnected=disconnected)
 
 
 QUICK_SFS_POOL = 16  # evaluate --quick: candidates per forward-selection step
@@ -418,7 +470,8 @@ def markdown(res: dict[str, Any], figures: list[str] | None) -> str:
         out.append("")
     if "default_method" in res:
         g = res["default_method"]
-        out.append(f"## (g) The default method: `tactiled train`'s choice\n\nWinner: **{g['winner']}**; nested CV accuracy {_pm(g['nested'])} "
+        caveat = f", optimistic ({g['optimistic_reason']})" if g.get("optimistic_reason") else ""  # the words train prints
+        out.append(f"## (g) The default method: `tactiled train`'s choice\n\nWinner: **{g['winner']}**; nested CV accuracy {_pm(g['nested'])}{caveat} "
                    f"(outer-fold picks: {', '.join(g['nested']['picks'])}). The choice is the simplest candidate within one standard error "
                    "of the best mean (marked *).\n\n| candidate | accuracy |\n|---|---|")
         out += [f"| {r['candidate']}{' *' if r.get('chosen') else ''} | {_pm(r)} |" for r in g["leaderboard"]]
