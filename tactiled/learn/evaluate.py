@@ -324,8 +324,8 @@ LOST_REACH_TOL = 1e-5  # decimate: an output row is lost where lost input rows c
 @functools.cache
 def decimation_reach(step: int) -> int:
     """Input rows either side of a row that one stage of :func:`decimate` (scipy.signal.decimate by ``step``: an order-8
-    Chebyshev I filter run forward and backward, sosfiltfilt) lets it move by :data:`LOST_REACH_TOL` or more of the
-    input's range: the sum of |impulse response| beyond it is smaller. Plus sosfiltfilt's edge padding, whose odd
+    Chebyshev I filter run forward and backward, sosfiltfilt) lets it move by :data:`LOST_REACH_TOL` or more of its
+    |value|: the sum of |impulse response| beyond it is smaller. Plus sosfiltfilt's edge padding, whose odd
     extension carries the rows near an end (the first one into the whole pad) further in."""
     sos = signal.cheby1(8, 0.05, 0.8 / step, output="sos")  # what scipy.signal.decimate uses for ftype="iir"
     half = 400 * step  # the response falls below 1e-6 within ~80 steps
