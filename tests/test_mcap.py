@@ -48,6 +48,8 @@ def test_export_round_trips_every_sample_slide_and_label(tmp_path: Path) -> None
     assert [(b["start"] - 123_456, b["stop"] - 123_456, b["surface"]) for _, b in slides] == rec.slides()
     assert slides[0][0] == round(origin * 1e9) + round(rec.slides()[0][0] * 1e9 / params.fs)
     labels = [b for _, b in by_topic["/tactiled/fingertip0/roughness"]]
+    # each label logged when it could first have been published, at the end of what it read (not at its slide's onset)
+    assert all(t == round(origin * 1e9) + round((b["stop"] - 123_456) * 1e9 / params.fs) for t, b in by_topic["/tactiled/fingertip0/roughness"])
     finals = [b for b in labels if b["final"]]  # and the provisional labels given while each slide went on
     assert len(finals) == 3 and sum(b["label"] == "Ra2.29" for b in finals) >= 2
     truth = [(a + 123_456, b + 123_456) for a, b, _ in rec.slides()]

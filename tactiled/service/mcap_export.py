@@ -175,7 +175,9 @@ def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", 
                                   "surface": surface, "ra_um": None if ra is None else ra[k]})
         for r in results:  # positions in the file -> sensor indices, as the daemon publishes them
             at = replace(r, start=base + r.start, stop=base + r.stop, window=(base + r.window[0], base + r.window[1]))
-            put("roughness", r.start, schema.roughness(sensor, at, fs=rec.fs, model=r.model or model, version=__version__).to_map())
+            # logged when it could first have been published: at the end of what it read (a provisional label's windows, a
+            # final label's slide), as the ROS 2 profile and a replay's JSON place it; not at the slide's onset
+            put("roughness", r.stop, schema.roughness(sensor, at, fs=rec.fs, model=r.model or model, version=__version__).to_map())
         writer.finish()
     return counts
 
