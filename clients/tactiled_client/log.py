@@ -217,6 +217,9 @@ class LogReader:
                     if len(parts) != 3 or parts[0] != "tactiled" or parts[2] != schema.ROUGHNESS:
                         continue  # samples and ground-truth slides are not wire messages
                     where = f"{channel.topic} message {message.sequence}"
+                    if channel.message_encoding != "json":
+                        raise LogError(f"{self.path}: {channel.topic} holds {channel.message_encoding or 'unnamed'}-encoded messages, not JSON: "
+                                       "a ROS 2 bag? replay reads tactiled's JSON MCAP export")
                     body = _json_map(message.data, f"{self.path}: {where}")
                     t = message.log_time / 1e9
                     yield Entry(t, t, schema.topic(schema.ROUGHNESS, parts[1]), _pack(body, f"{self.path}: {where}"), where)
@@ -313,16 +316,15 @@ def _json_map(data: bytes, where: str) -> dict[str, Any]:
         raise LogError(f"{where}: not JSON: {str(exc)[:80]}") from None
     if not isinstance(obj, dict):
         raise LogError(f"{where}: not a JSON object")
-    _check_version(obj, where)
     return obj
 
 
 def check_body(body: bytes, where: str) -> dict[str, Any]:
-    """The decoded message map of ``body``, or :class:`LogError` (not a map, too deep, a schema newer than this client's)."""
+    """The decoded message map of ``body``, or :class:`LogError` (not msgpack, too deep, not a map). A schema version
+    newer than this client's is read as the live subscriber reads it: fields are only added, unknown ones go to ``extra``."""
     obj = _unpack_map(body)
     if isinstance(obj, str):
         raise LogError(f"{where}: {obj}")
-    _check_version(obj, where)
     return obj
 
 
@@ -339,12 +341,7 @@ def _unpack_map(body: bytes) -> dict[str, Any] | str:
 
 def _map_fault(body: bytes) -> str | None:
     """Why ``body`` is not a message map a reader takes (see :func:`_unpack_map`), or None. A schema version newer than this
-    client's is no fault here: a newer client reads it."""
+    client's is no fault: every reader takes it (see :func:`check_body`)."""
     obj = _unpack_map(body)
     return obj if isinstance(obj, str) else None
 
-
-def _check_version(obj: dict[str, Any], where: str) -> None:
-    v = obj.get("v")
-    if isinstance(v, int) and v > schema.SCHEMA_VERSION:
-        raise LogError(f"{where}: schema version {v}, newer than this client's {schema.SCHEMA_VERSION} (upgrade tactiled-client)")

@@ -120,7 +120,11 @@ def record(endpoints: str | Sequence[str], out: str | Path, *, seconds: float | 
 
             def take() -> None:
                 frames = sock.recv_multipart()
-                if len(frames) != 2 or not wanted.wants(frames[0]):  # not a tactiled message, or another sensor's
+                if len(frames) != 2:  # not a tactiled message: no record could hold it
+                    topic = frames[0][:80].decode("utf-8", "replace") if frames else "(no frames)"
+                    told(f"{topic}: {len(frames)} frames, not 2")
+                    return
+                if not wanted.wants(frames[0]):  # another sensor's
                     return
                 try:
                     log.write(frames, time.monotonic(), time.time())

@@ -89,6 +89,8 @@ class _Tracker:
         return self._latest[1]
 
 
+MAX_SEQ = 2**63 - 1  # a daemon's seq counts messages from 0: a value outside 0..MAX_SEQ is no tactiled message
+
 _HEAD_TYPES: tuple[tuple[str, type], ...] = (("v", int), ("seq", int), ("sensor", str), ("type", str))
 
 
@@ -109,6 +111,8 @@ def _fault(frames: list[bytes]) -> str | None:
         value = body.get(name)
         if not isinstance(value, kind) or isinstance(value, bool):
             return f"{where}: {name} is {type(value).__name__ if name in body else 'missing'}, not {kind.__name__}"
+    if not 0 <= body["seq"] <= MAX_SEQ:
+        return f"{where}: seq {body['seq']} is outside 0..{MAX_SEQ}"
     return None
 
 
