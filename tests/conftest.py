@@ -188,6 +188,18 @@ def memory_daemon(config: Any, model: Any, data: bytes, chunk: int, probe: Calla
     return box[0]
 
 
+def recorder_thread(endpoint: str, out: Path, stop: threading.Event, on_message: Callable[[int], None],
+                    refused: list[Any]) -> threading.Thread:
+    """The client library's session recorder (``tactiled_client.record.record``) of ``endpoint`` into ``out``, started in a
+    thread: until ``stop`` is set, ``on_message(n)`` after each message written, every refusal appended to ``refused``."""
+    from tactiled_client.record import record
+
+    thread = threading.Thread(target=record, args=(endpoint, out),
+                              kwargs={"stop": stop.is_set, "on_message": on_message, "on_refused": refused.append}, daemon=True)
+    thread.start()
+    return thread
+
+
 class BridgeSink:
     """What a bridge hands to its outlets, kept: every samples, roughness and status message in order (``got``);
     ``stopping`` is set at the daemon's last status, ``closed`` when the bridge closes its outlets."""

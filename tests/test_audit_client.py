@@ -14,6 +14,8 @@ from tactiled_client import BlockingReplay, BlockingSubscriber, LogError, schema
 from tactiled_client.log import LogWriter
 from tactiled_client.subscriber import _Tracker
 
+from tests.conftest import recorder_thread
+
 
 def _body(seq: int, v: int = schema.SCHEMA_VERSION, **fields: object) -> bytes:
     out: bytes = msgpack.packb({"v": v, "seq": seq, "sensor": "s0", "type": "status", "state": "idle", **fields}, use_bin_type=True)
@@ -87,7 +89,6 @@ def test_the_live_subscriber_skips_a_seq_no_daemon_sends(tmp_path: Path) -> None
 
 def test_the_recorder_counts_a_message_that_is_not_two_frames(tmp_path: Path) -> None:
     """A three-frame message was neither recorded nor counted among the messages not recorded."""
-    from tactiled_client.record import record
 
     endpoint = f"ipc://{tmp_path}/pub"
     pub: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.XPUB)
@@ -100,9 +101,7 @@ def test_the_recorder_counts_a_message_that_is_not_two_frames(tmp_path: Path) ->
         if n == 1:
             done.set()
 
-    thread = threading.Thread(target=record, args=(endpoint, tmp_path / "s.tlog"),
-                              kwargs={"stop": stop.is_set, "on_message": on_message, "on_refused": refused.append}, daemon=True)
-    thread.start()
+    thread = recorder_thread(endpoint, tmp_path / "s.tlog", stop, on_message, refused)
     try:
         assert pub.poll(20_000)
         pub.recv()

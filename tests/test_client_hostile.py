@@ -25,7 +25,7 @@ from tactiled_client import BlockingReplay, LogError, Replay, schema
 from tactiled_client.errors import RecordRefused
 from tactiled_client.log import HEADER, MAX_RECORD, RECORD, LogReader, LogWriter
 
-from tests.conftest import REPO
+from tests.conftest import REPO, recorder_thread
 
 T = TypeVar("T")
 
@@ -97,7 +97,6 @@ def test_the_recorder_writes_no_record_its_reader_refuses_and_records_on(tmp_pat
 
 def test_the_recorder_does_not_redial_a_publisher_that_went_away(tmp_path: Path) -> None:
     """libzmq reconnects to a publisher that restarts by itself: that is no dropped connection to report."""
-    from tactiled_client.record import record
 
     endpoint = f"ipc://{tmp_path}/pub"
     ctx: zmq.Context[zmq.Socket[bytes]] = zmq.Context.instance()
@@ -113,9 +112,7 @@ def test_the_recorder_does_not_redial_a_publisher_that_went_away(tmp_path: Path)
     xpub: zmq.Socket[bytes] = ctx.socket(zmq.XPUB)
     xpub.setsockopt(zmq.LINGER, 0)
     xpub.bind(endpoint)
-    thread = threading.Thread(target=record, args=(endpoint, tmp_path / "s.tlog"),
-                              kwargs={"stop": stop.is_set, "on_message": on_message, "on_refused": refused.append}, daemon=True)
-    thread.start()
+    thread = recorder_thread(endpoint, tmp_path / "s.tlog", stop, on_message, refused)
     try:
         assert xpub.poll(20_000)
         xpub.recv()

@@ -40,7 +40,7 @@ from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording, merge_ranges
 from tactiled.learn.cluster import hungarian_accuracy, kmeans, som_clusters
 from tactiled.learn.dataset import LabelledSlide, Progress, SlideCounts, WindowSet, check_distinct, collect_windows, find_slides
-from tactiled.learn.model import decision_scores, fit_pipeline, softmax
+from tactiled.learn.model import decision_scores, fit_pipeline, optimistic_reason, softmax
 from tactiled.learn.score import calibration_scores
 from tactiled.learn.search import (
     Candidate,
@@ -307,15 +307,6 @@ class Evaluator:
             confidence[test] = np.interp(p.max(axis=1), knots[0], knots[1])
             right[test] = np.argmax(p, axis=1) == y_idx[test]
         return calibration_scores(confidence[ok], right[ok])
-
-
-def optimistic_reason(nested: dict[str, Any]) -> str | None:
-    """Why the nested CV accuracy ``nested`` (search's) is optimistic, in the words ``train`` prints (Model.describe), or None."""
-    if nested.get("grouped_by") == "slide":
-        return "train --group-by slide: the folds split recordings"
-    if nested.get("inner_grouped_by") == "none":
-        return "one slide of a surface in a fold: no choice inside it"
-    return None
 
 
 LOST_REACH_TOL = 1e-5  # decimate: an output row is lost where lost input rows can move it by this share of their largest |value| or more

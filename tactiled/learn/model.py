@@ -563,10 +563,9 @@ class Model:
             acc += f" (95 % interval over {over} {100 * band[0]:.0f}–{100 * band[1]:.0f} %)"
         if acc and self.partner is not None and isinstance(cv, dict) and cv.get("model") != "ensemble":  # trained before its file stated the ensemble's own
             acc = acc.replace("nested CV accuracy", "nested CV accuracy of its first member alone", 1)
-        if isinstance(cv, dict) and cv.get("grouped_by") == "slide":
-            acc += ", optimistic (train --group-by slide: the folds split recordings)"
-        elif isinstance(cv, dict) and cv.get("inner_grouped_by") == "none":
-            acc += ", optimistic (one slide of a surface in a fold: no choice inside it)"
+        why = optimistic_reason(cv) if isinstance(cv, dict) else None
+        if why is not None:
+            acc += f", optimistic ({why})"
         if acc and self.summary.get("enrolled"):  # enrol keeps the summary of the model it started from
             acc = (acc.replace(", nested CV accuracy", ", the base model's nested CV accuracy", 1)
                    + " (from before enrolment: not measured with the slides enrolled)")
@@ -1023,6 +1022,16 @@ def _check_trust(path: Path, model: Model, header: dict[str, Any], arrays: dict[
 
 MAX_CLASSES = 10_000  # classes a model file may hold
 EARLY_BOUNDS = (0.01, 0.99)  # a provisional label's confidence never leaves these, whatever the model's final map allows
+
+
+def optimistic_reason(nested: dict[str, Any]) -> str | None:
+    """Why a nested CV accuracy (a model's ``cv_accuracy``, search's ``nested``) is optimistic, in the words
+    :meth:`Model.describe` and ``evaluate``'s report say it, or None."""
+    if nested.get("grouped_by") == "slide":
+        return "train --group-by slide: the folds split recordings"
+    if nested.get("inner_grouped_by") == "none":
+        return "one slide of a surface in a fold: no choice inside it"
+    return None
 
 
 def early_probability(coef: Sequence[float], p_top: float, windows: int, bounds: tuple[float, float] = EARLY_BOUNDS) -> float:

@@ -79,12 +79,12 @@ class Stream:
         self.pipeline = self._pipeline(model) if analyse else None
         self.shadow: Pipeline | None = None
         self._shadow_asked: tuple[int, Classifier | None] = (0, None)  # the last set_shadow: (its number, its model)
-        self._shadow_taken = 0  # the number of the last set_shadow applied (_take_shadow)
+        self._shadow_taken = 0  # the number of the last set_shadow applied (_take_requests)
         self._shadow_waiting: Classifier | None = None  # a shadow model applied, waiting for the live slide in progress to end
         self._swap_asked: tuple[int, Classifier | None] = (0, None)  # the last swap_model: (its number, its model)
         self._swap_taken = 0  # the number of the last swap_model applied
         self.set_shadow(shadow)
-        self._take_shadow()
+        self._take_requests()
 
     @classmethod
     def for_recording(cls, rec: Recording, config: Config, model: Classifier | None = None) -> Stream:
@@ -114,7 +114,7 @@ class Stream:
         feeds the stream (the daemon answers a control request while a batch is analysed off its loop)."""
         self._shadow_asked = (self._shadow_asked[0] + 1, model)
 
-    def _take_shadow(self) -> None:
+    def _take_requests(self) -> None:
         """Apply the last :meth:`swap_model` and :meth:`set_shadow` not applied yet, then start the shadow model waiting if no
         live slide is in progress: what feeds or ends the stream calls this first."""
         number, swap = self._swap_asked
@@ -174,7 +174,7 @@ class Stream:
         results; the next batch processed, at any later index, starts new detectors there (tactiled.core.pipeline.Pipeline.shed)."""
         if self.pipeline is None:
             return Step()
-        self._take_shadow()
+        self._take_requests()
         return Step(events=self.pipeline.shed(), shadow=self.shadow.shed() if self.shadow is not None else [])
 
     def feed_bytes(self, data: bytes | bytearray | memoryview) -> Step:
@@ -194,7 +194,7 @@ class Stream:
         then (n, the end's step). The stream is used up."""
         if self.pipeline is None:
             return
-        self._take_shadow()
+        self._take_requests()
         shadow = self.shadow.replay(index, samples, valid, block) if self.shadow is not None else None
         for lo, events in self.pipeline.replay(index, samples, valid, block):
             yield lo, Step(events=events, shadow=next(shadow)[1] if shadow is not None else [])
@@ -210,7 +210,7 @@ class Stream:
         fed and gets its final result from the samples before, its end with reason ``schema.END_DISCONNECTED``; the detector goes
         on with the samples fed after. Nothing happens without a slide in progress (an undecided detector is not ended)."""
         step = Step()
-        self._take_shadow()
+        self._take_requests()
         if self.pipeline is not None and self.pipeline.sliding:
             step.events = [replace(ev, reason=schema.END_DISCONNECTED) if isinstance(ev, SlideEnded) and ev.reason == "end_of_stream"
                            else ev for ev in self.pipeline.finish()]
@@ -221,12 +221,12 @@ class Stream:
     def _feed(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None) -> Step:
         if self.pipeline is None:
             return Step()
-        self._take_shadow()
+        self._take_requests()
         return Step(events=self.pipeline.feed(index, samples, valid),
                     shadow=self.shadow.feed(index, samples, valid) if self.shadow is not None else [])
 
     def _finish_pipelines(self) -> Step:
         if self.pipeline is None:
             return Step()
-        self._take_shadow()
+        self._take_requests()
         return Step(events=self.pipeline.finish(), shadow=self.shadow.finish() if self.shadow is not None else [])

@@ -193,10 +193,7 @@ class Daemon:
                     t.cancel()
         finally:
             sd_notify("STOPPING=1")
-            held = self.stream.held()  # decoded (and counted) but not yet handed over: recorded and published all the same
-            self._take(held)
-            if self.config.publish.samples:
-                self._publish_samples(held)
+            self._keep(self.stream.held())  # decoded (and counted) but not yet handed over: recorded and published all the same
             self.last_status = self._status_message(stopping=True)  # the CLI's one-line summary on the way out
             self.publisher.publish(self.last_status)
             if self.control is not None:
@@ -327,9 +324,7 @@ class Daemon:
         if self.stop_event.is_set():  # stopped, not the end of a finite source: a slide under way is not ended
             return
         step = self.stream.finish()
-        self._take(step.batches)
-        if self.config.publish.samples:
-            self._publish_samples(step.batches)
+        self._keep(step.batches)
         self._publish(step.events, time.perf_counter())
         self._publish_shadow(step.shadow, time.perf_counter())
 
@@ -348,11 +343,9 @@ class Daemon:
         if self.stop_event.is_set() or self.state.shedding or not isinstance(self.source, SerialSource) or self.stream.pipeline is None:
             return
         held = self.stream.held()  # decoded and counted, not yet handed over: recorded, published and analysed first
-        self._take(held)
+        self._keep(held)
         if self.recorder is not None:  # the recording marks it after those rows: its replay ends the slide there too
             self.recorder.mark_disconnected()
-        if self.config.publish.samples:
-            self._publish_samples(held)
         now = time.perf_counter()
         step = self.stream.process(held)
         step += self.stream.disconnected()
@@ -444,6 +437,13 @@ class Daemon:
             self._publish(step.events, detected_at)
             self._publish_shadow(step.shadow, detected_at)
             await self._turn()
+
+    def _keep(self, batches: list[Batch]) -> None:
+        """Decoded batches outside the pipeline's own path (a stop, the end of a source, a lost port): recorded (:meth:`_take`)
+        and, with ``publish.samples``, on the samples topic, as :meth:`_process` does before it analyses."""
+        self._take(batches)
+        if self.config.publish.samples:
+            self._publish_samples(batches)
 
     def _take(self, batches: list[Batch]) -> None:
         """Decoded batches into the recorder and the status's film levels."""

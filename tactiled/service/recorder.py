@@ -288,7 +288,6 @@ class RecordSummary:
     error: str | None = None  # the capture stopped on a write error (the journal keeps what was written)
     channel_errors: int = 0  # intact frames of another channel count, skipped
     port: str = ""
-    bytes_read: int = 0  # bytes the port gave (stale bytes discarded at the first open not included)
     wall_s: float = 0.0  # how long the port was read, s of host time
     seen: str = ""  # what the port gave when no sample was recorded (:func:`port_seen`)
 
@@ -445,4 +444,4 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     seen = "" if result.samples else port_seen(bytes_read, stats, s.channels, stream.ingest.decoder.foreign_channels or 0,
                                                source.discarded_at_start)
     return RecordSummary(result.samples / s.fs, result.samples, result.samples_lost, stats.crc_errors, source.reconnects, result.error,
-                         stats.channel_errors, port=s.port, bytes_read=bytes_read, wall_s=wall_s, seen=seen)
+                         stats.channel_errors, port=s.port, wall_s=wall_s, seen=seen)

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tactiled.config import Config
+from tactiled.core.detect import front_end
 from tactiled.core.events import PipelineEvent, SlideResult, SlideStarted
 from tactiled.errors import RecordingError, WindowError
 from tactiled.files.capture import Capture
@@ -81,9 +82,8 @@ class LiveSlides:
     def __init__(self, path: str, rec: Recording, model: str, config: Config, on_slide: OnSlide, base: int | None) -> None:
         self.path, self.rec, self.model, self.on_slide = path, rec, model, on_slide
         self.base = base  # the sensor index of the file's first row (a capture's: its first batch's, known once decoded)
-        d = config.detector
-        hop = max(d.hop_min_samples, round(d.hop_ms * 1e-3 * rec.fs))
-        self.settle = math.ceil(d.off_hold_s * rec.fs) + 2 * hop  # past a final's stop by then, it is no longer withdrawn
+        hop = front_end(config.detector, rec.fs).hop  # the detector's hop at this rate
+        self.settle = math.ceil(config.detector.off_hold_s * rec.fs) + 2 * hop  # past a final's stop by then, it is no longer withdrawn
         self.results: list[SlideResult] = []  # as the replay collects them (positions of the file)
         self.position = 0  # samples of the file fed to the pipeline so far
         self._shown: set[int] = set()  # id() of the finals handed over
