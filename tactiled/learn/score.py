@@ -5,8 +5,13 @@ overlaps it most (:func:`tactiled.core.matching.match_slides`); a true slide wit
 (missed by the detector, or abstained) counts as wrong. With a file-level ``label`` only,
 the slides are the detector's and each should carry that label. Accuracy is over every
 true slide; coverage is the fraction that got a label; abstentions are listed by reason. Slides of a surface the model
-was not taught count as wrong in the accuracy (no label can be right) and are listed apart (``untaught``: how many of them
-came out unknown, the right answer there; ``untaught_labelled``: how many were labelled). The calibration scores (expected
+was not taught count as wrong in ``accuracy`` (no label can be right) and are listed apart (``untaught``: how many of them
+came out unknown, the right answer there; ``untaught_labelled``: how many were labelled).
+
+Three figures keep them apart: ``taught_accuracy`` (the headline) is over the slides of taught surfaces only (an unknown
+or no label wrong there, as everywhere); ``untaught_unknown_share`` is the share of the slides of untaught surfaces called
+unknown (their right answer); ``open_set_accuracy`` counts every slide, one of an untaught surface right iff called
+unknown. ``accuracy`` keeps its meaning (right labels over every slide) for the benches that read it. The calibration scores (expected
 calibration error, Brier score, reliability) are over the slides of taught surfaces only (``calibration_slides``): a
 label's confidence is the probability that it is right for a surface the model was trained on, and says nothing of others.
 """
@@ -86,7 +91,26 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
     out["calibration_slides"] = len(conf)
     out["untaught"] = {k: v[:2] for k, v in sorted(untaught.items())}
     out["untaught_labelled"] = {k: v[2] for k, v in sorted(untaught.items())}
+    out.update(open_set_scores(hits, files, np.array([t in taught for t in y_true], dtype=bool), sum(v[1] for v in untaught.values())))
     return out
+
+
+def open_set_scores(hits: npt.NDArray[np.bool_], files: npt.NDArray[Any], taught: npt.NDArray[np.bool_], untaught_unknown: int) -> dict[str, Any]:
+    """The slides of taught surfaces and of untaught ones scored apart, then together.
+
+    ``hits`` (n,): each true slide's label right; ``files`` (n,): its recording; ``taught`` (n,): its surface one the model
+    was taught; ``untaught_unknown``: how many slides of untaught surfaces came out unknown. ``taught_accuracy`` (None
+    without such a slide) and its ``taught_interval95`` (:func:`recording_interval`) are over the taught slides;
+    ``untaught_unknown_share`` (None without an untaught slide) over the others; ``open_set_accuracy`` over all n (0.0
+    when n is 0), an untaught slide right iff called unknown.
+    """
+    n, n_taught = len(hits), int(taught.sum())
+    right = int(hits[taught].sum())
+    return {"taught_n": n_taught, "taught_correct": right, "taught_accuracy": right / n_taught if n_taught else None,
+            "taught_interval95": recording_interval(hits[taught], files[taught]),
+            "untaught_n": n - n_taught, "untaught_unknown": untaught_unknown,
+            "untaught_unknown_share": untaught_unknown / (n - n_taught) if n > n_taught else None,
+            "open_set_correct": right + untaught_unknown, "open_set_accuracy": (right + untaught_unknown) / n if n else 0.0}
 
 
 def recording_interval(hits: npt.NDArray[np.bool_], groups: npt.NDArray[Any], level: float = 0.95,
