@@ -501,7 +501,13 @@ class Daemon:
         return self._recording_error or (self.recorder.error if self.recorder is not None else None)
 
     def _save_recording(self) -> None:
+        """The recording written from its journal (the journal removed); one of no sample is not written (as ``tactiled
+        record``): its journal is removed, a file already at its path stays as it was, and one line says so."""
         assert self.recorder is not None
+        if self.recorder.first_index is None and self.recorder.error is None:  # not one sample: an empty recording is no recording
+            self.recorder.discard()
+            log.warning("nothing was recorded (no sample received), so %s was not written", self.recorder.out)
+            return
         result = self.recorder.finish()
         if result.error is None:
             log.info("%s: saved %d samples (%d lost)", self.recorder.out, result.samples, result.samples_lost)
