@@ -86,7 +86,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     config = config_of(args)
     counts = export_recording(args.file, args.output, config, _choice(args, config), batch=args.batch, profile=args.profile, force=args.force)
-    print(f"{args.output}: {counts['samples']} samples messages, {counts['slides']} slides, {counts['roughness']} roughness messages")
+    marks = f", {counts['disconnected']} disconnections" if counts["disconnected"] else ""  # the port lost while recording
+    print(f"{args.output}: {counts['samples']} samples messages, {counts['slides']} slides, {counts['roughness']} roughness messages{marks}")
     return EXIT_OK
 
 

@@ -8,12 +8,15 @@ Channels, for sensor ``<id>``:
 - ``/tactiled/<id>/slides``: the recording's ground-truth slides (``start``, ``stop``, ``t_start``,
   ``t_stop``, ``surface``, ``ra_um``);
 - ``/tactiled/<id>/roughness``: the pipeline's results, one roughness message per slide (and
-  provisional ones), built by :func:`tactiled_client.schema.roughness`.
+  provisional ones), built by :func:`tactiled_client.schema.roughness`;
+- ``/tactiled/<id>/disconnected``: one message per mark of the recording's ``disconnected`` key (where the host
+  lost the sensor's port; :func:`disconnections`): ``index``, ``t``. Only in the export of a recording that has one.
 
 One frame of reference: every ``index``, ``start`` and ``stop`` is the sensor's absolute sample
 index (as on the wire: the recording's ``first_index`` plus the position in the file), and
 ``t_start`` / ``t_stop`` are those indices / fs. ``log_time`` and ``publish_time`` are host wall
-time (unix ns) of the message's first sample (samples), the slide's onset (slides, labels): the
+time (unix ns) of the message's first sample (samples), the slide's onset (slides, labels), the mark
+(disconnections: the end of the rows read before the port went away): the
 recording's start (``recorded_at`` in its meta, to the second; a file without it, such as a
 simulated one: the time its last sample was written, the file's modification time less its
 duration) plus position / fs. The metadata record ``tactiled.recording`` says which origin was
@@ -112,6 +115,18 @@ def host_origin(rec: Recording, source: str | Path | None = None) -> tuple[float
     return 0.0, "none"
 
 
+def disconnections(rec: Recording) -> list[tuple[int, dict[str, Any]]]:
+    """(position in the file, message body) of each mark of ``rec.disconnected`` (d,), in order.
+
+    The body: ``index``, the sensor's absolute index of the mark (``first_index`` + position: every sample before it
+    was read before the port went away, the first one after it came after; one past the last sample when the port
+    went away at the end), and ``t``, that index / fs (s, sensor time). The host time of the loss is not recorded:
+    the message's log time is the mark's sample time (:func:`host_origin` + position / fs), when the last sample
+    before it was taken.
+    """
+    return [(p, {"index": rec.first_index + p, "t": (rec.first_index + p) / rec.fs}) for p in np.asarray(rec.disconnected).tolist()]
+
+
 def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", results: Sequence[SlideResult] = (), model: str = "",
                 batch: int = BATCH, source: str | Path | None = None) -> dict[str, int]:
     """Write ``rec`` (and the pipeline's ``results``, positions in the file) to ``out``; returns messages per channel.
@@ -127,7 +142,8 @@ def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", 
     volts[~valid] = 0.0
     n, channels = volts.shape
     lost = np.asarray(rec.lost, dtype=np.int64).reshape(-1, 2)
-    counts = {"samples": 0, "slides": 0, "roughness": 0}
+    counts = {"samples": 0, "slides": 0, "roughness": 0, "disconnected": 0}
+    marks = disconnections(rec)
 
     origin, origin_kind = host_origin(rec, source)
 
@@ -156,6 +172,9 @@ def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", 
                                                                 nullable=("label", "reason", "confidence", "start_mono", "start_unix",
                                                                           "stop_mono", "stop_unix")))),
         }
+        if marks:  # only when there is one, as the recording's key
+            chan["disconnected"] = writer.register_channel(f"/tactiled/{sensor}/disconnected", "json", writer.register_schema(
+                "tactiled.Disconnected", "jsonschema", json_schema("tactiled.Disconnected", marks[0][1])))
 
         def put(kind: str, position: int, body: dict[str, Any]) -> None:
             t = ns(position)
@@ -178,6 +197,8 @@ def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", 
             # logged when it could first have been published: at the end of what it read (a provisional label's windows, a
             # final label's slide), as the ROS 2 profile and a replay's JSON place it; not at the slide's onset
             put("roughness", r.stop, schema.roughness(sensor, at, fs=rec.fs, model=r.model or model, version=__version__).to_map())
+        for position, body in marks:
+            put("disconnected", position, body)
         writer.finish()
     return counts
 
@@ -202,7 +223,8 @@ def export_ros2_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingerti
 
     ``/tactiled/<id>/samples`` sensor_msgs/PointCloud2 (the bridge's table: film volts, NaN when
     lost, ``t``, ``index``), ``/tactiled/<id>/roughness`` std_msgs/String (final labels),
-    ``/tactiled/<id>/roughness/json`` and ``/tactiled/<id>/slides`` std_msgs/String (JSON).
+    ``/tactiled/<id>/roughness/json``, ``/tactiled/<id>/slides`` and (a recording with a ``disconnected`` mark only)
+    ``/tactiled/<id>/disconnected`` std_msgs/String (JSON: :func:`disconnections`).
     Stamps and log times are host time as in :func:`export_mcap`; indices absolute. Needs
     ``rosbags`` (extra ``tactiled[ros2bag]``) for the message definitions and CDR; no ROS install.
     Returns messages per topic kind.
@@ -221,7 +243,8 @@ def export_ros2_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingerti
     origin, origin_kind = host_origin(rec, source)
     base = rec.first_index
     fields = [field_t(name=x, offset=o, datatype=d, count=1) for x, o, d in field_names(channels)]
-    counts = {"samples": 0, "slides": 0, "roughness": 0}
+    counts = {"samples": 0, "slides": 0, "roughness": 0, "disconnected": 0}
+    marks = disconnections(rec)
 
     def ns(position: int) -> int:
         return round(origin * 1e9) + round(position * 1e9 / rec.fs)  # in two parts: a float of unix ns has a 256 ns grain
@@ -247,6 +270,8 @@ def export_ros2_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingerti
                 "label": channel(f"{topic}/roughness", "std_msgs/msg/String"),
                 "roughness": channel(f"{topic}/roughness/json", "std_msgs/msg/String"),
                 "slides": channel(f"{topic}/slides", "std_msgs/msg/String")}
+        if marks:  # only when there is one, as the recording's key
+            chan["disconnected"] = channel(f"{topic}/disconnected", "std_msgs/msg/String")
 
         def put(kind: str, position: int, msg: Any, typename: str) -> None:
             t = ns(position)
@@ -282,6 +307,9 @@ def export_ros2_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingerti
                 put("label", r.stop, string_t(data=msg.label or ""), "std_msgs/msg/String")
             put("roughness", r.stop, string_t(data=json.dumps(msg.to_map())), "std_msgs/msg/String")
             counts["roughness"] += 1
+        for position, body in marks:
+            put("disconnected", position, string_t(data=json.dumps(body)), "std_msgs/msg/String")
+            counts["disconnected"] += 1
         writer.finish()
     return counts
 
