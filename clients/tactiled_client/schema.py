@@ -17,10 +17,15 @@ and the bridges all build through them.
 from __future__ import annotations
 
 import builtins
+import reprlib
 import threading
+import types
+import typing
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Protocol, TypeVar
+
+from tactiled_client.errors import ClientError
 
 SCHEMA_VERSION = 8  # 3: roughness messages carry novelty; reason unknown_surface. 4: shadow messages, status.shadow.
 # 5: roughness.overloaded; status.overloaded, status.behind_s, status.input_shed_bytes (load shed when the daemon cannot keep up)
@@ -97,6 +102,55 @@ def decode(frames: list[bytes]) -> tuple[str, dict[str, Any]]:
 T = TypeVar("T", bound="Message")
 
 
+class FieldTypeError(ClientError, ValueError):
+    """A known field of a message map whose value is not of the field's declared type (one line: field, expected, what came)."""
+
+    def __init__(self, name: str, expected: str, value: object) -> None:
+        super().__init__(f"{name} is {builtins.type(value).__name__} {reprlib.repr(value)[:40]}, not {expected}")
+        self.field = name
+        self.expected = expected
+
+
+@dataclass(frozen=True)
+class _Check:
+    """What a decoded value of one field may be: ``exact`` its types (the fast test), ``accepted`` the types it may be an
+    instance of (subclasses: a numpy float64 is a float) and ``expected`` their name in an error (``float | None``)."""
+
+    exact: frozenset[builtins.type]
+    accepted: tuple[builtins.type, ...]
+    expected: str
+
+    def fits(self, value: object) -> bool:
+        """Whether ``value`` is one of the accepted types; a bool is none of int and float unless bool itself is accepted."""
+        return isinstance(value, self.accepted) and (not isinstance(value, bool) or bool in self.accepted)
+
+
+def _field_check(hint: Any) -> _Check:
+    """The check of a field annotated ``hint``: its class (``list[X]``, ``dict[K, V]``: the container alone, not its items);
+    ``float`` also takes an int (JSON and other writers send 1 for 1.0); ``X | None`` takes None too; ``Any`` takes anything.
+    A bool never passes for an int or a float (msgpack keeps them apart, so True where a count is declared is a fault)."""
+    accepted: list[builtins.type] = []
+    for arg in typing.get_args(hint) if typing.get_origin(hint) in (types.UnionType, typing.Union) else (hint,):
+        if arg is Any:
+            accepted.append(object)
+        else:
+            kind = typing.get_origin(arg) or arg
+            accepted += [float, int] if kind is float else [kind]
+    expected = hint.__name__ if isinstance(hint, builtins.type) and not typing.get_args(hint) else str(hint).replace("typing.", "")
+    return _Check(frozenset(accepted) - {object}, tuple(accepted), expected)
+
+
+def _field_checks(cls: builtins.type[Message]) -> dict[str, _Check]:
+    """{wire field: its check} of ``cls``, built from its annotations on first use and kept in :data:`_FIELD_CHECKS`."""
+    hints = typing.get_type_hints(cls)
+    checks = {name: _field_check(hints[name]) for name in cls.wire_fields()}
+    _FIELD_CHECKS[cls] = checks
+    return checks
+
+
+_FIELD_CHECKS: dict[builtins.type[Message], dict[str, _Check]] = {}
+
+
 @dataclass
 class Message:
     """Fields common to every message."""
@@ -113,10 +167,20 @@ class Message:
 
     @classmethod
     def from_map(cls: builtins.type[T], body: dict[str, Any]) -> T:
-        """Build from a decoded map; unknown fields go to ``extra``, missing optional ones default."""
-        names = cls.wire_fields()
-        known = {k: v for k, v in body.items() if k in names}
-        extra = {k: v for k, v in body.items() if k not in names}
+        """Build from a decoded map; unknown fields go to ``extra`` (whatever their type), missing optional ones default.
+
+        :class:`FieldTypeError` if a known field's value is not of its declared type (see :func:`_field_check`)."""
+        checks = _FIELD_CHECKS.get(cls) or _field_checks(cls)
+        known: dict[str, Any] = {}
+        extra: dict[str, Any] = {}
+        for name, value in body.items():
+            check = checks.get(name)
+            if check is None:
+                extra[name] = value
+            elif type(value) in check.exact or check.fits(value):
+                known[name] = value
+            else:
+                raise FieldTypeError(name, check.expected, value)
         return cls(**known, extra=extra)
 
     @classmethod
@@ -362,9 +426,9 @@ def roughness(sensor: str, r: SlideOutcome, *, fs: float, model: str, version: s
 def shadow(sensor: str, r: SlideOutcome, *, fs: float, model: str, version: str, latency_ms: float = 0.0,
            to_host: HostTime | None = None, overloaded: bool = False) -> Shadow:
     """A candidate model's result for slide ``r``: the fields of :func:`roughness`, on the shadow topic."""
-    return Shadow.from_map({**roughness(sensor, r, fs=fs, model=model, version=version, latency_ms=latency_ms, to_host=to_host,
-                                        overloaded=overloaded).to_map(),
-                            "type": SHADOW})
+    return Shadow(**{**roughness(sensor, r, fs=fs, model=model, version=version, latency_ms=latency_ms, to_host=to_host,
+                                 overloaded=overloaded).to_map(),
+                     "type": SHADOW})  # not from_map: the writer's values are not checked (a reader checks what it takes)
 
 
 def provisional_label(r: SlideOutcome) -> ProvisionalLabel:

@@ -17,8 +17,8 @@ CURVE. Every message is typed (:mod:`tactiled_client.schema`); ``msg.missed`` is
 messages of that topic were lost just before it (from ``seq``); ``timeout`` (s) raises
 :class:`NoData` when nothing arrives for that long; :meth:`latest` returns the newest
 roughness label if it is younger than a given age. A message that is not a tactiled message
-(something else publishing there) is skipped and counted in ``malformed`` (``last_malformed``
-says why), never raised.
+(something else publishing there), or one with a known field of the wrong type (a ``confidence`` that
+is a string), is skipped and counted in ``malformed`` (``last_malformed`` says why), never raised.
 """
 
 from __future__ import annotations
@@ -55,14 +55,19 @@ class _Tracker:
     def accept(self, frames: list[bytes]) -> schema.Message | None:
         """The typed message of ``frames`` with its ``missed`` set; None, counted in :attr:`malformed`, if it is not a
         tactiled message (not two frames, a body that is not a msgpack map, ``v``, ``seq``, ``sensor`` or ``type`` missing
-        or of the wrong type): something else publishing on the endpoint must not end a controller's loop."""
+        or of the wrong type, any other field the schema knows of a type it does not declare): something else publishing
+        on the endpoint, or a faulty publisher, must neither end a controller's loop nor hand it garbage."""
         fault = _fault(frames)
+        if fault is None:
+            topic, body = schema.decode(frames)
+            try:
+                msg = schema.parse(topic, body)
+            except schema.FieldTypeError as exc:
+                fault = f"{topic[:80]}: {exc}"
         if fault is not None:
             self.malformed += 1
             self.last_malformed = fault
             return None
-        topic, body = schema.decode(frames)
-        msg = schema.parse(topic, body)
         last = self.last_seq.get(topic)
         gap = 0 if last is None or msg.seq <= last else msg.seq - last - 1
         if last is not None and msg.seq <= last:
