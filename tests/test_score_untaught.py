@@ -36,13 +36,19 @@ def test_untaught_slides_leave_the_headline_and_count_right_in_the_open_set_when
     assert only_untaught["taught_accuracy"] is None and only_untaught["taught_n"] == 0 and only_untaught["open_set_correct"] == 1
 
 
-def test_score_json_of_a_taught_and_an_untaught_recording(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
-    """The shipped model over a simulated recording of a surface it was taught and one of a surface named as no class of it."""
+def _taught_and_untaught(tmp_path: Path) -> tuple[Path, Path]:
+    """Two simulated recordings of two slides each: one of a surface the shipped model was taught, one of "Unseen"."""
     taught, other = write_dataset(tmp_path / "sim", scene="robot", surfaces="2", files_per_surface=1, slides_per_file=2)
     rec = load_recording(other)
     untaught = tmp_path / "untaught.npz"
     save_recording(untaught, Recording(rec.samples, rec.fs, rec.volts_per_count, slide_start=rec.slide_start, slide_stop=rec.slide_stop,
                                        surface=np.array(["Unseen"] * len(rec.slides()))))
+    return taught, untaught
+
+
+def test_score_json_of_a_taught_and_an_untaught_recording(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """The shipped model over a simulated recording of a surface it was taught and one of a surface named as no class of it."""
+    taught, untaught = _taught_and_untaught(tmp_path)
     res = cli_here(capfd, "score", MODEL, str(taught), str(untaught), "--json", "--jobs", "1")
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout)
@@ -53,3 +59,16 @@ def test_score_json_of_a_taught_and_an_untaught_recording(tmp_path: Path, capfd:
     assert out["untaught_unknown"] == unknown and out["untaught_unknown_share"] == unknown / 2
     assert out["open_set_correct"] == out["taught_correct"] + unknown and out["open_set_accuracy"] == out["open_set_correct"] / 4
     assert out["accuracy"] == out["correct"] / 4 and out["correct"] == out["taught_correct"]  # as before: untaught slides wrong in it
+
+
+def test_score_prints_the_taught_accuracy_as_headline_and_the_untaught_slides_apart(tmp_path: Path,
+                                                                                    capfd: pytest.CaptureFixture[str]) -> None:
+    files = list(map(str, _taught_and_untaught(tmp_path)))
+    out = json.loads(cli_here(capfd, "score", MODEL, *files, "--json", "--jobs", "1").stdout)
+    res = cli_here(capfd, "score", MODEL, *files, "--jobs", "1")
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert lines[0].startswith(f"accuracy {out['taught_accuracy']:.4f} ({out['taught_correct']} of 2 true slides of taught surfaces)"), lines
+    assert (f"untaught surfaces: {out['untaught_unknown']} of their 2 slides called unknown ({out['untaught_unknown_share']:.4f}, the right "
+            f"answer); open-set accuracy {out['open_set_accuracy']:.4f} ({out['open_set_correct']} of 4 true slides, one of an untaught "
+            "surface right if called unknown)") in lines, lines

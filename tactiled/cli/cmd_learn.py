@@ -145,15 +145,21 @@ def cmd_score(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report))
         return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
-    band = report["interval95"]
+    band = report["taught_interval95"]
     within = f", 95 % interval over recordings {band[0]:.4f}-{band[1]:.4f}" if band else ""
-    print(f"accuracy {report['accuracy']:.4f} ({report['correct']} of {report['n']} true slides{within}); coverage {report['coverage']:.4f} "
-          f"({report['labelled']} labelled); accuracy of the labelled {report['accuracy_of_labelled']:.4f}")
+    headline = (f"accuracy {report['taught_accuracy']:.4f} ({report['taught_correct']} of {report['taught_n']} true slides of taught "
+                f"surfaces{within})" if report["taught_n"] else "accuracy: no true slide of a surface the model was taught")
+    print(f"{headline}; coverage {report['coverage']:.4f} ({report['labelled']} of {report['n']} true slides labelled); "
+          f"accuracy of the labelled {report['accuracy_of_labelled']:.4f}")
     if report["abstained"]:
         print("no label: " + ", ".join(f"{k} {v}" for k, v in sorted(report["abstained"].items())))
     print(f"unknown surfaces: {report['unknown']} of {report['n']} true slides")
     for surface, (slides, unknown) in report["untaught"].items():
         print(untaught_line(surface, slides, unknown, report["untaught_labelled"].get(surface, 0)))
+    if report["untaught_n"]:
+        print(f"untaught surfaces: {report['untaught_unknown']} of their {report['untaught_n']} slides called unknown "
+              f"({report['untaught_unknown_share']:.4f}, the right answer); open-set accuracy {report['open_set_accuracy']:.4f} "
+              f"({report['open_set_correct']} of {report['n']} true slides, one of an untaught surface right if called unknown)")
     if report["ece"] is not None:
         null = report["ece_calibrated"]
         print(f"confidence: expected calibration error {report['ece']:.3f} over the {report['calibration_slides']} slides of taught surfaces "
@@ -282,5 +288,8 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("model", help="model file (.npz) to score")
     p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth or a file label, unseen in training")
     p.add_argument("--config", help=c.CONFIG_HELP)
-    p.add_argument("--json", action="store_true", help="the report as one JSON object")
+    p.add_argument("--json", action="store_true", help="the report as one JSON object. The headline accuracy (taught_accuracy) is over the "
+                   "slides of surfaces the model was taught, an unknown or no label wrong; the slides of untaught surfaces are "
+                   "scored apart (untaught_unknown_share: the share called unknown, their right answer), and open_set_accuracy "
+                   "counts every slide, an untaught one right if called unknown; accuracy: right labels over every slide")
     p.add_argument("--jobs", type=c.jobs, default=0, metavar="N", help=c.JOBS_HELP)
