@@ -51,3 +51,15 @@ def test_export_ros2_carries_each_disconnection(tmp_path: Path) -> None:
         assert [c.msgtype for c in conns] == ["std_msgs/msg/String"]
         got = [(t, json.loads(ts.deserialize_cdr(raw, conn.msgtype).data)) for conn, t, raw in reader.messages(connections=conns)]
     assert got == [(ORIGIN * 10**9 + round(p * 1e9 / fs), {"index": FIRST + p, "t": (FIRST + p) / fs}) for p in marks]
+
+
+def test_replay_of_the_export_reads_the_marks_back(tmp_path: Path) -> None:
+    """`tactiled replay rec.mcap` sees the recording the `.npz` held, marks included (a slide ends at each, as it did live)."""
+    from tactiled.files.mcap_read import load_mcap_recording
+
+    path, marks, _ = _marked(tmp_path)
+    res = run_cli("export", str(path), "-o", str(tmp_path / "r.mcap"), "--no-model")
+    assert res.returncode == 0, res.stderr
+    back = load_mcap_recording(tmp_path / "r.mcap")
+    assert back.disconnected.tolist() == marks
+    assert back.first_index == FIRST

@@ -1,10 +1,11 @@
 """A tactiled MCAP file (``tactiled export``, ``record --format mcap``; JSON profile) read back as a :class:`Recording`.
 
 The samples channel gives the rows (volts; lost rows marked in each message's ``lost``), the slides channel the ground
-truth, the ``tactiled.recording`` metadata record the rate, scale, label, first index, meta and the samples' dtype
-(integer counts come back as the same counts). The arrays then go through the same validation as an ``.npz``
-recording, so ``tactiled replay rec.mcap`` labels the slides exactly as ``tactiled replay rec.npz`` does. A ROS 2
-bag (``export --profile ros2``) is refused in one line: its samples are float32.
+truth, the disconnected channel the positions where the port was lost (``Recording.disconnected``), the
+``tactiled.recording`` metadata record the rate, scale, label, first index, meta and the samples' dtype (integer counts
+come back as the same counts). The arrays then go through the same validation as an ``.npz`` recording, so ``tactiled
+replay rec.mcap`` labels the slides exactly as ``tactiled replay rec.npz`` does. A ROS 2 bag (``export --profile
+ros2``) is refused in one line: its samples are float32.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ def load_mcap_recording(path: str | Path) -> Recording:
             if info is None:
                 raise RecordingError(f"{p}: not a tactiled MCAP file (no tactiled.recording metadata)")
             fh.seek(0)
-            rows, lost, slides = _messages(make_reader(fh), int(info.get("first_index", "0")))
+            rows, lost, slides, marks = _messages(make_reader(fh), int(info.get("first_index", "0")))
     except RecordingError:
         raise
     except Exception as exc:  # the mcap reader's own errors (bad magic, truncated records) and malformed JSON
@@ -59,6 +60,8 @@ def load_mcap_recording(path: str | Path) -> Recording:
     arrays: dict[str, Any] = {"samples": samples, "fs": np.float64(float(info["fs"])), "volts_per_count": np.float64(vpc if dtype.kind in "iu" else 1.0),
                               "first_index": np.int64(int(info.get("first_index", "0"))),
                               "lost": np.asarray(lost, dtype=np.int64).reshape(-1, 2), "meta": np.str_(info.get("meta", "{}"))}
+    if marks:
+        arrays["disconnected"] = np.array(marks, dtype=np.int64)
     if info.get("label"):
         arrays["label"] = np.str_(info["label"])
     if slides:
@@ -71,11 +74,13 @@ def load_mcap_recording(path: str | Path) -> Recording:
     return validate_arrays(p, arrays)
 
 
-def _messages(reader: Any, first: int) -> tuple[list[np.ndarray], list[list[int]], list[tuple[int, int, str | None, float | None]]]:
-    """(sample blocks (n, C) in volts, lost [position, count] in the file, true slides (start, stop, surface, Ra)) of an MCAP reader."""
+def _messages(reader: Any, first: int) -> tuple[list[np.ndarray], list[list[int]], list[tuple[int, int, str | None, float | None]], list[int]]:
+    """(sample blocks (n, C) in volts, lost [position, count] in the file, true slides (start, stop, surface, Ra), positions where
+    the port was lost) of an MCAP reader."""
     rows: list[np.ndarray] = []
     lost: list[list[int]] = []
     slides: list[tuple[int, int, str | None, float | None]] = []
+    marks: list[int] = []
     at = 0
     for _schema, channel, message in reader.iter_messages(log_time_order=False):
         body = json.loads(message.data)
@@ -90,4 +95,6 @@ def _messages(reader: Any, first: int) -> tuple[list[np.ndarray], list[list[int]
             at += block.shape[0]
         elif channel.topic.endswith("/slides"):
             slides.append((int(body["start"]) - first, int(body["stop"]) - first, body.get("surface"), body.get("ra_um")))
-    return rows, lost, slides
+        elif channel.topic.endswith("/disconnected"):
+            marks.append(int(body["index"]) - first)
+    return rows, lost, slides, marks
