@@ -9,7 +9,9 @@ message::
 ``recv_mono`` and ``recv_unix`` are the host's monotonic and wall clocks (s) when the message arrived, ``topic``
 the first frame (str) and ``body`` the second, the msgpack map exactly as the daemon sent it (bin). Each record
 is written with one ``write`` as it arrives, so a recorder killed at any moment leaves every message before the
-last complete; a reader replays up to there and says where the file ends. :class:`LogWriter` refuses
+last complete; a reader replays up to there and says where the file ends. So it does when zeros end the file (a power
+cut: the file system kept the file's length but not its last data), saying how many; zeros followed by more data are
+corruption (:meth:`LogReader._zeroed`). :class:`LogWriter` refuses
 (:class:`RecordRefused`, nothing written) what :class:`LogReader` would refuse: a record over :data:`MAX_RECORD`
 bytes, a body that is not a msgpack map, a receive time that is no clock reading.
 
@@ -123,8 +125,8 @@ class LogReader:
     """The messages of a session log, tactiled MCAP file or ``replay --json`` output, in file order (:class:`Entry`).
 
     Iterate once. ``truncated``: after iterating, a one-line note if the file ended inside a record (what a
-    killed recorder leaves); every complete message before it was read. Anything else wrong is a
-    :class:`LogError` naming the file and the byte or line.
+    killed recorder leaves) or in zeros (what a power cut leaves); every complete message before it was read. Anything
+    else wrong is a :class:`LogError` naming the file and the byte or line.
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -175,19 +177,52 @@ class LogReader:
                 head = fh.read(RECORD.size)
                 if not head:
                     return
+                cut = f"{self.path}: ends inside a record at byte {at} (a recorder stopped mid-write); read the messages before it"
                 if len(head) < RECORD.size:
-                    self.truncated = f"{self.path}: ends inside a record at byte {at} (a recorder stopped mid-write); read the messages before it"
+                    self.truncated = self._zeroed(fh, at, size, at + 1) or cut  # zeros alone after the last record, or a cut
                     return
                 length, crc = RECORD.unpack(head)
                 if length > MAX_RECORD:
                     raise self._fail(f"byte {at}", f"record declares {length} bytes, more than the {MAX_RECORD} a record may hold")
                 if at + RECORD.size + length > size:
-                    self.truncated = f"{self.path}: ends inside a record at byte {at} (a recorder stopped mid-write); read the messages before it"
+                    self.truncated = cut
                     return
                 payload = fh.read(length)
-                if zlib.crc32(payload) != crc:
-                    raise self._fail(f"byte {at}", "record fails its CRC-32 (corrupt)")
+                if zlib.crc32(payload) != crc or not length:
+                    self.truncated = self._zeroed(fh, at, size, at + RECORD.size + length)
+                    if self.truncated:
+                        return
+                    raise self._fail(f"byte {at}", "record fails its CRC-32 (corrupt)" if length else "record of 0 bytes (corrupt)")
                 yield self._entry(at, payload)
+
+    def _zeroed(self, fh: IO[bytes], at: int, size: int, end: int) -> str | None:
+        """The :attr:`truncated` note if the bad record at byte ``at``, declared to end at byte ``end``, is explained by zeros
+        to the end of the file, else None (corrupt).
+
+        What a power cut leaves: the file kept its length but its last data blocks read back as zeros, from a block
+        boundary to the end. The zeros explain the record if they begin before ``end`` (they reach into it) and the bytes
+        of its payload before them hold no complete msgpack object (they are the start of one the zeros cut off). Zeros
+        after a record that is complete before them, or followed by non-zero data, are damage, never skipped. A last record
+        damaged before zeros that were its own data cannot be told from one the zeros cut: it is called truncated too (it is
+        the last either way: nothing after it is skipped)."""
+        zeros = _zeros_from(fh, at, size)
+        if zeros >= end:
+            return None
+        prefix = b""
+        if zeros > at + RECORD.size:
+            fh.seek(at + RECORD.size)
+            prefix = fh.read(zeros - at - RECORD.size)
+        unpacker = msgpack.Unpacker(raw=False, strict_map_key=False, max_buffer_size=MAX_RECORD)
+        unpacker.feed(prefix)
+        try:
+            unpacker.unpack()
+        except msgpack.OutOfData:
+            where = "after its last complete record" if zeros == at else f"in the record there, from byte {zeros}"
+            return (f"{self.path}: ends at byte {at}: {size - zeros} zero bytes to the end of the file {where} (a power cut: the file "
+                    "kept its length, not its last data); read the messages before it")
+        except (ValueError, msgpack.UnpackException, TypeError, RecursionError):
+            return None
+        return None
 
     def _entry(self, at: int, payload: bytes) -> Entry:
         try:
@@ -254,6 +289,21 @@ class LogReader:
                     yield Entry(t, t, topic, _pack(early, where), at)
                 t = _seconds(final, "t_stop", start, where)
                 yield Entry(t, t, topic, _pack(final, where), at)
+
+
+def _zeros_from(fh: IO[bytes], at: int, size: int, chunk: int = 1 << 16) -> int:
+    """Where the run of zero bytes that ends the file (``size`` bytes) begins, at byte ``at`` at the earliest (``size``: the
+    last byte is not zero). Reads back from the end, ``chunk`` bytes at a time, until a non-zero byte or ``at``."""
+    stop = size
+    while stop > at:
+        start = max(at, stop - chunk)
+        fh.seek(start)
+        data = fh.read(stop - start)
+        kept = data.rstrip(b"\x00")
+        if kept:
+            return start + len(kept)
+        stop = start
+    return at
 
 
 def _lines(fh: IO[bytes], path: Path) -> Iterator[bytes]:
