@@ -57,9 +57,10 @@ class _Tracker:
         tactiled message (not two frames, a body that is not a msgpack map, ``v``, ``seq``, ``sensor`` or ``type`` missing
         or of the wrong type, any other field the schema knows of a type it does not declare): something else publishing
         on the endpoint, or a faulty publisher, must neither end a controller's loop nor hand it garbage."""
-        fault = _fault(frames)
-        if fault is None:
-            topic, body = schema.decode(frames)
+        checked = _checked(frames)
+        fault = checked if isinstance(checked, str) else None
+        if not isinstance(checked, str):
+            topic, body = checked
             try:
                 msg = schema.parse(topic, body)
             except schema.FieldTypeError as exc:
@@ -99,8 +100,9 @@ MAX_SEQ = 2**63 - 1  # a daemon's seq counts messages from 0: a value outside 0.
 _HEAD_TYPES: tuple[tuple[str, type], ...] = (("v", int), ("seq", int), ("sensor", str), ("type", str))
 
 
-def _fault(frames: list[bytes]) -> str | None:
-    """Why ``frames`` is not a tactiled message (one line, naming its topic), or None if it is one."""
+def _checked(frames: list[bytes]) -> str | tuple[str, dict[str, Any]]:
+    """(topic, map) of ``frames`` if its head is a tactiled message's, else why it is not (one line, naming its topic):
+    the body is unpacked once, here."""
     import msgpack
 
     where = frames[0][:80].decode("utf-8", "replace") if frames else "(no frames)"
@@ -118,7 +120,7 @@ def _fault(frames: list[bytes]) -> str | None:
             return f"{where}: {name} is {type(value).__name__ if name in body else 'missing'}, not {kind.__name__}"
     if not 0 <= body["seq"] <= MAX_SEQ:
         return f"{where}: seq {body['seq']} is outside 0..{MAX_SEQ}"
-    return None
+    return frames[0].decode("utf-8", "replace"), body
 
 
 class _Filter:
