@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from tactiled.cli.clidoc import REGENERATE, reference
+from tactiled.cli.cmd_learn import ANOTHER_UNIT
 from tactiled.cli.main import build_parser, main, subcommands
 from tactiled.errors import TactiledError
 from tactiled.learn.model import load_model
@@ -147,6 +148,7 @@ def test_simulate_and_train_give_the_same_fingerprint_in_another_process(tmp_pat
     fingerprints = [re.findall(r"fingerprint ([0-9a-f]{16})", out) for out, _ in outs]
     assert len(fingerprints[0]) == 1 and fingerprints[0] == fingerprints[1]
     assert load_model(tmp_path / "m1.npz").fingerprint == fingerprints[0][0]  # the file written loads back as the model printed
+    assert outs[0][0].strip().splitlines()[-1] == ANOTHER_UNIT  # its estimates are said to hold for the unit that recorded
 
 
 def test_a_model_says_once_that_the_configs_analysis_sections_are_not_used(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:

@@ -93,7 +93,13 @@ def cmd_train(args: argparse.Namespace) -> int:
                      "; no slide will be called unknown"))
     fingerprint = result.model.save(args.output)
     print(f"{args.output}: {result.model.describe()}; fingerprint {fingerprint}")
+    print(ANOTHER_UNIT)
     return EXIT_OK
+
+
+ANOTHER_UNIT = ("these estimates hold for new recordings with the sensor unit that made the training recordings: another unit (a swapped or "
+                "re-glued fingertip) moves the films' resonances and gains, which can cost far more (in docs/evaluation.md, 25 to 40 points "
+                "on neighbouring grades); check it with tactiled score on a few of its labelled recordings, and teach them with tactiled enrol")
 
 
 def cmd_enrol(args: argparse.Namespace) -> int:
