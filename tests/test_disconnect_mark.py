@@ -38,14 +38,15 @@ def _key(ev: PipelineEvent) -> tuple[Any, ...]:
     return (type(ev).__name__, *dataclasses.astuple(ev))
 
 
-def _board(tmp_path: Path, unplug_at: float) -> VirtualBoard:
-    """A virtual board on ``tmp_path/tty`` (opened, not yet streaming) at 3x real time: 0.8 s at rest, a 1.6 s slide, then
-    rest; unplugged for 0.1 s at ``unplug_at`` s of sensor time (shorter than detector.off_hold_s: without a mark, a replay
-    would join the slide's two pieces)."""
+def _board(tmp_path: Path, unplug_at: float, rest_s: float = 0.8, slide_s: float = 1.6) -> VirtualBoard:
+    """A virtual board on ``tmp_path/tty`` (opened, not yet streaming) at 3x real time: ``rest_s`` at rest (0: the stream
+    begins in the slide), a ``slide_s`` slide, then rest; unplugged for 0.1 s at ``unplug_at`` s of sensor time (shorter
+    than detector.off_hold_s: without a mark, a replay would join the slide's two pieces)."""
     sim = SensorSimulator(SimParams(), seed=3)
     surface = pick_surfaces("Ra2.29")[0]
-    sim.add_rest(0.8)
-    sim.add_slide(surface, 1.6)
+    if rest_s:
+        sim.add_rest(rest_s)
+    sim.add_slide(surface, slide_s)
     sim.add_rest(3.0)
     board = VirtualBoard(sim, [surface], link=str(tmp_path / "tty"), speed=3.0, unplug_at=[unplug_at], unplug_s=0.1, seed=3,
                          log=open(tmp_path / "board.jsonl", "w"))  # noqa: SIM115 - closed with the board's thread (streams)
@@ -53,11 +54,15 @@ def _board(tmp_path: Path, unplug_at: float) -> VirtualBoard:
     return board
 
 
-def test_run_record_marks_the_unplug_and_its_replay_gives_the_live_daemons_events(tmp_path: Path) -> None:
+@pytest.mark.parametrize("rest_s, slide_s, unplug_at", [(0.8, 1.6, 1.6), (0.0, 2.0, 1.0)], ids=["from-rest", "began-in-the-slide"])
+def test_run_record_marks_the_unplug_and_its_replay_gives_the_live_daemons_events(tmp_path: Path, rest_s: float, slide_s: float,
+                                                                                   unplug_at: float) -> None:
     """The live daemon ends the slide the unplug cuts (reason disconnected, with its label) and starts another after the
     replug; its recording marks the unplug, and a replay of it gives every event the daemon gave (the pieces not joined).
-    The board is closed after 3 s of sensor time: a second disconnection, marked at the recording's end, stops the daemon."""
-    board = _board(tmp_path, unplug_at=1.6)
+    The board is closed after 3 s of sensor time: a second disconnection, marked at the recording's end, stops the daemon.
+    The same when the daemon connects while the finger already slides (``began-in-the-slide``: the detector has not yet
+    told the stream's level from rest; the stream so far ends as one slide, and the one after the replug starts afresh)."""
+    board = _board(tmp_path, unplug_at=unplug_at, rest_s=rest_s, slide_s=slide_s)
     out = tmp_path / "live.npz"
     config = Config().override({"sensor.port": board.link or "", "publish.endpoint": f"ipc://{tmp_path}/pub"})
     model = load_model()

@@ -232,12 +232,27 @@ class Pipeline:
         self._fresh_detector = True
         return events
 
+    def disconnected(self) -> list[PipelineEvent]:
+        """The sensor's port is gone after the samples fed so far: a slide in progress ends at the last sample fed and gets its
+        final result (reason ``end_of_stream``; the caller names it). A stream that began in a slide not yet known as one (the
+        detector undecided) ends there as at the end of a stream (:meth:`SlideDetector.finish`: the whole stream so far one
+        slide), and the samples after the port comes back start a new detector: that stream, too, may begin in a slide."""
+        if self.detector.undecided:
+            self._fresh_detector = True
+        elif not self.sliding:
+            return []
+        return self.finish()
+
     def feed(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None = None) -> list[PipelineEvent]:
         """Process ``samples`` (n, C) whose first sample has absolute ``index`` (gaps are lost samples)."""
-        if self._fresh_detector:
+        self.ring.write(index, samples, valid)
+        if self._fresh_detector:  # a new detector starts at the first sample that carries data: lost rows before it are no stream
+            skip = samples.shape[0] if valid is not None and not valid.any() else int(np.argmax(valid)) if valid is not None else 0
+            if skip == samples.shape[0]:
+                return self._analyse_ready()
             self.detector = SlideDetector(*self._detector_args)
             self._fresh_detector = False
-        self.ring.write(index, samples, valid)
+            index, samples, valid = index + skip, samples[skip:], None if valid is None else valid[skip:]
         events = self._handle(self.detector.feed(index, self._volts(samples, valid), valid))  # the detector treats index gaps as lost itself
         events += self._analyse_ready()
         return events

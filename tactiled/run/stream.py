@@ -208,14 +208,15 @@ class Stream:
     def disconnected(self) -> Step:
         """The sensor's port is gone after the samples fed so far: a slide in progress (live or shadow) ends at the last sample
         fed and gets its final result from the samples before, its end with reason ``schema.END_DISCONNECTED``; the detector goes
-        on with the samples fed after. Nothing happens without a slide in progress (an undecided detector is not ended)."""
+        on with the samples fed after. A stream that began in a slide the detector has not yet told from rest (undecided) ends
+        as a stream does, one slide so far, and the samples after start a new detector (:meth:`Pipeline.disconnected`)."""
         step = Step()
         self._take_requests()
-        if self.pipeline is not None and self.pipeline.sliding:
+        if self.pipeline is not None:
             step.events = [replace(ev, reason=schema.END_DISCONNECTED) if isinstance(ev, SlideEnded) and ev.reason == "end_of_stream"
-                           else ev for ev in self.pipeline.finish()]
-        if self.shadow is not None and self.shadow.sliding:
-            step.shadow = self.shadow.finish()
+                           else ev for ev in self.pipeline.disconnected()]
+        if self.shadow is not None:
+            step.shadow = self.shadow.disconnected()
         return step
 
     def _feed(self, index: int, samples: npt.NDArray[Any], valid: npt.NDArray[np.bool_] | None) -> Step:
