@@ -349,3 +349,27 @@ def statuses_after_first_label(got: list[object]) -> list[Status]:
 def lost_across(statuses: list[Status]) -> int:
     """Samples the daemon counted lost from the first to the last of ``statuses``."""
     return statuses[-1].samples_lost - statuses[0].samples_lost
+
+
+def _ignores_hangup(pid: int) -> bool:
+    """Whether process ``pid`` ignores SIGHUP (bit 0 of its SigIgn mask)."""
+    try:
+        mask = next(line for line in Path(f"/proc/{pid}/status").read_text().splitlines() if line.startswith("SigIgn:"))
+    except FileNotFoundError:
+        return False
+    return bool(int(mask.split()[1], 16) & 1)
+
+
+def test_a_sighup_during_start_up_does_not_end_the_daemon(tmp_path: Path) -> None:
+    """SIGHUP reloads the model once the daemon runs; one during its start-up (imports, the model's load) was its default
+    action, an exit of 129 with no line (an audit): ignored until the daemon's own handler is in place."""
+    import signal
+
+    endpoint = f"ipc://{tmp_path}/pub"
+    with BlockingSubscriber(endpoint, topics=["status"], timeout=20) as sub, daemon_process(str(tmp_path / "absent"), endpoint) as proc:
+        wait_for(lambda: proc.poll() is not None or _ignores_hangup(proc.pid), timeout=30, what="the daemon ignoring SIGHUP at start")
+        proc.send_signal(signal.SIGHUP)  # before its first status: still starting
+        assert isinstance(sub.receive(), Status)  # it runs
+        proc.terminate()
+        proc.wait(30)
+    assert proc.returncode == 0, proc.stderr.read() if proc.stderr else ""
