@@ -35,7 +35,21 @@ import numpy.typing as npt
 from tactiled.board.frames import MAX_CHANNELS
 from tactiled.errors import RecordingError
 from tactiled.files.npzio import MAX_FILE_BYTES, load_json_bounded
-from tactiled.files.recording import MAX_FS, MIN_FS, Recording, StreamedArray, fsync_dir, lost_rows_budget, save_recording, surface_name_problem
+from tactiled.files.recording import (
+    MAX_FS,
+    MIN_FS,
+    Recording,
+    StreamedArray,
+    first_index_problem,
+    fsync_dir,
+    largest_magnitude,
+    lost_rows_budget,
+    peak_problem,
+    save_recording,
+    surface_name_problem,
+    validate_arrays,
+    volts_per_count_problem,
+)
 from tactiled.readable import file_problem
 
 MAGIC = b"TACTJNL\x01"
@@ -252,6 +266,25 @@ def _header(path: Path, fh: IO[bytes]) -> dict[str, Any]:
     return obj
 
 
+def _header_values(path: Path, h: dict[str, Any]) -> tuple[float, int, float]:
+    """(fs in Hz, channels, volts_per_count) of the journal header ``h``, each checked as a recording's is: a JSON number
+    (not a boolean, and channels an integer, not 2.9) in range; :class:`RecordingError` names ``path`` and the key."""
+    for key in ("fs", "channels", "volts_per_count"):
+        if key not in h:
+            raise RecordingError(f"{path}: header: {key}: missing (required)")
+        value = h[key]
+        if isinstance(value, bool) or not isinstance(value, int if key == "channels" else (int, float)):
+            raise RecordingError(f"{path}: header: {key}: must be {'an integer' if key == 'channels' else 'a number'}, got {json.dumps(value):.80}")
+    fs, channels, vpc = float(h["fs"]), int(h["channels"]), float(h["volts_per_count"])
+    if not (np.isfinite(fs) and MIN_FS <= fs <= MAX_FS):
+        raise RecordingError(f"{path}: header: fs: must be in [{MIN_FS:g}, {MAX_FS:g}] Hz, got {fs}")
+    if not 1 <= channels <= MAX_CHANNELS:
+        raise RecordingError(f"{path}: header: channels: must be in [1, {MAX_CHANNELS}], got {channels}")
+    if problem := volts_per_count_problem(vpc):
+        raise RecordingError(f"{path}: header: volts_per_count: {problem}")
+    return fs, channels, vpc
+
+
 def read_journal(path: str | Path) -> JournalScan:
     """Check every chunk of the journal at ``path``; intact ones are kept, the others counted as dropped.
 
@@ -269,14 +302,10 @@ def read_journal(path: str | Path) -> JournalScan:
         raise RecordingError(f"{path}: {exc.strerror}") from None
     with fh:
         h = _header(path, fh)
-        try:
-            fs, channels, vpc = float(h["fs"]), int(h["channels"]), float(h["volts_per_count"])
-            label, meta = h.get("label"), h.get("meta") or {}
-        except (KeyError, TypeError, ValueError) as exc:
-            raise RecordingError(f"{path}: header: {exc}") from None
-        if not (np.isfinite(fs) and MIN_FS <= fs <= MAX_FS and 1 <= channels <= MAX_CHANNELS and np.isfinite(vpc) and vpc > 0
-                and isinstance(meta, dict)):
-            raise RecordingError(f"{path}: header: fs, channels or volts_per_count out of range")
+        fs, channels, vpc = _header_values(path, h)
+        label, meta = h.get("label"), h.get("meta") or {}
+        if not isinstance(meta, dict):
+            raise RecordingError(f"{path}: header: meta: must be a JSON object")
         problem = None if label is None else surface_name_problem(str(label))
         if problem:  # what recovers must load
             raise RecordingError(f"{path}: header: label: {problem}")
@@ -397,8 +426,38 @@ def recover(journal: str | Path, out: str | Path, extra_meta: dict[str, Any] | N
         raise RecordingError(f"{journal}: no intact chunk: nothing to recover"
                              + (f" ({scan.dropped_bytes} bytes dropped)" if scan.dropped_bytes else ""))
     meta = {**scan.meta, **(scan.chunks[-1].counters if scan.chunks else {}), **(extra_meta or {})}
-    lost = scan.lost()
-    rec = Recording(samples=np.zeros((0, scan.channels), dtype=np.int16), fs=scan.fs, volts_per_count=scan.volts_per_count,
-                    label=scan.label, meta=meta, first_index=scan.first_index, lost=lost, disconnected=scan.disconnected())
-    save_recording(out, rec, StreamedArray((scan.rows, scan.channels), np.dtype("<i2"), scan.blocks()))
-    return Recovered(scan.rows, int(lost[:, 1].sum()), len(scan.chunks), scan.dropped_chunks, scan.dropped_bytes, scan.fs)
+    rec = _checked(scan, meta)
+    save_recording(out, rec, StreamedArray((scan.rows, scan.channels), np.dtype("<i2"), _peak_checked(scan)))
+    return Recovered(scan.rows, int(rec.lost[:, 1].sum()), len(scan.chunks), scan.dropped_chunks, scan.dropped_bytes, scan.fs)
+
+
+def _checked(scan: JournalScan, meta: dict[str, Any]) -> Recording:
+    """The recording ``scan`` makes with ``meta``, but for its samples (a (0, C) int16 placeholder), checked by
+    :func:`~tactiled.files.recording.validate_arrays` as loading the file would check it, so recover never writes what
+    load refuses; :class:`RecordingError` names the journal. The samples' magnitude is checked as they are written
+    (:func:`_peak_checked`). Raises before anything is written."""
+    if problem := first_index_problem(scan.first_index, scan.rows):
+        raise RecordingError(f"{scan.path}: first_index (a chunk's index less its position): {problem}; nothing written")
+    # every row, as zeros of no memory (a stride of 0): the checks of lost, disconnected against the rows; not the values
+    rows = np.lib.stride_tricks.as_strided(np.zeros(scan.channels, dtype=np.int16), (scan.rows, scan.channels), (0, 2))
+    arrays: dict[str, Any] = {"samples": rows, "fs": np.float64(scan.fs), "volts_per_count": np.float64(scan.volts_per_count),
+                              "first_index": np.int64(scan.first_index), "lost": scan.lost(), "disconnected": scan.disconnected(),
+                              "meta": np.str_(json.dumps(meta, sort_keys=True))}
+    if scan.label is not None:
+        arrays["label"] = np.str_(scan.label)
+    try:
+        rec = validate_arrays(scan.path, arrays)
+    except RecordingError as exc:
+        raise RecordingError(f"{exc}; nothing written") from None
+    rec.samples = np.zeros((0, scan.channels), dtype=np.int16)
+    return rec
+
+
+def _peak_checked(scan: JournalScan) -> Iterator[npt.NDArray[np.int16]]:
+    """``scan``'s blocks, each checked against the volts a recording may reach (counts x volts_per_count at most
+    :data:`~tactiled.files.recording.MAX_VOLTS`): a :class:`RecordingError` naming the journal stops the write, which then
+    leaves nothing (:func:`~tactiled.files.recording.atomic_savez`)."""
+    for block in scan.blocks():
+        if block.size and (problem := peak_problem(largest_magnitude(block) * scan.volts_per_count)):
+            raise RecordingError(f"{scan.path}: samples: {problem}; nothing written")
+        yield block

@@ -19,7 +19,7 @@ from tactiled_client.mcapbound import inflation_problem
 
 from tactiled.errors import RecordingError
 from tactiled.extras import need
-from tactiled.files.recording import MAX_RECORDING_BYTES, Recording, validate_arrays
+from tactiled.files.recording import INT64_MAX, MAX_RECORDING_BYTES, Recording, validate_arrays, volts_per_count_problem
 from tactiled.readable import file_problem
 
 
@@ -42,8 +42,9 @@ def load_mcap_recording(path: str | Path) -> Recording:
             info = next((m.metadata for m in reader.iter_metadata() if m.name == "tactiled.recording"), None)
             if info is None:
                 raise RecordingError(f"{p}: not a tactiled MCAP file (no tactiled.recording metadata)")
+            fs, vpc, dtype, first = _recording_info(p, info)
             fh.seek(0)
-            rows, lost, slides, marks = _messages(make_reader(fh), int(info.get("first_index", "0")))
+            rows, lost, slides, marks = _messages(p, make_reader(fh), first)
     except RecordingError:
         raise
     except Exception as exc:  # the mcap reader's own errors (bad magic, truncated records) and malformed JSON
@@ -54,11 +55,14 @@ def load_mcap_recording(path: str | Path) -> Recording:
         except (KeyError, ValueError):
             raise RecordingError(f"{p}: samples: no samples messages, and no channel count in the metadata") from None
     volts = np.concatenate(rows)
-    vpc = float(info.get("volts_per_count", "1.0"))
-    dtype = np.dtype(info.get("samples_dtype", "float64"))
-    samples = np.rint(volts / vpc).astype(dtype) if dtype.kind in "iu" else volts
-    arrays: dict[str, Any] = {"samples": samples, "fs": np.float64(float(info["fs"])), "volts_per_count": np.float64(vpc if dtype.kind in "iu" else 1.0),
-                              "first_index": np.int64(int(info.get("first_index", "0"))),
+    if dtype.kind == "i":
+        peak = float(np.abs(volts).max()) / vpc if volts.size else 0.0
+        limit = np.iinfo(dtype).max + 1  # rint of less than this is a count the dtype holds (its least is -limit)
+        if not peak < limit - 0.5:
+            raise RecordingError(f"{p}: samples: {peak:.6g} counts at volts_per_count {vpc!r}, beyond the {dtype} of samples_dtype")
+    samples = np.rint(volts / vpc).astype(dtype) if dtype.kind == "i" else volts
+    arrays: dict[str, Any] = {"samples": samples, "fs": np.float64(fs), "volts_per_count": np.float64(vpc if dtype.kind == "i" else 1.0),
+                              "first_index": np.int64(first),
                               "lost": np.asarray(lost, dtype=np.int64).reshape(-1, 2), "meta": np.str_(info.get("meta", "{}"))}
     if marks:
         arrays["disconnected"] = np.array(marks, dtype=np.int64)
@@ -74,7 +78,33 @@ def load_mcap_recording(path: str | Path) -> Recording:
     return validate_arrays(p, arrays)
 
 
-def _messages(reader: Any, first: int) -> tuple[list[np.ndarray], list[list[int]], list[tuple[int, int, str | None, float | None]], list[int]]:
+def _recording_info(p: Path, info: dict[str, str]) -> tuple[float, float, np.dtype[Any], int]:
+    """(fs in Hz, volts_per_count, the samples' dtype, first_index) of the ``tactiled.recording`` metadata ``info`` (string
+    values); :class:`RecordingError` names the file ``p`` and the key that is missing or not what it must be. The ranges
+    of fs and of first_index + rows are :func:`~tactiled.files.recording.validate_arrays`'s; these are what reading the
+    messages needs first."""
+    def number(key: str, default: str | None, kind: type[float] | type[int]) -> Any:
+        text = info.get(key, default)
+        if text is None:
+            raise RecordingError(f"{p}: metadata tactiled.recording: {key}: missing (required)")
+        try:
+            return kind(text)
+        except (TypeError, ValueError):
+            raise RecordingError(f"{p}: metadata tactiled.recording: {key}: must be {'a number' if kind is float else 'an integer'}, "
+                                 f"got {text!r:.80}") from None
+
+    fs, vpc, first = number("fs", None, float), number("volts_per_count", "1.0", float), number("first_index", "0", int)
+    if problem := volts_per_count_problem(vpc):
+        raise RecordingError(f"{p}: metadata tactiled.recording: volts_per_count: {problem}")
+    if not -INT64_MAX - 1 <= first <= INT64_MAX:
+        raise RecordingError(f"{p}: metadata tactiled.recording: first_index: must be an int64, got {first}")
+    name = info.get("samples_dtype", "float64")
+    if name not in ("int16", "float32", "float64"):
+        raise RecordingError(f"{p}: metadata tactiled.recording: samples_dtype: must be int16, float32 or float64, got {name!r:.80}")
+    return fs, vpc, np.dtype(name), first
+
+
+def _messages(p: Path, reader: Any, first: int) -> tuple[list[np.ndarray], list[list[int]], list[tuple[int, int, str | None, float | None]], list[int]]:
     """(sample blocks (n, C) in volts, lost [position, count] in the file, true slides (start, stop, surface, Ra), positions where
     the port was lost) of an MCAP reader."""
     rows: list[np.ndarray] = []
@@ -89,7 +119,7 @@ def _messages(reader: Any, first: int) -> tuple[list[np.ndarray], list[list[int]
             block = np.column_stack([np.asarray(body[k], dtype=np.float64) for k in films]).reshape(int(body["n"]), len(films))
             lo = int(body["index"]) - first
             if lo != at:
-                raise RecordingError(f"samples: a message at row {lo} where row {at} was due")
+                raise RecordingError(f"{p}: samples: a message at row {lo} where row {at} was due")
             lost += [[lo + int(q), int(c)] for q, c in body["lost"]]
             rows.append(block)
             at += block.shape[0]

@@ -30,6 +30,8 @@ MIN_FS, MAX_FS, MAX_CHANNELS = 1.0, 1e7, 64
 MAX_LABEL_CHARS = 256  # a surface name (label, surface[i]): longer ones are refused at load (a 4M-character label cost score 1 GB)
 MAX_VOLTS = 1e9  # |samples| in volts: 30x what a config's volts_per_count allows an int16 board; squares and sums stay far from overflow
 MAX_RECORDING_BYTES = 2 << 30  # 2 GiB inflated: 7 h of 2 channels of int16 at 20 kHz; split longer recordings
+MIN_VOLTS_PER_COUNT = 1e-12  # V per count: the least a config allows (tactiled.config); below, counts would be volts of nothing
+INT64_MAX = (1 << 63) - 1
 
 
 @dataclass
@@ -108,14 +110,18 @@ def lost_rows_budget(file_bytes: int, floor: int) -> int:
 
 
 UNPRINTABLE = frozenset({"Cc", "Cs", "Zl", "Zp"})  # control characters, lone surrogates, line and paragraph separators
+INVISIBLE = frozenset({"Cf"})  # format characters (zero-width space, bidi overrides, BOM): unseen, or they reorder what is seen
 
 
 def surface_name_problem(name: str) -> str | None:
     """What is wrong with ``name`` as a surface name (a recording's ``label`` or ``surface[i]``, ``enrol --label``), or None.
 
     A name must hold something other than white space ("" is how training marks an unlabelled slide: such a surface
-    would be listed, then silently left out of the model), neither begin nor end with it, at most :data:`MAX_LABEL_CHARS` characters, and no control
-    character, lone surrogate or line separator (replay and score print one line per slide)."""
+    would be listed, then silently left out of the model), neither begin nor end with it, at most :data:`MAX_LABEL_CHARS` characters, no control
+    character, lone surrogate or line separator (replay and score print one line per slide), no format character (category Cf:
+    "Ra0.44\u200b" would print as "Ra0.44", "\u202e44.0aR" as "Ra0.44"), and be in Unicode normal form NFC ("Pone\u0301" and
+    "Pon\u00e9" print alike): two names that print alike would be two surfaces. Such names are refused, never normalised,
+    as white space at the ends is: a file's names are what it says."""
     if len(name) > MAX_LABEL_CHARS:
         return f"{len(name)} characters, more than the {MAX_LABEL_CHARS} a surface name may have"
     if not name.strip():
@@ -125,6 +131,36 @@ def surface_name_problem(name: str) -> str | None:
     bad = next((ch for ch in name if unicodedata.category(ch) in UNPRINTABLE), None)
     if bad is not None:
         return f"{name!r} holds the control character U+{ord(bad):04X}; a surface name is one printable line"
+    bad = next((ch for ch in name if unicodedata.category(ch) in INVISIBLE), None)
+    if bad is not None:
+        return (f"{name!a} holds the format character U+{ord(bad):04X} ({unicodedata.name(bad, 'unnamed')}), which does not print "
+                "as itself; a surface name is printed as it is, so two would look alike")
+    nfc = unicodedata.normalize("NFC", name)
+    if nfc != name:
+        return (f"{name!a} is not in Unicode normal form NFC, write it as {nfc!a} ({nfc}); a surface name is printed as it is, "
+                "so two spellings would look alike")
+    return None
+
+
+def first_index_problem(first: int, n: int) -> str | None:
+    """What is wrong with ``first`` as the sensor sample index of row 0 of ``n`` rows, or None: the indices
+    ``first .. first + n`` are int64 (the sensor's index unwrapped to 64 bits: what files and messages carry)."""
+    if not -INT64_MAX - 1 <= first <= INT64_MAX - n:
+        return f"must be an int64 with first_index + {n} samples within int64 (at most {INT64_MAX - n}), got {first}"
+    return None
+
+
+def volts_per_count_problem(vpc: float) -> str | None:
+    """What is wrong with ``vpc`` (V per count) as a recording's scale, or None: finite and at least :data:`MIN_VOLTS_PER_COUNT`."""
+    if not (np.isfinite(vpc) and vpc >= MIN_VOLTS_PER_COUNT):
+        return f"must be finite and >= {MIN_VOLTS_PER_COUNT:g} V per count, got {vpc}"
+    return None
+
+
+def peak_problem(peak: float) -> str | None:
+    """What is wrong with samples whose largest magnitude is ``peak`` volts, or None (at most :data:`MAX_VOLTS`)."""
+    if not peak <= MAX_VOLTS:
+        return f"reach {peak:.3g} V, beyond the {MAX_VOLTS:g} V of any sensor (samples are volts, or counts times volts_per_count)"
     return None
 
 
@@ -187,15 +223,16 @@ def validate_arrays(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
     if not (np.isfinite(fs) and MIN_FS <= fs <= MAX_FS):
         raise _fail(path, "fs", f"must be in [{MIN_FS:g}, {MAX_FS:g}] Hz, got {fs}")
     vpc = float(_scalar(path, a, "volts_per_count", "f")) if "volts_per_count" in a else 1.0
-    if not (np.isfinite(vpc) and vpc > 0):
-        raise _fail(path, "volts_per_count", f"must be > 0, got {vpc}")
+    if problem := volts_per_count_problem(vpc):
+        raise _fail(path, "volts_per_count", problem)
     peak = largest_magnitude(samples) * (vpc if samples.dtype.kind == "i" else 1.0) if samples.size else 0.0
-    if not peak <= MAX_VOLTS:
-        raise _fail(path, "samples", f"reach {peak:.3g} V, beyond the {MAX_VOLTS:g} V of any sensor (samples are volts, or counts "
-                                     "times volts_per_count)")
+    if problem := peak_problem(peak):
+        raise _fail(path, "samples", problem)
     rec = Recording(samples=samples, fs=fs, volts_per_count=vpc)
     if "first_index" in a:
         rec.first_index = int(_scalar(path, a, "first_index", "i"))
+        if problem := first_index_problem(rec.first_index, n):
+            raise _fail(path, "first_index", problem)
     if "label" in a:
         rec.label = str(_scalar(path, a, "label", "U"))
         problem = surface_name_problem(rec.label)
@@ -213,8 +250,9 @@ def validate_arrays(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
         lost = a["lost"]
         if lost.ndim != 2 or lost.shape[1] != 2 or lost.dtype.kind not in "iu":
             raise _fail(path, "lost", f"must be (g, 2) integers, got {lost.shape} {lost.dtype}")
-        lost = lost.astype(np.int64)
-        if lost.size and (np.any(lost[:, 0] < 0) or np.any(lost[:, 1] <= 0) or np.any(lost.sum(axis=1) > n)):
+        lost = lost.astype(np.int64)  # a uint64 above int64 wraps negative: refused below
+        # position + count <= n as position <= n - count: no sum of two large positions to wrap past int64
+        if lost.size and (np.any(lost[:, 0] < 0) or np.any(lost[:, 1] <= 0) or np.any(lost[:, 0] > n - lost[:, 1])):
             raise _fail(path, "lost", "ranges must lie inside samples with count > 0")
         rec.lost = lost
     if "disconnected" in a:
@@ -254,6 +292,8 @@ def validate_arrays(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
         if "ra_um" in a:
             if a["ra_um"].dtype.kind != "f":
                 raise _fail(path, "ra_um", f"must be float, got {a['ra_um'].dtype}")
+            if not np.all(np.isfinite(a["ra_um"])):
+                raise _fail(path, "ra_um", f"slide {int(np.flatnonzero(~np.isfinite(a['ra_um']))[0])}: must be finite, got NaN or Inf")
             rec.ra_um = a["ra_um"].astype(np.float64)
     return rec
 

@@ -223,8 +223,9 @@ class RecordingSink:
         try:
             self._writer.append(encode_chunk(start, self.first_index + start, end - start, lost, counters, received, marks))
         except OSError as exc:
-            self.error = (f"{self.journal}: {exc.strerror or exc}: capture stopped after {self._rows / self.fs:.3f} s, "
-                          f"kept in the journal: tactiled recover {self.journal} -o {self.out}")
+            kept = (f"kept in the journal: tactiled recover {self.journal} -o {self.out}" if os.path.lexists(self.journal)
+                    else self._kept(self.out))
+            self.error = f"{self.journal}: {exc.strerror or exc}: capture stopped after {self._rows / self.fs:.3f} s, {kept}"
             if self._on_error is not None:
                 self._on_error(self.error)
             return start
@@ -250,19 +251,24 @@ class RecordingSink:
         try:
             check_output(self.out, self.force)  # again: a file (or a device) may have appeared there since the start
         except OutputError as exc:
-            return SinkResult(self._rows, self._lost, f"{exc}; the capture is kept in {self.journal}: "
-                                                      f"tactiled recover {self.journal} -o OUT.npz")
+            return SinkResult(self._rows, self._lost, f"{exc}; {self._kept('OUT.npz')}")
         meta = self._counters() if extra_meta is None else extra_meta
         if self.ended_by_gap:
             meta = {**meta, "ended_by_gap": self.ended_by_gap}
         try:
             recover(self.journal, self.out, meta, allow_empty=True)
         except OSError as exc:
-            return SinkResult(self._rows, self._lost, f"{self.out}: cannot write: {exc.strerror or exc}; the capture is kept in "
-                                                      f"{self.journal}: tactiled recover {self.journal} -o {self.out}")
+            return SinkResult(self._rows, self._lost, f"{self.out}: cannot write: {exc.strerror or exc}; {self._kept(self.out)}")
         os.unlink(self.journal)
         fsync_dir(self.journal.parent)
         return SinkResult(self._rows, self._lost)
+
+    def _kept(self, out: str | Path) -> str:
+        """Where the capture is after a failure, for the end of its one line: the journal and how to recover it into ``out``
+        while the journal exists; else that it is lost (its folder removed while recording took the journal with it)."""
+        if os.path.lexists(self.journal):
+            return f"the capture is kept in {self.journal}: tactiled recover {self.journal} -o {out}"
+        return f"the journal {self.journal} no longer exists (its folder was removed while recording?): the capture is lost"
 
     def discard(self) -> None:
         """End a sink that was given no row (:attr:`first_index` None): its writer stops, its journal (a header only) is
