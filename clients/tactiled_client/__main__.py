@@ -6,7 +6,8 @@ running daemon to load a model or run one in its shadow (pyzmq + msgpack only).
     python -m tactiled_client replay session.tlog --publish tcp://127.0.0.1:7350 --speed 2
     python -m tactiled_client control ipc:///run/tactiled/fingertip0.control load new_model.npz
 
-Exit status: 0 done, 1 the daemon refused the request (its reason on stderr) or the reader of the output went away
+Exit status: 0 done, 1 the daemon refused the request (its reason on stderr), the machine refused a write of the recording
+(a full disk, a file-size limit: one line, every message before it kept) or the reader of the output went away
 (``replay --json | head``: nothing is printed), 2 bad arguments or a file that cannot be read or no reply (one line on
 stderr), 130 interrupted.
 
@@ -30,7 +31,7 @@ import msgpack
 
 from tactiled_client import schema
 from tactiled_client.errors import ClientError, LogError
-from tactiled_client.log import Entry, check_body
+from tactiled_client.log import Entry, WriteFailed, check_body
 
 
 class _Parser(argparse.ArgumentParser):
@@ -61,7 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                            "--publish at the recorded pace)")
     p.add_argument("--topics", nargs="+", choices=schema.TOPICS, default=None, help="only these topics")
     p.add_argument("--sensor", default=None, help="only this sensor id")
-    p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="S", help="--publish: wait up to S s for a first subscriber")
+    p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="S", help="--publish: wait up to S s for a first subscriber "
+                                                                                   "(default: 0, do not wait)")
     p = sub.add_parser("control", help="ask a running daemon (its control.endpoint) to load a model, run one in its shadow, or for status")
     p.add_argument("endpoint", help="the daemon's control endpoint (control.endpoint in its config)")
     p.add_argument("cmd", choices=("load", "shadow", "status"), help="load: swap in a model file at the next slide; shadow: run a "
@@ -168,6 +170,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             if rep.reader.truncated:
                 print(f"warning: {rep.reader.truncated}", file=sys.stderr)
         return 0
+    except WriteFailed as exc:  # the machine refused (a full disk): one line, what was already recorded stays
+        print(f"tactiled_client: {exc}", file=sys.stderr)
+        return 1
     except ClientError as exc:
         print(f"tactiled_client: {exc}", file=sys.stderr)
         return 2

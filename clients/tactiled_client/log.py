@@ -27,19 +27,21 @@ provisional labels, then its final one). Memory stays bounded by one record; not
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import stat
 import struct
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, NoReturn
 
 import msgpack
 
 from tactiled_client import schema
-from tactiled_client.errors import LogError, RecordRefused
+from tactiled_client.errors import ClientError, LogError, RecordRefused
 from tactiled_client.mcapbound import inflation_problem
 
 MAGIC = b"TACTILEDLOG\x00"
@@ -53,6 +55,7 @@ MAX_MCAP_BYTES = 2 << 30  # bytes an MCAP file's records may inflate to (tactile
 MAX_TIME_S = 1e10  # s: no clock reading is further from 0 (a monotonic clock counts from boot; unix time reaches it in 2286)
 BACK_S = 1.0  # s a session log's recv_mono may go back between records (a monotonic clock never does)
 MAX_GAP_S = 30 * 86400.0  # s a session log's recv_mono may jump between records (a recorder hearing nothing for a month)
+NOT_REGULAR = "not a regular file (a device or FIFO is never written)"  # what a recorder says of such a path, as tactiled record does
 
 
 @dataclass(frozen=True)
@@ -70,32 +73,70 @@ class Entry:
         return [self.topic.encode(), self.body]
 
 
+class WriteFailed(ClientError, OSError):
+    """The machine refused a write to a session log (a full disk, a file-size limit, an I/O error): recording stops, the
+    log holds every record before, whole. ``count``: how many."""
+
+    def __init__(self, path: Path, strerror: str, count: int) -> None:
+        super().__init__(f"{path}: {strerror}: recording stopped after {count} messages, every one kept (replay reads them)")
+        self.count = count
+
+
 class LogWriter:
-    """Append received messages to a session log, each with one ``write`` (crash-safe; see the module docstring)."""
+    """Append received messages to a session log, each with one ``write`` (crash-safe; see the module docstring).
+
+    Only a regular file is written (:data:`NOT_REGULAR`: a device or a FIFO at the path is refused, before it is opened and
+    again after, so a FIFO never blocks the open). A write the machine refuses raises :class:`WriteFailed`, the file cut back
+    to its last whole record."""
 
     def __init__(self, path: str | Path, *, overwrite: bool = False) -> None:
         self.path = Path(path)
         self._last_mono: float | None = None
-        flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
+        self._fd: int | None = None
+        self._size = 0  # bytes of whole records (and the header) written
+        self.count = 0
+        if _special(self.path):
+            raise LogError(f"{self.path}: {NOT_REGULAR}")
+        flags = os.O_WRONLY | os.O_CREAT | os.O_NONBLOCK | (os.O_TRUNC if overwrite else os.O_EXCL)  # O_NONBLOCK: a FIFO never blocks
         try:
-            self._fd: int | None = os.open(self.path, flags, 0o644)
+            fd = os.open(self.path, flags, 0o644)
         except FileExistsError:
             raise LogError(f"{self.path}: exists (overwrite it with --force)") from None
         except OSError as exc:
             raise LogError(f"{self.path}: cannot write: {exc.strerror}") from None
-        self.count = 0
-        self._write(HEADER)
+        if not stat.S_ISREG(os.fstat(fd).st_mode):  # one appeared there since the check
+            os.close(fd)
+            raise LogError(f"{self.path}: {NOT_REGULAR}")
+        os.set_blocking(fd, True)
+        self._fd = fd
+        self._append(HEADER)
 
-    def _write(self, data: bytes) -> None:
+    def _append(self, data: bytes) -> None:
+        """Write ``data`` whole, or raise :class:`WriteFailed` with the file cut back to what was whole before."""
         if self._fd is None:
             raise LogError(f"{self.path}: already closed")
         view = memoryview(data)
-        while view:
-            view = view[os.write(self._fd, view):]
+        try:
+            while view:
+                view = view[os.write(self._fd, view):]
+        except OSError as exc:
+            with contextlib.suppress(OSError):  # never grows the file: works on a full disk, and under a file-size limit
+                os.ftruncate(self._fd, self._size)
+            self._failed(exc)
+        self._size += len(data)
+
+    def _failed(self, exc: OSError) -> NoReturn:
+        """Close the file (unsynced: the machine refused it) and raise :class:`WriteFailed`."""
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        raise WriteFailed(self.path, exc.strerror or str(exc), self.count) from None
 
     def write(self, frames: list[bytes], time_mono: float, time_unix: float) -> None:
         """Append one received two-frame message with its receive times (s); :class:`RecordRefused`, nothing written, for
-        a message :class:`LogReader` would refuse (see the module docstring), so that every later record stays readable."""
+        a message :class:`LogReader` would refuse (see the module docstring), so that every later record stays readable;
+        :class:`WriteFailed` if the machine refuses the write."""
         topic = frames[0].decode("utf-8", "replace")
         fault = _times_fault(time_mono, time_unix, self._last_mono) or _map_fault(bytes(frames[1]))
         if fault is not None:
@@ -103,14 +144,17 @@ class LogWriter:
         payload = msgpack.packb([time_mono, time_unix, topic, bytes(frames[1])], use_bin_type=True)
         if len(payload) > MAX_RECORD:
             raise RecordRefused(self.path, f"{topic[:80]}: a record of {len(payload)} bytes, more than the {MAX_RECORD} a record may hold")
-        self._write(RECORD.pack(len(payload), zlib.crc32(payload)) + payload)
+        self._append(RECORD.pack(len(payload), zlib.crc32(payload)) + payload)
         self._last_mono = time_mono
         self.count += 1
 
     def close(self) -> None:
-        """Flush to disk and close."""
+        """Flush to disk and close (:class:`WriteFailed` if the machine refuses the flush: a full disk may say so only now)."""
         if self._fd is not None:
-            os.fsync(self._fd)
+            try:
+                os.fsync(self._fd)
+            except OSError as exc:
+                self._failed(exc)
             os.close(self._fd)
             self._fd = None
 
@@ -135,7 +179,7 @@ class LogReader:
         self.count = 0
         if not self.path.exists():
             raise LogError(f"{self.path}: no such file")
-        if not self.path.is_file():  # before opening: a FIFO would block the open, /dev/zero never ends
+        if _special(self.path):  # before opening: a FIFO would block the open, /dev/zero never ends
             raise LogError(f"{self.path}: not a regular file")
         try:
             with open(self.path, "rb") as fh:
@@ -304,6 +348,13 @@ def _zeros_from(fh: IO[bytes], at: int, size: int, chunk: int = 1 << 16) -> int:
             return start + len(kept)
         stop = start
     return at
+
+
+def _special(path: Path) -> bool:
+    """Whether something other than a regular file is at ``path`` (a device, a FIFO, a folder, a socket; a symbolic link is
+    followed): a FIFO would block its opening, /dev/zero never ends, /dev/null keeps nothing (tactiled's equivalent,
+    ``tactiled.files.outputs.check_output``, is not importable here: the client library installs alone)."""
+    return path.exists() and not path.is_file()
 
 
 def _lines(fh: IO[bytes], path: Path) -> Iterator[bytes]:

@@ -95,7 +95,9 @@ def record(endpoints: str | Sequence[str], out: str | Path, *, seconds: float | 
     at most :data:`DRAIN_MAX_S`); after ``seconds``, only what has already arrived.
     ``on_message(count)`` is called after each one; ``on_refused(why)`` (one line) for each message not recorded because no
     reader could read it back, and each connection dropped for an oversize message (see the module docstring). Returns
-    the number of messages recorded.
+    the number of messages recorded. ``out`` must be a regular file (:class:`~tactiled_client.errors.LogError` before
+    recording otherwise); a write the machine refuses (a full disk, a file-size limit) ends the recording with
+    :class:`~tactiled_client.log.WriteFailed`, every message before it kept whole.
     """
     if seconds is not None and not seconds > 0:
         raise UsageError(f"--seconds must be > 0, got {seconds}")
