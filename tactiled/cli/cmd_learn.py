@@ -130,7 +130,7 @@ def untaught_line(surface: str, slides: int, unknown: int, labelled: int) -> str
 
 def cmd_score(args: argparse.Namespace) -> int:
     """Accuracy, coverage and calibration of a model over every true slide of held-out recordings."""
-    from tactiled.learn.dataset import load_recordings
+    from tactiled.learn.dataset import check_distinct, load_recordings
     from tactiled.learn.model import load_model
     from tactiled.learn.score import score_recordings
 
@@ -142,12 +142,16 @@ def cmd_score(args: argparse.Namespace) -> int:
     scored = [(n, r) for n, r in recs if r.slides() or r.label is not None]
     if not scored:
         raise TactiledError("no recording with ground truth (per-slide surfaces or a file label) to score")
+    # as train: one recording given twice (or a copy of it) would count its slides twice; one with per-slide truth is refused
+    # before the replays, one with a file label alone once they found its slides (two files of silence count nothing)
+    check_distinct([(n, r) for n, r in scored if r.slides()])
     report = score_recordings(scored, config, model, args.jobs, files_done("score"))
     if report["n"] == 0:  # only file labels, and the detector found no slide in any of them: an accuracy of 0 of 0 is no score
         names = [n for n, _ in scored]
         shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
         raise TactiledError(f"no true slide to score: the detector found no slide in {shown} (a file label names the surface of "
                             "each slide the detector finds; see `tactiled replay` on one of them)")
+    check_distinct([rec for rec, f in zip(scored, report["files"], strict=True) if f["slides"]])
     if args.json:
         print(json.dumps(report))
         return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
@@ -292,7 +296,8 @@ def add_commands(sub: Sub) -> None:
 
     p = command(sub, "score", "accuracy of a model on ground-truth slides", cmd_score, "tactiled score my_model.npz held_out/*.npz")
     p.add_argument("model", help="model file (.npz) to score")
-    p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth or a file label, unseen in training")
+    p.add_argument("files", nargs="+", help="recordings (.npz) with per-slide ground truth or a file label, unseen in training; "
+                   "each once (two files with the same samples, e.g. a copy, are refused)")
     p.add_argument("--config", help=c.CONFIG_HELP)
     p.add_argument("--json", action="store_true", help="the report as one JSON object. The headline accuracy (taught_accuracy) is over the "
                    "slides of surfaces the model was taught, an unknown or no label wrong; the slides of untaught surfaces are "
