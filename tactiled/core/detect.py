@@ -32,7 +32,9 @@ measured against the slide's own level, which dips further than a floor), the st
 the first sample to the drop are reported (retroactive :class:`Onset` and :class:`Offset` pairs), split at every rest the
 quiet's level shows there (:func:`rests_split`: a rest shorter than that hold went unseen until then), and the low level
 becomes the floor. If neither happens before :meth:`SlideDetector.finish`, the whole stream
-was one slide (reason ``end_of_stream``).
+was one slide (reason ``end_of_stream``). With a ``start_level`` (a model's, learnt from the rests and slides of its
+training recordings: tactiled.learn.levels) the reference decides at once: at or above it the stream began in a slide,
+reported then (its end still judged as undecided), below it the stream is at rest.
 
 At rest, the floor tracks the envelope (exponential in the log domain, ``floor_tau_s``). A
 slide starts when the envelope exceeds ``on_factor`` × floor (its onset moved back over the
@@ -176,9 +178,13 @@ def _median3(v: deque[float]) -> float:
 class SlideDetector:
     """Feed (index, samples) blocks in order, then :meth:`finish`; both return :class:`Onset` / :class:`Offset` events."""
 
-    def __init__(self, config: DetectorConfig, fs: float, channels: int) -> None:
+    def __init__(self, config: DetectorConfig, fs: float, channels: int, start_level: float | None = None) -> None:
         self.c = config
         self.fs = fs
+        # the envelope above which a stream's initial level is a slide's and below which it is rest (a model's, learnt from the
+        # rests and slides of its training recordings): the stream's start is then decided after initial_s; None: by its changes
+        self.start_level = start_level
+        self._early = False  # the stream began in a slide, known by start_level: its Onset reported, its end decided as undecided
         self.front = front_end(config, fs)
         self.hop = self.front.hop
         self._history = np.zeros((self.front.history, channels))  # the samples before the pending ones (zeros before the stream)
@@ -355,7 +361,8 @@ class SlideDetector:
             if end - self._first < self.c.min_slide_s * self.fs or not self._initial:
                 return []
             self._floor = min(self._initial)
-            events = [Onset(self._first), *self._finish_at(self._first, end, "end_of_stream")]
+            events = [*([] if self._early else [Onset(self._first)]), *self._finish_at(self._first, end, "end_of_stream")]
+            self._early = False
         elif not self.sliding:
             return []
         else:
@@ -400,11 +407,13 @@ class SlideDetector:
             self._initial.append(env)
             if len(self._initial) == self._initial_hops:
                 self._reference = float(np.quantile(self._initial, 0.8))  # the level of a slide, not of its dips
+                if self.start_level is not None:
+                    return self._start_by_level(self._reference)
             return []
         ref = self._reference or 0.0
         self._recent.append((at, env))
         window = [e for _, e in list(self._recent)[-self._initial_hops:]]
-        if len(window) == self._initial_hops and float(np.median(window)) > c.on_factor * ref:
+        if not self._early and len(window) == self._initial_hops and float(np.median(window)) > c.on_factor * ref:
             # the stream began at rest: a sustained rise (a slide's own level fluctuates hop to hop more than on_factor)
             self._undecided_hops.clear()
             self._floor = ref
@@ -433,11 +442,26 @@ class SlideDetector:
                                     round(self.c.off_hold_s * self.fs))
                 self._undecided_hops.clear()
                 events: list[DetectorEvent] = []
-                for a, b in spans:  # each known over at its end (Onset.at): no later window is its own
-                    events += [Onset(a, b), *(replace(e, at=b) for e in self._finish_at(a, b, "quiet"))]
+                for k, (a, b) in enumerate(spans):  # each known over at its end (Onset.at): no later window is its own
+                    onset = [] if k == 0 and self._early else [Onset(a, b)]  # the first span's Onset, reported early, is out
+                    events += [*onset, *(replace(e, at=b) for e in self._finish_at(a, b, "quiet"))]
+                self._early = False
                 return events
         else:
             self._quiet_since = None
+        return []
+
+    def _start_by_level(self, reference: float) -> list[DetectorEvent]:
+        """The stream's start decided by its initial level ``reference`` against :attr:`start_level`: a slide's, so the stream
+        began in one (its Onset at the first sample now, while its end is still judged against its own level, as undecided);
+        or rest, the floor from now on."""
+        assert self.start_level is not None and self._first is not None
+        if reference >= self.start_level:
+            self._early = True
+            return [Onset(self._first)]
+        self._undecided_hops.clear()
+        self._floor = max(reference, 1e-300)
+        self.floor = self._floor
         return []
 
     def _idle(self, at: int, env: float) -> list[DetectorEvent]:

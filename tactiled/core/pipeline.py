@@ -72,6 +72,13 @@ class Classifier(Protocol):
 
 
 
+def start_level(model: Classifier | None) -> float | None:
+    """The detector's :attr:`~tactiled.core.detect.SlideDetector.start_level` that ``model`` learnt from its training recordings
+    (``start_level``; None: none learnt, or no model)."""
+    level = getattr(model, "start_level", None)
+    return float(level) if level is not None else None
+
+
 @dataclass
 class FinalCounts:
     """Final results that stand: slides, those labelled, those withheld as unknown_surface, and ends withdrawn (``resumed``)."""
@@ -142,8 +149,8 @@ class Pipeline:
         self._reader: RingBuffer | HeldSamples = self.ring  # where windows are read: the ring, or a whole recording (replay)
         self._ahead: dict[tuple[int, int], _Window] = {}  # windows analysed ahead of need (replay), by span
         self._assessed: dict[AssessmentKey, Assessed] = {}  # replay: assessed ahead, by (windows' spans, final)
-        self.detector = SlideDetector(config.detector, fs, channels)
-        self._detector_args = (config.detector, fs, channels)
+        self._detector_args = (config.detector, fs, channels, start_level(model))
+        self.detector = SlideDetector(*self._detector_args)
         self._fresh_detector = False  # after shed(): the next samples fed start a new detector
         self.volts_per_count = volts_per_count if integer else 1.0
         self._slide_id = -1
@@ -216,6 +223,7 @@ class Pipeline:
         if self._pending_model is None:
             return
         self.model, self._pending_model = self._pending_model, None
+        self._detector_args = (*self._detector_args[:3], start_level(self.model))  # a new detector (after a gap) takes its level
         self.settings = self.model.settings
         self.analyser = Analyser(self.settings, *self._analyser_args)
         self.min_samples = self.analyser.plan.min_samples()

@@ -352,6 +352,8 @@ class Model:
     novelty_scale: FloatArray | None = None  # ... and (B,) their standard deviation (floored at SHAPE_SCALE_FLOOR): novelty_x's standardisation
     novelty_prefix: tuple[float, ...] = ()  # format 8: the distance threshold of a provisional label from 1, 2, ... windows, times the final one
     novelty_surface_scale: FloatArray | None = None  # format 8: (S,) >= 1, each surface's distances divided by it (surfaces sorted)
+    start_level: float | None = None  # the detector's envelope above which a stream begins in a slide (learnt from the training
+    # recordings' rests and slides: tactiled.learn.levels); None: not learnt (a stream's start is then told by its changes)
     partner: Model | None = None  # an ensemble's second member (format 7); None: a single classifier
     member_names: tuple[str, ...] | None = None  # an ensemble: this classifier's columns (a subset of settings.names); None: all of them
     member_temperature: float = 1.0  # an ensemble: the temperature of this classifier's own probabilities (``temperature`` is the ensemble's)
@@ -625,6 +627,8 @@ class Model:
 
     def _header(self) -> dict[str, Any]:
         header = self._single_header()
+        if self.start_level is not None:  # written only when learnt: a model without it has the header it had
+            header["detector"] = {"start_level": self.start_level}
         if self.novelty_names is not None:  # format 8: the classifier's own columns, and the novelty's
             header.update(version=FORMAT_VERSION, inputs=list(self.inputs))
             header["novelty"].update(inputs=list(self.novelty_names), prefix=list(self.novelty_prefix))
@@ -883,6 +887,11 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
                   dict(summary), fingerprint or "", refit)
     if ensemble is not None or names != settings.names:
         model.member_names = names
+    detector = header.get("detector")
+    if detector is not None:
+        level: Any = detector.get("start_level") if isinstance(detector, dict) else None
+        _need(_is_number(level) and 0 < level < 1e30, path, "header.detector.start_level: must be a positive finite number")
+        model.start_level = float(level)
     if ensemble is not None:
         _attach_partner(path, model, ensemble, {k[len(PARTNER):]: v for k, v in arrays.items() if k.startswith(PARTNER)}, lean)
     if "calibration" in arrays:

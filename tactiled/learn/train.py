@@ -29,6 +29,7 @@ from tactiled.learn.dataset import (
     find_slides,
     load_recordings,
 )
+from tactiled.learn.levels import start_level
 from tactiled.learn.search import (
     ENSEMBLE_DEFAULT,
     ENSEMBLE_MODES,
@@ -180,6 +181,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     recs = load_recordings(paths, say)
     check_recordings(recs, len(paths))
     per_file, counts = find_slides(recs, config)
+    spans = [[(s.start, s.stop) for s in slides] for slides in per_file]  # every slide found, for the detector's start level
     say(f"{len(recs)} files, {sum(len(s) for s in per_file)} slides ({counts.truth} in ground truth, {counts.detected} detected, "
         f"{sum(counts.missed.values())} missed by the detector, {sum(counts.false.values())} detections outside any true slide)")
     for name, n in counts.missed.items():
@@ -229,6 +231,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates,
                         keep_models=keep_models, novelty=novelty, ensemble=ensemble, untaught=untaught, speed=speed,
                         check_usable=check, group_by=group_by)
+    result.model.start_level = start_level([r for _, r in recs], spans, config.detector)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
     result.model.summary["dropped"] = sorted([*rare, *unusable])
     return result

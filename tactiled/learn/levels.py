@@ -1,0 +1,82 @@
+"""The detector's start level, learnt from training recordings: where a stream's initial level stops being rest and is a slide's.
+
+A detector that starts in the middle of a stream does not know whether the finger is at rest or already sliding, and
+without a reference it can tell only from a change: a sustained rise (it was at rest) or a long drop (it was in a slide,
+which has ended). Until then it reports nothing: a daemon started while a finger slides without a pause publishes no
+label, and a quiet surface slid first is taken for rest when a louder one follows (docs/detection.md, *The states*). The
+training recordings show both levels of this sensor: the envelope of its rests between slides, and that of its slides.
+Where the two lie far apart, the level between them tells a stream's start after ``detector.initial_s``
+(:attr:`tactiled.core.detect.SlideDetector.start_level`). Where they do not (no rests in the recordings, as with a finger
+that slides from the first sample to the last, or rests as loud as the quietest slides), there is no start level and the
+detector decides by the stream's changes, as before.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from tactiled.config import DetectorConfig
+from tactiled.core.detect import CHUNK, envelope, front_end
+from tactiled.files.recording import Recording
+
+EDGE_S = 0.1  # a slide's hops this close to its start or stop are left out of its level (the rise and the lift-off), s
+REST_GAP_S = 0.3  # a rest's hops at least this far from every slide, s
+SLIDE_QUANTILE = 0.05  # the quiet end of the slides' levels ...
+REST_QUANTILE = 0.99  # ... and the loud end of the rests' hops
+MIN_SLIDES = 3  # fewer slides with a level of their own, or ...
+MIN_REST_S = 1.0  # ... less rest than this in all: no start level
+
+
+def hop_envelope(rec: Recording, config: DetectorConfig) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.bool_], int]:
+    """(envelope (h,) of the recording's whole hops, as the detector computes it from the stream's first sample; whether each
+    hop's samples were all intact (h,); the hop in samples)."""
+    fe = front_end(config, rec.fs)
+    volts = np.asarray(rec.samples, dtype=np.float64) * rec.volts_per_count
+    valid = rec.valid_mask()
+    volts[~valid] = 0.0
+    ext = np.concatenate([np.zeros((fe.history, volts.shape[1])), volts])  # the detector's zeros before the stream
+    hops = volts.shape[0] // fe.hop
+    per = max(1, CHUNK // fe.hop)
+    env = np.concatenate([envelope(ext[h * fe.hop: min(hops, h + per) * fe.hop + fe.history], fe) for h in range(0, hops, per)]
+                         ) if hops else np.zeros(0)
+    intact: npt.NDArray[np.bool_] = np.asarray(valid[: hops * fe.hop].reshape(hops, fe.hop).all(axis=1), dtype=bool)
+    return np.asarray(env, dtype=np.float64), intact, fe.hop
+
+
+def start_level(recs: Sequence[Recording], slides: Sequence[Sequence[tuple[int, int]]], config: DetectorConfig) -> float | None:
+    """The envelope level that tells a slide's start from rest on this sensor, or None where the recordings cannot say.
+
+    ``recs``: the training recordings; ``slides``: each one's slides, [start, stop) positions. A slide's level is the 80th
+    percentile of its hops' envelope away from its edges (as the detector's reference over ``initial_s``); the rests' is
+    the 99th percentile of every intact hop at least :data:`REST_GAP_S` from every slide (and past the front end's
+    settling at the start). With the quietest 5 % of slides' levels at least ``on_factor``² above the rests', the level is
+    their geometric mean (a margin of ``on_factor`` each way: another unit's gain moves both by far less); else None.
+    """
+    slide_levels: list[float] = []
+    rest: list[npt.NDArray[np.float64]] = []
+    rest_hops = 0
+    for rec, spans in zip(recs, slides, strict=True):
+        env, intact, hop = hop_envelope(rec, config)
+        starts = np.arange(env.shape[0]) * hop
+        edge, gap, settle = round(EDGE_S * rec.fs), round(REST_GAP_S * rec.fs), round((config.settle_s + config.initial_s) * rec.fs)
+        near = np.zeros(env.shape[0], dtype=bool)
+        for a, b in spans:
+            inside = intact & (starts >= a + edge) & (starts + hop <= b - edge)
+            if inside.sum() * hop >= config.initial_s * rec.fs:
+                slide_levels.append(float(np.quantile(env[inside], 0.8)))
+            near |= (starts + hop > a - gap) & (starts < b + gap)
+        quiet = intact & ~near & (starts >= settle) & (env > 0)
+        rest.append(env[quiet])
+        rest_hops += int(quiet.sum())
+    enough_rest = rest_hops * (front_end(config, recs[0].fs).hop / recs[0].fs if recs else 0.0) >= MIN_REST_S
+    if len(slide_levels) < MIN_SLIDES or not enough_rest:
+        return None
+    loud_rest = float(np.quantile(np.concatenate(rest), REST_QUANTILE))
+    quiet_slide = float(np.quantile(slide_levels, SLIDE_QUANTILE))
+    if not (loud_rest > 0 and quiet_slide >= loud_rest * config.on_factor**2):
+        return None
+    return math.sqrt(loud_rest * quiet_slide)

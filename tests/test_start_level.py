@@ -1,0 +1,139 @@
+"""The detector's start level, learnt in training from the recordings' rests and slides (tactiled.learn.levels): a stream
+that begins in a slide is known as one after ``detector.initial_s`` (its labels flow while the finger still slides), a
+stream at rest is rest from then on (never one long slide at its end), and a quiet surface slid first stays a slide when
+a louder one follows. Without a start level (no rests in the training recordings) the detector decides as before."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from tactiled.config import Config
+from tactiled.core.detect import SlideDetector
+from tactiled.core.events import DetectorEvent, Offset, Onset
+from tactiled.core.pipeline import Pipeline
+from tactiled.errors import ModelError
+from tactiled.files.recording import Recording, load_recording
+from tactiled.learn.levels import hop_envelope, start_level
+from tactiled.learn.model import load_model
+from tactiled.sim.physics import SensorSimulator, SimParams, output, pick_surfaces, simulate_file
+from tests.conftest import cli_here
+
+FS = 20_000
+DETECTOR = Config().detector
+
+
+def _recording(params: SimParams, surface: str, slides: int, seed: int) -> Recording:
+    sim = simulate_file(params, pick_surfaces(surface)[0], slides, seed)
+    return Recording(sim.samples, params.fs, params.volts_per_count, slide_start=np.array([t.start for t in sim.truth]),
+                     slide_stop=np.array([t.stop for t in sim.truth]))
+
+
+def _level(params: SimParams | None = None) -> float:
+    """The start level learnt from six recordings of three slides each, rests between."""
+    params = params or SimParams()
+    recs = [_recording(params, s, 3, seed) for seed, s in enumerate(("Ra0.44", "Ra1.40", "Ra4.43") * 2)]
+    level = start_level(recs, [list(zip(r.slide_start.tolist(), r.slide_stop.tolist(), strict=True)) for r in recs], DETECTOR)
+    assert level is not None
+    return level
+
+
+def _volts(*parts: tuple[str | None, float], seed: int = 5, gain: float = 1.0) -> np.ndarray:
+    """A stream of the simulator's volts: each part a slide over a surface (or rest, None) of so many seconds."""
+    params = SimParams()
+    sim = SensorSimulator(params, seed=seed)
+    for surface, seconds in parts:
+        if surface is None:
+            sim.add_rest(seconds)
+        else:
+            sim.add_slide(pick_surfaces(surface)[0], seconds)
+    counts = output(sim.read_volts(sim.scheduled_end) * gain, params)
+    return np.asarray(counts, dtype=np.float64) * params.volts_per_count
+
+
+def _events(volts: np.ndarray, level: float | None, block: int = 2000) -> list[tuple[int, DetectorEvent]]:
+    """(samples fed when it came, event) of every event of ``volts`` fed in blocks, then the stream's end."""
+    det = SlideDetector(DETECTOR, FS, volts.shape[1], start_level=level)
+    out: list[tuple[int, DetectorEvent]] = []
+    for lo in range(0, volts.shape[0], block):
+        out += [(lo + block, e) for e in det.feed(lo, volts[lo:lo + block])]
+    out += [(volts.shape[0], e) for e in det.finish()]
+    return out
+
+
+def _spans(events: list[tuple[int, DetectorEvent]]) -> list[tuple[int, int, str]]:
+    return [(e.start, e.stop, e.reason) for _, e in events if isinstance(e, Offset)]
+
+
+def test_training_recordings_with_rests_give_a_level_between_rest_and_slides_and_continuous_ones_none() -> None:
+    level = _level()
+    vpc = SimParams().volts_per_count
+
+    def env(volts: np.ndarray) -> np.ndarray:
+        return hop_envelope(Recording(np.rint(volts / vpc).astype(np.int16), FS, vpc), DETECTOR)[0][100:-40]  # past the settling
+
+    assert np.quantile(env(_volts((None, 3.0))), 0.99) < level < np.quantile(env(_volts(("Ra0.44", 3.0))), 0.2)  # rest, the quietest grade
+    continuous = SimParams(continuous=True)
+    recs = [_recording(continuous, s, 1, seed) for seed, s in enumerate(("Ra0.44", "Ra1.40", "Ra4.43"))]
+    assert start_level(recs, [[(0, r.samples.shape[0])] for r in recs], DETECTOR) is None  # no rest to learn from
+
+
+def test_a_stream_that_begins_in_a_slide_is_one_from_initial_s_with_the_same_end() -> None:
+    volts = _volts(("Ra2.29", 2.5), (None, 2.0), ("Ra2.29", 1.2), (None, 1.5))
+    with_level, without = _events(volts, _level()), _events(volts, None)
+    first = next((fed, e) for fed, e in with_level if isinstance(e, Onset))
+    assert first[1].start == 0 and first[0] <= round((DETECTOR.initial_s + 0.1) * FS)  # known within initial_s, not at the end
+    assert next(fed for fed, e in without if isinstance(e, Onset)) > round(2.5 * FS)  # before: only once the quiet came
+    assert _spans(with_level) == _spans(without)  # the same slides
+
+
+def test_a_stream_at_rest_gives_no_slide_at_its_end() -> None:
+    volts = _volts((None, 3.0))
+    assert _spans(_events(volts, _level())) == []
+    assert [r for _, _, r in _spans(_events(volts, None))] == ["end_of_stream"]  # without a level: the whole stream one slide
+
+
+def test_a_quiet_surface_slid_first_stays_a_slide_when_a_louder_one_follows() -> None:
+    volts = _volts(("Ra0.44", 2.0), ("Ra4.43", 2.0), (None, 2.0))
+    spans = _spans(_events(volts, _level()))
+    assert spans and spans[0][0] == 0 and spans[-1][1] >= round(3.9 * FS), spans
+
+
+def test_labels_flow_while_the_finger_slides_in_the_slide_the_stream_began_in() -> None:
+    """The pipeline with a model that learnt a start level: provisional labels before the slide's end is fed."""
+    volts = _volts(("Ra2.29", 3.0), (None, 1.5))
+    counts = np.rint(volts / SimParams().volts_per_count).astype(np.int16)
+    model: Any = copy.copy(load_model())
+    for level, want in ((_level(), True), (None, False)):
+        model.start_level = level
+        pipe = Pipeline(Config(), FS, 2, SimParams().volts_per_count, model=model)
+        early = [r for lo in range(0, round(2.9 * FS), 2000) for r in pipe.feed(lo, counts[lo:lo + 2000]) if getattr(r, "final", None) is False]
+        assert bool(early) is want
+
+
+def test_train_learns_the_level_and_the_model_file_keeps_it(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    data = tmp_path / "d"
+    assert cli_here(capfd, "simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "2", "--slides-per-file", "3",
+                    "--scene", "robot", "--jobs", "1").returncode == 0
+    out = tmp_path / "m.npz"
+    assert cli_here(capfd, "train", "--method", "quick", "--folds", "2", "-o", str(out), *map(str, sorted(data.glob("*.npz")))).returncode == 0
+    level = load_model(out).start_level
+    assert level is not None and level > 0
+    recs = [load_recording(p) for p in sorted(data.glob("*.npz"))]
+    assert level == pytest.approx(start_level(recs, [list(zip(r.slide_start.tolist(), r.slide_stop.tolist(), strict=True)) for r in recs],
+                                              DETECTOR), rel=0.5)
+
+
+@pytest.mark.parametrize("value", [-1.0, 0.0, float("inf"), "loud", True])
+def test_a_model_file_with_a_bad_start_level_is_refused_in_one_line(tmp_path: Path, value: Any) -> None:
+    model: Any = load_model()
+    model.start_level = value
+    path = tmp_path / "bad.npz"
+    model.save(path)  # the fingerprint covers it: only the value is wrong
+    with pytest.raises(ModelError, match=r"header.detector.start_level: must be a positive finite number") as err:
+        load_model(path)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
