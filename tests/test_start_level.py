@@ -137,3 +137,26 @@ def test_a_model_file_with_a_bad_start_level_is_refused_in_one_line(tmp_path: Pa
     with pytest.raises(ModelError, match=r"header.detector.start_level: must be a positive finite number") as err:
         load_model(path)
     assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_the_slide_the_stream_began_in_gives_the_same_labels_whatever_the_block_size() -> None:
+    """Its quiets are reported as a slide's (Quiet, Loud): a window reaching into the quiet after it waits, so a daemon fed in
+    small batches publishes what a replay in large blocks does (no provisional label from the rest after the slide)."""
+    import dataclasses
+
+    from tactiled.core.events import SlideResult
+
+    volts = _volts(("Ra2.29", 2.5), (None, 2.0), ("Ra2.29", 1.2), (None, 1.5))
+    counts = np.rint(volts / SimParams().volts_per_count).astype(np.int16)
+    model: Any = copy.copy(load_model())
+    model.start_level = _level()
+
+    def published(block: int) -> list[tuple[Any, ...]]:
+        pipe = Pipeline(Config(), FS, 2, SimParams().volts_per_count, model=model)
+        events = [e for lo in range(0, counts.shape[0], block) for e in pipe.feed(lo, counts[lo:lo + block])] + pipe.finish()
+        return [("result", e.slide_id, e.start, e.stop, e.label, e.final) if isinstance(e, SlideResult) else
+                (type(e).__name__, *dataclasses.astuple(e)) for e in events]
+
+    small = published(800)
+    assert small == published(65536)
+    assert any(k[0] == "result" and k[1] == 0 and k[5] is False for k in small)  # provisional labels of the first slide

@@ -428,9 +428,12 @@ class SlideDetector:
             self._start = start
             self._quiet_since = None
             return [Onset(start)]
+        said: list[DetectorEvent] = []  # a slide reported early (start_level): its quiets and dips, as a slide's (Quiet, Loud)
         if env < ref / c.on_factor:
             if self._quiet_since is None:
                 self._quiet_since = at
+                if self._early and self._first is not None:
+                    said.append(Quiet(self._first, at))
             if at + self.hop - self._quiet_since >= self._undecided_hold:  # the stream began in a slide, which ended here
                 assert self._first is not None
                 self._floor = max(env, 1e-300)
@@ -446,10 +449,12 @@ class SlideDetector:
                     onset = [] if k == 0 and self._early else [Onset(a, b)]  # the first span's Onset, reported early, is out
                     events += [*onset, *(replace(e, at=b) for e in self._finish_at(a, b, "quiet"))]
                 self._early = False
-                return events
+                return [*said, *events]
         else:
+            if self._early and self._quiet_since is not None and self._first is not None:
+                said.append(Loud(self._first))
             self._quiet_since = None
-        return []
+        return said
 
     def _start_by_level(self, reference: float) -> list[DetectorEvent]:
         """The stream's start decided by its initial level ``reference`` against :attr:`start_level`: a slide's, so the stream
