@@ -2,11 +2,12 @@
 early end (after ``detector.end_hold_s`` of quiet: the final label is published then) was withdrawn because the slide went on.
 
 Usage: python bench/detection.py [--scenes hand,robot,...] [--files-per-surface 2] [--slides-per-file 3] [--out DIR] [--reuse]
-                                 [--mid-slide]
-Prints one row per scene (markdown). ``--mid-slide``: instead, each recording is also detected from 40 % into each of its
-first three slides (a daemon started mid-slide), and the row counts how often the first slide, once a quiet ended it,
-took in more than one true slide. Recordings are simulated into --out (a temporary folder by default);
-``--reuse`` takes the recordings already in --out (of an earlier run with the same arguments) instead.
+                                 [--mid-slide] [--start-level]
+Prints one row per scene (markdown). ``--start-level``: the detector has the start level ``tactiled train`` would
+learn from the scene's recordings (tactiled/learn/levels.py), as the daemon's has with such a model. ``--mid-slide``:
+instead, each recording is also detected from 40 % into each of its first three slides (a daemon started mid-slide),
+and the row counts how often the first slide, once a quiet ended it, took in more than one true slide. Recordings are
+simulated into --out (a temporary folder by default); ``--reuse`` takes the recordings already in --out (of an earlier run with the same arguments) instead.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from tactiled.core.events import Offset, Resume
 from tactiled.core.matching import match_slides
 from tactiled.files.recording import Recording, load_recording
 from tactiled.learn.dataset import detect_slides, detector_events
+from tactiled.learn.levels import start_level
 from tactiled.sim.physics import SCENES
 from tactiled.sim.simulate import write_dataset
 
@@ -37,6 +39,7 @@ def main() -> None:
     ap.add_argument("--out", default=None)
     ap.add_argument("--reuse", action="store_true", help="use the recordings an earlier run left in --out")
     ap.add_argument("--mid-slide", action="store_true", help="detect from 40 %% into each of the first three slides of each recording")
+    ap.add_argument("--start-level", action="store_true", help="the start level train would learn from the scene's recordings")
     args = ap.parse_args()
     specs = [s for s in args.scenes.replace(";", "|").split("|")]
     specs = [x for s in specs for x in (s.split(",") if s == DEFAULT.split(";")[0] else [s])]
@@ -55,8 +58,11 @@ def main() -> None:
         if not paths:
             paths = write_dataset(folder, scene=spec, seed=args.seed, files_per_surface=args.files_per_surface,
                                   slides_per_file=args.slides_per_file)
+        level = learnt_level(paths, config) if args.start_level else None
+        if args.start_level:
+            print(f"<!-- {spec}: start level {level} -->", flush=True)
         if args.mid_slide:
-            cuts, quiet, merged = mid_slide(paths, config)
+            cuts, quiet, merged = mid_slide(paths, config, level)
             print(f"| {spec} | {cuts} | {quiet} | {merged} |", flush=True)
             continue
         n_true = n_det = paired = withdrawn = 0
@@ -64,7 +70,7 @@ def main() -> None:
         for p in paths:
             rec = load_recording(p)
             truth = [(a, b) for a, b, _ in rec.slides()]
-            events = detector_events(rec, config)  # one pass: the slides, and the early ends withdrawn (Resume)
+            events = detector_events(rec, config, level)  # one pass: the slides, and the early ends withdrawn (Resume)
             det = detect_slides(rec, config, events)
             withdrawn += sum(isinstance(e, Resume) for e in events)
             pairs = match_slides(det, truth)
@@ -81,7 +87,13 @@ def main() -> None:
               f"{withdrawn} ({100 * withdrawn / max(1, n_det):.0f} % of detections) |", flush=True)
 
 
-def mid_slide(paths: list[Path], config: Config) -> tuple[int, int, int]:
+def learnt_level(paths: list[Path], config: Config) -> float | None:
+    """The start level train would learn from the recordings at ``paths`` (their true slides)."""
+    recs = [load_recording(p) for p in paths]
+    return start_level(recs, [[(a, b) for a, b, _ in r.slides()] for r in recs], config.detector)
+
+
+def mid_slide(paths: list[Path], config: Config, level: float | None = None) -> tuple[int, int, int]:
     """(streams cut 40 % into each of the first three slides of each recording, those whose first detected slide a quiet
     ended (the others end with the stream), those of them whose first slide overlaps more than one true slide)."""
     cuts = quiet = merged = 0
@@ -90,7 +102,7 @@ def mid_slide(paths: list[Path], config: Config) -> tuple[int, int, int]:
         truth = [(a, b) for a, b, _ in rec.slides()]
         for a, b in truth[:3]:
             cut = a + (b - a) * 2 // 5
-            ends = [e for e in detector_events(Recording(rec.samples[cut:], rec.fs, rec.volts_per_count), config) if isinstance(e, Offset)]
+            ends = [e for e in detector_events(Recording(rec.samples[cut:], rec.fs, rec.volts_per_count), config, level) if isinstance(e, Offset)]
             cuts += 1
             if not ends or ends[0].reason != "quiet":
                 continue

@@ -83,9 +83,10 @@ def check_distinct(recs: Sequence[tuple[str, Recording]]) -> None:
         seen[digest] = name
 
 
-def detector_events(rec: Recording, config: Config) -> list[DetectorEvent]:
-    """Every event of the daemon's detector over the whole of ``rec`` (positions in the file), end of file included."""
-    det = SlideDetector(config.detector, rec.fs, rec.channels)
+def detector_events(rec: Recording, config: Config, start_level: float | None = None) -> list[DetectorEvent]:
+    """Every event of the daemon's detector over the whole of ``rec`` (positions in the file), end of file included;
+    ``start_level``: a model's (tactiled.learn.levels), as the daemon's detector has it."""
+    det = SlideDetector(config.detector, rec.fs, rec.channels, start_level)
     volts = rec.volts()
     valid = rec.valid_mask()
     volts[~valid] = 0.0
