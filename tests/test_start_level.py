@@ -6,6 +6,7 @@ a louder one follows. Without a start level (no rests in the training recordings
 from __future__ import annotations
 
 import copy
+import functools
 from pathlib import Path
 from typing import Any
 
@@ -33,9 +34,10 @@ def _recording(params: SimParams, surface: str, slides: int, seed: int) -> Recor
                      slide_stop=np.array([t.stop for t in sim.truth]))
 
 
-def _level(params: SimParams | None = None) -> float:
-    """The start level learnt from six recordings of three slides each, rests between."""
-    params = params or SimParams()
+@functools.cache
+def _level() -> float:
+    """The start level learnt from six recordings of three slides each, rests between (once per test process)."""
+    params = SimParams()
     recs = [_recording(params, s, 3, seed) for seed, s in enumerate(("Ra0.44", "Ra1.40", "Ra4.43") * 2)]
     level = start_level(recs, [list(zip(r.slide_start.tolist(), r.slide_stop.tolist(), strict=True)) for r in recs], DETECTOR)
     assert level is not None
