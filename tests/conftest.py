@@ -317,3 +317,41 @@ def board_and_daemon(tmp_path: Path, *run_args: str, params: SimParams | None = 
                              log=log, **board_options)
         with running(board), daemon_process(link, endpoint, *run_args) as proc:
             yield Live(link, endpoint, board, proc, log_path)
+
+
+@contextlib.contextmanager
+def status_publisher(endpoint: str, every_s: float = 0.02, payload: int = 0) -> Iterator[threading.Event]:
+    """An XPUB on ``endpoint`` that, once a subscriber has subscribed (the event it yields is set then), sends a status
+    message (with a ``note`` of ``payload`` bytes) every ``every_s`` without a pause, until the block ends: the busy topic
+    that never leaves a quiet moment."""
+    import msgpack
+    import zmq
+    from tactiled_client import schema
+
+    subscribed, stop = threading.Event(), threading.Event()
+    sock: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.XPUB)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.bind(endpoint)
+
+    def run() -> None:
+        seq = 0
+        while not stop.is_set():
+            if not subscribed.is_set():
+                if sock.poll(50):
+                    sock.recv()
+                    subscribed.set()
+                continue
+            body = {"v": schema.SCHEMA_VERSION, "seq": seq, "sensor": "s0", "type": "status", "state": "idle",
+                    **({"note": "x" * payload} if payload else {})}
+            sock.send_multipart([b"status/s0", msgpack.packb(body, use_bin_type=True)])
+            seq += 1
+            stop.wait(every_s)  # the publisher's pace, not a synchronisation
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    try:
+        yield subscribed
+    finally:
+        stop.set()
+        thread.join(10)
+        sock.close(linger=0)

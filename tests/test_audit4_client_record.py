@@ -4,7 +4,6 @@ then failed in fsync, and hung in open() on a FIFO); and the client's help says 
 
 from __future__ import annotations
 
-import contextlib
 import os
 import re
 import resource
@@ -12,52 +11,14 @@ import signal
 import stat
 import subprocess
 import sys
-import threading
-from collections.abc import Iterator
 from pathlib import Path
 
-import msgpack
 import pytest
-import zmq
-from tactiled_client import schema
 from tactiled_client.log import LogReader
 
-from tests.conftest import REPO
+from tests.conftest import REPO, status_publisher
 
 LIMIT = 50_000  # bytes the recorder may write (ulimit -f 50 is 51200)
-
-
-@contextlib.contextmanager
-def status_publisher(endpoint: str, payload: int = 4000) -> Iterator[threading.Event]:
-    """An XPUB on ``endpoint`` that, once a subscriber has subscribed (the event set then), sends a status message of about
-    ``payload`` bytes every 10 ms until the block ends."""
-    subscribed, stop = threading.Event(), threading.Event()
-    sock: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.XPUB)
-    sock.setsockopt(zmq.LINGER, 0)
-    sock.bind(endpoint)
-
-    def run() -> None:
-        seq = 0
-        while not stop.is_set():
-            if not subscribed.is_set():
-                if sock.poll(50):
-                    sock.recv()
-                    subscribed.set()
-                continue
-            body = msgpack.packb({"v": schema.SCHEMA_VERSION, "seq": seq, "sensor": "s0", "type": "status", "state": "idle",
-                                  "note": "x" * payload}, use_bin_type=True)
-            sock.send_multipart([b"status/s0", body])
-            seq += 1
-            stop.wait(0.01)  # the publisher's pace, not a synchronisation
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    try:
-        yield subscribed
-    finally:
-        stop.set()
-        thread.join(10)
-        sock.close(linger=0)
 
 
 def _file_size_limit() -> None:
@@ -76,7 +37,7 @@ def test_a_file_size_limit_ends_the_recording_in_one_line_exit_1_every_message_b
     """It ended in a traceback from log.py (OSError: [Errno 27] File too large), the file ending in a torn record."""
     endpoint = f"ipc://{tmp_path}/pub"
     out = tmp_path / "cr.tlog"
-    with status_publisher(endpoint):
+    with status_publisher(endpoint, every_s=0.01, payload=4000):
         res = _record("--seconds", "60", endpoint, str(out), "--force", preexec_fn=_file_size_limit)
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 1 and len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
