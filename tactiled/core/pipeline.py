@@ -71,7 +71,6 @@ class Classifier(Protocol):
 
 
 
-
 def start_level(model: Classifier | None) -> float | None:
     """The detector's :attr:`~tactiled.core.detect.SlideDetector.start_level` that ``model`` learnt from its training recordings
     (``start_level``; None: none learnt, or no model)."""
@@ -255,7 +254,7 @@ class Pipeline:
         """Process ``samples`` (n, C) whose first sample has absolute ``index`` (gaps are lost samples)."""
         self.ring.write(index, samples, valid)
         if self._fresh_detector:  # a new detector starts at the first sample that carries data: lost rows before it are no stream
-            skip = samples.shape[0] if valid is not None and not valid.any() else int(np.argmax(valid)) if valid is not None else 0
+            skip = 0 if valid is None else int(np.argmax(valid)) if valid.any() else samples.shape[0]
             if skip == samples.shape[0]:
                 return self._analyse_ready()
             self.detector = SlideDetector(*self._detector_args)
