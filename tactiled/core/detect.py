@@ -192,6 +192,7 @@ class SlideDetector:
         self._pending_valid = np.zeros(0, dtype=bool)
         self._pending_index: int | None = None
         self._first: int | None = None
+        self._lead_end: int | None = None  # where exact digital silence at the stream's start ended: no slide began before it
         self._settle = max(round(config.settle_s * fs), self.front.history)
         self._settle_until = -1
         # a gap longer than this is skipped in constant time (:meth:`_skip`): it holds more than the comb's history, two hops
@@ -220,6 +221,12 @@ class SlideDetector:
         self._last3: deque[float] = deque(maxlen=3)
         self.envelope = 0.0
         self.floor = 0.0
+
+    @property
+    def _began(self) -> int:
+        """Where the slide a stream began in began: its first sample, or the end of the exact silence it began with."""
+        assert self._first is not None
+        return self._lead_end if self._lead_end is not None else self._first
 
     @property
     def undecided(self) -> bool:
@@ -358,10 +365,11 @@ class SlideDetector:
             return []
         end = self._pending_index + self._pending.shape[0]
         if self.undecided:
-            if end - self._first < self.c.min_slide_s * self.fs or not self._initial:
+            began = self._began
+            if end - began < self.c.min_slide_s * self.fs or not self._initial:
                 return []
             self._floor = min(self._initial)
-            events = [*([] if self._early else [Onset(self._first)]), *self._finish_at(self._first, end, "end_of_stream")]
+            events = [*([] if self._early else [Onset(began)]), *self._finish_at(began, end, "end_of_stream")]
             self._early = False
         elif not self.sliding:
             return []
@@ -378,6 +386,10 @@ class SlideDetector:
             if not self.sliding:
                 if self._floor is not None:  # at rest: the onset's lookback runs over contiguous hops only
                     self._recent.clear()
+                elif valid and self._reference is not None:  # undecided, its level known: exact silence is quiet (a rest of zeros)
+                    return self._undecided(at, 0.0)
+                elif valid and not self._initial:  # exact silence before any level: the stream's first slide begins after it
+                    self._lead_end = at + self.hop
                 # undecided: the hops around a gap still tell the stream's level; clearing them here would let a
                 # link that loses a frame every few tenths of a second keep the detector undecided (no slide) for good
                 return []
@@ -432,16 +444,16 @@ class SlideDetector:
         if env < ref / c.on_factor:
             if self._quiet_since is None:
                 self._quiet_since = at
-                if self._early and self._first is not None:
-                    said.append(Quiet(self._first, at))
+                if self._early:
+                    said.append(Quiet(self._began, at))
             if at + self.hop - self._quiet_since >= self._undecided_hold:  # the stream began in a slide, which ended here
                 assert self._first is not None
-                self._floor = max(env, 1e-300)
+                self._floor = env if env > 0 else ref / c.on_factor**2  # a quiet of exact zeros shows no floor: well below the slide's
                 self.floor = self._floor
                 stop = self._quiet_since
                 self._quiet_since = None
                 quiet = [e for i, e in self._undecided_hops if i >= stop]
-                spans = rests_split(self._undecided_hops, self._first, stop, self.hop, self.c.off_factor * float(np.median(quiet)),
+                spans = rests_split(self._undecided_hops, self._began, stop, self.hop, self.c.off_factor * float(np.median(quiet)),
                                     round(self.c.off_hold_s * self.fs))
                 self._undecided_hops.clear()
                 events: list[DetectorEvent] = []
@@ -451,8 +463,8 @@ class SlideDetector:
                 self._early = False
                 return [*said, *events]
         else:
-            if self._early and self._quiet_since is not None and self._first is not None:
-                said.append(Loud(self._first))
+            if self._early and self._quiet_since is not None:
+                said.append(Loud(self._began))
             self._quiet_since = None
         return said
 
@@ -460,10 +472,10 @@ class SlideDetector:
         """The stream's start decided by its initial level ``reference`` against :attr:`start_level`: a slide's, so the stream
         began in one (its Onset at the first sample now, while its end is still judged against its own level, as undecided);
         or rest, the floor from now on."""
-        assert self.start_level is not None and self._first is not None
+        assert self.start_level is not None
         if reference >= self.start_level:
             self._early = True
-            return [Onset(self._first)]
+            return [Onset(self._began)]
         self._undecided_hops.clear()
         self._floor = max(reference, 1e-300)
         self.floor = self._floor
