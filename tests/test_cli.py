@@ -312,3 +312,16 @@ def test_train_offers_the_choices_the_trainer_takes() -> None:
     options = {a.dest: a for a in COMMANDS["train"]._actions}
     assert sorted(options["novelty"].choices) == sorted(NOVELTY_TESTS) and options["novelty"].default == NOVELTY_DEFAULT
     assert sorted(options["ensemble"].choices) == sorted(ENSEMBLE_MODES) and options["ensemble"].default == ENSEMBLE_DEFAULT
+
+
+def test_train_writes_its_model_when_its_output_is_closed_early(tmp_path: Path) -> None:
+    """``tactiled train ... | head -3``: the model is written before the leaderboard is printed (it was lost with the pipe)."""
+    data, out = tmp_path / "d", tmp_path / "m.npz"
+    subprocess.run(tactiled_cmd("simulate", "dataset", "--out", str(data), "--surfaces", "2", "--files-per-surface", "2",
+                                "--slides-per-file", "2", "--scene", "robot", "--jobs", "1"), check=True, capture_output=True, timeout=120)
+    proc = subprocess.Popen(tactiled_cmd("train", "--method", "quick", "--folds", "2", "-o", str(out), *map(str, sorted(data.glob("*.npz")))),
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    assert proc.stdout is not None
+    proc.stdout.close()  # the reader went away before the first line
+    proc.wait(300)
+    assert load_model(out).fingerprint

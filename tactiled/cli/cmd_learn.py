@@ -53,6 +53,7 @@ def cmd_train(args: argparse.Namespace) -> int:
                    scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by,
                    novelty=args.novelty, ensemble=args.ensemble, speed=args.speed_copies,
                    **({} if args.untaught_share is None else {"untaught": args.untaught_share}))
+    fingerprint = result.model.save(args.output)  # before any line: a closed stdout (train ... | head) loses no model
     print(f"leaderboard (slide accuracy, grouped by {args.group_by}: mean ± sd over folds; * the choice, the simplest within one standard error "
           "of the best):")
     width = max(len(row["candidate"]) for row in result.leaderboard)
@@ -91,7 +92,6 @@ def cmd_train(args: argparse.Namespace) -> int:
                   "it would cost more known slides than the untaught ones it catches are worth"
                   + ("; only a slide farther from every taught surface than they are from each other is called unknown" if far else
                      "; no slide will be called unknown"))
-    fingerprint = result.model.save(args.output)
     print(f"{args.output}: {result.model.describe()}; fingerprint {fingerprint}")
     print(ANOTHER_UNIT)
     return EXIT_OK
