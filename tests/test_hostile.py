@@ -26,7 +26,7 @@ from tactiled_client import schema
 from tactiled.config import PublishConfig
 from tactiled.errors import ModelError, RecordingError
 from tactiled.files.npzio import NpzError, read_npz
-from tactiled.files.recording import atomic_savez, load_recording, save_recording
+from tactiled.files.recording import Recording, atomic_savez, load_recording, save_recording
 from tactiled.learn.feature_table import load_features
 from tactiled.learn.model import load_model, softmax
 from tactiled.service.publish import Publisher
@@ -519,3 +519,16 @@ def test_a_model_given_as_a_recording_is_named_as_such(capfd: pytest.CaptureFixt
     res = cli_here(capfd, "replay", str(default_model_path()))  # by main() in this process: the same handler and lines
     assert res.returncode == 2 and "a model or features file (it has a header and no samples), not a recording" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_replay_with_a_model_of_another_rate_names_that_file_and_goes_on(labelled_good: str, tmp_path: Path,
+                                                                        capfd: pytest.CaptureFixture[str]) -> None:
+    """``replay --model M a.npz slow.npz b.npz``: the recording the model cannot analyse (another rate) is its one line, the
+    files after it are replayed, exit 2 (it stopped the whole run there: an audit)."""
+    rec = load_recording(labelled_good)
+    slow = tmp_path / "slow.npz"
+    save_recording(slow, Recording(rec.samples[::9].copy(), rec.fs / 9, rec.volts_per_count, label=rec.label))
+    res = cli_here(capfd, "replay", "--model", GOOD_MODEL, labelled_good, str(slow), labelled_good)
+    assert res.returncode == 2
+    assert [line for line in _errors(res) if "slow.npz" in line] == [_errors(res)[0]] and len(_errors(res)) == 1
+    assert res.stdout.count(f"{labelled_good}: 1 slides") == 2

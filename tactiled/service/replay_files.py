@@ -26,7 +26,7 @@ import numpy as np
 from tactiled.config import Config
 from tactiled.core.detect import front_end
 from tactiled.core.events import PipelineEvent, SlideResult, SlideStarted
-from tactiled.errors import RecordingError, WindowError
+from tactiled.errors import ModelError, RecordingError, WindowError
 from tactiled.files.capture import Capture
 from tactiled.files.formats import open_recording
 from tactiled.files.recording import Recording
@@ -225,9 +225,9 @@ def _choose_once(path: str, config: Config, choice: ModelChoice) -> None:
     """Resolve the model for ``path``'s stream in this process (its one-line notes, its cost check), if it can be read."""
     try:
         source = open_recording(path)
-    except RecordingError:
+        choice.for_stream(*_stream_of(source, config), path)
+    except (RecordingError, ModelError):  # said where that file is replayed, as its one line
         return
-    choice.for_stream(*_stream_of(source, config), path)
 
 
 def _replay_one(task: tuple[str, Config, ModelChoice, int]) -> Replayed:
@@ -248,7 +248,10 @@ def _replay_path(path: str, config: Config, choice: ModelChoice, block: int | No
         return Replayed(path, None, [], error=str(exc))
     s = config.sensor
     fs, channels = _stream_of(source, config)
-    model = choice.for_stream(fs, channels, path)
+    try:
+        model = choice.for_stream(fs, channels, path)
+    except ModelError as exc:  # a model of another rate or channel count than this file: its line, and the others go on
+        return Replayed(path, None, [], error=str(exc))
     fingerprint = getattr(model, "fingerprint", "")
     pacer = Pacer(fs, speed)
     if block is None:
