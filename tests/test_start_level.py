@@ -122,8 +122,10 @@ def test_train_learns_the_level_and_the_model_file_keeps_it(tmp_path: Path, capf
     assert cli_here(capfd, "simulate", "dataset", "--out", str(data), "--surfaces", "3", "--files-per-surface", "2", "--slides-per-file", "3",
                     "--scene", "robot", "--jobs", "1").returncode == 0
     out = tmp_path / "m.npz"
-    assert cli_here(capfd, "train", "--method", "quick", "--folds", "2", "-o", str(out), *map(str, sorted(data.glob("*.npz")))).returncode == 0
+    res = cli_here(capfd, "train", "--method", "quick", "--folds", "2", "-o", str(out), *map(str, sorted(data.glob("*.npz"))))
+    assert res.returncode == 0
     level = load_model(out).start_level
+    assert f"train: start level {level:.3g} (the quietest slides" in res.stderr  # train says it kept one, and why
     assert level is not None and level > 0
     recs = [load_recording(p) for p in sorted(data.glob("*.npz"))]
     assert level == pytest.approx(start_level(recs, [list(zip(r.slide_start.tolist(), r.slide_stop.tolist(), strict=True)) for r in recs],
@@ -162,3 +164,77 @@ def test_the_slide_the_stream_began_in_gives_the_same_labels_whatever_the_block_
     small = published(800)
     assert small == published(65536)
     assert any(k[0] == "result" and k[1] == 0 and k[5] is False for k in small)  # provisional labels of the first slide
+
+
+def test_a_few_knocks_between_slides_keep_the_level() -> None:
+    """A 4 ms knock every 2 s of rest, as loud as the slides' peaks: the rests are judged as the detector judges them (a
+    median of three hops), so the level is learnt still (the single hops' 99th percentile lost it to 9 knocks in 50 s)."""
+    params = SimParams()
+    recs = [_recording(params, s, 3, seed) for seed, s in enumerate(("Ra0.44", "Ra1.40", "Ra4.43") * 2)]
+    t = np.arange(round(0.004 * FS)) / FS
+    knocked, knocks = [], 0
+    for r in recs:
+        x = r.samples.astype(np.float64)
+        burst = np.percentile(np.abs(x[r.slide_start[0]:r.slide_stop[0]]), 99) * np.exp(-t / 0.001) * np.sin(2 * np.pi * 3000 * t)
+        near = np.zeros(len(x), dtype=bool)
+        for a, b in zip(r.slide_start, r.slide_stop, strict=True):
+            near[max(0, a - round(0.35 * FS)): b + round(0.35 * FS)] = True
+        for p in range(round(0.5 * FS), len(x) - len(t), round(2.0 * FS)):
+            if not near[p:p + len(t)].any():
+                x[p:p + len(t)] += burst[:, None]
+                knocks += 1
+        knocked.append(Recording(np.clip(np.rint(x), -32768, 32767).astype(np.int16), r.fs, r.volts_per_count, slide_start=r.slide_start,
+                                 slide_stop=r.slide_stop))
+    assert knocks >= 3, knocks
+    spans = [list(zip(r.slide_start.tolist(), r.slide_stop.tolist(), strict=True)) for r in recs]
+    assert start_level(knocked, spans, DETECTOR) == pytest.approx(_level(), rel=0.2)
+
+
+def test_a_model_with_a_level_loaded_while_the_start_is_undecided_decides_it() -> None:
+    """The daemon started with a model that knows no level, the finger sliding; a model that knows one is loaded a second
+    later: the slide under way is known at once and labelled as it goes (the level reached only detectors made later)."""
+    from tactiled.core.events import SlideStarted
+
+    volts = _volts(("Ra2.29", 3.0), (None, 1.5))
+    counts = np.rint(volts / SimParams().volts_per_count).astype(np.int16)
+    plain: Any = copy.copy(load_model())
+    plain.start_level = None
+    knowing: Any = copy.copy(load_model())
+    knowing.start_level = _level()
+    pipe = Pipeline(Config(), FS, 2, SimParams().volts_per_count, model=plain)
+    first = [e for lo in range(0, FS, 2000) for e in pipe.feed(lo, counts[lo:lo + 2000])]
+    assert first == [] and pipe.detector.undecided
+    pipe.swap_model(knowing)
+    later = [e for lo in range(FS, round(2.9 * FS), 2000) for e in pipe.feed(lo, counts[lo:lo + 2000])]
+    assert any(isinstance(e, SlideStarted) for e in later)
+    assert any(getattr(e, "final", None) is False for e in later)  # provisional labels before the slide's end
+
+
+def test_a_shadow_splits_the_stream_as_the_live_pipeline_after_an_unplug() -> None:
+    """A shadow model with a level follows the live pipeline's detector, after an unplug too (each made its new detector
+    with its own model's level, so the shadow's slides were not the live ones)."""
+    from tactiled.core.events import SlideEnded, SlideStarted
+
+    volts = _volts(("Ra2.29", 4.0), (None, 1.5))
+    counts = np.rint(volts / SimParams().volts_per_count).astype(np.int16)
+    plain: Any = copy.copy(load_model())
+    plain.start_level = None
+    knowing: Any = copy.copy(load_model())
+    knowing.start_level = _level()
+    live = Pipeline(Config(), FS, 2, SimParams().volts_per_count, model=plain)
+    shadow = Pipeline(Config(), FS, 2, SimParams().volts_per_count, model=knowing)
+    shadow.follow(live)
+
+    def slides(events: list[tuple[int, Any]]) -> list[tuple[Any, ...]]:  # each with the samples fed when it came
+        return [(type(e).__name__, e.slide_id, e.start, fed) for fed, e in events if isinstance(e, SlideStarted | SlideEnded)]
+
+    got: dict[str, list[tuple[int, Any]]] = {"live": [], "shadow": []}
+    for lo in range(0, counts.shape[0], 2000):
+        if lo == 2 * FS:  # the port lost and back
+            got["live"] += [(lo, e) for e in live.disconnected()]
+            got["shadow"] += [(lo, e) for e in shadow.disconnected()]
+        got["live"] += [(lo, e) for e in live.feed(lo, counts[lo:lo + 2000])]
+        got["shadow"] += [(lo, e) for e in shadow.feed(lo, counts[lo:lo + 2000])]
+    got["live"] += [(counts.shape[0], e) for e in live.finish()]
+    got["shadow"] += [(counts.shape[0], e) for e in shadow.finish()]
+    assert slides(got["shadow"]) == slides(got["live"]) and slides(got["live"])

@@ -423,6 +423,8 @@ class SlideDetector:
                     return self._start_by_level(self._reference)
             return []
         ref = self._reference or 0.0
+        if self.start_level is not None and not self._early:  # a level given since the initial level was measured (a model loaded)
+            return self._start_by_level(ref)
         self._recent.append((at, env))
         window = [e for _, e in list(self._recent)[-self._initial_hops:]]
         if not self._early and len(window) == self._initial_hops and float(np.median(window)) > c.on_factor * ref:

@@ -211,6 +211,7 @@ class Pipeline:
         if other.sliding:
             raise ValueError("Pipeline.follow: the pipeline to follow has a slide in progress (a shadow starts between slides)")
         self.detector = copy.deepcopy(other.detector)
+        self._detector_args = other._detector_args  # its detectors after a gap too: the live model's start level, not this one's
         self._fresh_detector = other._fresh_detector
         self._slide_id = other._slide_id
         ring = other.ring
@@ -223,6 +224,8 @@ class Pipeline:
             return
         self.model, self._pending_model = self._pending_model, None
         self._detector_args = (*self._detector_args[:3], start_level(self.model))  # a new detector (after a gap) takes its level
+        if self.detector.undecided and self.detector.start_level is None:  # and one still undecided (the stream's start unknown)
+            self.detector.start_level = self._detector_args[3]
         self.settings = self.model.settings
         self.analyser = Analyser(self.settings, *self._analyser_args)
         self.min_samples = self.analyser.plan.min_samples()

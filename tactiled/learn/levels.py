@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.config import DetectorConfig
-from tactiled.core.detect import CHUNK, envelope, front_end
+from tactiled.core.detect import CHUNK, envelope, front_end, median3_runs
 from tactiled.files.recording import Recording
 
 EDGE_S = 0.1  # a slide's hops this close to its start or stop are left out of its level (the rise and the lift-off), s
@@ -48,12 +48,21 @@ def hop_envelope(rec: Recording, config: DetectorConfig) -> tuple[npt.NDArray[np
 
 
 def start_level(recs: Sequence[Recording], slides: Sequence[Sequence[tuple[int, int]]], config: DetectorConfig) -> float | None:
-    """The envelope level that tells a slide's start from rest on this sensor, or None where the recordings cannot say.
+    """The envelope level that tells a slide's start from rest on this sensor, or None where the recordings cannot say
+    (:func:`learn_start_level` without its note)."""
+    return learn_start_level(recs, slides, config)[0]
+
+
+def learn_start_level(recs: Sequence[Recording], slides: Sequence[Sequence[tuple[int, int]]], config: DetectorConfig
+                      ) -> tuple[float | None, str]:
+    """(the envelope level that tells a slide's start from rest on this sensor, or None where the recordings cannot say;
+    one line saying which, and why, for ``train`` to print).
 
     ``recs``: the training recordings; ``slides``: each one's slides, [start, stop) positions. A slide's level is the 80th
     percentile of its hops' envelope away from its edges (as the detector's reference over ``initial_s``); the rests' is
     the 99th percentile of every intact hop at least :data:`REST_GAP_S` from every slide (and past the front end's
-    settling at the start). With the quietest 5 % of slides' levels at least ``on_factor``² above the rests', the level is
+    settling at the start), each the median of it and the two hops before (as the detector decides at rest: a knock of a
+    hop or two between slides counts no more than it does there). With the quietest 5 % of slides' levels at least ``on_factor``² above the rests', the level is
     their geometric mean (a margin of ``on_factor`` each way: another unit's gain moves both by far less); else None.
     """
     slide_levels: list[float] = []
@@ -70,13 +79,18 @@ def start_level(recs: Sequence[Recording], slides: Sequence[Sequence[tuple[int, 
                 slide_levels.append(float(np.quantile(env[inside], 0.8)))
             near |= (starts + hop > a - gap) & (starts < b + gap)
         quiet = intact & ~near & (starts >= settle) & (env > 0)
-        rest.append(env[quiet])
+        rest.append(np.asarray(median3_runs(env.tolist()), dtype=np.float64)[quiet])
         rest_hops += int(quiet.sum())
-    enough_rest = rest_hops * (front_end(config, recs[0].fs).hop / recs[0].fs if recs else 0.0) >= MIN_REST_S
-    if len(slide_levels) < MIN_SLIDES or not enough_rest:
-        return None
+    rest_s = rest_hops * (front_end(config, recs[0].fs).hop / recs[0].fs if recs else 0.0)
+    unknown = "a daemon started while the finger slides labels that slide once it ends (docs/detection.md, The states)"
+    if len(slide_levels) < MIN_SLIDES or rest_s < MIN_REST_S:
+        return None, (f"no start level: the recordings hold {rest_s:.1f} s of rest {REST_GAP_S:g} s or more from any slide and "
+                      f"{len(slide_levels)} slides with a level of their own ({MIN_REST_S:g} s and {MIN_SLIDES} needed); {unknown}")
     loud_rest = float(np.quantile(np.concatenate(rest), REST_QUANTILE))
     quiet_slide = float(np.quantile(slide_levels, SLIDE_QUANTILE))
     if not (loud_rest > 0 and quiet_slide >= loud_rest * config.on_factor**2):
-        return None
-    return math.sqrt(loud_rest * quiet_slide)
+        return None, (f"no start level: the quietest slides lie only {quiet_slide / loud_rest if loud_rest > 0 else math.inf:.1f} times "
+                      f"above the loudest rest ({config.on_factor**2:g} needed); {unknown}")
+    level = math.sqrt(loud_rest * quiet_slide)
+    return level, (f"start level {level:.3g} (the quietest slides {quiet_slide / loud_rest:.0f} times above the loudest rest): a daemon "
+                   "started while the finger slides labels that slide as it goes")

@@ -29,7 +29,7 @@ from tactiled.learn.dataset import (
     find_slides,
     load_recordings,
 )
-from tactiled.learn.levels import start_level
+from tactiled.learn.levels import learn_start_level
 from tactiled.learn.search import (
     ENSEMBLE_DEFAULT,
     ENSEMBLE_MODES,
@@ -231,7 +231,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates,
                         keep_models=keep_models, novelty=novelty, ensemble=ensemble, untaught=untaught, speed=speed,
                         check_usable=check, group_by=group_by)
-    result.model.start_level = start_level([r for _, r in recs], spans, config.detector)
+    result.model.start_level, note = learn_start_level([r for _, r in recs], spans, config.detector)
+    say(note)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
     result.model.summary["dropped"] = sorted([*rare, *unusable])
     return result
