@@ -34,6 +34,7 @@ def test_untaught_slides_leave_the_headline_and_count_right_in_the_open_set_when
     assert (report["n"], report["correct"], report["accuracy"], report["untaught"]) == (3, 1, pytest.approx(1 / 3), {"b": [2, 1]})
     only_untaught = score([("r", rec)], [[unknown]], ["c"])  # no taught slide: no headline accuracy, not 0 of 0
     assert only_untaught["taught_accuracy"] is None and only_untaught["taught_n"] == 0 and only_untaught["open_set_correct"] == 1
+    assert only_untaught["labelled"] == 0 and only_untaught["accuracy_of_labelled"] is None  # no label: no accuracy of them, not 0.0
 
 
 def _taught_and_untaught(tmp_path: Path) -> tuple[Path, Path]:

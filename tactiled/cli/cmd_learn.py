@@ -160,7 +160,7 @@ def cmd_score(args: argparse.Namespace) -> int:
     headline = (f"accuracy {report['taught_accuracy']:.4f} ({report['taught_correct']} of {report['taught_n']} true slides of taught "
                 f"surfaces{within})" if report["taught_n"] else "accuracy: no true slide of a surface the model was taught")
     print(f"{headline}; coverage {report['coverage']:.4f} ({report['labelled']} of {report['n']} true slides labelled); "
-          f"accuracy of the labelled {report['accuracy_of_labelled']:.4f}")
+          + (f"accuracy of the labelled {report['accuracy_of_labelled']:.4f}" if report["labelled"] else "no slide labelled"))
     if report["abstained"]:
         print("no label: " + ", ".join(f"{k} {v}" for k, v in sorted(report["abstained"].items())))
     print(f"unknown surfaces: {report['unknown']} of {report['n']} true slides")
