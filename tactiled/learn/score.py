@@ -84,7 +84,7 @@ def score(recs: Sequence[tuple[str, Recording]], results: Sequence[Sequence[Slid
     correct = int(hits.sum())
     files = np.repeat([f["file"] for f in per_file], [f["slides"] for f in per_file])
     labelled = sum(p is not None for p in y_pred)
-    out = {"n": n, "correct": correct, "accuracy": correct / n if n else 0.0, "labelled": labelled, "coverage": labelled / n if n else 0.0,
+    out: dict[str, Any] = {"n": n, "correct": correct, "accuracy": correct / n if n else 0.0, "labelled": labelled, "coverage": labelled / n if n else 0.0,
            "accuracy_of_labelled": correct / labelled if labelled else None, "abstained": dict(reasons), "unpaired_detections": extra,
            "files": per_file, "unknown": reasons.get("unknown_surface", 0), "top_accuracy": top_right / n if n else 0.0,
            "interval95": recording_interval(hits, files)}
