@@ -65,6 +65,29 @@ def load_recordings(paths: Sequence[str | Path], report: Progress | None = None)
     return out
 
 
+def undetected(per_file: Sequence[Sequence[LabelledSlide]], rates: Sequence[float], shortest_s: float) -> dict[str, tuple[int, int]]:
+    """{surface: (its slides, those the detector found)} of the surfaces whose slides the detector mostly misses (fewer
+    than half found; the rest used at their true bounds): a surface the daemon would seldom find, whose slides would
+    teach the model, and its unknown-surface test, what the daemon does not meet (a still or silent sensor, a DC step).
+    ``rates``: each file's fs, Hz; slides shorter than ``shortest_s`` (no slide to the detector, by its own rule) are
+    not counted: their windows' checks say what is wrong with them."""
+    total: Counter[str] = Counter()
+    found: Counter[str] = Counter()
+    for slides, fs in zip(per_file, rates, strict=True):
+        for s in slides:
+            if s.label is not None and s.stop - s.start >= shortest_s * fs:
+                total[s.label] += 1
+                found[s.label] += s.source != "truth"
+    return {k: (n, found[k]) for k, n in sorted(total.items()) if 2 * found[k] < n}
+
+
+def undetected_text(surfaces: dict[str, tuple[int, int]]) -> str:
+    """The one line of :func:`undetected`'s surfaces."""
+    named = ", ".join(f"{k} ({f} of {n})" for k, (n, f) in surfaces.items())
+    return (f"the detector finds fewer than half of the slides of {named}: the daemon would seldom label such a surface (a still "
+            "or silent sensor? the slides' ground truth is not where the signal is, or the detector's settings do not suit it)")
+
+
 def check_distinct(recs: Sequence[tuple[str, Recording]]) -> None:
     """Refuse (one line naming both) two recordings with the same samples, such as one file given twice or a copy under
     another name: cross-validation grouped by recording would test each on its own copy and promise what it never measured

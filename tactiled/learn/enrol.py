@@ -33,7 +33,17 @@ import numpy.typing as npt
 from tactiled.config import Config
 from tactiled.errors import ModelError, TactiledError
 from tactiled.files.recording import check_label_option
-from tactiled.learn.dataset import Progress, WindowSet, check_distinct, collect_windows, find_slides, load_recordings, speed_ratios
+from tactiled.learn.dataset import (
+    Progress,
+    WindowSet,
+    check_distinct,
+    collect_windows,
+    find_slides,
+    load_recordings,
+    speed_ratios,
+    undetected,
+    undetected_text,
+)
 from tactiled.learn.model import MAX_CLASSES, FloatArray, Model, fit_pipeline, load_model, take_columns
 from tactiled.learn.search import NOVELTY_TESTS, PARAMS, fit_model_novelty, reasons_text
 
@@ -72,6 +82,9 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     per_file, counts = find_slides(recs, config)
     if label is not None:
         per_file = [[replace(s, label=label) for s in slides] for slides in per_file]
+    silent = undetected(per_file, [r.fs for _, r in recs], config.detector.min_slide_s)
+    if silent:  # they would widen what the unknown-surface test measures against, for every surface
+        raise TactiledError(undetected_text(silent) + "; nothing enrolled")
     # the classifier learns the new slides as train did: with their speed-perturbed copies, if it learnt from copies
     try:
         speeds = speed_ratios(float(old.summary.get("speed_copies", 0.0)))

@@ -28,6 +28,8 @@ from tactiled.learn.dataset import (
     cut_long_slides,
     find_slides,
     load_recordings,
+    undetected,
+    undetected_text,
 )
 from tactiled.learn.levels import learn_start_level
 from tactiled.learn.search import (
@@ -196,6 +198,12 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
                 f"to {2 * GROUP_PIECE_S:g} s ({sum(map(len, cut))} slides where {sum(map(len, per_file))} were found), so that a "
                 "recording that is one long slide gives the folds several")
         per_file = cut
+    silent = undetected(per_file, [r.fs for _, r in recs], config.detector.min_slide_s)
+    if silent and not drop_rare:
+        raise TactiledError(undetected_text(silent) + "; check the recordings, or pass --drop-rare to train without them")
+    if silent:
+        say(f"training without {', '.join(silent)} (--drop-rare): " + undetected_text(silent))
+        per_file = [[s for s in slides if s.label not in silent] for slides in per_file]
     table = class_table(per_file, labels)
     say("slides per surface (slides, found by the detector, files):")
     for label, (n, det, files) in table.items():
