@@ -44,6 +44,15 @@ def _level() -> float:
     return level
 
 
+def _models() -> tuple[Any, Any]:
+    """(the shipped model without a start level, the same with the level of :func:`_level`)."""
+    plain: Any = copy.copy(load_model())
+    plain.start_level = None
+    knowing: Any = copy.copy(load_model())
+    knowing.start_level = _level()
+    return plain, knowing
+
+
 def _volts(*parts: tuple[str | None, float], seed: int = 5, gain: float = 1.0) -> np.ndarray:
     """A stream of the simulator's volts: each part a slide over a surface (or rest, None) of so many seconds."""
     params = SimParams()
@@ -197,10 +206,7 @@ def test_a_model_with_a_level_loaded_while_the_start_is_undecided_decides_it() -
 
     volts = _volts(("Ra2.29", 3.0), (None, 1.5))
     counts = np.rint(volts / SimParams().volts_per_count).astype(np.int16)
-    plain: Any = copy.copy(load_model())
-    plain.start_level = None
-    knowing: Any = copy.copy(load_model())
-    knowing.start_level = _level()
+    plain, knowing = _models()
     pipe = Pipeline(Config(), FS, 2, SimParams().volts_per_count, model=plain)
     first = [e for lo in range(0, FS, 2000) for e in pipe.feed(lo, counts[lo:lo + 2000])]
     assert first == [] and pipe.detector.undecided
@@ -217,10 +223,7 @@ def test_a_shadow_splits_the_stream_as_the_live_pipeline_after_an_unplug() -> No
 
     volts = _volts(("Ra2.29", 4.0), (None, 1.5))
     counts = np.rint(volts / SimParams().volts_per_count).astype(np.int16)
-    plain: Any = copy.copy(load_model())
-    plain.start_level = None
-    knowing: Any = copy.copy(load_model())
-    knowing.start_level = _level()
+    plain, knowing = _models()
     live = Pipeline(Config(), FS, 2, SimParams().volts_per_count, model=plain)
     shadow = Pipeline(Config(), FS, 2, SimParams().volts_per_count, model=knowing)
     shadow.follow(live)
