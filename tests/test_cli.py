@@ -316,10 +316,11 @@ def test_train_offers_the_choices_the_trainer_takes() -> None:
 
 def test_train_writes_its_model_when_its_output_is_closed_early(tmp_path: Path) -> None:
     """``tactiled train ... | head -3``: the model is written before the leaderboard is printed (it was lost with the pipe)."""
-    data, out = tmp_path / "d", tmp_path / "m.npz"
-    subprocess.run(tactiled_cmd("simulate", "dataset", "--out", str(data), "--surfaces", "2", "--files-per-surface", "2",
-                                "--slides-per-file", "2", "--scene", "robot", "--jobs", "1"), check=True, capture_output=True, timeout=120)
-    proc = subprocess.Popen(tactiled_cmd("train", "--method", "quick", "--folds", "2", "-o", str(out), *map(str, sorted(data.glob("*.npz")))),
+    from tactiled.sim.simulate import write_dataset
+
+    out = tmp_path / "m.npz"
+    data = write_dataset(tmp_path / "d", scene="robot", seed=0, files_per_surface=2, slides_per_file=2, surfaces="2")
+    proc = subprocess.Popen(tactiled_cmd("train", "--method", "quick", "--folds", "2", "-o", str(out), *map(str, data)),
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
     assert proc.stdout is not None
     proc.stdout.close()  # the reader went away before the first line
