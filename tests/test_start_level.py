@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from tactiled.config import Config
-from tactiled.core.detect import SlideDetector
+from tactiled.core.detect import SlideDetector, front_end_settings
 from tactiled.core.events import DetectorEvent, Offset, Onset
 from tactiled.core.pipeline import Pipeline
 from tactiled.errors import ModelError
@@ -49,7 +49,7 @@ def _models() -> tuple[Any, Any]:
     plain: Any = copy.copy(load_model())
     plain.start_level = None
     knowing: Any = copy.copy(load_model())
-    knowing.start_level = _level()
+    knowing.start_level, knowing.start_front = _level(), front_end_settings(DETECTOR)
     return plain, knowing
 
 
@@ -119,6 +119,7 @@ def test_labels_flow_while_the_finger_slides_in_the_slide_the_stream_began_in() 
     volts = _volts(("Ra2.29", 3.0), (None, 1.5))
     counts = np.rint(volts / SimParams().volts_per_count).astype(np.int16)
     model: Any = copy.copy(load_model())
+    model.start_front = front_end_settings(DETECTOR)
     for level, want in ((_level(), True), (None, False)):
         model.start_level = level
         pipe = Pipeline(Config(), FS, 2, SimParams().volts_per_count, model=model)
@@ -161,8 +162,7 @@ def test_the_slide_the_stream_began_in_gives_the_same_labels_whatever_the_block_
 
     volts = _volts(("Ra2.29", 2.5), (None, 2.0), ("Ra2.29", 1.2), (None, 1.5))
     counts = np.rint(volts / SimParams().volts_per_count).astype(np.int16)
-    model: Any = copy.copy(load_model())
-    model.start_level = _level()
+    model: Any = _models()[1]
 
     def published(block: int) -> list[tuple[Any, ...]]:
         pipe = Pipeline(Config(), FS, 2, SimParams().volts_per_count, model=model)
@@ -241,3 +241,20 @@ def test_a_shadow_splits_the_stream_as_the_live_pipeline_after_an_unplug() -> No
     got["live"] += [(counts.shape[0], e) for e in live.finish()]
     got["shadow"] += [(counts.shape[0], e) for e in shadow.finish()]
     assert slides(got["shadow"]) == slides(got["live"]) and slides(got["live"])
+
+
+def test_a_level_is_used_only_under_the_front_end_it_was_measured_with(tmp_path: Path) -> None:
+    """Another mains notch (60 Hz where the model learnt at 50, or none) gives other envelope values: a rest above the
+    level was one slide for good, every slide after it lost (a review). The level is used only under its own settings."""
+    from tactiled.config import DetectorConfig
+
+    _, knowing = _models()
+    params = SimParams()
+    counts = np.rint(_volts((None, 1.0), ("Ra2.29", 1.2), (None, 1.0), ("Ra2.29", 1.2), (None, 1.0)) / params.volts_per_count).astype(np.int16)
+    for mains in (50.0, 60.0, 0.0):
+        config = Config().override({"detector.mains_hz": mains})
+        pipe = Pipeline(config, FS, 2, params.volts_per_count, model=knowing)
+        assert (pipe.detector.start_level is not None) is (mains == 50.0)
+        events = [e for lo in range(0, counts.shape[0], 4000) for e in pipe.feed(lo, counts[lo:lo + 4000])] + pipe.finish()
+        assert sum(getattr(e, "final", False) is True for e in events) == 2, (mains, events)
+    assert front_end_settings(DetectorConfig(mains_hz=60.0)) != knowing.start_front

@@ -85,6 +85,15 @@ class FrontEnd:
         return self.lag + self.boxcar - 1
 
 
+FRONT_END_KEYS = ("hop_ms", "hop_min_samples", "band_low_hz", "band_high_hz", "band_high_frac", "mains_hz")  # what the envelope's scale depends on
+
+
+def front_end_settings(config: DetectorConfig) -> dict[str, float]:
+    """The detector settings the envelope's values depend on (:data:`FRONT_END_KEYS`): a level measured under other ones is
+    not comparable."""
+    return {k: float(getattr(config, k)) for k in FRONT_END_KEYS}
+
+
 def front_end(config: DetectorConfig, fs: float) -> FrontEnd:
     """The front end's sample counts at rate ``fs``."""
     high = min(config.band_high_hz, config.band_high_frac * fs)

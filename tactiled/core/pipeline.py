@@ -33,9 +33,9 @@ from typing import Any, Protocol, cast
 import numpy as np
 import numpy.typing as npt
 
-from tactiled.config import Config
+from tactiled.config import Config, DetectorConfig
 from tactiled.core.analysis import Analyser, AnalysisSettings, WindowResult
-from tactiled.core.detect import SlideDetector
+from tactiled.core.detect import SlideDetector, front_end_settings
 from tactiled.core.events import (
     DetectorEvent,
     Loud,
@@ -71,11 +71,13 @@ class Classifier(Protocol):
 
 
 
-def start_level(model: Classifier | None) -> float | None:
+def start_level(model: Classifier | None, config: DetectorConfig) -> float | None:
     """The detector's :attr:`~tactiled.core.detect.SlideDetector.start_level` that ``model`` learnt from its training recordings
-    (``start_level``; None: none learnt, or no model)."""
+    (``start_level``), if it was measured under ``config``'s front end (``start_front``: another mains notch or band gives
+    other envelope values, and a rest above the level would be one slide for good); None: none learnt, no model, or other
+    settings."""
     level = getattr(model, "start_level", None)
-    return float(level) if level is not None else None
+    return float(level) if level is not None and getattr(model, "start_front", None) == front_end_settings(config) else None
 
 
 @dataclass
@@ -148,7 +150,7 @@ class Pipeline:
         self._reader: RingBuffer | HeldSamples = self.ring  # where windows are read: the ring, or a whole recording (replay)
         self._ahead: dict[tuple[int, int], _Window] = {}  # windows analysed ahead of need (replay), by span
         self._assessed: dict[AssessmentKey, Assessed] = {}  # replay: assessed ahead, by (windows' spans, final)
-        self._detector_args = (config.detector, fs, channels, start_level(model))
+        self._detector_args = (config.detector, fs, channels, start_level(model, config.detector))
         self.detector = SlideDetector(*self._detector_args)
         self._fresh_detector = False  # after shed(): the next samples fed start a new detector
         self.volts_per_count = volts_per_count if integer else 1.0
@@ -223,7 +225,7 @@ class Pipeline:
         if self._pending_model is None:
             return
         self.model, self._pending_model = self._pending_model, None
-        self._detector_args = (*self._detector_args[:3], start_level(self.model))  # a new detector (after a gap) takes its level
+        self._detector_args = (*self._detector_args[:3], start_level(self.model, self._detector_args[0]))  # a new detector (after a gap) takes its level
         if self.detector.undecided and self.detector.start_level is None:  # and one still undecided (the stream's start unknown)
             self.detector.start_level = self._detector_args[3]
         self.settings = self.model.settings

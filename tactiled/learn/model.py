@@ -102,6 +102,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.core.analysis import Analyser, AnalysisSettings
+from tactiled.core.detect import FRONT_END_KEYS
 from tactiled.core.features import FeaturePlan, classifier_inputs, name_family, raw_features, row_dots, rowwise_matmul, spectral_shape
 from tactiled.errors import ModelError
 from tactiled.files.npzio import NpzError, NpzReader, load_json_bounded
@@ -354,6 +355,7 @@ class Model:
     novelty_surface_scale: FloatArray | None = None  # format 8: (S,) >= 1, each surface's distances divided by it (surfaces sorted)
     start_level: float | None = None  # the detector's envelope above which a stream begins in a slide (learnt from the training
     # recordings' rests and slides: tactiled.learn.levels); None: not learnt (a stream's start is then told by its changes)
+    start_front: dict[str, float] | None = None  # the detector's front-end settings the level was measured under (detect.FRONT_END_KEYS)
     partner: Model | None = None  # an ensemble's second member (format 7); None: a single classifier
     member_names: tuple[str, ...] | None = None  # an ensemble: this classifier's columns (a subset of settings.names); None: all of them
     member_temperature: float = 1.0  # an ensemble: the temperature of this classifier's own probabilities (``temperature`` is the ensemble's)
@@ -628,7 +630,7 @@ class Model:
     def _header(self) -> dict[str, Any]:
         header = self._single_header()
         if self.start_level is not None:  # written only when learnt: a model without it has the header it had
-            header["detector"] = {"start_level": self.start_level}
+            header["detector"] = {"start_level": self.start_level, "front_end": self.start_front}
         if self.novelty_names is not None:  # format 8: the classifier's own columns, and the novelty's
             header.update(version=FORMAT_VERSION, inputs=list(self.inputs))
             header["novelty"].update(inputs=list(self.novelty_names), prefix=list(self.novelty_prefix))
@@ -891,7 +893,10 @@ def _build(path: Path, header: dict[str, Any], arrays: dict[str, Any], lean: boo
     if detector is not None:
         level: Any = detector.get("start_level") if isinstance(detector, dict) else None
         _need(_is_number(level) and 0 < level < 1e30, path, "header.detector.start_level: must be a positive finite number")
-        model.start_level = float(level)
+        front: Any = detector.get("front_end")
+        _need(isinstance(front, dict) and set(front) == set(FRONT_END_KEYS) and all(_is_number(v) for v in front.values()), path,
+              f"header.detector.front_end: must hold the numbers {', '.join(FRONT_END_KEYS)} (the level is used only under them)")
+        model.start_level, model.start_front = float(level), {k: float(v) for k, v in front.items()}
     if ensemble is not None:
         _attach_partner(path, model, ensemble, {k[len(PARTNER):]: v for k, v in arrays.items() if k.startswith(PARTNER)}, lean)
     if "calibration" in arrays:

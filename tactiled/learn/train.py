@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from tactiled.config import Config
+from tactiled.core.detect import front_end_settings
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import (
@@ -240,7 +241,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
                         keep_models=keep_models, novelty=novelty, ensemble=ensemble, untaught=untaught, speed=speed,
                         check_usable=check, group_by=group_by)
     result.model.start_level, note = learn_start_level([r for _, r in recs], spans, config.detector)
+    result.model.start_front = front_end_settings(config.detector) if result.model.start_level is not None else None
     say(note)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
-    result.model.summary["dropped"] = sorted([*rare, *unusable])
+    result.model.summary["dropped"] = sorted([*rare, *unusable, *silent])
     return result
