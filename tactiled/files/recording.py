@@ -111,6 +111,8 @@ def lost_rows_budget(file_bytes: int, floor: int) -> int:
 
 UNPRINTABLE = frozenset({"Cc", "Cs", "Zl", "Zp"})  # control characters, lone surrogates, line and paragraph separators
 INVISIBLE = frozenset({"Cf"})  # format characters (zero-width space, bidi overrides, BOM): unseen, or they reorder what is seen
+JOINERS = frozenset({"\u200c", "\u200d", "\u00ad"})  # format characters that spell words (ZWNJ in Persian, ZWJ in Indic scripts
+# and emoji, the soft hyphen): accepted
 
 
 def surface_name_problem(name: str) -> str | None:
@@ -119,9 +121,9 @@ def surface_name_problem(name: str) -> str | None:
     A name must hold something other than white space ("" is how training marks an unlabelled slide: such a surface
     would be listed, then silently left out of the model), neither begin nor end with it, at most :data:`MAX_LABEL_CHARS` characters, no control
     character, lone surrogate or line separator (replay and score print one line per slide), no format character (category Cf:
-    "Ra0.44\u200b" would print as "Ra0.44", "\u202e44.0aR" as "Ra0.44"), and be in Unicode normal form NFC ("Pone\u0301" and
-    "Pon\u00e9" print alike): two names that print alike would be two surfaces. Such names are refused, never normalised,
-    as white space at the ends is: a file's names are what it says."""
+    "Ra0.44\u200b" would print as "Ra0.44", "\u202e44.0aR" as "Ra0.44") but those that spell words (:data:`JOINERS`): two names
+    that print alike would be two surfaces. Such names are refused. Spellings of one name that differ only in Unicode
+    normalisation ("Pone\u0301" and "Pon\u00e9") are one surface: recordings' names are read in NFC (:func:`surface_name`)."""
     if len(name) > MAX_LABEL_CHARS:
         return f"{len(name)} characters, more than the {MAX_LABEL_CHARS} a surface name may have"
     if not name.strip():
@@ -131,15 +133,17 @@ def surface_name_problem(name: str) -> str | None:
     bad = next((ch for ch in name if unicodedata.category(ch) in UNPRINTABLE), None)
     if bad is not None:
         return f"{name!r} holds the control character U+{ord(bad):04X}; a surface name is one printable line"
-    bad = next((ch for ch in name if unicodedata.category(ch) in INVISIBLE), None)
+    bad = next((ch for ch in name if unicodedata.category(ch) in INVISIBLE and ch not in JOINERS), None)
     if bad is not None:
         return (f"{name!a} holds the format character U+{ord(bad):04X} ({unicodedata.name(bad, 'unnamed')}), which does not print "
                 "as itself; a surface name is printed as it is, so two would look alike")
-    nfc = unicodedata.normalize("NFC", name)
-    if nfc != name:
-        return (f"{name!a} is not in Unicode normal form NFC, write it as {nfc!a} ({nfc}); a surface name is printed as it is, "
-                "so two spellings would look alike")
     return None
+
+
+def surface_name(name: str) -> str:
+    """``name`` in Unicode normal form NFC: how a recording's names are read, so that two spellings that print alike
+    (a label typed on macOS, "Pone\u0301", and elsewhere, "Pon\u00e9") are one surface."""
+    return unicodedata.normalize("NFC", name)
 
 
 def first_index_problem(first: int, n: int) -> str | None:
@@ -234,7 +238,7 @@ def validate_arrays(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
         if problem := first_index_problem(rec.first_index, n):
             raise _fail(path, "first_index", problem)
     if "label" in a:
-        rec.label = str(_scalar(path, a, "label", "U"))
+        rec.label = surface_name(str(_scalar(path, a, "label", "U")))
         problem = surface_name_problem(rec.label)
         if problem:
             raise _fail(path, "label", problem)
@@ -287,6 +291,8 @@ def validate_arrays(path: object, a: dict[str, npt.NDArray[Any]]) -> Recording:
             if bad:
                 raise _fail(path, "surface", f"slide {bad[0][0]}: {bad[0][1]}")
             rec.surface = a["surface"].astype(f"<U{max(1, longest)}")  # no wider than its longest name, whatever the file declared
+            if any(surface_name(str(n)) != n for n in names):  # read in NFC: spellings that print alike are one surface
+                rec.surface = np.array([surface_name(str(n)) for n in rec.surface], dtype=np.str_)
         elif rec.label is None:
             raise _fail(path, "surface", "missing (slides need a surface, or a file-level label)")
         if "ra_um" in a:

@@ -32,7 +32,7 @@ import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.errors import ModelError, TactiledError
-from tactiled.files.recording import check_label_option
+from tactiled.files.recording import check_label_option, surface_name
 from tactiled.learn.dataset import (
     Progress,
     WindowSet,
@@ -80,8 +80,8 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
         old.check_stream(rec.fs, rec.channels, name, where)
     check_distinct(recs)  # a copy would count its slides twice towards min_slides
     per_file, counts = find_slides(recs, config)
-    if label is not None:
-        per_file = [[replace(s, label=label) for s in slides] for slides in per_file]
+    if label is not None:  # as a recording's names are read (NFC)
+        per_file = [[replace(s, label=surface_name(label)) for s in slides] for slides in per_file]
     silent = undetected(per_file, [r.fs for _, r in recs], config.detector.min_slide_s)
     if silent:  # they would widen what the unknown-surface test measures against, for every surface
         raise TactiledError(undetected_text(silent) + "; nothing enrolled")
