@@ -109,9 +109,13 @@ def test_a_stream_at_rest_gives_no_slide_at_its_end() -> None:
 
 
 def test_a_quiet_surface_slid_first_stays_a_slide_when_a_louder_one_follows() -> None:
+    """Two slides: the quiet surface's, ended where the louder one begins, and the louder one's (without a level the
+    first 2 s were taken for rest)."""
     volts = _volts(("Ra0.44", 2.0), ("Ra4.43", 2.0), (None, 2.0))
     spans = _spans(_events(volts, _level()))
-    assert spans and spans[0][0] == 0 and spans[-1][1] >= round(3.9 * FS), spans
+    assert [r for _, _, r in spans] == ["quiet", "quiet"] and spans[0][0] == 0, spans
+    assert abs(spans[0][1] - 2 * FS) < 0.2 * FS and spans[1][0] == spans[0][1] and spans[1][1] >= round(3.9 * FS), spans
+    assert _spans(_events(volts, None))[0][0] >= 1.8 * FS  # before
 
 
 def test_labels_flow_while_the_finger_slides_in_the_slide_the_stream_began_in() -> None:
@@ -258,3 +262,17 @@ def test_a_level_is_used_only_under_the_front_end_it_was_measured_with(tmp_path:
         events = [e for lo in range(0, counts.shape[0], 4000) for e in pipe.feed(lo, counts[lo:lo + 4000])] + pipe.finish()
         assert sum(getattr(e, "final", False) is True for e in events) == 2, (mains, events)
     assert front_end_settings(DetectorConfig(mains_hz=60.0)) != knowing.start_front
+
+
+def test_a_rest_louder_than_the_level_costs_the_start_not_every_slide() -> None:
+    """A rest above the model's level (louder where the daemon runs than in training: motors, hum) is taken for a slide
+    at first; the first real slide's rise withdraws it (cancelled, too short to be a slide) and every slide is found
+    (it stayed one slide for good: 0 slides live in 21 s)."""
+    volts = _volts((None, 2.0), ("Ra2.29", 1.2), (None, 1.5), ("Ra2.29", 1.2), (None, 1.5))
+    vpc = SimParams().volts_per_count
+    rest = float(np.quantile(hop_envelope(Recording(np.rint(volts[:FS] / vpc).astype(np.int16), FS, vpc), DETECTOR)[0][100:], 0.8))
+    plain = _spans(_events(volts, None))
+    for level, withdrawn in ((rest / 2, "too_short"), (rest / 1000, "quiet")):  # just below the rest: withdrawn; far below: a slide
+        spans = _spans(_events(volts, level))
+        assert spans[0][0] == 0 and spans[0][2] == withdrawn, spans  # the early "slide", ended where the first real one begins
+        assert spans[1:] == plain, (spans, plain)

@@ -436,8 +436,10 @@ class SlideDetector:
             return self._start_by_level(ref)
         self._recent.append((at, env))
         window = [e for _, e in list(self._recent)[-self._initial_hops:]]
-        if not self._early and len(window) == self._initial_hops and float(np.median(window)) > c.on_factor * ref:
+        if len(window) == self._initial_hops and float(np.median(window)) > c.on_factor * ref:
             # the stream began at rest: a sustained rise (a slide's own level fluctuates hop to hop more than on_factor)
+            began, early = self._began, self._early
+            self._early = False
             self._undecided_hops.clear()
             self._floor = ref
             self.floor = ref
@@ -450,7 +452,13 @@ class SlideDetector:
             self.sliding = True
             self._start = start
             self._quiet_since = None
-            return [Onset(start)]
+            # a slide reported early, and now a sustained rise. A start level √on_factor or more above the model's is a
+            # slide's (a quieter surface slid first): it ends where the louder one begins. One just above it was a rest
+            # louder where the daemon runs than in the training recordings: withdrawn as no slide (cancelled)
+            if not early:
+                return [Onset(start)]
+            slide = ref >= math.sqrt(c.on_factor) * (self.start_level or 0.0)
+            return [Offset(began, max(start, began + 1), "quiet" if slide else "too_short", at=start), Onset(start)]
         said: list[DetectorEvent] = []  # a slide reported early (start_level): its quiets and dips, as a slide's (Quiet, Loud)
         if env < ref / c.on_factor:
             if self._quiet_since is None:
