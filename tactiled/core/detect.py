@@ -117,6 +117,18 @@ def envelope(ext: npt.NDArray[np.float64], fe: FrontEnd) -> npt.NDArray[np.float
     return median_last(sub)
 
 
+def stream_envelope(head: npt.NDArray[np.float64], samples: npt.NDArray[np.float64], hops: int, fe: FrontEnd) -> list[float]:
+    """Envelopes of the first ``hops`` hops of the stream ``head`` + ``samples`` (head: the comb's history, then the
+    samples pending; volts), in chunks of about :data:`CHUNK` samples that stay in cache (3x faster than whole 64k-sample
+    blocks, the same values)."""
+    per = max(1, CHUNK // fe.hop)
+    out: list[float] = []
+    for h in range(0, hops, per):
+        lo, hi = h * fe.hop, min(hops, h + per) * fe.hop
+        out += envelope(joined_rows(head, samples, lo, hi + fe.history), fe).tolist()
+    return out
+
+
 def joined_rows(head: npt.NDArray[np.float64], tail: npt.NDArray[np.float64], start: int, stop: int) -> npt.NDArray[np.float64]:
     """Rows [start, stop) of ``head`` (m, C) followed by ``tail`` (n, C): a view of one of them when the rows lie in it,
     else a copy of the rows across the join."""
@@ -267,7 +279,7 @@ class SlideDetector:
         used = hops * self.hop
         hop_valid, self._pending_valid = _hop_validity(self._pending_valid, valid, samples.shape[0], self.hop)
         if hops:
-            energy = self._envelope(head, samples, hops)
+            energy = stream_envelope(head, samples, hops, self.front)
             events += self._hops(self._pending_index, energy, hop_valid)
         history = self.front.history
         self._history = joined_rows(head, samples, used, used + history).copy()
@@ -355,18 +367,6 @@ class SlideDetector:
         self._pending_valid = np.zeros(index - last, dtype=bool)
         self._pending_index = last
         return events, index
-
-    def _envelope(self, head: npt.NDArray[np.float64], samples: npt.NDArray[np.float64], hops: int) -> list[float]:
-        """Envelopes of the first ``hops`` hops of the stream ``head`` + ``samples`` (head: the comb's history, then the
-        samples pending), in chunks of about :data:`CHUNK` samples that stay in cache (3x faster than whole 64k-sample
-        blocks, the same values)."""
-        hop, history = self.hop, self.front.history
-        per = max(1, CHUNK // hop)
-        out: list[float] = []
-        for h in range(0, hops, per):
-            lo, hi = h * hop, min(hops, h + per) * hop
-            out += envelope(joined_rows(head, samples, lo, hi + history), self.front).tolist()
-        return out
 
     def finish(self) -> list[DetectorEvent]:
         """End of stream: a slide in progress (or a stream that never left its initial level) ends after the last sample fed."""

@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.config import DetectorConfig
-from tactiled.core.detect import CHUNK, envelope, front_end, median3_runs
+from tactiled.core.detect import front_end, median3_runs, stream_envelope
 from tactiled.files.recording import Recording
 
 EDGE_S = 0.1  # a slide's hops this close to its start or stop are left out of its level (the rise and the lift-off), s
@@ -35,14 +35,11 @@ def hop_envelope(rec: Recording, config: DetectorConfig) -> tuple[npt.NDArray[np
     """(envelope (h,) of the recording's whole hops, as the detector computes it from the stream's first sample; whether each
     hop's samples were all intact (h,); the hop in samples)."""
     fe = front_end(config, rec.fs)
-    volts = np.asarray(rec.samples, dtype=np.float64) * rec.volts_per_count
+    volts = rec.volts()  # as the detector is fed (tactiled.learn.dataset.detector_events): lost rows are 0 V
     valid = rec.valid_mask()
     volts[~valid] = 0.0
-    ext = np.concatenate([np.zeros((fe.history, volts.shape[1])), volts])  # the detector's zeros before the stream
     hops = volts.shape[0] // fe.hop
-    per = max(1, CHUNK // fe.hop)
-    env = np.concatenate([envelope(ext[h * fe.hop: min(hops, h + per) * fe.hop + fe.history], fe) for h in range(0, hops, per)]
-                         ) if hops else np.zeros(0)
+    env = stream_envelope(np.zeros((fe.history, volts.shape[1])), volts, hops, fe)  # the detector's zeros before the stream
     intact: npt.NDArray[np.bool_] = np.asarray(valid[: hops * fe.hop].reshape(hops, fe.hop).all(axis=1), dtype=bool)
     return np.asarray(env, dtype=np.float64), intact, fe.hop
 
