@@ -320,6 +320,21 @@ def board_and_daemon(tmp_path: Path, *run_args: str, params: SimParams | None = 
 
 
 @contextlib.contextmanager
+def xpub_socket(endpoint: str) -> Iterator[Any]:
+    """A ZeroMQ XPUB bound at ``endpoint`` (no linger), closed when the block ends: a publisher a test drives by hand,
+    which sees each subscription as a message."""
+    import zmq
+
+    sock: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.XPUB)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.bind(endpoint)
+    try:
+        yield sock
+    finally:
+        sock.close(linger=0)
+
+
+@contextlib.contextmanager
 def status_publisher(endpoint: str, every_s: float = 0.02, payload: int = 0) -> Iterator[threading.Event]:
     """An XPUB on ``endpoint`` that, once a subscriber has subscribed (the event it yields is set then), sends a status
     message (with a ``note`` of ``payload`` bytes) every ``every_s`` without a pause, until the block ends: the busy topic
@@ -329,11 +344,8 @@ def status_publisher(endpoint: str, every_s: float = 0.02, payload: int = 0) -> 
     from tactiled_client import schema
 
     subscribed, stop = threading.Event(), threading.Event()
-    sock: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.XPUB)
-    sock.setsockopt(zmq.LINGER, 0)
-    sock.bind(endpoint)
 
-    def run() -> None:
+    def run(sock: zmq.Socket[bytes]) -> None:
         seq = 0
         while not stop.is_set():
             if not subscribed.is_set():
@@ -347,11 +359,11 @@ def status_publisher(endpoint: str, every_s: float = 0.02, payload: int = 0) -> 
             seq += 1
             stop.wait(every_s)  # the publisher's pace, not a synchronisation
 
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    try:
-        yield subscribed
-    finally:
-        stop.set()
-        thread.join(10)
-        sock.close(linger=0)
+    with xpub_socket(endpoint) as sock:
+        thread = threading.Thread(target=run, args=(sock,), daemon=True)
+        thread.start()
+        try:
+            yield subscribed
+        finally:
+            stop.set()
+            thread.join(10)

@@ -14,7 +14,7 @@ from tactiled_client import BlockingReplay, BlockingSubscriber, LogError, schema
 from tactiled_client.log import LogWriter
 from tactiled_client.subscriber import _Tracker
 
-from tests.conftest import recorder_thread
+from tests.conftest import recorder_thread, xpub_socket
 
 
 def _body(seq: int, v: int = schema.SCHEMA_VERSION, **fields: object) -> bytes:
@@ -73,18 +73,12 @@ def test_a_seq_no_daemon_sends_is_refused_and_gap_detection_goes_on(seq: int) ->
 
 def test_the_live_subscriber_skips_a_seq_no_daemon_sends(tmp_path: Path) -> None:
     endpoint = f"ipc://{tmp_path}/pub"
-    pub: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.XPUB)
-    pub.setsockopt(zmq.LINGER, 0)
-    pub.bind(endpoint)
-    try:
-        with BlockingSubscriber(endpoint, topics=["status"]) as sub:
-            assert pub.poll(20_000)
-            pub.recv()
-            for seq in (0, 2**64 - 1, 1):
-                pub.send_multipart([b"status/s0", _body(seq)])
-            assert [(m.seq, m.missed) for m in (sub.receive(timeout=20), sub.receive(timeout=20))] == [(0, 0), (1, 0)]
-    finally:
-        pub.close(linger=0)
+    with xpub_socket(endpoint) as pub, BlockingSubscriber(endpoint, topics=["status"]) as sub:
+        assert pub.poll(20_000)
+        pub.recv()
+        for seq in (0, 2**64 - 1, 1):
+            pub.send_multipart([b"status/s0", _body(seq)])
+        assert [(m.seq, m.missed) for m in (sub.receive(timeout=20), sub.receive(timeout=20))] == [(0, 0), (1, 0)]
 
 
 def test_the_recorder_counts_a_message_that_is_not_two_frames(tmp_path: Path) -> None:

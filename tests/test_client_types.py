@@ -8,9 +8,10 @@ from pathlib import Path
 
 import msgpack
 import pytest
-import zmq
 from tactiled_client import BlockingReplay, BlockingSubscriber, Roughness, schema
 from tactiled_client.log import LogWriter
+
+from tests.conftest import xpub_socket
 
 # (field, wrong value, the line's end): each turned into a Roughness and handed to the controller before
 BAD = [("confidence", "high", "confidence is str 'high', not float | None"),
@@ -55,22 +56,16 @@ def _check(got: list[tuple[Roughness, int, str | None]]) -> None:
 
 def test_the_live_subscriber_skips_a_wrong_typed_field_and_goes_on(tmp_path: Path) -> None:
     endpoint = f"ipc://{tmp_path}/pub"
-    xpub: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.XPUB)
-    xpub.setsockopt(zmq.LINGER, 0)
-    xpub.bind(endpoint)
-    try:
-        with BlockingSubscriber(endpoint, topics=["roughness"], timeout=20.0) as sub:
-            assert xpub.poll(20_000), "the subscriber never subscribed"
-            xpub.recv()
-            for frames in _stream():
-                xpub.send_multipart(frames)
-            got = []
-            for _ in range(len(BAD) + 2):
-                msg = sub.receive()
-                assert isinstance(msg, Roughness)
-                got.append((msg, sub.malformed, sub.last_malformed))
-    finally:
-        xpub.close(linger=0)
+    with xpub_socket(endpoint) as xpub, BlockingSubscriber(endpoint, topics=["roughness"], timeout=20.0) as sub:
+        assert xpub.poll(20_000), "the subscriber never subscribed"
+        xpub.recv()
+        for frames in _stream():
+            xpub.send_multipart(frames)
+        got = []
+        for _ in range(len(BAD) + 2):
+            msg = sub.receive()
+            assert isinstance(msg, Roughness)
+            got.append((msg, sub.malformed, sub.last_malformed))
     _check(got)
 
 

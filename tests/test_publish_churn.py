@@ -23,14 +23,21 @@ def test_peers_that_come_and_go_leave_one_pending_trim_per_step(tmp_path: Path, 
     peers = 300
 
     async def main() -> int:
+        all_left = asyncio.Event()  # set by the publisher's own event handling once every peer's close was seen
+        seen = pub._on_event
+
+        def on_event(head: bytes) -> None:
+            seen(head)
+            if pub.departed >= peers:
+                all_left.set()
+
+        pub._on_event = on_event  # type: ignore[method-assign]
         task = asyncio.create_task(pub.limit_connections())
         try:
             for _ in range(peers):
                 with socket.socket(socket.AF_UNIX) as s:
                     s.connect(str(path))
-            async with asyncio.timeout(30):  # every connection seen to close (the monitor's events), then count
-                while pub.departed < peers:
-                    await asyncio.sleep(0.01)  # polling an event count, with a timeout
+            await asyncio.wait_for(all_left.wait(), 30)  # every connection seen to close (the monitor's events), then count
             return len(pub._trims_due)
         finally:
             task.cancel()
