@@ -161,7 +161,8 @@ class Daemon:
     async def run(self) -> None:
         """Read, publish and serve control until SIGTERM or SIGINT (or a finite source's end); SIGHUP reloads the model.
 
-        On the way out: a stopping status, sockets and the raw file closed, the recording written.
+        On the way out: a slide under way ends at the last sample read with its final label (reason ``end_of_stream``), then a
+        stopping status, sockets and the raw file closed, the recording written.
         """
         loop = asyncio.get_running_loop()
         s = self.config.sensor
@@ -321,7 +322,10 @@ class Daemon:
         """The source until it ends (a finite source: then the explicit end of stream), or until cancelled."""
         assert self.source is not None
         await self.source.run()
-        if self.stop_event.is_set():  # stopped, not the end of a finite source: a slide under way is not ended
+        # the end of a finite source, or a stop: a slide under way ends at the last sample read (reason end_of_stream, as the
+        # replay of its recording ends it at the file's end) and gets its final label; slides cut short by load shedding had
+        # ended already
+        if self.stop_event.is_set() and self.state.shedding:
             return
         step = self.stream.finish()
         self._keep(step.batches)
@@ -337,7 +341,7 @@ class Daemon:
         """The serial port is gone (unplugged, or a reader error): a slide in progress ends at the last sample read, its end
         published with reason ``schema.END_DISCONNECTED``, and gets its final label from the samples read (the live and shadow
         pipelines alike), as a gap longer than the ring ends one; the detector goes on with the samples after the
-        reconnection. Nothing changes if no slide is in progress, nor on a stop (a slide under way is not ended), for a
+        reconnection. Nothing changes if no slide is in progress, nor on a stop (the stream's end ends it, in :meth:`_read`), for a
         finite source (its end is the end of the stream), or while shedding load (slides already ended). A recording
         (``--record``) marks the disconnection after the rows read (its ``disconnected`` key): its replay ends the slide there too."""
         if self.stop_event.is_set() or self.state.shedding or not isinstance(self.source, SerialSource) or self.stream.pipeline is None:
