@@ -91,8 +91,10 @@ def feed(endpoint: str, sink: Any, consume: Any) -> dict[str, Any]:
         sent.append({"index": index, "n": n, "index_mono": msg.index_mono, "index_unix": msg.index_unix, "fs_clock": msg.fs_clock})
     for final, label in ((False, "Ra1.00"), (True, "Ra1.18"), (True, None)):
         r = SlideResult(4, 500, 2000, (1000, 1800), label, None if label else "low_confidence", 0.8, [("Ra1.18", 0.8)], {"samples": 800},
-                        final=final, used_s=0.05)
-        pub.publish(schema.roughness(SENSOR, r, fs=FS, model="m", version="t", to_host=clock.host))
+                        final=final, used_s=0.05, novelty=0.4)
+        msg = schema.roughness(SENSOR, r, fs=FS, model="m", version="t", to_host=clock.host)
+        msg.extra = {"grip_force_n": 1.5}  # a field of a newer daemon than the bridge knows: passed on all the same
+        pub.publish(msg)
     got = consume.collect(state)
     stop.set()
     thread.join(10)

@@ -80,6 +80,7 @@ def test_lsl_outlets_exist_from_start_up_carry_every_intact_sample_with_increasi
     labels = [m for m, _ in markers if m["event"] == "roughness"]
     assert [(m["label"], m["final"], m["reason"], m["model"]) for m in labels] == [("Ra1.00", False, None, "m"), ("Ra1.18", True, None, "m"),
                                                                                     (None, True, "low_confidence", "m")]
+    assert all(m["novelty"] == 0.4 for m in labels)
     assert all(abs(t - out["stop_mono"]) < 1e-6 for m, t in markers if m["event"] == "roughness")  # stamped at the slide's stop
 
 
@@ -110,6 +111,7 @@ def test_ros2_bridge_takes_ros_args_and_publishes_self_stamped_samples_and_json(
     assert [(j["label"], j["final"], j["reason"], j["top"]) for j in got["json"]] == [
         ("Ra1.00", False, None, [["Ra1.18", 0.8]]), ("Ra1.18", True, None, [["Ra1.18", 0.8]]), (None, True, "low_confidence", [["Ra1.18", 0.8]])]
     assert abs(got["json"][1]["stop_unix"] - out["stop_unix"]) < 2e-6
+    assert all(j["novelty"] == 0.4 and j["grip_force_n"] == 1.5 for j in got["json"])  # a newer daemon's field kept
     assert got["status"][-1]["state"] == "idle" and got["status"][-1]["level"] == [0.01, 0.02]
     name, message, values = got["diag"][-1][0]
     assert (name, message, values["state"], values["level"], values["clock_index"]) == ("tactiled/tip7", "idle", "idle", "[0.01, 0.02]", "null")

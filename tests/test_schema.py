@@ -50,6 +50,9 @@ def test_builders_write_only_schema_fields() -> None:
         assert set(body) <= msg.wire_fields() and msg.type in schema.TOPICS
         back = schema.parse(schema.topic(msg.type, "s"), body)
         assert back == msg and back.extra == {}
+    newer = {**built[0].to_map(), "grip_force_n": 1.5, "tags": ["a"]}  # fields of a newer daemon: kept when passed on
+    back = schema.parse(schema.topic(schema.ROUGHNESS, "s"), newer)
+    assert back.extra == {"grip_force_n": 1.5, "tags": ["a"]} and back.to_map() == newer
     start = built[1].to_map()
     assert "stop" not in start and "reason" not in start  # absent on start, as documented
     rough = built[0]

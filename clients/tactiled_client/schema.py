@@ -189,7 +189,8 @@ class Message:
         return {f.name for f in fields(cls)} - {"extra", "missed"}
 
     def to_map(self) -> dict[str, Any]:
-        """The msgpack map of this message (what the daemon sends)."""
+        """The msgpack map of this message (what the daemon sends): its known fields, then those of a newer daemon that this
+        client does not know (``extra``), so that what passes a message on (the ROS 2 bridge's JSON) keeps them."""
         out = {}
         for f in fields(self):
             if f.name in ("extra", "missed"):
@@ -198,6 +199,7 @@ class Message:
             if value is None and f.name in self.ABSENT_IF_NONE:
                 continue
             out[f.name] = value
+        out.update((k, v) for k, v in self.extra.items() if k not in out)
         return out
 
 

@@ -19,7 +19,8 @@ while it waits), from the config and the daemon's first status:
   differ from the outlet's makes the outlet again (same source id: LSL inlets recover).
 - ``tactiled-<id>-labels`` (type ``Markers``, one string channel, irregular rate): JSON markers.
   ``{"event": "roughness", label, reason, confidence, final, used_s, slide_id, start, stop,
-  model}`` per roughness message, stamped at the host time of the slide's ``stop``; and
+  model, novelty}`` per roughness message, stamped at the host time of the slide's ``stop`` (``slide_id`` begins again
+  when the daemon restarts: ``slide_id`` and ``start`` together name a slide); and
   ``{"event": "lost", "index": first lost sample, "count": n, "filled": NaN rows stand for it}`` per
   lost range, stamped at the time of its first sample; ``{"event": "lost", "index": null, "count":
   null, "next": index, "filled": false}`` when the index went back (a daemon restarted with a
@@ -43,7 +44,7 @@ from tactiled.extras import need
 
 log = logging.getLogger("tactiled")
 NAN_FILL_MAX_S = 30.0  # longest gap pushed as NaN rows (s at the nominal rate: 600 000 rows at 20 kHz, half the outlet's buffer)
-MARKER_FIELDS = ("label", "reason", "confidence", "final", "used_s", "slide_id", "start", "stop", "model")
+MARKER_FIELDS = ("label", "reason", "confidence", "final", "used_s", "slide_id", "start", "stop", "model", "novelty")
 
 
 def raw_description(info: Any, meta: StreamMeta, nan_lost: bool, nan_max_s: float = NAN_FILL_MAX_S) -> None:
