@@ -9,13 +9,14 @@ with the daemon's rounding.
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Awaitable, Callable
 from typing import Any
 
 import numpy as np
 import pytest
 
-from tactiled.board.clockmap import ClockMap
+from tactiled.board.clockmap import ClockMap, wall_offset
 
 FS, TRUE_FS, T0 = 20_000.0, 20_010.0, 100.0
 SETTLE_S = 3.0  # docs/integrations.md and docs/messages.md state this settling time
@@ -105,6 +106,16 @@ def test_unix_times_follow_the_wall_clock_slowly_and_its_steps_at_once() -> None
     assert np.all(np.diff([clock.host(i)[1] for i in range(0, 200 * 200, 100)]) > 0)
     clock.observe(201 * 200, T0 + 201 * 200 / FS + 0.002, wall - 5.0)  # a wall-clock step back by 5 s is followed at once
     assert abs(clock.host(201 * 200)[1] - clock.mono(201 * 200) - (wall - 5.0)) < 1e-6
+
+
+def test_the_wall_offset_is_read_between_two_monotonic_reads_and_a_preempted_triple_is_not_used() -> None:
+    """A thread preempted for 40 ms between reading the two clocks (a loaded host) put 40 ms into the offset, which the unix
+    map then took for a wall-clock step (over its 0.1 s) or slewed towards."""
+    offset = 1.7e9  # the true time.time() - time.monotonic()
+    mono = iter([10.0, 10.040, 10.1, 10.1 + 4e-7])  # the first triple preempted after its monotonic read; no third read
+    wall = iter([offset + 10.040, offset + 10.1 + 2e-7])
+    assert abs(wall_offset(3, lambda: next(mono), lambda: next(wall)) - offset) < 1e-6  # the second, tight triple: stopped there
+    assert abs(wall_offset() - (time.time() - time.monotonic())) < 0.01  # the real clocks
 
 
 def test_before_any_arrival_there_is_no_time() -> None:

@@ -47,9 +47,11 @@ Driven by the host clock by nature (it measures it); the pipeline never uses it.
 from __future__ import annotations
 
 import bisect
+import math
 import time
 from array import array
 from collections import deque
+from collections.abc import Callable
 
 BUCKET_S = 0.1  # one envelope point per this much host time
 MIN_SPAN_S = 2.0  # the rate is the nominal one until arrivals span this long
@@ -71,9 +73,21 @@ def rate_mismatch(sensor_id: str, measured: float, nominal: float) -> str | None
     return f"sensor {sensor_id}: samples arrive at about {measured:.0f} Hz, sensor.fs is {nominal:g} Hz: set [sensor] fs to the board's rate"
 
 
-def wall_offset() -> float:
-    """The host's ``time.time() - time.monotonic()`` now, s."""
-    return time.time() - time.monotonic()
+def wall_offset(tries: int = 3, monotonic: Callable[[], float] = time.monotonic, wall: Callable[[], float] = time.time) -> float:
+    """The host's ``time.time() - time.monotonic()`` now, s: the wall clock read between two monotonic reads, less their
+    midpoint, from the tightest of up to ``tries`` such triples. A thread preempted between two reads (a loaded host) would
+    otherwise put the preemption, milliseconds, into the offset: past :data:`WALL_BAND_S` the unix map slews, past a
+    map's ``wall_step_s`` it steps."""
+    best_gap, best = math.inf, 0.0
+    for _ in range(tries):
+        m0 = monotonic()
+        w = wall()
+        m1 = monotonic()
+        if m1 - m0 < best_gap:
+            best_gap, best = m1 - m0, w - 0.5 * (m0 + m1)
+        if best_gap <= 1e-6:
+            break
+    return best
 
 
 class ClockMap:
