@@ -127,3 +127,26 @@ def test_a_window_is_analysed_on_the_loop_only_while_analysis_is_cheap(tmp_path:
     daemon = _run_daemon(Config().override({"publish.endpoint": f"ipc://{tmp_path}/pub"}), 920, lambda d: None)
     assert daemon.pipeline.slides >= 1 and windows >= 3
     assert hops == (1 if inline_below_s else windows)  # cheap: the first in the thread, then on the loop; else all in the thread
+
+
+def test_bytes_read_just_before_the_port_fails_in_the_same_read_are_kept(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A USB serial device unplugged between two reads of one drain (a tty hands out at most ~4 kB a read) raises EIO on the
+    second: the first read's bytes were dropped with the exception. They are returned now, and the next drain meets the error."""
+    import types
+
+    import tactiled.board.serialsource as serialsource
+
+    chunks: list[bytes | OSError] = [b"a" * 4095, b"b" * 100, OSError(5, "Input/output error"), OSError(5, "Input/output error")]
+
+    def readv(fd: int, buffers: list[memoryview]) -> int:
+        item = chunks.pop(0)
+        if isinstance(item, OSError):
+            raise item
+        buffers[0][:len(item)] = item
+        return len(item)
+
+    monkeypatch.setattr(serialsource, "os", types.SimpleNamespace(readv=readv))
+    buf = bytearray(1 << 16)
+    assert serialsource._read_all(3, 1 << 16, buf) == b"a" * 4095 + b"b" * 100
+    with pytest.raises(OSError):
+        serialsource._read_all(3, 1 << 16, buf)

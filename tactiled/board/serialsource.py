@@ -484,6 +484,10 @@ def _read_all(fd: int, limit: int, buf: bytearray) -> bytes:
             n = os.readv(fd, [want])
         except BlockingIOError:
             break
+        except OSError:  # the port went (EIO) after bytes of this call: they go on, and the next call meets the error
+            if parts:
+                break
+            raise
         if not n:
             # a tty with VMIN = VTIME = 0 reads nothing when it has nothing; after a hangup it polls readable yet reads nothing
             if parts or not select.select([fd], [], [], 0)[0]:
