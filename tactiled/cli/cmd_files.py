@@ -127,12 +127,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
         path, rec = done.path, done.rec
         if done.interrupted_at is not None:  # Ctrl-C: what was done in this file, and no file after it
             size = rec.samples.shape[0] or None  # a capture's: not known (its recording has no samples yet)
-            print(f"{path}: {interrupted_line(done.results, rec, done.interrupted_at, size)}", file=summaries, flush=True)
+            print(f"{path}: {interrupted_line(done.results, rec, done.interrupted_at, size, done.classes)}", file=summaries, flush=True)
             return EXIT_FAIL
         if not paced:  # paced, each slide was printed as it stood
             for r, provisional in by_slide(done.results):
                 show(path, rec, r, provisional, done.model)
-        print(f"{path}: {summary_line(done.results, rec)}", file=summaries, flush=True)
+        print(f"{path}: {summary_line(done.results, rec, done.classes)}", file=summaries, flush=True)
     return EXIT_USAGE if failed else EXIT_OK
 
 

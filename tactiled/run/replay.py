@@ -9,7 +9,7 @@ back in positions of the file, and are paired here with the file's ground truth 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import replace
 from itertools import pairwise
 from typing import Any
@@ -73,8 +73,24 @@ def pair_results(rec: Recording, results: Sequence[SlideResult]) -> tuple[list[s
     return [], [], len(finals)
 
 
-def summary_line(results: list[SlideResult], rec: Recording) -> str:
-    """``N slides, L labelled, U unknown surface[, C of T true slides right]`` for one replayed recording."""
+def right_answers(truth: Sequence[str], paired: Sequence[SlideResult | None], taught: Collection[str] = ()) -> tuple[int, int]:
+    """(true slides answered right, of them slides of a surface the model was not taught called unknown) of ``truth`` and
+    the results ``paired`` with them (:func:`pair_results`): a label equal to the truth, or, for a surface not among
+    ``taught`` (given), no label with reason ``unknown_surface``, the right answer there (as ``score`` counts it)."""
+    right = rejected = 0
+    for t, p in zip(truth, paired, strict=True):
+        if p is None:
+            continue
+        if taught and t not in taught and p.label is None and p.reason == "unknown_surface":
+            rejected += 1
+        elif p.label == t:
+            right += 1
+    return right + rejected, rejected
+
+
+def summary_line(results: list[SlideResult], rec: Recording, taught: Collection[str] = ()) -> str:
+    """``N slides, L labelled, U unknown surface[, C of T true slides right]`` for one replayed recording; with the model's
+    ``taught`` surfaces, a slide of another surface called unknown counts right, and the line says how many."""
     finals = [r for r in results if r.final]
     labelled = sum(r.label is not None for r in finals)
     unknown = sum(r.reason == "unknown_surface" for r in finals)
@@ -82,8 +98,9 @@ def summary_line(results: list[SlideResult], rec: Recording) -> str:
     truth = rec.slides()
     if truth or rec.label is not None:
         t, paired, _ = pair_results(rec, results)
-        right = sum(p is not None and p.label == x for x, p in zip(t, paired, strict=True))
-        line += f", {right} of {len(t)} true slides right"
+        right, rejected = right_answers(t, paired, taught)
+        line += f", {right} of {len(t)} true slides right" + (f" ({rejected} of a surface the model was not taught, called unknown)"
+                                                              if rejected else "")
     lost = samples_lost(rec)
     return line + (f", {lost} samples lost" if lost else "")
 

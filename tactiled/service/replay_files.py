@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
@@ -35,7 +35,7 @@ from tactiled.run.heap import keep_freed_memory
 from tactiled.run.ingest import Batch
 from tactiled.run.pacer import Pacer
 from tactiled.run.pool import map_files, workers
-from tactiled.run.replay import BLOCK, collect, pair_results, replay_capture, replay_recording
+from tactiled.run.replay import BLOCK, collect, pair_results, replay_capture, replay_recording, right_answers
 
 if TYPE_CHECKING:
     from tactiled.service.publish import Publisher
@@ -44,7 +44,7 @@ if TYPE_CHECKING:
 @dataclass
 class Replayed:
     """One file of a replay: its ``path``, the recording replayed (a capture's decoded samples; None if unreadable),
-    every slide result in positions of the file, the fingerprint of the ``model`` used ("" for none), and the one-line
+    every slide result in positions of the file, the fingerprint of the ``model`` used ("" for none) and its ``classes``, and the one-line
     ``error`` that stopped it (None if it played). ``interrupted_at``: a paced replay stopped by Ctrl-C in this file, at
     this position (samples of the file fed; ``results`` are those so far); None: the file played to its end."""
 
@@ -54,6 +54,7 @@ class Replayed:
     model: str = ""
     error: str | None = None
     interrupted_at: int | None = None
+    classes: tuple[str, ...] = ()  # the surfaces the model was taught (none without a model)
 
 
 OnSlide = Callable[[str, Recording, SlideResult, list[SlideResult], str], None]
@@ -145,7 +146,7 @@ class _WatchedCapture(Capture):
             self.done()
 
 
-def interrupted_line(results: list[SlideResult], rec: Recording, position: int, size: int | None) -> str:
+def interrupted_line(results: list[SlideResult], rec: Recording, position: int, size: int | None, taught: Collection[str] = ()) -> str:
     """The summary of a file a paced replay was stopped in: where (``position`` of ``size`` samples; None: not known, a
     capture), the slides so far, and against the truth, the true slides that had ended by then."""
     finals = [r for r in results if r.final]
@@ -164,8 +165,9 @@ def interrupted_line(results: list[SlideResult], rec: Recording, position: int, 
     else:
         return line
     truth, paired, _ = pair_results(so_far, finals)
-    right = sum(p is not None and p.label == t for t, p in zip(truth, paired, strict=True))
-    return line + f", {right} of {len(truth)} true slides right (those ended by then)"
+    right, rejected = right_answers(truth, paired, taught)
+    return line + f", {right} of {len(truth)} true slides right (those ended by then" + (
+        f"; {rejected} of a surface the model was not taught, called unknown)" if rejected else ")")
 
 
 def replay_files(paths: Sequence[str], config: Config, choice: ModelChoice, *, block: int | None = None, speed: float | None = None,
@@ -253,6 +255,7 @@ def _replay_path(path: str, config: Config, choice: ModelChoice, block: int | No
     except ModelError as exc:  # a model of another rate or channel count than this file: its line, and the others go on
         return Replayed(path, None, [], error=str(exc))
     fingerprint = getattr(model, "fingerprint", "")
+    taught = tuple(getattr(model, "classes", ()) or ())
     pacer = Pacer(fs, speed)
     if block is None:
         block = paced_block(fs, speed) if speed else BLOCK
@@ -290,12 +293,12 @@ def _replay_path(path: str, config: Config, choice: ModelChoice, block: int | No
         live.finish()  # what was done: every slide ended so far
         if feed is not None:
             feed.finish(last=True)
-        return Replayed(path, live.rec, live.results, fingerprint, interrupted_at=live.position)
+        return Replayed(path, live.rec, live.results, fingerprint, interrupted_at=live.position, classes=taught)
     if feed is not None:
         feed.finish(last=last)
     if live is not None:
         live.finish()
-    return Replayed(path, rec, results, fingerprint)
+    return Replayed(path, rec, results, fingerprint, classes=taught)
 
 
 def no_frame(path: str, rec: Recording) -> str:

@@ -1,0 +1,22 @@
+"""Defects an outside audit of 2026-11-27 (the seventeenth session) reproduced, each with the test that fails without its mend."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def test_replays_summary_counts_an_untaught_surface_called_unknown_right_as_score_does() -> None:
+    """An outside audit: ``replay --model`` said "0 of 3 true slides right" of a surface the model was not taught, each
+    slide rightly called unknown, where ``score`` said "called unknown (the right answer)"."""
+    from tactiled.core.events import SlideResult
+    from tactiled.files.recording import Recording
+    from tactiled.run.replay import summary_line
+
+    rec = Recording(np.zeros((30_000, 2), dtype=np.int16), 20_000.0, 1e-4, slide_start=np.array([1000, 11_000, 21_000]),
+                    slide_stop=np.array([9000, 19_000, 29_000]), surface=np.array(["felt", "felt", "Ra1.00"]))
+    results = [SlideResult(1, 1000, 9000, (1000, 9000), None, "unknown_surface", 0.4, [], {}),
+               SlideResult(2, 11_000, 19_000, (11_000, 19_000), "Ra1.00", None, 0.8, [], {}),  # an untaught surface labelled: wrong
+               SlideResult(3, 21_000, 29_000, (21_000, 29_000), None, "unknown_surface", 0.4, [], {})]  # a taught one unknown: wrong
+    assert summary_line(results, rec, ("Ra1.00", "Ra1.18")).endswith(
+        "3 slides, 1 labelled, 2 unknown surface, 1 of 3 true slides right (1 of a surface the model was not taught, called unknown)")
+    assert summary_line(results, rec).endswith("0 of 3 true slides right")  # without the model's surfaces: as before
