@@ -415,7 +415,8 @@ def _pm(r: dict[str, Any]) -> str:
 def markdown(res: dict[str, Any], figures: list[str] | None) -> str:
     """report.md: the results of :func:`run_evaluation` as Markdown sections and tables, then the ``figures`` (PNG names;
     None: they were not drawn, matplotlib missing, which the report says)."""
-    out = [f"# Evaluation report\n\n{res['files']} recordings at {res['fs']:g} Hz, {res['channels']} channels; grouped {res['folds']}-fold{_folds_note(res)} "
+    channels = f"{res['channels']} channel{'s' if res['channels'] != 1 else ''}"
+    out = [f"# Evaluation report\n\n{res['files']} recordings at {res['fs']:g} Hz, {channels}; grouped {res['folds']}-fold{_folds_note(res)} "
            f"cross-validation (mean ± sd over folds; slides from the daemon's detector paired with the ground truth, every true slide counted); "
            f"{res['seconds']:.0f} s."
            + (f" Quick run: forward selection among the {res['sfs_pool']} features of largest ANOVA F in each fold." if res.get("sfs_pool") else "")
