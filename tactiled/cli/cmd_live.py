@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 
 from tactiled.cli import common as c
@@ -115,6 +116,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def add_commands(sub: Sub) -> None:
     """run, monitor, lsl, ros2, demo."""
     p = command(sub, "run", "the daemon: serial port -> roughness labels over ZeroMQ", cmd_run, "tactiled run --config my.toml --model my_model.npz")
+    p.set_defaults(log_level=logging.INFO)  # a service says what it runs and each model it swaps in (systemctl reload says nothing)
     p.add_argument("--config", help=c.CONFIG_HELP)
     p.add_argument("--port", help="serial device " + c.overrides("sensor.port"))
     p.add_argument("--model", help="model file (overrides model.path; default: the shipped model)")
