@@ -20,3 +20,36 @@ def test_replays_summary_counts_an_untaught_surface_called_unknown_right_as_scor
     assert summary_line(results, rec, ("Ra1.00", "Ra1.18")).endswith(
         "3 slides, 1 labelled, 2 unknown surface, 1 of 3 true slides right (1 of a surface the model was not taught, called unknown)")
     assert summary_line(results, rec).endswith("0 of 3 true slides right")  # without the model's surfaces: as before
+
+
+def test_an_ipv6_loopback_endpoint_binds_and_a_client_receives_on_it() -> None:
+    """``publish.endpoint = "tcp://[::1]:0"`` passed check-config, then ``run`` failed with "No such device", and a client
+    pointed at an IPv6 publisher heard nothing: ZeroMQ sockets are IPv4 only unless told."""
+    import socket
+
+    import pytest
+    from tactiled_client import BlockingSubscriber, NoData, Status, schema
+
+    from tactiled.config import PublishConfig
+    from tactiled.service.publish import Publisher
+
+    try:
+        with socket.socket(socket.AF_INET6) as probe:
+            probe.bind(("::1", 0))
+    except OSError:
+        pytest.skip("this host has no IPv6 loopback")
+    pub = Publisher(PublishConfig(endpoint="tcp://[::1]:0"))
+    try:
+        assert pub.endpoint.startswith("tcp://[::1]:")
+        with BlockingSubscriber(pub.endpoint, topics=["status"], timeout=0.05) as sub:
+            got = None
+            for _ in range(400):  # the subscription is in flight for a moment (ZeroMQ's slow joiner): publish until one arrives
+                pub.publish(schema.status("fingertip0", state=schema.STATE_IDLE))
+                try:
+                    got = sub.receive()
+                    break
+                except NoData:
+                    continue
+            assert isinstance(got, Status) and got.state == schema.STATE_IDLE
+    finally:
+        pub.close()

@@ -42,11 +42,23 @@ def local_endpoint(sensor: str = "fingertip0") -> str:
     return f"ipc://{path}"
 
 
+def allow_ipv6(sock: Any, endpoint: str) -> None:
+    """Turn IPv6 on for a ZeroMQ socket about to bind or connect ``endpoint`` when its host is an IPv6 address
+    (``tcp://[::1]:7350``): ZeroMQ sockets are IPv4 only unless told, and fail there with "No such device" (a bind) or
+    silence (a connect)."""
+    if endpoint.startswith("tcp://["):
+        import zmq
+
+        sock.setsockopt(zmq.IPV6, 1)
+
+
 def connect(sock: Any, endpoint: str) -> None:
-    """``sock.connect(endpoint)`` (a ZeroMQ socket); :class:`UsageError` naming ``endpoint`` when ZeroMQ cannot parse it
-    (``foo``, ``tcp://host`` without a port), where ZeroMQ raises a bare ``Invalid argument``."""
+    """``sock.connect(endpoint)`` (a ZeroMQ socket; IPv6 on for an IPv6 host, :func:`allow_ipv6`); :class:`UsageError`
+    naming ``endpoint`` when ZeroMQ cannot parse it (``foo``, ``tcp://host`` without a port), where ZeroMQ raises a bare
+    ``Invalid argument``."""
     import zmq
 
+    allow_ipv6(sock, endpoint)
     try:
         sock.connect(endpoint)
     except zmq.ZMQError as exc:

@@ -28,6 +28,7 @@ from pathlib import Path
 from types import TracebackType
 
 from tactiled_client import schema
+from tactiled_client.endpoints import allow_ipv6
 from tactiled_client.errors import EndOfLog, NoData, UsageError
 from tactiled_client.log import Entry, LogReader
 from tactiled_client.subscriber import _Filter, _Tracker
@@ -220,6 +221,7 @@ def publish(path: str | Path, endpoint: str, *, speed: float | None = 1.0, topic
     player = BlockingReplay(path, topics, sensor, None, speed)
     sock: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.XPUB)
     sock.setsockopt(zmq.LINGER, 2000)
+    allow_ipv6(sock, endpoint)
     try:
         sock.bind(endpoint)
     except zmq.ZMQError as exc:

@@ -17,6 +17,7 @@ import msgpack
 import zmq
 import zmq.asyncio
 import zmq.auth
+from tactiled_client.endpoints import allow_ipv6
 
 from tactiled.config import Config
 from tactiled.errors import ConfigError
@@ -39,6 +40,7 @@ def control_socket(config: Config, context: zmq.Context[Any]) -> zmq.asyncio.Soc
         sock.close()
         raise ConfigError(f"control.endpoint: another process already listens on {endpoint} (another daemon's control socket?); "
                           "stop it or give this one another endpoint")
+    allow_ipv6(sock, endpoint)
     try:
         sock.bind(endpoint)
     except zmq.ZMQError as exc:

@@ -21,7 +21,7 @@ from typing import Any, TypeVar
 import zmq
 import zmq.asyncio
 from tactiled_client import schema
-from tactiled_client.endpoints import AUTO, local_socket
+from tactiled_client.endpoints import AUTO, allow_ipv6, local_socket
 
 from tactiled import __version__
 from tactiled.config import PublishConfig
@@ -146,6 +146,7 @@ class Publisher:
         self._events.connect(monitor)
         try:
             address = bind_address(config.endpoint, sensor)
+            allow_ipv6(self.socket, address)
             self.socket.bind(address)
         except zmq.ZMQError as exc:
             self._close_sockets()
