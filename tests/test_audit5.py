@@ -53,3 +53,22 @@ def test_an_ipv6_loopback_endpoint_binds_and_a_client_receives_on_it() -> None:
             assert isinstance(got, Status) and got.state == schema.STATE_IDLE
     finally:
         pub.close()
+
+
+def test_a_clean_stop_removes_the_daemons_ipc_socket_files(tmp_path: object) -> None:
+    """After SIGTERM (exit 0) the publish and control sockets' files were left behind: ZeroMQ does not remove them."""
+    from pathlib import Path
+
+    from tactiled_client import BlockingSubscriber, Status
+
+    from tests.conftest import board_and_daemon, wait_for
+
+    tmp = Path(str(tmp_path))
+    config = tmp / "c.toml"
+    config.write_text(f'[control]\nendpoint = "ipc://{tmp}/ctl"\n')
+    with board_and_daemon(tmp, "--config", str(config)) as live, BlockingSubscriber(live.endpoint, topics=["status"], timeout=20) as sub:
+        wait_for(lambda: isinstance(sub.receive(), Status), timeout=60, what="a status")
+        assert (tmp / "pub").is_socket() and (tmp / "ctl").is_socket()
+        live.stop()
+    assert live.proc.returncode == 0
+    assert not (tmp / "pub").exists() and not (tmp / "ctl").exists()

@@ -213,6 +213,7 @@ def test_publishing_a_truncated_log_warns_as_the_json_replay_does(tmp_path: Path
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 2 and err[0].startswith(f"warning: {tmp_path / 'cut.tlog'}: ends inside a record at byte "), err
     assert err[1] == f"{tmp_path / 'cut.tlog'}: published 3 messages on ipc://{tmp_path}/pub"
+    assert not (tmp_path / "pub").exists()  # its socket's file removed as it stops
 
 
 def test_every_client_command_in_the_docs_parses_and_messages_md_names_the_schema_version() -> None:

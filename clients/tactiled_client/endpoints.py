@@ -8,6 +8,7 @@ The folder, first that applies: ``$TACTILED_RUNTIME_DIR``; ``$RUNTIME_DIRECTORY`
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,18 @@ def local_endpoint(sensor: str = "fingertip0") -> str:
     system = SYSTEM_DIR / f"{sensor}.sock"
     path = own if own.exists() or not system.exists() or "TACTILED_RUNTIME_DIR" in os.environ else system
     return f"ipc://{path}"
+
+
+def remove_socket_file(endpoint: str) -> None:
+    """Remove the socket file of an ``ipc://`` endpoint this process bound, as it stops: ZeroMQ leaves it (a regular file
+    there, or an abstract ``ipc://@name``, is left alone). Established connections are not affected, so what is still queued
+    for them goes out."""
+    if not endpoint.startswith("ipc://") or endpoint.startswith("ipc://@"):
+        return
+    path = Path(endpoint[len("ipc://"):])
+    with contextlib.suppress(OSError):
+        if path.is_socket():
+            path.unlink()
 
 
 def allow_ipv6(sock: Any, endpoint: str) -> None:

@@ -28,7 +28,7 @@ from pathlib import Path
 from types import TracebackType
 
 from tactiled_client import schema
-from tactiled_client.endpoints import allow_ipv6
+from tactiled_client.endpoints import allow_ipv6, remove_socket_file
 from tactiled_client.errors import EndOfLog, NoData, UsageError
 from tactiled_client.log import Entry, LogReader
 from tactiled_client.subscriber import _Filter, _Tracker
@@ -237,6 +237,7 @@ def publish(path: str | Path, endpoint: str, *, speed: float | None = 1.0, topic
             sent[entry.topic] = body["seq"] + 1
             sock.send_multipart([entry.topic.encode(), schema.pack(body)])
     finally:
+        remove_socket_file(endpoint)
         sock.close()
     if player.reader.truncated and warn is not None:
         warn(player.reader.truncated)

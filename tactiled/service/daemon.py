@@ -44,6 +44,7 @@ from typing import BinaryIO
 
 import numpy as np
 from tactiled_client import schema
+from tactiled_client.endpoints import remove_socket_file
 
 from tactiled import __version__
 from tactiled.board.clockmap import ClockMap, rate_mismatch
@@ -198,6 +199,7 @@ class Daemon:
             self.last_status = self._status_message(stopping=True)  # the CLI's one-line summary on the way out
             self.publisher.publish(self.last_status)
             if self.control is not None:
+                remove_socket_file(self.config.control.endpoint)
                 self.control.close()
             self.publisher.close()
             if tee is not None:

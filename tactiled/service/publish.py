@@ -21,7 +21,7 @@ from typing import Any, TypeVar
 import zmq
 import zmq.asyncio
 from tactiled_client import schema
-from tactiled_client.endpoints import AUTO, allow_ipv6, local_socket
+from tactiled_client.endpoints import AUTO, allow_ipv6, local_socket, remove_socket_file
 
 from tactiled import __version__
 from tactiled.config import PublishConfig
@@ -283,6 +283,7 @@ class Publisher:
         with contextlib.suppress(zmq.ZMQError):
             self.socket.disable_monitor()
         self._events.close(0)
+        remove_socket_file(getattr(self, "endpoint", ""))  # bound: ZeroMQ leaves the ipc socket's file behind
         self.socket.close(linger=0)
 
     def publish_event(self, sensor: str, ev: PipelineEvent, fs: float, model: str, detected_at: float | None = None,
