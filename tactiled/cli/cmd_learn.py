@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from tactiled.cli import common as c
 from tactiled.cli.common import EXIT_OK, EXIT_USAGE, Sub, command, config_of, files_done, say
@@ -51,19 +52,25 @@ def cmd_train(args: argparse.Namespace) -> int:
     check_output(args.output, args.force, (".npz",))  # before minutes of search, not after
     result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
                    scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by,
-                   novelty=args.novelty, ensemble=args.ensemble, speed=args.speed_copies,
+                   novelty=args.novelty, ensemble=args.ensemble, speed=args.speed_copies, gain=args.gain_tolerance / 100,
                    **({} if args.untaught_share is None else {"untaught": args.untaught_share}))
     fingerprint = result.model.save(args.output)  # before any line: a closed stdout (train ... | head) loses no model
     print(f"leaderboard (slide accuracy, grouped by {args.group_by}: mean ± sd over folds; * the choice, the simplest within one standard error "
-          "of the best):")
+          "of the best" + (" and of the best of those under another gain" if args.gain_tolerance else "") + "):")
     width = max(len(row["candidate"]) for row in result.leaderboard)
+    if args.gain_tolerance:
+        print(f"  (beside each, its mean accuracy with one film's gain {args.gain_tolerance:g} % higher or lower, as another unit of "
+              "the sensor can have; of the candidates within one standard error of the best, the choice is among those within one "
+              "of the best of them there)")
     for row in result.leaderboard:
         mark = "*" if row.get("chosen") else " "
-        print(f"{mark} {row['candidate']:<{width}s} {100 * row['mean']:5.1f} ± {100 * row['sd']:4.1f} %")
+        gain = f"; {100 * row['gain_mean']:5.1f} % at another gain" if "gain_mean" in row else ""
+        print(f"{mark} {row['candidate']:<{width}s} {100 * row['mean']:5.1f} ± {100 * row['sd']:4.1f} %{gain}")
         ens = row.get("ensemble")
         if ens:  # the chosen candidate with the spectral one (train --ensemble)
             what = "the model" if ens["used"] else "not used: more than one standard error below the chosen one"
             print(f"  {'+ ' + ens['partner']:<{width}s} {100 * ens['mean']:5.1f} ± {100 * ens['sd']:4.1f} % (the choice and it as an ensemble: {what})")
+    recall_line(result.nested, result.per_class)
     cal, nov = result.model.summary.get("calibration", {}), result.model.summary.get("novelty", {})
     if cal:
         early = result.model.summary.get("early_calibration", {})
@@ -93,13 +100,38 @@ def cmd_train(args: argparse.Namespace) -> int:
                   + ("; only a slide farther from every taught surface than they are from each other is called unknown" if far else
                      "; no slide will be called unknown"))
     print(f"{args.output}: {result.model.describe()}; fingerprint {fingerprint}")
-    print(ANOTHER_UNIT)
+    chosen = next((row for row in result.leaderboard if row.get("chosen")), {})
+    print(another_unit(args.gain_tolerance, chosen.get("mean"), chosen.get("gain_mean")))
     return EXIT_OK
+
+
+def recall_line(nested: dict[str, Any], per_class: dict[str, tuple[int, int, int]]) -> None:
+    """Print the nested estimate per surface (its three lowest recalls) and its balanced accuracy, with a note when the
+    surfaces' slide counts differ threefold or more (the estimate weighs each slide, so the larger surfaces count more)."""
+    recall = nested.get("recall") or {}
+    if not recall:
+        return
+    low = sorted(recall.items(), key=lambda kv: (kv[1], kv[0]))[:3]
+    print("nested CV per surface (recall of the choice on recordings it was not fitted on): lowest "
+          + ", ".join(f"{k} {v:.2f}" for k, v in low) + f"; balanced accuracy {nested['balanced']:.3f} (each surface alike)")
+    counts = [n for n, _, _ in per_class.values()]
+    if counts and min(counts) > 0 and max(counts) >= 3 * min(counts):
+        print(f"the surfaces have {min(counts)} to {max(counts)} slides: the nested estimate weighs each slide, so the larger surfaces "
+              "count more in it than in use on surfaces met alike; the balanced accuracy weighs each surface alike")
 
 
 ANOTHER_UNIT = ("these estimates hold for new recordings with the sensor unit that made the training recordings: another unit (a swapped or "
                 "re-glued fingertip) moves the films' resonances and gains, which can cost far more (in docs/evaluation.md, 25 to 40 points "
-                "on neighbouring grades); check it with tactiled score on a few of its labelled recordings, and teach them with tactiled enrol")
+                "on neighbouring grades{measured}); check it with tactiled score on a few of its labelled recordings, and teach them with "
+                "tactiled enrol")
+
+
+def another_unit(tolerance: float, mean: float | None, under: float | None) -> str:
+    """``train``'s last line: its estimates hold for the unit that recorded; with the choice's cross-validated accuracy
+    ``mean`` as recorded and ``under`` one film's gain ``tolerance`` per cent off, what that costs it."""
+    measured = (f"; here, with one film's gain {tolerance:g} % off, the choice's cross-validated accuracy is {100 * under:.1f} % against "
+                f"{100 * mean:.1f} % as recorded" if mean is not None and under is not None else "")
+    return ANOTHER_UNIT.format(measured=measured)
 
 
 def cmd_enrol(args: argparse.Namespace) -> int:
@@ -179,8 +211,9 @@ def cmd_score(args: argparse.Namespace) -> int:
         print("confidence: no slide of a taught surface to measure its calibration on (it is the probability of a right label on one)")
     if report["unpaired_detections"]:
         print(f"detections outside any true slide: {report['unpaired_detections']}")
+    width = max((len(cls) for cls in report["recall"]), default=0)  # names longer than 12 characters kept the column, shifted
     for cls, r in report["recall"].items():
-        print(f"  {cls:>12s}: recall {r:.3f}")
+        print(f"  {cls:>{max(12, width)}s}: recall {r:.3f}")
     return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
 
 
@@ -256,6 +289,13 @@ def add_commands(sub: Sub) -> None:
                         "on surfaces the model is not taught; the threshold calls known slides unknown (at most 5 %% of them by "
                         "cross-validation) only where the untaught slides it catches are worth it at this share; 0.5 weighs a caught "
                         "untaught slide and a rejected known one alike (default: 0.1)")
+    p.add_argument("--gain-tolerance", type=c.number_in(0, 100, "per cent"), default=20.0,
+                   help="how far each film's gain may lie from the recording unit's on another unit of the sensor (a swapped or "
+                        "re-glued fingertip, another amplifier): every candidate is also scored on its held-out slides with one "
+                        "film's gain that many per cent higher and lower, and of the candidates within one standard error of the "
+                        "best, those within one standard error of the best of them under that gain go on to the simplest, so that "
+                        "a model that tells surfaces apart by one film's level alone is not chosen when one as accurate holds; 0: "
+                        "as recorded only (default: %(default)g)")
     p.add_argument("--speed-copies", type=c.number_in(0, 30, "per cent"), default=0.0,
                    help="also learn from two copies of each training slide resampled as if slid this many per cent slower and "
                         "faster (its spectrum that much lower and higher), e.g. 5; copies are never scored, and the unknown-surface "

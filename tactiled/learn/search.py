@@ -65,7 +65,7 @@ import numpy.typing as npt
 
 from tactiled.config import Config
 from tactiled.core.analysis import AnalysisSettings, window_settings
-from tactiled.core.features import name_family
+from tactiled.core.features import channel_columns, feature_degree, name_family
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording
 from tactiled.learn.dataset import (
@@ -130,6 +130,13 @@ NOVELTY_DEFAULT = "spectrum"
 # docs/evaluation.md measured 5 %: the plain spectral candidates gain on new recordings of the same unit, train's choice
 # does not, on the same unit or another)
 SPEED_DEFAULT = 0.0
+# train --gain-tolerance: how far each film's gain may lie from the recording unit's on another unit of the sensor (a
+# swapped or re-glued fingertip, another amplifier), as a fraction. The search also scores every candidate on its held-out
+# slides with one film's gain that much higher and lower (gain_scales), and of the candidates within one standard error of
+# the best it keeps those within one standard error of the best of them under another gain (choose): a model that tells
+# surfaces apart by one film's level alone is not chosen when one as accurate holds under a gain change. 0: as recorded
+# only. 0.2 (±1.6 dB): docs/evaluation.md, *Another film gain in the choice*
+GAIN_DEFAULT = 0.2
 # named feature sets: "spectrum" is the plain whole-slide spectral classifier's input (log band energies of the
 # Welch PSD, log spectral centroid, kurtosis of each channel); "tex.<name>" is one texture descriptor
 ALIASES: dict[str, tuple[str, ...]] = {"spectrum": ("psd", "tex.centroid", "tex.kurtosis")}
@@ -303,16 +310,19 @@ def _scored_rows(ws: WindowSet, slides: npt.NDArray[np.intp]) -> npt.NDArray[np.
     return np.flatnonzero(np.isin(ws.slide, slides) & ws.originals())
 
 
-def slide_scores(ws: WindowSet, pipe: Any, cols: Sequence[int], test: npt.NDArray[np.intp], classes: list[str]) -> FloatArray:
+def slide_scores(ws: WindowSet, pipe: Any, cols: Sequence[int], test: npt.NDArray[np.intp], classes: list[str],
+                 scale: FloatArray | None = None) -> FloatArray:
     """Fused scores (len(test), K) of the slides ``test`` from a fitted pipeline: the mean of their windows' scores.
 
-    Columns follow ``classes``; classes the pipeline never saw and slides without windows get -inf.
+    Columns follow ``classes``; classes the pipeline never saw and slides without windows get -inf. ``scale`` (len(cols),):
+    each raw feature multiplied by it first (:func:`gain_scales`: the slides as another film gain would give them).
     """
     out = np.full((len(test), len(classes)), -np.inf)
     te = _scored_rows(ws, test)
     if not len(te):
         return out
-    raw = decision_scores(pipe[-1], pipe[:-1].transform(ws.x[te][:, cols]))
+    x = ws.x[te][:, cols]
+    raw = decision_scores(pipe[-1], pipe[:-1].transform(x if scale is None else x * scale))
     where = {s: i for i, s in enumerate(test)}
     sums = np.zeros((len(test), raw.shape[1]))
     counts = np.zeros(len(test))
@@ -490,21 +500,48 @@ def _restrict(ws: WindowSet, cols: list[int]) -> WindowSet:
     return replace(ws, x=ws.x[:, cols], names=[ws.names[j] for j in cols])
 
 
+def gain_scales(names: Sequence[str], tolerance: float) -> list[FloatArray]:
+    """One (F,) multiplier of raw features ``names`` per film and direction: that film's gain ``1 + tolerance`` times and
+    ``1 / (1 + tolerance)`` times what was recorded, the other films' as recorded. A feature of degree d (:func:`~tactiled.core.
+    features.feature_degree`: 2 for an energy or a band power, 1 for an rms, 0 for a shape) scales by gain**d, exactly. None
+    for a tolerance of 0."""
+    if tolerance <= 0:
+        return []
+    degrees = np.array([feature_degree(n) for n in names], dtype=np.float64)
+    out = []
+    for cols in channel_columns(tuple(names)):
+        for gain in (1.0 + tolerance, 1.0 / (1.0 + tolerance)):
+            scale = np.ones(len(names))
+            scale[cols] = gain ** degrees[cols]
+            out.append(scale)
+    return out
+
+
 def candidate_fold(ws: WindowSet, c: Candidate, train: npt.NDArray[np.intp], test: npt.NDArray[np.intp], classes: list[str], seed: int,
-                   inner_folds: int) -> FloatArray:
-    """Fused scores of the test slides from candidate ``c`` fitted on the train slides (selection inside them only)."""
+                   inner_folds: int, gain: float = GAIN_DEFAULT) -> FloatArray:
+    """Fused scores (1 + P, len(test), K) of the test slides from candidate ``c`` fitted on the train slides (selection inside
+    them only): as recorded, then under each of the P film gains of :func:`gain_scales` (``gain``: its tolerance; none at 0)."""
     tr = _window_rows(ws, train)
     if len(np.unique(ws.y[tr])) < 2:
-        return np.full((len(test), len(classes)), -np.inf)
+        return np.full((1 + len(gain_scales(ws.names, gain)), len(test), len(classes)), -np.inf)
     cols, pipe, _ = fit_candidate(ws, tr, c, seed, inner_folds)
-    return slide_scores(ws, pipe, cols, test, classes)
+    return np.stack([slide_scores(ws, pipe, cols, test, classes, scale) for scale in [None, *gain_scales([ws.names[j] for j in cols], gain)]])
 
 
 def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, list[tuple[Any, Any]]]], classes: list[str], seed: int,
-                    inner_folds: int) -> list[tuple[FloatArray, list[FloatArray]]]:
+                    inner_folds: int, gain: float = GAIN_DEFAULT) -> list[tuple[FloatArray, list[FloatArray]]]:
     """:func:`candidate_fold` on every (outer train, outer test, inner folds) split: the outer scores and each inner fold's."""
-    return [(candidate_fold(ws, c, tr, te, classes, seed, inner_folds),
-             [candidate_fold(ws, c, itr, ite, classes, seed, inner_folds) for itr, ite in inner]) for tr, te, inner in splits]
+    return [(candidate_fold(ws, c, tr, te, classes, seed, inner_folds, gain),
+             [candidate_fold(ws, c, itr, ite, classes, seed, inner_folds, gain) for itr, ite in inner]) for tr, te, inner in splits]
+
+
+def gain_accuracies(scores: FloatArray, y_idx: npt.NDArray[np.intp]) -> tuple[float, float | None]:
+    """(the accuracy as recorded, the mean accuracy under the P film gains or None without them) of one fold's
+    :func:`candidate_fold` scores (1 + P, n, K)."""
+    nominal = accuracy_of(scores[0], y_idx)
+    if len(scores) == 1:
+        return nominal, None
+    return nominal, float(np.mean([accuracy_of(sc, y_idx) for sc in scores[1:]]))
 
 
 def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
@@ -512,7 +549,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
            found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, method: str = "search", keep_models: bool = False,
            novelty: str = NOVELTY_DEFAULT, ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE,
            speed: float = SPEED_DEFAULT, check_usable: Callable[[UsableTable], Collection[str]] | None = None,
-           group_by: str = "file") -> SearchResult:
+           group_by: str = "file", gain: float = GAIN_DEFAULT) -> SearchResult:
     """Score every candidate, pick and refit the winner (see the module docstring).
 
     ``keep_models``: also refit every other candidate (``SearchResult.models``, by name; the winner alone under its name
@@ -527,8 +564,14 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     ``check_usable``: once every window set is analysed, before any fold, it is given the slides each surface has with a
     usable window (:func:`usable_table`); it raises, or returns the surfaces to train without. ``group_by``: what the
     slides' ``file`` numbers are, ``file`` or ``slide`` (``train --group-by slide``: the nested estimate is then
-    optimistic, its interval over slides, and ``nested`` says ``grouped_by: slide``).
+    optimistic, its interval over slides, and ``nested`` says ``grouped_by: slide``). ``gain`` (``train --gain-tolerance``):
+    every candidate is also scored on its held-out slides as another film gain would give them (:func:`gain_scales`), and
+    the choice, outer and inner, keeps of the candidates within one standard error of the best those within one standard
+    error of the best of them under another gain (:func:`choose`); the leaderboard and the nested estimate stay
+    accuracies as recorded.
     """
+    if not (math.isfinite(gain) and 0 <= gain <= 1):
+        raise TactiledError(f"--gain-tolerance: must be within 0 and 1, got {gain!r}")
     if ensemble not in ENSEMBLE_MODES:
         raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
     speeds = speed_option(speed)
@@ -605,47 +648,58 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     for c in usable:  # one task per candidate (its data crosses to a worker once); per outer fold for the slow forward selection
         splits = [(tr, te, folds_in) for (tr, te), folds_in in zip(outer, inner, strict=True)]
         parts = [[sp] for sp in splits] if c.sfs else [splits]
-        tasks += [(candidate_folds, (sets[_key(c)][1], c, part, classes, seed, inner_folds)) for part in parts]
+        tasks += [(candidate_folds, (sets[_key(c)][1], c, part, classes, seed, inner_folds, gain)) for part in parts]
     fits = [sum(1 + len(inner) for _, _, inner in t[1][2]) for t in tasks]  # model fits per task: each outer fold and its inner folds
     say(f"cross-validating {len(usable)} candidate(s) over {len(outer)} outer" + (f" x {inner_folds} inner" if nested_on else "")
         + f" folds: {sum(fits)} fits")
     results = iter(_run_with_progress(tasks, say, scheduler, [t[1][1].sfs for t in tasks], fits))
     board: list[dict[str, Any]] = []
     oof: dict[str, FloatArray] = {}
-    inner_acc: dict[str, list[list[float]]] = {}  # per candidate, per outer fold: the accuracy of each inner fold
+    inner_acc: dict[str, list[list[tuple[float, float | None]]]] = {}  # per candidate, per outer fold: each inner fold's accuracies
+    stressed_folds: list[list[float]] = []  # per candidate, per outer fold: the accuracy under another film gain (--gain-tolerance)
     for c in usable:
         ws = sets[_key(c)][1]
         scores = np.full((len(ws.slides), len(classes)), -np.inf)
-        accs, per_outer_inner = [], []
+        accs, stressed, per_outer_inner = [], [], []
         per_fold = [r for _ in range(len(outer) if c.sfs else 1) for r in next(results)]
         for (_, te), folds_in, (sc, inner_scores) in zip(outer, inner, per_fold, strict=True):
-            scores[te] = sc
-            accs.append(accuracy_of(sc, y_idx[te]))
-            per_outer_inner.append([accuracy_of(isc, y_idx[ite]) for (_itr, ite), isc in zip(folds_in, inner_scores, strict=True)])
+            scores[te] = sc[0]
+            nominal, under = gain_accuracies(sc, y_idx[te])
+            accs.append(nominal)
+            stressed += [] if under is None else [under]
+            per_outer_inner.append([gain_accuracies(isc, y_idx[ite]) for (_itr, ite), isc in zip(folds_in, inner_scores, strict=True)])
         oof[c.name] = scores
         inner_acc[c.name] = per_outer_inner
+        stressed_folds.append(stressed)
         board.append({"candidate": c.name, "families": list(c.families), "classifier": c.kind, "start_s": c.start_s, "duration_s": c.duration_s,
-                      "max_windows": c.max_windows, "sfs": c.sfs, "fusion": c.fusion, "mean": float(np.mean(accs)), "sd": float(np.std(accs)), "folds": accs})
+                      "max_windows": c.max_windows, "sfs": c.sfs, "fusion": c.fusion, "mean": float(np.mean(accs)), "sd": float(np.std(accs)), "folds": accs,
+                      **({"gain_mean": float(np.mean(stressed))} if stressed else {})})
     means = [float(r["mean"]) for r in board]
     order = sorted(range(len(board)), key=lambda i: -means[i])  # stable: ties keep the cheaper candidate
-    chosen = choose(usable, [r["folds"] for r in board])
+    chosen = choose(usable, [r["folds"] for r in board], stressed_folds if gain else None)
     board[chosen]["chosen"] = True
     leaderboard = [board[i] for i in order]
     best = usable[chosen]
     # nested: per outer fold, the rule applied to the inner folds' accuracies, its pick scored on that fold
     nested_accs, picks = [], []
     for o in range(len(outer)):
-        pick = choose(usable, [inner_acc[c.name][o] for c in usable]) if nested_on and grouping[o] != "none" else chosen
+        pick = (choose(usable, [[a for a, _ in inner_acc[c.name][o]] for c in usable],
+                       [[float(u) for _, u in inner_acc[c.name][o] if u is not None] for c in usable] if gain else None)
+                if nested_on and grouping[o] != "none" else chosen)
         picks.append(usable[pick].name)
         nested_accs.append(float(board[pick]["folds"][o]))
     nested_hits = np.concatenate([hits_of(oof[name][te], y_idx[te]) for name, (_, te) in zip(picks, outer, strict=True)])
     band = recording_interval(nested_hits, np.concatenate([files[te] for _, te in outer]))
+    nested_y = np.concatenate([y_idx[te] for _, te in outer])
+    recall = {k: float(nested_hits[nested_y == i].mean()) for i, k in enumerate(classes) if np.any(nested_y == i)}
     nested: dict[str, Any] = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks, "interval95": band,
+              "recall": recall, "balanced": float(np.mean(list(recall.values()))) if recall else None,
               **({"inner_grouped_by": "none" if "none" in grouping else "slide"} if set(grouping) - {"file"} else {}),
               **({"grouped_by": "slide"} if group_by == "slide" else {})}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
     summary: dict[str, Any] = {"cv_accuracy": nested, "winner": best.name, "leaderboard": shown, "files": len(recs),
-                               **({"speed_copies": speed} if speeds else {})}  # without copies, the model file as before them
+                               **({"speed_copies": speed} if speeds else {}),  # without copies, the model file as before them
+                               **({"gain_tolerance": gain} if gain else {})}
     alone = _refit(sets, best, oof[best.name], y_idx, classes, config, fs, channels, seed, inner_folds, method, summary, novelty, untaught,
                    windows_of[_key(best)])
     model, members, scores = alone, [(best, alone.temperature)], oof[best.name]
@@ -1219,17 +1273,22 @@ def complexity(c: Candidate) -> tuple[int, int, int]:
     return KIND_RANK[c.kind] + 2 * c.sfs, len(c.families) + (c.kbest > 0), int(c.fusion != "features")
 
 
-def choose(candidates: Sequence[Candidate], folds: Sequence[Sequence[float]]) -> int:
+def choose(candidates: Sequence[Candidate], folds: Sequence[Sequence[float]], stressed: Sequence[Sequence[float]] | None = None) -> int:
     """Index of the candidate to keep, from each candidate's accuracy per fold (the one-standard-error rule).
 
     The best mean accuracy sets the bar: its mean less one standard error (sd over folds / sqrt(folds)).
     Of the candidates at or above the bar, the simplest (:func:`complexity`) wins; among equally simple
     ones, the better mean, then the earlier in the list. With few recordings the top candidates are often
     within noise of each other, and the simpler one is the safer bet on new data (Hastie, Tibshirani and
-    Friedman, The Elements of Statistical Learning, 2nd ed., section 7.10).
+    Friedman, The Elements of Statistical Learning, 2nd ed., section 7.10). ``stressed`` (``train --gain-tolerance``):
+    each candidate's accuracy per fold under another film gain; of the candidates at or above the bar, those within one
+    standard error of the best of them under it go on to the simplest.
     """
     means = [float(np.mean(f)) if len(f) else 0.0 for f in folds]
-    return min(within_one_se(folds), key=lambda i: (complexity(candidates[i]), -means[i], i))
+    kept = within_one_se(folds)
+    if stressed is not None:
+        kept = [kept[j] for j in within_one_se([stressed[i] for i in kept])]
+    return min(kept, key=lambda i: (complexity(candidates[i]), -means[i], i))
 
 
 def within_one_se(folds: Sequence[Sequence[float]]) -> list[int]:

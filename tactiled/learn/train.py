@@ -11,6 +11,7 @@ naming it and why (``drop_rare``: left out, said, and listed in the summary's ``
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -36,6 +37,7 @@ from tactiled.learn.levels import learn_start_level
 from tactiled.learn.search import (
     ENSEMBLE_DEFAULT,
     ENSEMBLE_MODES,
+    GAIN_DEFAULT,
     NOVELTY_DEFAULT,
     NOVELTY_TESTS,
     SPEED_DEFAULT,
@@ -139,7 +141,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
           drop_rare: bool = False, scheduler: str | None = None, progress: Progress | None = None,
           candidates: Sequence[Candidate] | None = None, keep_models: bool = False, group_by: str = "file",
           novelty: str = NOVELTY_DEFAULT, ensemble: str = ENSEMBLE_DEFAULT, untaught: float = UNTAUGHT_SHARE,
-          speed: float = SPEED_DEFAULT) -> SearchResult:
+          speed: float = SPEED_DEFAULT, gain: float = GAIN_DEFAULT) -> SearchResult:
     """Train a model on labelled recordings; returns the search result (its ``model`` is ready to save).
 
     ``candidates`` narrows the default search (``method="auto"``) to the given ones; ``keep_models``: see
@@ -159,7 +161,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     whether the winner of the search and the plain spectral candidate make one model
     (:func:`~tactiled.learn.search.search`); ``quick`` and ``paper`` never do (their search has no spectral candidate).
     ``speed``: per cent slower and faster of the two speed-perturbed copies of each training slide the search also
-    learns from (0: none; ``paper`` never).
+    learns from (0: none; ``paper`` never). ``gain``: each film's gain tolerance the choice also weighs (``train
+    --gain-tolerance``, :func:`~tactiled.learn.search.search`; ``paper`` never).
     """
     say = progress or (lambda m: None)
     if method not in METHODS:
@@ -179,6 +182,8 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     if ensemble not in ENSEMBLE_MODES:
         raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
     speed_option(speed)  # before the recordings load
+    if not (math.isfinite(gain) and 0 <= gain <= 1):
+        raise TactiledError(f"--gain-tolerance: must be within 0 and 1, got {gain!r}")
     if scheduler is not None:  # "" too: an empty address is a mistake, not a request for the local cores
         check_scheduler(scheduler)  # likewise: a refused address is said at once, not after the analysis
     recs = load_recordings(paths, say)
@@ -239,7 +244,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
             candidates = quick_candidates()
         result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates,
                         keep_models=keep_models, novelty=novelty, ensemble=ensemble, untaught=untaught, speed=speed,
-                        check_usable=check, group_by=group_by)
+                        check_usable=check, group_by=group_by, gain=gain)
     result.model.start_level, note = learn_start_level([r for _, r in recs], spans, config.detector)
     result.model.start_front = front_end_settings(config.detector) if result.model.start_level is not None else None
     say(note)

@@ -1,0 +1,58 @@
+"""``train --gain-tolerance``: candidates scored as another film gain would give their held-out slides.
+
+The scaling of features by gain**degree must be what analysing the amplified samples gives; the choice must weigh it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tactiled.config import Config
+from tactiled.core.analysis import Analyser, window_settings
+from tactiled.errors import TactiledError
+from tactiled.learn.search import Candidate, choose, gain_accuracies, gain_scales
+
+
+def test_a_films_gain_scales_each_feature_as_analysing_the_amplified_samples_does() -> None:
+    """Every family (DWT in time and frequency, psd bands, texture) and every statistic: a film's samples times g give its
+    features times g**degree, and the other film's unchanged, to rounding (spike removal and the centring are linear)."""
+    config = Config()
+    st = window_settings(config, 2, 20_000.0, 0.5, ["dwt", "psd", "tex"])
+    assert st is not None
+    analyser = Analyser(st, 20_000.0, 1.0, integer=False)
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((4, 10_000, 2)) * [0.01, 0.02] + 0.003  # an offset too, as a DC-coupled film has
+    x[:, ::997, 0] += 0.3  # spikes, which spike removal takes out whatever the gain
+    def features(w: np.ndarray) -> np.ndarray:
+        return np.stack([r.features for r in analyser.analyse_many(w)])  # spike removal, then the features
+
+    base = features(x)
+    scales = gain_scales(st.names, 0.2)
+    assert len(scales) == 4  # two films, a gain higher and lower each
+    for k, (film, gain) in enumerate([(0, 1.2), (0, 1 / 1.2), (1, 1.2), (1, 1 / 1.2)]):
+        y = x.copy()
+        y[:, :, film] *= gain
+        np.testing.assert_allclose(features(y), base * scales[k], rtol=1e-7, atol=1e-300)
+    assert gain_scales(st.names, 0.0) == []
+
+
+def test_the_choice_keeps_of_the_candidates_within_noise_of_the_best_those_within_noise_of_the_best_under_another_gain() -> None:
+    y = np.array([0, 1, 0, 1])
+    right, wrong = np.eye(2)[y], np.eye(2)[1 - y]
+    assert gain_accuracies(right[None], y) == (1.0, None)  # no tolerance: the accuracy as recorded
+    assert gain_accuracies(np.stack([right, wrong, right, wrong, wrong]), y) == (1.0, 0.25)
+    simple, rich = Candidate(("psd",), "linear", 0.5), Candidate(("psd", "tex"), "svm", 0.5)
+    folds = [[0.90, 0.92, 0.94], [0.91, 0.93, 0.95]]  # within one standard error of each other
+    assert choose([simple, rich], folds) == 0  # the simplest
+    assert choose([simple, rich], folds, [[0.30, 0.35, 0.40], [0.80, 0.85, 0.90]]) == 1  # the simplest reads a level a gain moves
+    assert choose([simple, rich], folds, [[0.80, 0.84, 0.88], [0.81, 0.85, 0.89]]) == 0  # both hold: the simplest again
+    assert choose([simple, rich], [[0.5, 0.5, 0.5], [0.9, 0.9, 0.9]], [[0.5, 0.5, 0.5], [0.1, 0.1, 0.1]]) == 1  # only within noise of the best
+
+
+def test_train_refuses_a_gain_tolerance_outside_0_to_1(tmp_path: object) -> None:
+    from tactiled.learn.train import train
+
+    with pytest.raises(TactiledError, match="--gain-tolerance"):
+        train([], Config(), gain=float("nan"))
+
