@@ -72,3 +72,18 @@ def test_a_clean_stop_removes_the_daemons_ipc_socket_files(tmp_path: object) -> 
         live.stop()
     assert live.proc.returncode == 0
     assert not (tmp / "pub").exists() and not (tmp / "ctl").exists()
+
+
+def test_run_names_the_config_file_and_the_missing_folder_of_its_socket(tmp_path: object) -> None:
+    """check-config said "c.toml: publish.endpoint: the folder ... does not exist"; run said ZeroMQ's raw text without the file."""
+    from pathlib import Path
+
+    from tests.conftest import run_cli
+
+    tmp = Path(str(tmp_path))
+    config = tmp / "c.toml"
+    for key, section in (("publish.endpoint", "publish"), ("control.endpoint", "control")):
+        config.write_text(f'[{section}]\nendpoint = "ipc://{tmp}/nope/{section}.sock"\n')
+        res = run_cli("run", "--config", str(config), "--port", str(tmp / "no-port"), timeout=60)
+        assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+        assert f"{config}: {key}: cannot bind" in res.stderr and f"the folder {tmp}/nope does not exist" in res.stderr, res.stderr

@@ -9,7 +9,7 @@ import sys
 from tactiled.cli import common as c
 from tactiled.cli.common import EXIT_FAIL, EXIT_OK, Sub, command, config_of, say
 from tactiled.config import Config, endpoint_problem, subscribe_endpoint
-from tactiled.errors import TactiledError
+from tactiled.errors import ConfigError, TactiledError
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -39,8 +39,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         check_port(s.port)
 
     async def main() -> int:
-        daemon = Daemon(config, model, args.record, raw_to=args.raw, force=args.force, shadow=shadow,
-                        model_path=str(choice.file) if model is not None and choice.file else None)  # what SIGHUP loads again
+        try:
+            daemon = Daemon(config, model, args.record, raw_to=args.raw, force=args.force, shadow=shadow,
+                            model_path=str(choice.file) if model is not None and choice.file else None)  # what SIGHUP loads again
+        except ConfigError as exc:  # a socket its config names cannot be bound: the file too, as check-config says it
+            from_file = str(exc).startswith("control.") or (str(exc).startswith("publish.") and args.publish is None)
+            raise ConfigError(f"{args.config}: {exc}") if args.config and from_file else exc from None
         print(f"tactiled: sensor {s.id} on {s.port}, publishing on {daemon.endpoint}", file=sys.stderr, flush=True)
         try:
             await daemon.run()

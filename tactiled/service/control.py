@@ -21,7 +21,7 @@ from tactiled_client.endpoints import allow_ipv6
 
 from tactiled.config import Config
 from tactiled.errors import ConfigError
-from tactiled.service.publish import in_use, share_socket
+from tactiled.service.publish import bind_problem, in_use, share_socket
 
 COMMANDS = ("load", "shadow", "status")
 MAX_REQUEST_BYTES = 4096
@@ -45,7 +45,7 @@ def control_socket(config: Config, context: zmq.Context[Any]) -> zmq.asyncio.Soc
         sock.bind(endpoint)
     except zmq.ZMQError as exc:
         sock.close()
-        raise ConfigError(f"control.endpoint: cannot bind {endpoint}: {exc}") from None
+        raise ConfigError(f"control.endpoint: {bind_problem(endpoint, exc)}") from None
     if endpoint.startswith("ipc://"):  # as the publish socket: mode 660, publish.socket_group's users may connect
         share_socket(Path(endpoint[6:]), config.publish.socket_group)
     return sock

@@ -24,7 +24,7 @@ from tactiled_client import schema
 from tactiled_client.endpoints import AUTO, allow_ipv6, local_socket, remove_socket_file
 
 from tactiled import __version__
-from tactiled.config import PublishConfig
+from tactiled.config import PublishConfig, ipc_folder_problem
 from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideResumed, SlideStarted
 from tactiled.errors import ConfigError, OutputError
 from tactiled.files.outputs import check_folder, check_output
@@ -80,6 +80,12 @@ def bind_address(endpoint: str, sensor: str) -> str:
         raise ConfigError(f"publish.endpoint: another process already publishes on {endpoint} (another daemon for sensor "
                           f"{sensor}?); stop it or give this one another endpoint")
     return endpoint
+
+
+def bind_problem(endpoint: str, exc: zmq.ZMQError) -> str:
+    """Why ZeroMQ could not bind ``endpoint``, in words: a missing ipc folder as ``check-config`` says it, else ZeroMQ's."""
+    folder = ipc_folder_problem(endpoint)
+    return f"cannot bind {endpoint}: " + (folder[1].split(":")[0] + " (make it, or choose another path)" if folder else str(exc))
 
 
 def in_use(endpoint: str) -> bool:
@@ -150,7 +156,7 @@ class Publisher:
             self.socket.bind(address)
         except zmq.ZMQError as exc:
             self._close_sockets()
-            raise ConfigError(f"publish.endpoint: cannot bind {address}: {exc}") from None
+            raise ConfigError(f"publish.endpoint: {bind_problem(address, exc)}") from None
         except ConfigError:
             self._close_sockets()
             raise
