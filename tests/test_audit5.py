@@ -87,3 +87,12 @@ def test_run_names_the_config_file_and_the_missing_folder_of_its_socket(tmp_path
         res = run_cli("run", "--config", str(config), "--port", str(tmp / "no-port"), timeout=60)
         assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
         assert f"{config}: {key}: cannot bind" in res.stderr and f"the folder {tmp}/nope does not exist" in res.stderr, res.stderr
+
+
+def test_the_monitor_says_it_needs_a_terminal_when_its_output_is_not_one(tmp_path: object) -> None:
+    """Redirected to a file, ``tactiled monitor`` wrote nothing for as long as it ran, without a word."""
+    from tests.conftest import run_cli
+
+    res = run_cli("monitor", "--connect", f"ipc://{tmp_path}/pub", timeout=60)  # its stdout a pipe
+    assert res.returncode == 2 and res.stdout == "" and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert "not a terminal" in res.stderr and "tactiled_client record" in res.stderr

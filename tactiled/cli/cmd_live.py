@@ -75,7 +75,11 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     """The terminal view of a running daemon."""
     from tactiled.apps.monitor import run_monitor
 
-    return run_monitor(subscriber_endpoint(args, config_of(args)), args.truth)
+    endpoint = subscriber_endpoint(args, config_of(args))
+    if not sys.stdout.isatty():  # it redraws a screen: into a file or a pipe it would write nothing readable
+        raise TactiledError("monitor: its output is not a terminal (it redraws a screen); for lines to log or pipe, record the "
+                            f"session (python -m tactiled_client record {endpoint} session.tlog, then replay it with --json)")
+    return run_monitor(endpoint, args.truth)
 
 
 def cmd_lsl(args: argparse.Namespace) -> int:
