@@ -504,7 +504,8 @@ def gain_scales(names: Sequence[str], tolerance: float) -> list[FloatArray]:
     """One (F,) multiplier of raw features ``names`` per film and direction: that film's gain ``1 + tolerance`` times and
     ``1 / (1 + tolerance)`` times what was recorded, the other films' as recorded. A feature of degree d (:func:`~tactiled.core.
     features.feature_degree`: 2 for an energy or a band power, 1 for an rms, 0 for a shape) scales by gain**d, exactly. None
-    for a tolerance of 0."""
+    (an empty list) for a tolerance of 0. One film at a time: a model that reads one film meets its whole change, one that
+    reads several meets one of them at a time, where another unit moves them all at once (docs/evaluation.md)."""
     if tolerance <= 0:
         return []
     degrees = np.array([feature_degree(n) for n in names], dtype=np.float64)
