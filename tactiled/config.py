@@ -337,14 +337,20 @@ def endpoint_problem(endpoint: str, any_port: bool = True, connect: bool = False
     return f"{endpoint!r} is neither tcp:// nor ipc://"
 
 
+def missing_ipc_folder(endpoint: str) -> Path | None:
+    """The folder of an ``ipc://`` endpoint's socket when it does not exist, else None (not ipc, abstract, or it exists)."""
+    if not endpoint.startswith("ipc://") or endpoint.startswith(("ipc://@", "ipc://*")):
+        return None
+    folder = Path(endpoint[len("ipc://"):]).absolute().parent
+    return None if folder.is_dir() else folder
+
+
 def ipc_folder_problem(endpoint: str) -> tuple[bool, str] | None:
     """For an ``ipc://`` endpoint whose folder does not exist: (fatal, why), or None (not ipc, abstract, or the folder
     exists). ``tactiled run`` cannot bind there; under /run the folder is fatal only if nothing makes it first, which
     systemd does when a unit with ``RuntimeDirectory=`` starts (``/run/tactiled``): not fatal there."""
-    if not endpoint.startswith("ipc://") or endpoint.startswith(("ipc://@", "ipc://*")):
-        return None
-    folder = Path(endpoint[len("ipc://"):]).absolute().parent
-    if folder.is_dir():
+    folder = missing_ipc_folder(endpoint)
+    if folder is None:
         return None
     later = str(folder).startswith(RUN_DIRS)
     why = f"the folder {folder} does not exist: tactiled run cannot bind its socket there"

@@ -24,7 +24,7 @@ from tactiled_client import schema
 from tactiled_client.endpoints import AUTO, allow_ipv6, local_socket, remove_socket_file
 
 from tactiled import __version__
-from tactiled.config import PublishConfig, ipc_folder_problem
+from tactiled.config import PublishConfig, missing_ipc_folder
 from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideResumed, SlideStarted
 from tactiled.errors import ConfigError, OutputError
 from tactiled.files.outputs import check_folder, check_output
@@ -84,8 +84,8 @@ def bind_address(endpoint: str, sensor: str) -> str:
 
 def bind_problem(endpoint: str, exc: zmq.ZMQError) -> str:
     """Why ZeroMQ could not bind ``endpoint``, in words: a missing ipc folder as ``check-config`` says it, else ZeroMQ's."""
-    folder = ipc_folder_problem(endpoint)
-    return f"cannot bind {endpoint}: " + (folder[1].split(":")[0] + " (make it, or choose another path)" if folder else str(exc))
+    folder = missing_ipc_folder(endpoint)
+    return f"cannot bind {endpoint}: " + (f"the folder {folder} does not exist (make it, or choose another path)" if folder else str(exc))
 
 
 def in_use(endpoint: str) -> bool:
