@@ -236,7 +236,8 @@ def test_sighup_swaps_the_model_between_slides_and_refuses_a_bad_file(tmp_path: 
     assert len(refused) == 1 and str(live) in refused[0] and b in refused[0]
     swapped = [line for line in err.splitlines() if "reload: model" in line]  # said without -v: systemctl reload says nothing
     assert len(swapped) == 1 and b in swapped[0] and f"was {a}" in swapped[0], err
-    assert any(f"model {a}" in line and "publishing on" in line for line in err.splitlines()), err  # what it runs, at the start
+    assert any(line.endswith(f"sensor fingertip0, model {a}") for line in err.splitlines()), err  # what it runs, at the start
+    assert sum("publishing on" in line for line in err.splitlines()) == 1, err  # said once
     ends = [m.slide_id for m in got if isinstance(m, Slide) and m.event == "end"]
     finals = [m for m in got if isinstance(m, Roughness) and m.final]
     assert {m.slide_id for m in finals} >= set(ends[:-1]) and all(m.label is not None or m.reason for m in finals)

@@ -202,6 +202,8 @@ def test_train_prints_the_ensemble_beside_the_choice(trained: tuple[Path, Path, 
     assert "with spectrum / svm / 0.25 s / slide mean (ensemble)" in res.stderr  # the winner line
     model = load_model(tmp_path / "m.npz")
     assert model.partner is not None and f"{model.describe()}; fingerprint {model.fingerprint}" in lines[-2]  # the last: another unit
+    assert "the choice alone's (the model is it and its ensemble partner)" in lines[-1]  # its gain figure is the choice's alone
+    assert any(line.startswith("nested CV per surface (recall of the model on recordings") for line in lines)  # the ensemble's
 
 
 def test_the_winner_kept_beside_an_ensemble_is_the_model_without_one(trained: tuple[Path, Path, list[str]]) -> None:

@@ -56,3 +56,25 @@ def test_train_refuses_a_gain_tolerance_outside_0_to_1(tmp_path: object) -> None
     with pytest.raises(TactiledError, match="--gain-tolerance"):
         train([], Config(), gain=float("nan"))
 
+
+
+def test_the_papers_method_measures_the_gain_it_is_given_and_refuses_speed_copies(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``train --method paper --gain-tolerance 0`` wrote the 20 % figures and said "0 % off"; ``--speed-copies`` with it was
+    ignored without a word (a second outside audit)."""
+    import tactiled.learn.search as search_module
+    from tactiled.learn.train import train
+
+    given: dict[str, object] = {}
+    monkeypatch.setattr(search_module, "search", lambda *args, **kwargs: given.update(kwargs))
+    search_module.paper([], Config(), gain=0.0)
+    assert given["gain"] == 0.0
+    with pytest.raises(TactiledError, match="--speed-copies: not with --method paper"):
+        train([], Config(), method="paper", speed=5.0)
+
+
+def test_trains_lines_name_what_the_figures_are_of() -> None:
+    from tactiled.cli.cmd_learn import another_unit
+
+    assert "the choice's cross-validated accuracy is 14.2 % against 96.9 % as recorded" in another_unit(20, 0.969, 0.142)
+    assert "the choice alone's (the model is it and its ensemble partner)" in another_unit(20, 0.969, 0.142, ensemble=True)
+    assert "% off" not in another_unit(0, 0.969, None)  # no gain measured: no figure

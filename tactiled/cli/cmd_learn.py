@@ -59,9 +59,10 @@ def cmd_train(args: argparse.Namespace) -> int:
           "of the best" + (" and of the best of those under another gain" if args.gain_tolerance else "") + "):")
     width = max(len(row["candidate"]) for row in result.leaderboard)
     if args.gain_tolerance:
-        print(f"  (beside each, its mean accuracy with one film's gain {args.gain_tolerance:g} % higher or lower, as another unit of "
-              "the sensor can have; of the candidates within one standard error of the best, the choice is among those within one "
-              "of the best of them there)")
+        g = 1 + args.gain_tolerance / 100
+        print(f"  (beside each, its mean accuracy with one film's gain {g:g} times or 1/{g:g} times what was recorded, a film at a "
+              "time, as another unit of the sensor can have; of the candidates within one standard error of the best, the choice is "
+              "among those within one of the best of them there)")
     for row in result.leaderboard:
         mark = "*" if row.get("chosen") else " "
         gain = f"; {100 * row['gain_mean']:5.1f} % at another gain" if "gain_mean" in row else ""
@@ -70,7 +71,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         if ens:  # the chosen candidate with the spectral one (train --ensemble)
             what = "the model" if ens["used"] else "not used: more than one standard error below the chosen one"
             print(f"  {'+ ' + ens['partner']:<{width}s} {100 * ens['mean']:5.1f} ± {100 * ens['sd']:4.1f} % (the choice and it as an ensemble: {what})")
-    recall_line(result.nested, result.per_class)
+    recall_line(result.nested, result.per_class, args.group_by)
     cal, nov = result.model.summary.get("calibration", {}), result.model.summary.get("novelty", {})
     if cal:
         early = result.model.summary.get("early_calibration", {})
@@ -101,18 +102,20 @@ def cmd_train(args: argparse.Namespace) -> int:
                      "; no slide will be called unknown"))
     print(f"{args.output}: {result.model.describe()}; fingerprint {fingerprint}")
     chosen = next((row for row in result.leaderboard if row.get("chosen")), {})
-    print(another_unit(args.gain_tolerance, chosen.get("mean"), chosen.get("gain_mean")))
+    print(another_unit(args.gain_tolerance, chosen.get("mean"), chosen.get("gain_mean"), result.model.partner is not None))
     return EXIT_OK
 
 
-def recall_line(nested: dict[str, Any], per_class: dict[str, tuple[int, int, int]]) -> None:
+def recall_line(nested: dict[str, Any], per_class: dict[str, tuple[int, int, int]], group_by: str = "file") -> None:
     """Print the nested estimate per surface (its three lowest recalls) and its balanced accuracy, with a note when the
     surfaces' slide counts differ threefold or more (the estimate weighs each slide, so the larger surfaces count more)."""
     recall = nested.get("recall") or {}
     if not recall:
         return
     low = sorted(recall.items(), key=lambda kv: (kv[1], kv[0]))[:3]
-    print("nested CV per surface (recall of the choice on recordings it was not fitted on): lowest "
+    unseen = "recordings" if group_by == "file" else "slides (of recordings it was fitted on: optimistic)"
+    what = "the model" if nested.get("model") == "ensemble" else "the choice"
+    print(f"nested CV per surface (recall of {what} on {unseen} it was not fitted on): lowest "
           + ", ".join(f"{k} {v:.2f}" for k, v in low) + f"; balanced accuracy {nested['balanced']:.3f} (each surface alike)")
     counts = [n for n, _, _ in per_class.values()]
     if counts and min(counts) > 0 and max(counts) >= 3 * min(counts):
@@ -126,10 +129,12 @@ ANOTHER_UNIT = ("these estimates hold for new recordings with the sensor unit th
                 "tactiled enrol")
 
 
-def another_unit(tolerance: float, mean: float | None, under: float | None) -> str:
+def another_unit(tolerance: float, mean: float | None, under: float | None, ensemble: bool = False) -> str:
     """``train``'s last line: its estimates hold for the unit that recorded; with the choice's cross-validated accuracy
-    ``mean`` as recorded and ``under`` one film's gain ``tolerance`` per cent off, what that costs it."""
-    measured = (f"; here, with one film's gain {tolerance:g} % off, the choice's cross-validated accuracy is {100 * under:.1f} % against "
+    ``mean`` as recorded and ``under`` one film's gain ``tolerance`` per cent off, what that costs it (``ensemble``: the
+    model is the choice with its partner, and the figures are the choice's alone)."""
+    whose = "the choice alone's (the model is it and its ensemble partner)" if ensemble else "the choice's"
+    measured = (f"; here, with a film's gain {tolerance:g} % off, {whose} cross-validated accuracy is {100 * under:.1f} % against "
                 f"{100 * mean:.1f} % as recorded" if mean is not None and under is not None else "")
     return ANOTHER_UNIT.format(measured=measured)
 

@@ -63,7 +63,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run ``tactiled`` with ``argv`` (default: the process's arguments); returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    level = max(logging.DEBUG, getattr(args, "log_level", logging.WARNING) - 10 * min(args.verbose, 2))
+    level = min(getattr(args, "log_level", logging.WARNING), logging.WARNING - 10 * min(args.verbose, 2))  # -v info, -vv debug
     logging.basicConfig(level=level, format="tactiled: %(levelname)s: %(message)s", stream=sys.stderr)
     handler: Handler = args.handler
     one_blas_thread()

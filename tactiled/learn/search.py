@@ -691,10 +691,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         nested_accs.append(float(board[pick]["folds"][o]))
     nested_hits = np.concatenate([hits_of(oof[name][te], y_idx[te]) for name, (_, te) in zip(picks, outer, strict=True)])
     band = recording_interval(nested_hits, np.concatenate([files[te] for _, te in outer]))
-    nested_y = np.concatenate([y_idx[te] for _, te in outer])
-    recall = {k: float(nested_hits[nested_y == i].mean()) for i, k in enumerate(classes) if np.any(nested_y == i)}
     nested: dict[str, Any] = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks, "interval95": band,
-              "recall": recall, "balanced": float(np.mean(list(recall.values()))) if recall else None,
+              **per_surface(nested_hits, np.concatenate([y_idx[te] for _, te in outer]), classes),
               **({"inner_grouped_by": "none" if "none" in grouping else "slide"} if set(grouping) - {"file"} else {}),
               **({"grouped_by": "slide"} if group_by == "slide" else {})}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
@@ -722,7 +720,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
             model = ensemble_of(alone, own_t, partner, both, y_idx, sets[_key(best)][1].names)
             # the model written is the ensemble: its file states the ensemble's nested estimate (the winner alone's is kept)
             info["alone_nested"] = nested
-            nested = _nested_ensemble(oof, usable, picks, outer, y_idx, files, {best.name: own_t}, partner.temperature, nested)
+            nested = _nested_ensemble(oof, usable, picks, outer, y_idx, files, {best.name: own_t}, partner.temperature, nested, classes)
             band = nested["interval95"]
             model.summary = {**model.summary, "cv_accuracy": nested, "ensemble": info}
             members, scores = [(best, own_t), (SPECTRUM, partner.temperature)], both
@@ -752,9 +750,16 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     return result
 
 
+def per_surface(hits: npt.NDArray[np.bool_], y_idx: npt.NDArray[np.intp], classes: Sequence[str]) -> dict[str, Any]:
+    """``recall`` per surface of ``classes`` (those with slides) and the ``balanced`` accuracy (their mean; None without
+    any) of slides whose true class indices are ``y_idx`` and whose answers were right or not (``hits``)."""
+    recall = {k: float(hits[y_idx == i].mean()) for i, k in enumerate(classes) if np.any(y_idx == i)}
+    return {"recall": recall, "balanced": float(np.mean(list(recall.values()))) if recall else None}
+
+
 def _nested_ensemble(oof: dict[str, FloatArray], usable: Sequence[Candidate], picks: Sequence[str], outer: Sequence[tuple[Any, Any]],
                      y_idx: npt.NDArray[np.intp], files: npt.NDArray[Any], temperatures: dict[str, float], partner_temperature: float,
-                     alone: dict[str, Any]) -> dict[str, Any]:
+                     alone: dict[str, Any], classes: Sequence[str]) -> dict[str, Any]:
     """The nested estimate of ``train --ensemble``'s model, in the form of :func:`search`'s ``nested``: in each outer fold, the
     candidate the inner folds picked (``picks``) with :data:`SPECTRUM` as its partner where it may have one
     (:func:`can_partner`; alone where not), scored on that fold's out-of-fold scores ``oof``. Each member's temperature is
@@ -773,7 +778,8 @@ def _nested_ensemble(oof: dict[str, FloatArray], usable: Sequence[Candidate], pi
         hits.append(hits_of(sc, y_idx[te]))
     band = recording_interval(np.concatenate(hits), np.concatenate([files[te] for _, te in outer]))
     return {"mean": float(np.mean(accs)), "sd": float(np.std(accs)), "folds": accs, "picks": list(picks), "interval95": band,
-            "model": "ensemble", **{k: v for k, v in alone.items() if k in ("grouped_by", "inner_grouped_by")}}
+            "model": "ensemble", **per_surface(np.concatenate(hits), np.concatenate([y_idx[te] for _, te in outer]), classes),
+            **{k: v for k, v in alone.items() if k in ("grouped_by", "inner_grouped_by")}}
 
 
 def can_partner(best: Candidate, usable: Sequence[Candidate]) -> bool:
@@ -1426,7 +1432,9 @@ def paper(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int =
           progress: Progress | None = None, scheduler: str | None = None,
           found: tuple[list[list[LabelledSlide]], SlideCounts] | None = None, novelty: str = NOVELTY_DEFAULT,
           untaught: float = UNTAUGHT_SHARE, check_usable: Callable[[UsableTable], Collection[str]] | None = None,
-          group_by: str = "file") -> SearchResult:
-    """The papers' DWT + SFS + ELM (:data:`PAPER`), cross-validated the same way as :func:`search`, then fitted on everything."""
+          group_by: str = "file", gain: float = GAIN_DEFAULT) -> SearchResult:
+    """The papers' DWT + SFS + ELM (:data:`PAPER`), cross-validated the same way as :func:`search`, then fitted on everything
+    (``gain``: its accuracy under another film gain, reported; one candidate, nothing to choose)."""
     return search(recs, config, folds=folds, inner_folds=inner_folds, seed=seed, candidates=[PAPER], progress=progress, scheduler=scheduler,
-                  found=found, method="paper", novelty=novelty, untaught=untaught, speed=0.0, check_usable=check_usable, group_by=group_by)
+                  found=found, method="paper", novelty=novelty, untaught=untaught, speed=0.0, check_usable=check_usable, group_by=group_by,
+                  gain=gain)

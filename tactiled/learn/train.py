@@ -182,6 +182,9 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     if ensemble not in ENSEMBLE_MODES:
         raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
     speed_option(speed)  # before the recordings load
+    if method == "paper" and speed:
+        raise TactiledError("--speed-copies: not with --method paper (its forward selection over the copies would take several times "
+                            "as long); leave one of them out")
     if not (math.isfinite(gain) and 0 <= gain <= 1):
         raise TactiledError(f"--gain-tolerance: must be within 0 and 1, got {gain!r}")
     if scheduler is not None:  # "" too: an empty address is a mistake, not a request for the local cores
@@ -238,7 +241,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     check = usable_check(min_slides, drop_rare, group_by, say, unusable)
     if method == "paper":
         result = paper(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, novelty=novelty,
-                       untaught=untaught, check_usable=check, group_by=group_by)
+                       untaught=untaught, check_usable=check, group_by=group_by, gain=gain)
     else:
         if method == "quick" and candidates is None:
             candidates = quick_candidates()

@@ -173,7 +173,7 @@ class Daemon:
             if sig != signal.SIGHUP:
                 loop.add_signal_handler(sig, self.stop_event.set)
         loop.add_signal_handler(signal.SIGHUP, self._on_sighup)
-        log.info("tactiled %s: sensor %s on %s, publishing on %s, model %s", __version__, s.id, s.port, self.endpoint, self.fingerprint or "none")
+        log.info("tactiled %s: sensor %s, model %s", __version__, s.id, self.fingerprint or "none")  # the CLI said its port and endpoint
         sd_notify("READY=1")
         try:
             async with asyncio.TaskGroup() as tg:
