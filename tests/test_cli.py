@@ -149,7 +149,7 @@ def test_simulate_and_train_give_the_same_fingerprint_in_another_process(tmp_pat
     assert len(fingerprints[0]) == 1 and fingerprints[0] == fingerprints[1]
     assert load_model(tmp_path / "m1.npz").fingerprint == fingerprints[0][0]  # the file written loads back as the model printed
     last = outs[0][0].strip().splitlines()[-1]  # its estimates are said to hold for the unit that recorded, and what a gain costs
-    assert last.startswith(ANOTHER_UNIT.split("{")[0]) and "with a film's gain 20 % off, the choice's cross-validated accuracy is" in last
+    assert last.startswith(ANOTHER_UNIT.split("{")[0]) and "with the films' gains 20 % off, the choice's cross-validated accuracy is" in last
     assert "at another gain" in outs[0][0] and load_model(tmp_path / "m1.npz").summary["gain_tolerance"] == 0.2
 
 

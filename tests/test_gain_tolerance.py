@@ -16,7 +16,7 @@ from tactiled.learn.search import Candidate, choose, gain_accuracies, gain_scale
 
 def test_a_films_gain_scales_each_feature_as_analysing_the_amplified_samples_does() -> None:
     """Every family (DWT in time and frequency, psd bands, texture) and every statistic: a film's samples times g give its
-    features times g**degree, and the other film's unchanged, to rounding (spike removal and the centring are linear)."""
+    features times g**degree, to rounding (spike removal and the centring are linear), whatever the other film's gain."""
     config = Config()
     st = window_settings(config, 2, 20_000.0, 0.5, ["dwt", "psd", "tex"])
     assert st is not None
@@ -29,11 +29,12 @@ def test_a_films_gain_scales_each_feature_as_analysing_the_amplified_samples_doe
 
     base = features(x)
     scales = gain_scales(st.names, 0.2)
-    assert len(scales) == 4  # two films, a gain higher and lower each
-    for k, (film, gain) in enumerate([(0, 1.2), (0, 1 / 1.2), (1, 1.2), (1, 1 / 1.2)]):
-        y = x.copy()
-        y[:, :, film] *= gain
+    assert len(scales) == 4  # both films higher, both lower, and each higher with the other lower: every film moves
+    for k, gains in enumerate([(1.2, 1.2), (1 / 1.2, 1 / 1.2), (1.2, 1 / 1.2), (1 / 1.2, 1.2)]):
+        y = x * np.array(gains)
         np.testing.assert_allclose(features(y), base * scales[k], rtol=1e-7, atol=1e-300)
+    one = [n for n in st.names if n.startswith("film1.")]
+    assert len(gain_scales(one, 0.2)) == 2  # one film: higher and lower
     assert gain_scales(st.names, 0.0) == []
 
 

@@ -60,9 +60,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     width = max(len(row["candidate"]) for row in result.leaderboard)
     if args.gain_tolerance:
         g = 1 + args.gain_tolerance / 100
-        print(f"  (beside each, its mean accuracy with one film's gain {g:g} times or 1/{g:g} times what was recorded, a film at a "
-              "time, as another unit of the sensor can have; of the candidates within one standard error of the best, the choice is "
-              "among those within one of the best of them there)")
+        print(f"  (beside each, its mean accuracy with every film's gain {g:g} or 1/{g:g} times what was recorded, together and in "
+              "opposite directions, as another unit of the sensor can have; of the candidates within one standard error of the best, "
+              "the choice is among those within one of the best of them there)")
     for row in result.leaderboard:
         mark = "*" if row.get("chosen") else " "
         gain = f"; {100 * row['gain_mean']:5.1f} % at another gain" if "gain_mean" in row else ""
@@ -131,10 +131,10 @@ ANOTHER_UNIT = ("these estimates hold for new recordings with the sensor unit th
 
 def another_unit(tolerance: float, mean: float | None, under: float | None, ensemble: bool = False) -> str:
     """``train``'s last line: its estimates hold for the unit that recorded; with the choice's cross-validated accuracy
-    ``mean`` as recorded and ``under`` one film's gain ``tolerance`` per cent off, what that costs it (``ensemble``: the
+    ``mean`` as recorded and ``under`` the films' gains ``tolerance`` per cent off, what that costs it (``ensemble``: the
     model is the choice with its partner, and the figures are the choice's alone)."""
     whose = "the choice alone's (the model is it and its ensemble partner)" if ensemble else "the choice's"
-    measured = (f"; here, with a film's gain {tolerance:g} % off, {whose} cross-validated accuracy is {100 * under:.1f} % against "
+    measured = (f"; here, with the films' gains {tolerance:g} % off, {whose} cross-validated accuracy is {100 * under:.1f} % against "
                 f"{100 * mean:.1f} % as recorded" if mean is not None and under is not None else "")
     return ANOTHER_UNIT.format(measured=measured)
 
@@ -296,8 +296,9 @@ def add_commands(sub: Sub) -> None:
                         "untaught slide and a rejected known one alike (default: 0.1)")
     p.add_argument("--gain-tolerance", type=c.number_in(0, 100, "per cent"), default=20.0,
                    help="how far each film's gain may lie from the recording unit's on another unit of the sensor (a swapped or "
-                        "re-glued fingertip, another amplifier): every candidate is also scored on its held-out slides with one "
-                        "film's gain that many per cent higher and lower, and of the candidates within one standard error of the "
+                        "re-glued fingertip, another amplifier): every candidate is also scored on its held-out slides with every "
+                        "film's gain that many per cent higher or lower (together, and in opposite directions), and of the "
+                        "candidates within one standard error of the "
                         "best, those within one standard error of the best of them under that gain go on to the simplest, so that "
                         "a model that tells surfaces apart by one film's level alone is not chosen when one as accurate holds; 0: "
                         "as recorded only (default: %(default)g)")

@@ -132,7 +132,7 @@ NOVELTY_DEFAULT = "spectrum"
 SPEED_DEFAULT = 0.0
 # train --gain-tolerance: how far each film's gain may lie from the recording unit's on another unit of the sensor (a
 # swapped or re-glued fingertip, another amplifier), as a fraction. The search also scores every candidate on its held-out
-# slides with one film's gain that much higher and lower (gain_scales), and of the candidates within one standard error of
+# slides with every film's gain that much higher or lower (gain_scales), and of the candidates within one standard error of
 # the best it keeps those within one standard error of the best of them under another gain (choose): a model that tells
 # surfaces apart by one film's level alone is not chosen when one as accurate holds under a gain change. 0: as recorded
 # only. 0.2 (±1.6 dB): docs/evaluation.md, *Another film gain in the choice*
@@ -501,20 +501,27 @@ def _restrict(ws: WindowSet, cols: list[int]) -> WindowSet:
 
 
 def gain_scales(names: Sequence[str], tolerance: float) -> list[FloatArray]:
-    """One (F,) multiplier of raw features ``names`` per film and direction: that film's gain ``1 + tolerance`` times and
-    ``1 / (1 + tolerance)`` times what was recorded, the other films' as recorded. A feature of degree d (:func:`~tactiled.core.
-    features.feature_degree`: 2 for an energy or a band power, 1 for an rms, 0 for a shape) scales by gain**d, exactly. None
-    (an empty list) for a tolerance of 0. One film at a time: a model that reads one film meets its whole change, one that
-    reads several meets one of them at a time, where another unit moves them all at once (docs/evaluation.md)."""
+    """Multipliers (F,) of raw features ``names``, one per pattern of film gains another unit of the sensor can have: every
+    film's gain ``g = 1 + tolerance`` times what was recorded, every film's 1/g times, and (two films or more) the odd
+    films' g times and the even ones' 1/g times, and the reverse. Every pattern moves every film, as another unit does: a
+    model that reads one film's level meets every change, one that reads the films' levels against each other meets the
+    opposite ones, one that reads the spectrum's shape none. A feature of degree d (:func:`~tactiled.core.features.
+    feature_degree`: 2 for an energy or a band power, 1 for an rms, 0 for a shape) scales by gain**d, exactly. None (an
+    empty list) for a tolerance of 0."""
     if tolerance <= 0:
         return []
     degrees = np.array([feature_degree(n) for n in names], dtype=np.float64)
+    films = channel_columns(tuple(names))
+    g = 1.0 + tolerance
+    patterns = [[g] * len(films), [1 / g] * len(films)]
+    if len(films) > 1:
+        patterns += [[g if k % 2 == 0 else 1 / g for k in range(len(films))], [1 / g if k % 2 == 0 else g for k in range(len(films))]]
     out = []
-    for cols in channel_columns(tuple(names)):
-        for gain in (1.0 + tolerance, 1.0 / (1.0 + tolerance)):
-            scale = np.ones(len(names))
+    for pattern in patterns:
+        scale = np.ones(len(names))
+        for cols, gain in zip(films, pattern, strict=True):
             scale[cols] = gain ** degrees[cols]
-            out.append(scale)
+        out.append(scale)
     return out
 
 
@@ -526,7 +533,8 @@ def candidate_fold(ws: WindowSet, c: Candidate, train: npt.NDArray[np.intp], tes
     if len(np.unique(ws.y[tr])) < 2:
         return np.full((1 + len(gain_scales(ws.names, gain)), len(test), len(classes)), -np.inf)
     cols, pipe, _ = fit_candidate(ws, tr, c, seed, inner_folds)
-    return np.stack([slide_scores(ws, pipe, cols, test, classes, scale) for scale in [None, *gain_scales([ws.names[j] for j in cols], gain)]])
+    return np.stack([slide_scores(ws, pipe, cols, test, classes, None if scale is None else scale[cols])
+                     for scale in [None, *gain_scales(ws.names, gain)]])
 
 
 def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, list[tuple[Any, Any]]]], classes: list[str], seed: int,
