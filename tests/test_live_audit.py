@@ -170,7 +170,7 @@ def test_control_socket_is_shared_like_the_publish_socket_refused_when_taken_and
         second = subprocess.run(tactiled_cmd("run", "--config", str(config), "--port", str(tmp_path / "none"), "--publish",
                                              f"ipc://{tmp_path}/pub2", "--no-model"), capture_output=True, text=True, timeout=30, cwd=REPO)
         assert second.returncode == 2 and second.stderr.strip().splitlines() == [
-            f"tactiled: error: control.endpoint: another process already listens on {ctl} (another daemon's control socket?); "
+            f"tactiled: error: {config}: control.endpoint: another process already listens on {ctl} (another daemon's control socket?); "
             "stop it or give this one another endpoint"], second.stderr
         assert raw_request(ctl, {"cmd": "load", "path": str(tmp_path / "b.npz")}) == {"ok": True, "model": b}  # still the first's
 
