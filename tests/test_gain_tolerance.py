@@ -79,3 +79,16 @@ def test_trains_lines_name_what_the_figures_are_of() -> None:
     assert "the choice's cross-validated accuracy is 14.2 % against 96.9 % as recorded" in another_unit(20, 0.969, 0.142)
     assert "the choice alone's (the model is it and its ensemble partner)" in another_unit(20, 0.969, 0.142, ensemble=True)
     assert "% off" not in another_unit(0, 0.969, None)  # no gain measured: no figure
+
+
+def test_folds_that_happen_to_agree_do_not_make_the_best_mean_certain() -> None:
+    """Two folds at 96.0 % each gave the best a standard error of 0, and a candidate 0.7 points below it that held under
+    another gain (27 against 15 %) was left out (a second outside audit): the standard error is at least a proportion's."""
+    from tactiled.learn.search import within_one_se
+
+    folds = [[0.96, 0.96], [0.953, 0.953]]
+    assert within_one_se(folds) == [0]
+    assert within_one_se(folds, slides=150) == [0, 1]  # sqrt(0.96 * 0.04 / 150) = 1.6 points
+    meter, robust = Candidate(("dwt",), "svm", 0.25, kbest=8), Candidate(("psd", "tex"), "knn", 0.25, kbest=4)
+    assert choose([meter, robust], folds, [[0.15, 0.15], [0.27, 0.27]]) == 0
+    assert choose([meter, robust], folds, [[0.15, 0.15], [0.27, 0.27]], slides=150) == 1

@@ -16,8 +16,9 @@ the level that matters: the label of each whole slide, from its windows' fused s
 over every slide (a slide with no usable window counts as wrong); selection and scaling
 are fitted inside each training fold only. The leaderboard lists mean ± sd over outer
 folds. The winner is the simplest candidate whose mean is within one standard error of
-the best mean (:func:`choose`): with few recordings the top of the leaderboard is within
-noise, and the simpler candidate is the safer bet on new data. Its accuracy is estimated
+the best mean (:func:`choose`; the standard error at least a proportion's over the slides, :func:`within_one_se`), and
+with ``gain`` within one of the best of those under another unit's film gains (:func:`gain_scales`): with few
+recordings the top of the leaderboard is within noise, and the simpler candidate is the safer bet on new data. Its accuracy is estimated
 honestly by nested cross-validation: in each outer fold, the same rule on an inner grouped
 CV of the training files alone picks a candidate, which is then scored on the held-out
 files (where a surface has a single file in an outer fold's training part, as with two recordings per surface, the
@@ -685,7 +686,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
                       **({"gain_mean": float(np.mean(stressed))} if stressed else {})})
     means = [float(r["mean"]) for r in board]
     order = sorted(range(len(board)), key=lambda i: -means[i])  # stable: ties keep the cheaper candidate
-    chosen = choose(usable, [r["folds"] for r in board], stressed_folds if gain else None)
+    chosen = choose(usable, [r["folds"] for r in board], stressed_folds if gain else None, len(y_idx))
     board[chosen]["chosen"] = True
     leaderboard = [board[i] for i in order]
     best = usable[chosen]
@@ -693,7 +694,8 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     nested_accs, picks = [], []
     for o in range(len(outer)):
         pick = (choose(usable, [[a for a, _ in inner_acc[c.name][o]] for c in usable],
-                       [[float(u) for _, u in inner_acc[c.name][o] if u is not None] for c in usable] if gain else None)
+                       [[float(u) for _, u in inner_acc[c.name][o] if u is not None] for c in usable] if gain else None,
+                       len(outer[o][0]))
                 if nested_on and grouping[o] != "none" else chosen)
         picks.append(usable[pick].name)
         nested_accs.append(float(board[pick]["folds"][o]))
@@ -1288,7 +1290,8 @@ def complexity(c: Candidate) -> tuple[int, int, int]:
     return KIND_RANK[c.kind] + 2 * c.sfs, len(c.families) + (c.kbest > 0), int(c.fusion != "features")
 
 
-def choose(candidates: Sequence[Candidate], folds: Sequence[Sequence[float]], stressed: Sequence[Sequence[float]] | None = None) -> int:
+def choose(candidates: Sequence[Candidate], folds: Sequence[Sequence[float]], stressed: Sequence[Sequence[float]] | None = None,
+           slides: int = 0) -> int:
     """Index of the candidate to keep, from each candidate's accuracy per fold (the one-standard-error rule).
 
     The best mean accuracy sets the bar: its mean less one standard error (sd over folds / sqrt(folds)).
@@ -1297,20 +1300,25 @@ def choose(candidates: Sequence[Candidate], folds: Sequence[Sequence[float]], st
     within noise of each other, and the simpler one is the safer bet on new data (Hastie, Tibshirani and
     Friedman, The Elements of Statistical Learning, 2nd ed., section 7.10). ``stressed`` (``train --gain-tolerance``):
     each candidate's accuracy per fold under another film gain; of the candidates at or above the bar, those within one
-    standard error of the best of them under it go on to the simplest.
+    standard error of the best of them under it go on to the simplest. ``slides``: the slides the folds scored in all
+    (:func:`within_one_se`'s floor on the standard error).
     """
     means = [float(np.mean(f)) if len(f) else 0.0 for f in folds]
-    kept = within_one_se(folds)
+    kept = within_one_se(folds, slides)
     if stressed is not None:
-        kept = [kept[j] for j in within_one_se([stressed[i] for i in kept])]
+        kept = [kept[j] for j in within_one_se([stressed[i] for i in kept], slides)]
     return min(kept, key=lambda i: (complexity(candidates[i]), -means[i], i))
 
 
-def within_one_se(folds: Sequence[Sequence[float]]) -> list[int]:
-    """Indices of the candidates whose mean accuracy is at or above the best mean less its standard error (in order)."""
+def within_one_se(folds: Sequence[Sequence[float]], slides: int = 0) -> list[int]:
+    """Indices of the candidates whose mean accuracy is at or above the best mean less its standard error (in order).
+    ``slides``: how many slides the folds scored in all; the standard error is then at least a proportion's over them,
+    sqrt(p (1 - p) / slides): two or three folds that happen to agree (96.0 ± 0.0 %) do not make the best mean certain."""
     means = np.array([np.mean(f) if len(f) else 0.0 for f in folds])
     top = int(np.argmax(means))
-    bar = means[top] - standard_error(folds[top])
+    p = float(means[top])
+    floor = math.sqrt(max(p * (1.0 - p), 0.0) / slides) if slides > 0 else 0.0
+    bar = means[top] - max(standard_error(folds[top]), floor)
     return [i for i in range(len(folds)) if means[i] >= bar - 1e-12]
 
 
