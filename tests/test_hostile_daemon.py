@@ -285,15 +285,17 @@ def test_a_board_at_another_rate_than_configured_is_said_once(tmp_path: Path) ->
             if "samples arrive at about" in line:
                 said_it.set()
 
-    with board_and_daemon(tmp_path, "--no-model", speed=3.0) as live, \
+    config = tmp_path / "c.toml"
+    config.write_text("[publish]\nstatus_interval_s = 0.2\n")  # RATE_INTERVALS status intervals: 2 s, not the default's 5
+    with board_and_daemon(tmp_path, "--no-model", "--config", str(config), speed=3.0) as live, \
             BlockingSubscriber(live.endpoint, topics=["status"], timeout=30) as sub:
         reader = threading.Thread(target=read_stderr, args=(live.proc,), daemon=True)
         reader.start()
         status_where(sub, lambda m: m.fs_clock > 1.5 * m.fs_nominal, 60, "the rate measured")
-        # said after RATE_INTERVALS status intervals running off (5 s at the default), later on a loaded host
+        # said after RATE_INTERVALS status intervals running off, later on a loaded host
         assert said_it.wait(60), "".join(lines)
         now = status_where(sub, lambda m: True, 30, "a status")
-        status_where(sub, lambda m: m.uptime_s > now.uptime_s + 6.0, 30, "six more seconds of it")  # and not said again
+        status_where(sub, lambda m: m.uptime_s > now.uptime_s + 3.0, 30, "15 more intervals of it")  # and not said again
         live.proc.terminate()
         live.proc.wait(30)
         reader.join(10)
