@@ -52,6 +52,7 @@ sends it to a cluster through joblib's Dask backend instead.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import socket
 import time
@@ -297,6 +298,14 @@ def _window_rows(ws: WindowSet, slides: npt.NDArray[np.intp]) -> npt.NDArray[np.
     return np.flatnonzero(np.isin(ws.slide, slides))
 
 
+def gain_option(gain: float) -> float:
+    """``train --gain-tolerance`` ``gain`` (a fraction) if it is one (finite, 0 to 1), else a one-line :class:`TactiledError`
+    naming the option."""
+    if not (math.isfinite(gain) and 0 <= gain <= 1):
+        raise TactiledError(f"--gain-tolerance: must be within 0 and 1, got {gain!r}")
+    return gain
+
+
 def speed_option(speed: float) -> tuple[tuple[int, int], ...]:
     """The resampling ratios of ``train --speed-copies`` ``speed`` (:func:`~tactiled.learn.dataset.speed_ratios`), or a one-line
     :class:`TactiledError` naming the option."""
@@ -502,17 +511,23 @@ def _restrict(ws: WindowSet, cols: list[int]) -> WindowSet:
 
 
 def gain_scales(names: Sequence[str], tolerance: float) -> list[FloatArray]:
+    """:func:`gain_patterns` of ``names`` (computed once per set of names: every fold of every candidate asks)."""
+    return list(gain_patterns(tuple(names), tolerance))
+
+
+@functools.lru_cache(maxsize=16)
+def gain_patterns(names: tuple[str, ...], tolerance: float) -> tuple[FloatArray, ...]:
     """Multipliers (F,) of raw features ``names``, one per pattern of film gains another unit of the sensor can have: every
     film's gain ``g = 1 + tolerance`` times what was recorded, every film's 1/g times, and (two films or more) the odd
     films' g times and the even ones' 1/g times, and the reverse. Every pattern moves every film, as another unit does: a
     model that reads one film's level meets every change, one that reads the films' levels against each other meets the
     opposite ones, one that reads the spectrum's shape none. A feature of degree d (:func:`~tactiled.core.features.
-    feature_degree`: 2 for an energy or a band power, 1 for an rms, 0 for a shape) scales by gain**d, exactly. None (an
-    empty list) for a tolerance of 0."""
+    feature_degree`: 2 for an energy or a band power, 1 for an rms, 0 for a shape) scales by gain**d, exactly. Nothing (an
+    empty tuple) for a tolerance of 0."""
     if tolerance <= 0:
-        return []
+        return ()
     degrees = np.array([feature_degree(n) for n in names], dtype=np.float64)
-    films = channel_columns(tuple(names))
+    films = channel_columns(names)
     g = 1.0 + tolerance
     patterns = [[g] * len(films), [1 / g] * len(films)]
     if len(films) > 1:
@@ -522,8 +537,9 @@ def gain_scales(names: Sequence[str], tolerance: float) -> list[FloatArray]:
         scale = np.ones(len(names))
         for cols, gain in zip(films, pattern, strict=True):
             scale[cols] = gain ** degrees[cols]
+        scale.setflags(write=False)  # cached: shared by every caller
         out.append(scale)
-    return out
+    return tuple(out)
 
 
 def candidate_fold(ws: WindowSet, c: Candidate, train: npt.NDArray[np.intp], test: npt.NDArray[np.intp], classes: list[str], seed: int,
@@ -580,8 +596,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
     error of the best of them under another gain (:func:`choose`); the leaderboard and the nested estimate stay
     accuracies as recorded.
     """
-    if not (math.isfinite(gain) and 0 <= gain <= 1):
-        raise TactiledError(f"--gain-tolerance: must be within 0 and 1, got {gain!r}")
+    gain_option(gain)
     if ensemble not in ENSEMBLE_MODES:
         raise TactiledError(f"--ensemble: must be one of {', '.join(ENSEMBLE_MODES)}, got {ensemble!r}")
     speeds = speed_option(speed)

@@ -11,7 +11,6 @@ naming it and why (``drop_rare``: left out, said, and listed in the summary's ``
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -46,6 +45,7 @@ from tactiled.learn.search import (
     SearchResult,
     UsableTable,
     check_scheduler,
+    gain_option,
     paper,
     quick_candidates,
     reasons_text,
@@ -185,8 +185,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     if method == "paper" and speed:
         raise TactiledError("--speed-copies: not with --method paper (its forward selection over the copies would take several times "
                             "as long); leave one of them out")
-    if not (math.isfinite(gain) and 0 <= gain <= 1):
-        raise TactiledError(f"--gain-tolerance: must be within 0 and 1, got {gain!r}")
+    gain_option(gain)
     if scheduler is not None:  # "" too: an empty address is a mistake, not a request for the local cores
         check_scheduler(scheduler)  # likewise: a refused address is said at once, not after the analysis
     recs = load_recordings(paths, say)
