@@ -45,8 +45,9 @@ def test_a_stop_during_a_slide_ends_it_with_its_final_label_as_its_recording_rep
     final = [m for m in messages if isinstance(m, Roughness) and m.slide_id == open_id and m.final]
     assert len(end) == 1 and end[0].reason == "end_of_stream"
     assert len(final) == 1 and messages.index(final[0]) > messages.index(end[0]) and final[0].label is not None
-    # the recording ends with the last sample read: its replay ends that slide at the file's end, with the same label
+    # the recording ends with the last sample read: its replay ends that slide there too (where a quiet that began before
+    # the stop began, when the finger was already lifting: the end of a slide as its detector always places it), same label
     got = load_recording(tmp_path / "got.npz")
-    assert end[0].stop == got.first_index + got.samples.shape[0]
+    assert end[0].stop <= got.first_index + got.samples.shape[0]
     last = [r for r in replay_recording(got, Config(), load_model()) if r.final][-1]
     assert (last.start + got.first_index, last.stop + got.first_index, last.label) == (final[0].start, final[0].stop, final[0].label)
