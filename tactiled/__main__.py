@@ -1,5 +1,6 @@
-"""``python -m tactiled``: the command line as a process (:func:`tactiled.cli.main.run`: :func:`tactiled.cli.main`, its return value the exit code)."""
+"""``python -m tactiled``: the command line as a process (:func:`tactiled.cli.entry.run`: :func:`tactiled.cli.main.main`, its
+return value the exit code)."""
 
-from tactiled.cli.main import run
+from tactiled.cli.entry import run
 
 run()

@@ -8,6 +8,7 @@ import re
 import shlex
 import signal
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -328,3 +329,24 @@ def test_train_writes_its_model_when_its_output_is_closed_early(tmp_path: Path) 
     proc.stdout.close()  # the reader went away before the first line
     proc.wait(300)
     assert load_model(out).fingerprint
+
+
+@pytest.mark.parametrize("module", ["tactiled.config", "tactiled.cli.main"])
+@pytest.mark.parametrize("entry", ["console script", "-m"])
+def test_ctrl_c_while_the_command_line_imports_exits_1_without_a_traceback(module: str, entry: str) -> None:
+    """A real SIGINT, sent by the process to itself as ``module`` starts to import (the hook stands in for a user's quick
+    Ctrl-C, which lands there in a bare start-up's first ~40 ms): one exit 1, nothing on stderr, as a Ctrl-C during a command."""
+    start = ("from tactiled.cli.entry import run; run()" if entry == "console script"
+             else "import runpy; runpy.run_module('tactiled', run_name='__main__')")
+    code = ("import builtins, os, signal\n"
+            "real = builtins.__import__\n"
+            "def hook(name, *a, **k):\n"
+            f"    if name == {module!r}:\n"
+            "        builtins.__import__ = real\n"
+            "        os.kill(os.getpid(), signal.SIGINT)\n"
+            "    return real(name, *a, **k)\n"
+            "builtins.__import__ = hook\n"
+            "import sys; sys.argv = ['tactiled', '--help']\n" + start)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert (proc.returncode, proc.stderr) == (1, ""), proc.stderr
+    assert "usage:" not in proc.stdout  # stopped before the help
