@@ -7,6 +7,7 @@ import json
 import math
 import re
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -112,7 +113,8 @@ def test_a_grating_comes_out_unknown_and_new_recordings_of_taught_grades_keep_th
 def test_a_provisional_label_is_judged_against_the_threshold_of_as_many_windows(grades_and_gratings: tuple[Path, ...]) -> None:
     """The first windows of a slide estimate its spectrum less well than the whole slide: a provisional label's novelty is
     the distance over that many windows' threshold (fitted in training on the training slides' first windows), never a
-    stricter one than the final label's."""
+    stricter one than the whole training slides'. So is a whole slide's of as many windows (since 2026-11-27: short whole
+    slides of a taught surface came out unknown 4 to 8 times as often as long ones)."""
     from tactiled.core.analysis import Analyser
     from tactiled.files.recording import load_recording
 
@@ -125,11 +127,12 @@ def test_a_provisional_label_is_judged_against_the_threshold_of_as_many_windows(
     analyser = Analyser(m.settings, m.fs, rec.volts_per_count, integer=True)
     x = np.stack([r.features for r in analyser.analyse_many(np.stack([rec.samples[a:b] for a, b in m.settings.spans(start, stop, m.fs)]))
                   if r.features is not None])
+    whole = replace(m, novelty_prefix=())  # every slide held to the whole training slides' threshold
     for w in (1, 2, len(x)):
-        final, early = m.assess(x[:w])[2], m.assess(x[:w], final=False)[2]
-        assert final is not None and early is not None
+        final, early, plain = m.assess(x[:w])[2], m.assess(x[:w], final=False)[2], whole.assess(x[:w])[2]
+        assert final is not None and early is not None and plain is not None
         factor = m.novelty_prefix[min(w, len(m.novelty_prefix)) - 1]
-        assert early == pytest.approx(final / factor, rel=1e-12)
+        assert final == early == pytest.approx(plain / factor, rel=1e-12)
 
 
 def _rewritten(src: Path, dst: Path, change: Callable[[dict[str, Any], dict[str, Any]], None]) -> Path:

@@ -73,8 +73,9 @@ analysis whatever the classifier reads); a slide's novelty features are
 standardised by the arrays ``novelty_center`` and ``novelty_scale`` (B,); ``novelty_x`` (n, B) holds the training
 slides' so; ``novelty_surface_scale`` (S,) >= 1 divides each surface's distances (its surfaces in sorted order): a
 surface whose own recordings lie farther apart than the threshold is measured on its own scale.
-``header.novelty.prefix`` lists the distance thresholds of provisional labels from the first 1, 2, ... windows of a
-slide, as multiples (>= 1) of the final one (the last one holds beyond them; empty: the final one).
+``header.novelty.prefix`` lists the distance thresholds of slides of 1, 2, ... windows (a whole slide of that many, or a
+provisional label from a slide's first ones), as multiples (>= 1) of the whole training slides' one (the last one holds
+beyond them; empty: that one).
 ``header.inputs`` names the classifier's own columns (an ensemble's first member's are
 ``header.ensemble.member.names``, as in format 7); ``settings.names`` is the union of every part's columns.
 
@@ -351,7 +352,7 @@ class Model:
     novelty_names: tuple[str, ...] | None = None  # format 8: the psd columns whose spectral shape novelty_x holds; None: this classifier's inputs
     novelty_center: FloatArray | None = None  # format 8: (B,) the mean of the training slides' spectral shapes ...
     novelty_scale: FloatArray | None = None  # ... and (B,) their standard deviation (floored at SHAPE_SCALE_FLOOR): novelty_x's standardisation
-    novelty_prefix: tuple[float, ...] = ()  # format 8: the distance threshold of a provisional label from 1, 2, ... windows, times the final one
+    novelty_prefix: tuple[float, ...] = ()  # format 8: the distance threshold of a slide of 1, 2, ... windows, times the whole training slides' one
     novelty_surface_scale: FloatArray | None = None  # format 8: (S,) >= 1, each surface's distances divided by it (surfaces sorted)
     start_level: float | None = None  # the detector's envelope above which a stream begins in a slide (learnt from the training
     # recordings' rests and slides: tactiled.learn.levels); None: not learnt (a stream's start is then told by its changes)
@@ -448,13 +449,15 @@ class Model:
 
     def novelty_many(self, x: FloatArray, rows: Sequence[tuple[int, int]], final: bool = True) -> list[float | None]:
         """:meth:`novelty` of q slides, slide i the windows ``x[lo:hi]`` ((lo, hi) = ``rows[i]``) of raw features x (n, F),
-        each bit for bit (each slide's mean a row alone), in one pass over the training slides. Not ``final`` (the first
-        windows of a slide that goes on): the distance threshold of that many windows (:attr:`novelty_prefix`, the last one
-        beyond them), where the model has them."""
+        each bit for bit (each slide's mean a row alone), in one pass over the training slides. A slide of w windows, whole
+        or the first windows of one that goes on (not ``final``), is held to the distance threshold of w windows
+        (:attr:`novelty_prefix`, the last one beyond them), where the model has them: fewer windows estimate the spectrum less
+        well, and a new recording's short slides of a taught surface were called unknown 4 to 8 times as often as its long
+        ones under the whole slides' threshold. ``final`` is kept for callers' sake; the threshold is the same for both."""
         if self.novelty_x is None or not len(self.novelty_x):
             return [None] * len(rows)
         limit: float | FloatArray = self.novelty_distance_threshold
-        if not final and self.novelty_prefix:
+        if self.novelty_prefix:
             last = len(self.novelty_prefix)
             limit = limit * np.array([self.novelty_prefix[min(hi - lo, last) - 1] for lo, hi in rows])
         z = self.novelty_standardise(self.novelty_features(slice_means(x, rows)))

@@ -1,0 +1,75 @@
+"""An outside audit of the eighteenth session (2026-11-27): score names the recordings it skips for want of ground truth and
+lists no recall for a surface the model was never taught; a slide's novelty is held to the threshold of its own number of
+windows, final or provisional."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tactiled.sim.simulate import write_dataset
+from tests.conftest import cli_here
+
+
+@pytest.fixture(scope="module")
+def two_of_three(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[Path], list[Path]]:
+    """A quick model of two surfaces of three (robot scene, 2 files of 3 slides each), the recordings of those two and of the
+    third, which the model was never taught."""
+    root = tmp_path_factory.mktemp("two_of_three")
+    files = sorted(write_dataset(root / "sim", scene="robot", surfaces="3", files_per_surface=2, slides_per_file=3))
+    surfaces = sorted({str(np.load(f)["surface"][0]) for f in files})
+    taught = [f for f in files if str(np.load(f)["surface"][0]) != surfaces[1]]
+    untaught = [f for f in files if f not in taught]
+    model = root / "m.npz"
+    res = cli_here(None, "train", *map(str, taught), "-o", str(model), "--method", "quick", "--folds", "2")
+    assert res.returncode == 0, res.stderr
+    return model, taught, untaught
+
+
+def test_score_names_a_recording_without_ground_truth_and_exits_2(two_of_three: tuple[Path, list[Path], list[Path]], tmp_path: Path,
+                                                                   capfd: pytest.CaptureFixture[str]) -> None:
+    """A held-out file recorded without --label vanished from score's figures: "16/16 files" of 24 given, exit 0."""
+    model, taught, _ = two_of_three
+    bare = tmp_path / "bare.npz"
+    with np.load(taught[0]) as z:
+        arrays = {k: z[k] for k in z.files if k not in ("surface", "slide_start", "slide_stop", "ra_um", "label")}
+    np.savez(bare, **arrays)
+    for json_flag in ((), ("--json",)):
+        res = cli_here(capfd, "score", str(model), *map(str, taught[1:]), str(bare), *json_flag)
+        assert res.returncode == 2, res.stderr
+        assert f"skipped: {bare}: no ground truth (neither per-slide surfaces nor a file label)" in res.stderr
+    res = cli_here(capfd, "score", str(model), *map(str, taught[1:]))
+    assert res.returncode == 0 and "skipped" not in res.stderr, res.stderr
+
+
+def test_score_lists_no_recall_for_a_surface_the_model_was_never_taught(two_of_three: tuple[Path, list[Path], list[Path]],
+                                                                         capfd: pytest.CaptureFixture[str]) -> None:
+    """Its line says how its slides came out; a "recall 0.000" under it read as a total failure."""
+    model, taught, untaught = two_of_three
+    res = cli_here(capfd, "score", str(model), *map(str, taught + untaught))
+    assert res.returncode == 0, res.stderr
+    name = str(np.load(untaught[0])["surface"][0])
+    recalls = [line.split(":")[0].strip() for line in res.stdout.splitlines() if ": recall " in line]
+    assert f"not a surface of the model: {name}," in res.stdout
+    assert sorted(recalls) == sorted({str(np.load(f)["surface"][0]) for f in taught}), res.stdout
+
+
+def test_a_slide_is_held_to_the_novelty_threshold_of_its_own_number_of_windows(two_of_three: tuple[Path, list[Path], list[Path]]) -> None:
+    """A slide of w windows, whole (final) or the first windows of one that goes on, is measured against the distance
+    threshold of w windows: whole short slides of a taught surface were called unknown 4 to 8 times as often as long ones."""
+    from tactiled.learn.model import load_model
+
+    model, _, _ = two_of_three
+    base = replace(load_model(model), novelty_threshold=math.inf)  # the distance part alone: the novelty is distance / threshold
+    assert base.novelty_names is not None and np.isfinite(base.novelty_distance_threshold)
+    x = np.random.default_rng(0).normal(size=(9, len(base.names)))
+    rows = [(0, 1), (1, 3), (3, 9)]  # 1, 2 and 6 windows
+    plain = base.novelty_many(x, rows)
+    loose = replace(base, novelty_prefix=(4.0, 2.0, 1.5))  # beyond its last entry, the last one
+    final, provisional = loose.novelty_many(x, rows, final=True), loose.novelty_many(x, rows, final=False)
+    assert final == provisional
+    assert final == pytest.approx([p / f for p, f in zip(plain, (4.0, 2.0, 1.5), strict=True)], rel=1e-12)  # type: ignore[operator]
