@@ -6,11 +6,14 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tactiled.cli import common as c
 from tactiled.cli.common import EXIT_OK, EXIT_USAGE, Sub, command, config_of, files_done, say
 from tactiled.errors import TactiledError
+
+if TYPE_CHECKING:
+    from tactiled.files.recording import Recording
 
 EXPERIMENTS = "abcdefg"
 
@@ -165,6 +168,18 @@ def untaught_line(surface: str, slides: int, unknown: int, labelled: int) -> str
             + (f", {' and '.join(rest)}" if rest else ""))
 
 
+def with_ground_truth(recs: list[tuple[str, Recording]]) -> list[tuple[str, Recording]]:
+    """The recordings (name, recording) that carry ground truth (per-slide surfaces or a file label, which names the surface
+    of each slide the detector finds: tactiled.learn.dataset); each other one is named in a line, skipped."""
+    kept = []
+    for name, rec in recs:
+        if rec.slides() or rec.label is not None:
+            kept.append((name, rec))
+        else:
+            say(f"skipped: {name}: no ground truth (neither per-slide surfaces nor a file label)")
+    return kept
+
+
 def cmd_score(args: argparse.Namespace) -> int:
     """Accuracy, coverage and calibration of a model over every true slide of held-out recordings."""
     from tactiled.learn.dataset import check_distinct, load_recordings
@@ -176,7 +191,7 @@ def cmd_score(args: argparse.Namespace) -> int:
     recs = load_recordings(args.files, say)
     for name, rec in recs:
         model.check_stream(rec.fs, rec.channels, name, args.model)
-    scored = [(n, r) for n, r in recs if r.slides() or r.label is not None]
+    scored = with_ground_truth(recs)
     if not scored:
         raise TactiledError("no recording with ground truth (per-slide surfaces or a file label) to score")
     # as train: one recording given twice (or a copy of it) would count its slides twice; one with per-slide truth is refused
@@ -191,7 +206,7 @@ def cmd_score(args: argparse.Namespace) -> int:
     check_distinct([rec for rec, f in zip(scored, report["files"], strict=True) if f["slides"]])
     if args.json:
         print(json.dumps(report))
-        return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
+        return EXIT_OK if len(scored) == len(args.files) else EXIT_USAGE
     band = report["taught_interval95"]
     within = f", 95 % interval over recordings {band[0]:.4f}-{band[1]:.4f}" if band else ""
     headline = (f"accuracy {report['taught_accuracy']:.4f} ({report['taught_correct']} of {report['taught_n']} true slides of taught "
@@ -216,10 +231,11 @@ def cmd_score(args: argparse.Namespace) -> int:
         print("confidence: no slide of a taught surface to measure its calibration on (it is the probability of a right label on one)")
     if report["unpaired_detections"]:
         print(f"detections outside any true slide: {report['unpaired_detections']}")
-    width = max((len(cls) for cls in report["recall"]), default=0)  # names longer than 12 characters kept the column, shifted
-    for cls, r in report["recall"].items():
+    taught = {cls: r for cls, r in report["recall"].items() if cls not in report["untaught"]}  # the untaught have their lines above
+    width = max((len(cls) for cls in taught), default=0)  # names longer than 12 characters kept the column, shifted
+    for cls, r in taught.items():
         print(f"  {cls:>{max(12, width)}s}: recall {r:.3f}")
-    return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
+    return EXIT_OK if len(scored) == len(args.files) else EXIT_USAGE  # the files skipped (unreadable, no ground truth) were named
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -231,14 +247,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     config = config_of(args)
     check_folder(args.report, args.force)  # before minutes of experiments, not after
-    readable = load_recordings(args.files, say)
-    # as train: a file with only a file-level label gives the detector's slides that label (tactiled.learn.dataset)
-    recs = []
-    for name, rec in readable:
-        if rec.slides() or rec.label is not None:
-            recs.append((name, rec))
-        else:
-            say(f"skipped: {name}: no ground truth (neither per-slide surfaces nor a file label)")
+    recs = with_ground_truth(load_recordings(args.files, say))
     if len(recs) < 2:
         raise TactiledError("evaluation needs at least two readable recordings with ground truth (per-slide surfaces or a file label)")
     check_recordings(recs, len(recs))  # one rate and channel count, no recording twice
