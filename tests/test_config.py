@@ -92,14 +92,23 @@ def test_check_config_cli(tmp_path: Path) -> None:
 
 
 def test_check_config_says_whether_run_would_find_a_model(tmp_path: Path) -> None:
-    """A sensor at 2.2 kHz on one channel: the config is valid, but the shipped model does not fit it (a note: a config for
-    record needs no model); a model.path that does not fit is an error naming the key, as run refuses it."""
+    """A sensor at 2.2 kHz on one channel: the config is valid, but the shipped model does not fit it and no model.path is
+    set, so run would refuse it: an error naming the key (it said "ok" and exit 0, an outside audit found); with --no-model
+    (a config for record or run --no-model) it is ok. A model.path that does not fit is an error naming the key, as run
+    refuses it."""
     sensor = "[sensor]\nfs = 2200\nchannels = 1\n"
     one = tmp_path / "one.toml"
     one.write_text(sensor)
     res = run_cli("check-config", str(one))
-    assert res.returncode == 0 and res.stdout.strip() == f"{one}: ok", res.stderr
-    assert "shipped model not used: model trained at fs 20000 Hz" in res.stderr and "tactiled run needs a model" in res.stderr
+    assert res.returncode == 2 and res.stdout == "", res.stdout
+    assert res.stderr.strip().splitlines() == [
+        f"tactiled: error: {one}: model.path: not set, and the shipped model does not fit this sensor (model trained at fs 20000 Hz, "
+        "sensor fingertip0 is 2200 Hz): tactiled run would refuse it; train one (tactiled train) and set model.path, or check a "
+        "config for record or run --no-model with --no-model"], res.stderr
+    run = run_cli("run", "--config", str(one), "--port", str(tmp_path / "none"), "--no-wait")
+    assert run.returncode == 2 and "no model fits this sensor" in run.stderr, run.stderr  # what the check foretold
+    res = run_cli("check-config", str(one), "--no-model")
+    assert res.returncode == 0 and res.stdout.strip() == f"{one}: ok (without a model)" and res.stderr == "", res.stderr
     named = tmp_path / "named.toml"
     named.write_text(sensor + f'[model]\npath = "{REPO / "tactiled" / "data" / "default_model.npz"}"\n')
     res = run_cli("check-config", str(named))
@@ -113,6 +122,7 @@ def test_check_config_says_whether_run_would_find_a_model(tmp_path: Path) -> Non
     assert res.returncode == 0 and "serial.read_interval_s = 0.05 s lets ~4.5 KiB of frames wait between reads" in res.stderr, res.stderr
     slow = tmp_path / "slow.toml"  # record works at 100 Hz; run --no-model cannot analyse: said, naming the keys (run said it alone)
     slow.write_text("[sensor]\nfs = 100\nchannels = 1\n")
-    res = run_cli("check-config", str(slow))
-    assert res.returncode == 0 and "--no-model cannot analyse with this config: window.duration_s = 0.5 s at 100 Hz is too short for " \
+    res = run_cli("check-config", str(slow), "--no-model")
+    assert res.returncode == 0 and "run --no-model cannot analyse with this config (record can record with it): " \
+        "window.duration_s = 0.5 s at 100 Hz is too short for " \
         "features.families = dwt, psd, tex" in res.stderr, res.stderr
