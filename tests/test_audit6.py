@@ -73,3 +73,22 @@ def test_a_slide_is_held_to_the_novelty_threshold_of_its_own_number_of_windows(t
     final, provisional = loose.novelty_many(x, rows, final=True), loose.novelty_many(x, rows, final=False)
     assert final == provisional
     assert final == pytest.approx([p / f for p, f in zip(plain, (4.0, 2.0, 1.5), strict=True)], rel=1e-12)  # type: ignore[operator]
+
+
+@pytest.mark.parametrize("kind", ["ipc", "tcp"])
+def test_a_demo_on_an_endpoint_another_process_publishes_on_says_so_and_exits_2(kind: str, tmp_path: Path) -> None:
+    """A second demo on the first one's endpoint printed the first one's labels (the true surface "?") and exited 0: its own
+    daemon could not bind there and had gone."""
+    import socket
+
+    from tests.conftest import run_cli
+
+    family = socket.AF_UNIX if kind == "ipc" else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as other:  # a process that listens there
+        other.bind(str(tmp_path / "pub") if kind == "ipc" else ("127.0.0.1", 0))
+        other.listen()
+        endpoint = f"ipc://{tmp_path}/pub" if kind == "ipc" else f"tcp://127.0.0.1:{other.getsockname()[1]}"
+        res = run_cli("demo", "--publish", endpoint, "--headless", "--seconds", "20", timeout=60)
+    assert res.returncode == 2 and res.stdout == "", res.stdout
+    assert res.stderr.strip().splitlines() == [f"tactiled: error: demo --publish: another process already publishes on {endpoint} "
+                                               "(another demo or daemon?); stop it or give this demo another endpoint"]

@@ -10,17 +10,22 @@ demo says so with the daemon's last log line (exit 1).
 from __future__ import annotations
 
 import contextlib
+import errno
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, schema
 from tactiled_client.truth import overlapping
 
 from tactiled.apps.monitor import read_truth, run_monitor
+from tactiled.errors import ConfigError
+from tactiled.service.publish import in_use
 from tactiled.signals import sigterm_as_exit
 
 DAEMON_LAST_WORDS_S = 10.0  # how long a daemon that gave no label may take to exit and say why, s
@@ -34,6 +39,9 @@ def run_demo(scene: str = "hand", seed: int = 0, publish: str | None = None, hea
     with sigterm_as_exit((signal.SIGTERM, signal.SIGHUP)), tempfile.TemporaryDirectory(prefix="tactiled-demo-") as tmp:
         link, board_log, daemon_log = f"{tmp}/tty", f"{tmp}/board.jsonl", Path(tmp) / "daemon.log"
         endpoint = publish or f"ipc://{tmp}/pub"
+        if in_use(endpoint) or tcp_port_taken(endpoint):  # the daemon would refuse it; the labels shown would be the other process's
+            raise ConfigError(f"demo --publish: another process already publishes on {endpoint} (another demo or daemon?); "
+                              "stop it or give this demo another endpoint")
         exe = [sys.executable, "-m", "tactiled"]
         started: list[subprocess.Popen[str] | subprocess.Popen[bytes]] = []  # stopped however the demo ends, even while starting them
         try:
@@ -45,31 +53,57 @@ def run_demo(scene: str = "hand", seed: int = 0, publish: str | None = None, hea
             with open(daemon_log, "w") as log:
                 daemon = subprocess.Popen([*exe, "run", "--port", link, "--publish", endpoint, "--samples"], stderr=log)
             started.append(daemon)
+            def running() -> bool:  # a daemon that fails (a tcp port it cannot bind) exits: what came is not its labels
+                return daemon.poll() is None
+
             if not headless:
-                return run_monitor(endpoint, board_log)  # the simulator's log: the true surface of every slide
-            labels = print_labels(endpoint, seconds, board_log)
-            if labels:
-                return 0
-            if daemon.poll() is None:  # a daemon that fails (a socket it cannot bind) exits; on a loaded machine it may still be starting
-                with contextlib.suppress(subprocess.TimeoutExpired):
-                    daemon.wait(DAEMON_LAST_WORDS_S)
+                code = run_monitor(endpoint, board_log, running)  # the simulator's log: the true surface of every slide
+                if running():
+                    return code
+                failed = "the daemon stopped"
+            else:
+                labels = print_labels(endpoint, seconds, board_log, running)
+                if labels and running():
+                    return 0
+                failed = "the daemon stopped" if not running() else f"no label in {seconds:g} s"
+                if running():  # on a loaded machine it may still be starting
+                    with contextlib.suppress(subprocess.TimeoutExpired):
+                        daemon.wait(DAEMON_LAST_WORDS_S)
             last = [line for line in daemon_log.read_text(errors="replace").splitlines() if line.strip()]
-            print(f"tactiled: no label in {seconds:g} s; the daemon's last words: {last[-1] if last else '(nothing)'}", file=sys.stderr)
+            print(f"tactiled: {failed}; the daemon's last words: {last[-1] if last else '(nothing)'}", file=sys.stderr)
             return 1
         finally:
             stop_processes(*reversed(started))
 
 
-def print_labels(endpoint: str, seconds: float, board_log: str) -> int:
-    """Print one line per roughness message from ``endpoint`` for ``seconds`` (wall time), with the true surface from the
-    virtual board's log ``board_log``; returns how many final labels came."""
+def tcp_port_taken(endpoint: str) -> bool:
+    """Whether ``endpoint`` is ``tcp://HOST:PORT`` with a port another socket already listens on (a bind there fails)."""
+    if not endpoint.startswith("tcp://"):
+        return False
+    host, _, port = endpoint[6:].rpartition(":")
+    if not port.isdigit() or host in ("", "*"):
+        return False
+    host = host.strip("[]")
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as ZeroMQ binds: a port in TIME_WAIT is free
+        try:
+            probe.bind((host, int(port)))
+        except OSError as exc:  # another error (a host not of this machine) is the daemon's to say
+            return exc.errno == errno.EADDRINUSE
+    return False
+
+
+def print_labels(endpoint: str, seconds: float, board_log: str, running: Callable[[], bool] = lambda: True) -> int:
+    """Print one line per roughness message from ``endpoint`` for ``seconds`` (wall time), or until ``running()`` is False
+    (the daemon stopped), with the true surface from the virtual board's log ``board_log``; returns how many final labels came."""
     def truth(start: int, stop: int) -> str:
         return overlapping(read_truth(board_log), start, stop) or "?"
 
     labels = 0
     deadline = time.monotonic() + seconds
     with BlockingSubscriber(endpoint, topics=["roughness", "slide"], timeout=1.0) as sub:
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and running():
             try:
                 msg = sub.receive(timeout=min(1.0, max(0.01, deadline - time.monotonic())))
             except NoData:

@@ -21,6 +21,7 @@ import select
 import sys
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -305,8 +306,9 @@ def render_compact(model: MonitorState, endpoint: str, width: int, height: int) 
     return Group(title, state, *counters, *levels, labels)
 
 
-def run_monitor(endpoint: str, truth_log: str | None = None) -> int:
-    """Show the live view of the daemon at ``endpoint`` (redrawn every 0.1 s) until ``q`` or Ctrl-C; exit code 0."""
+def run_monitor(endpoint: str, truth_log: str | None = None, running: Callable[[], bool] = lambda: True) -> int:
+    """Show the live view of the daemon at ``endpoint`` (redrawn every 0.1 s) until ``q``, Ctrl-C or ``running()`` False (the
+    demo's own daemon stopped); exit code 0."""
     from rich.live import Live
 
     model = MonitorState(truth_log)
@@ -332,6 +334,8 @@ def run_monitor(endpoint: str, truth_log: str | None = None) -> int:
                 size = live.console.size
                 live.update(render(model, endpoint, size.width, size.height), refresh=True)
                 if tty and select.select([sys.stdin], [], [], 0)[0] and os.read(sys.stdin.fileno(), 1) in (b"q", b"Q"):
+                    return 0
+                if not running():
                     return 0
     except KeyboardInterrupt:
         return 0
