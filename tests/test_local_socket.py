@@ -54,3 +54,36 @@ def test_a_stale_socket_is_replaced_and_auto_is_local(tmp_path: Path, monkeypatc
     finally:
         pub.close()
     assert Config().publish.endpoint == "auto"
+
+
+def test_a_controller_started_before_the_system_daemon_waits_on_the_services_socket(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """At boot a robot controller may start before tactiled@<sensor>: no socket exists yet, and local_endpoint chose this
+    environment's (/tmp/tactiled-<uid>), where no daemon would ever bind (an outside audit heard nothing while the service
+    published). With the service configured (/etc/tactiled/<sensor>.toml) it is the service's socket, and the subscriber
+    hears the daemon once it starts there."""
+    import tactiled_client.endpoints as ep
+
+    run, etc = tmp_path / "run", tmp_path / "etc"
+    monkeypatch.setattr(ep, "SYSTEM_DIR", run)
+    monkeypatch.setattr(ep, "SYSTEM_CONFIG_DIR", etc)
+    for var in ("TACTILED_RUNTIME_DIR", "RUNTIME_DIRECTORY"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "user"))
+    own = f"ipc://{tmp_path}/user/tactiled/boot.sock"
+    assert local_endpoint("boot") == own  # no service here: this environment's, where a daemon of this user would bind
+    etc.mkdir()
+    (etc / "boot.toml").write_text("")
+    endpoint = local_endpoint("boot")
+    assert endpoint == f"ipc://{run}/boot.sock"
+    master, slave = os.openpty()
+    with BlockingSubscriber(endpoint, topics=["status"], timeout=30) as sub:  # before the daemon, as at boot
+        env = {**os.environ, "RUNTIME_DIRECTORY": str(run)}  # what systemd sets for the unit
+        proc = subprocess.Popen(tactiled_cmd("run", "--port", os.ttyname(slave), "--sensor-id", "boot"), stderr=subprocess.PIPE, text=True, env=env)
+        try:
+            wait_for(lambda: isinstance(sub.receive(), Status), timeout=30, what="a status from the service's socket")
+        finally:
+            proc.terminate()
+            proc.wait(30)
+            os.close(master)
+            os.close(slave)
+    assert local_endpoint("boot") == f"ipc://{run}/boot.sock"  # the folder systemd made stays (RuntimeDirectoryPreserve)

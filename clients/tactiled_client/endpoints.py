@@ -16,6 +16,7 @@ from typing import Any
 from tactiled_client.errors import UsageError
 
 SYSTEM_DIR = Path("/run/tactiled")  # the systemd unit's RuntimeDirectory=tactiled
+SYSTEM_CONFIG_DIR = Path("/etc/tactiled")  # the systemd unit's configs: tactiled@<name> reads /etc/tactiled/<name>.toml
 AUTO = "auto"  # publish.endpoint's default: local_socket(sensor id)
 
 
@@ -36,11 +37,18 @@ def local_socket(sensor: str) -> Path:
 
 def local_endpoint(sensor: str = "fingertip0") -> str:
     """The endpoint of the local daemon of ``sensor``: this environment's socket if it exists, else the system
-    service's (``/run/tactiled/<sensor>.sock``) if that exists, else this environment's (the daemon may start later)."""
+    service's (``/run/tactiled/<sensor>.sock``) if that exists. If neither does (the daemon starts later), the system
+    service's where this machine has one for ``sensor`` (``/etc/tactiled/<sensor>.toml``, or ``/run/tactiled`` made by
+    systemd), else this environment's: a controller started at boot before the service must wait on the service's
+    socket, not on one no daemon will bind. ``$TACTILED_RUNTIME_DIR`` always means this environment's. Decided once, when
+    called: a subscriber stays connected to the endpoint it was given."""
     own = local_socket(sensor)
     system = SYSTEM_DIR / f"{sensor}.sock"
-    path = own if own.exists() or not system.exists() or "TACTILED_RUNTIME_DIR" in os.environ else system
-    return f"ipc://{path}"
+    if "TACTILED_RUNTIME_DIR" in os.environ or own.exists():
+        return f"ipc://{own}"
+    if system.exists() or (SYSTEM_CONFIG_DIR / f"{sensor}.toml").exists() or SYSTEM_DIR.is_dir():
+        return f"ipc://{system}"
+    return f"ipc://{own}"
 
 
 def remove_socket_file(endpoint: str) -> None:
