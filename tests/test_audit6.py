@@ -92,3 +92,29 @@ def test_a_demo_on_an_endpoint_another_process_publishes_on_says_so_and_exits_2(
     assert res.returncode == 2 and res.stdout == "", res.stdout
     assert res.stderr.strip().splitlines() == [f"tactiled: error: demo --publish: another process already publishes on {endpoint} "
                                                "(another demo or daemon?); stop it or give this demo another endpoint"]
+
+
+def test_enrol_refuses_recordings_of_rest_and_says_so_for_one_too_short_for_a_slide(two_of_three: tuple[Path, list[Path], list[Path]],
+                                                                                   tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """Recordings of a finger at rest became 5 slides of a new surface (the detector without the model's start level takes a
+    stream it cannot decide for one slide), where the daemon running that model finds none in them; a 0.07 s file was told
+    to pass --label, which it had."""
+    from tactiled.learn.model import load_model
+
+    model, taught, _ = two_of_three
+    assert load_model(model).start_level is not None  # learnt from the training recordings' rests
+    with np.load(taught[0]) as z:
+        arrays = {k: z[k] for k in z.files if k not in ("surface", "slide_start", "slide_stop", "ra_um", "label")}
+    rests = []
+    for i in range(3):
+        noise = np.random.default_rng(i).integers(-3, 4, size=arrays["samples"].shape)  # a few counts of the board's noise, no touch
+        rests.append(tmp_path / f"rest{i}.npz")
+        np.savez(rests[-1], **{**arrays, "samples": noise.astype(np.int16)})
+    res = cli_here(capfd, "enrol", str(model), *map(str, rests), "--label", "P80", "-o", str(tmp_path / "m2.npz"))
+    assert res.returncode == 2 and not (tmp_path / "m2.npz").exists()
+    assert res.stderr.strip() == (f"tactiled: error: no slide to enrol: the detector found none in {rests[0]}, {rests[1]}, {rests[2]} "
+                                  "(recordings of the surface being slid over; see tactiled replay on one of them)"), res.stderr
+    short = tmp_path / "short.npz"
+    np.savez(short, **{**arrays, "samples": arrays["samples"][: int(0.07 * float(arrays["fs"]))]})
+    res = cli_here(capfd, "enrol", str(model), str(short), "--label", "P80", "-o", str(tmp_path / "m3.npz"))
+    assert res.returncode == 2 and "no slide to enrol: the detector found none in" in res.stderr and "--label" not in res.stderr, res.stderr

@@ -116,9 +116,11 @@ def detector_events(rec: Recording, config: Config, start_level: float | None = 
     return det.feed(0, volts, valid) + det.finish()
 
 
-def detect_slides(rec: Recording, config: Config, events: list[DetectorEvent] | None = None) -> list[tuple[int, int]]:
-    """(start, stop) positions of the slides the daemon's detector finds in ``rec`` (from ``events`` if already run)."""
-    events = detector_events(rec, config) if events is None else events
+def detect_slides(rec: Recording, config: Config, events: list[DetectorEvent] | None = None,
+                  start_level: float | None = None) -> list[tuple[int, int]]:
+    """(start, stop) positions of the slides the daemon's detector finds in ``rec`` (from ``events`` if already run; else
+    with a model's ``start_level``, as :func:`detector_events`)."""
+    events = detector_events(rec, config, start_level) if events is None else events
     return [(e.start, e.stop) for e in events if isinstance(e, Offset) and e.reason != "too_short"]
 
 
@@ -164,9 +166,11 @@ class SlideCounts:
     false: dict[str, int] = field(default_factory=dict)
 
 
-def recording_slides(file: int, name: str, rec: Recording, config: Config, counts: SlideCounts) -> list[LabelledSlide]:
-    """The slides of one recording (see the module docstring), updating ``counts``."""
-    detected = detect_slides(rec, config)
+def recording_slides(file: int, name: str, rec: Recording, config: Config, counts: SlideCounts,
+                     start_level: float | None = None) -> list[LabelledSlide]:
+    """The slides of one recording (see the module docstring), updating ``counts``; ``start_level``: a model's, as the
+    daemon's detector has it (:func:`detector_events`)."""
+    detected = detect_slides(rec, config, start_level=start_level)
     counts.detected += len(detected)
     truth = rec.slides()
     if not truth:
@@ -331,10 +335,11 @@ def speed_copies(floats: Analyser, rec: Recording, valid: npt.NDArray[np.bool_],
     return spans, rows, copies
 
 
-def find_slides(recs: Sequence[tuple[str, Recording]], config: Config) -> tuple[list[list[LabelledSlide]], SlideCounts]:
-    """The slides of every recording (:func:`recording_slides`), and the pairing counts."""
+def find_slides(recs: Sequence[tuple[str, Recording]], config: Config,
+                start_level: float | None = None) -> tuple[list[list[LabelledSlide]], SlideCounts]:
+    """The slides of every recording (:func:`recording_slides`, with a model's ``start_level`` if given), and the pairing counts."""
     counts = SlideCounts()
-    return [recording_slides(g, name, rec, config, counts) for g, (name, rec) in enumerate(recs)], counts
+    return [recording_slides(g, name, rec, config, counts, start_level) for g, (name, rec) in enumerate(recs)], counts
 
 
 def collect_windows(recs: Sequence[tuple[str, Recording]], config: Config, settings: AnalysisSettings, progress: Progress | None = None,

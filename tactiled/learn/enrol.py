@@ -31,6 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from tactiled.config import Config
+from tactiled.core.pipeline import start_level
 from tactiled.errors import ModelError, TactiledError
 from tactiled.files.recording import check_label_option, surface_name
 from tactiled.learn.dataset import (
@@ -79,7 +80,9 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     for name, rec in recs:
         old.check_stream(rec.fs, rec.channels, name, where)
     check_distinct(recs)  # a copy would count its slides twice towards min_slides
-    per_file, counts = find_slides(recs, config)
+    # as the daemon running the model finds them: with its start level, a recording of rest is no slide (it was one, from
+    # the first sample to the last: the detector, undecided, could not tell rest from a slide without a pause)
+    per_file, counts = find_slides(recs, config, start_level(old, config.detector))
     if label is not None:  # as a recording's names are read (NFC)
         per_file = [[replace(s, label=surface_name(label)) for s in slides] for slides in per_file]
     silent = undetected(per_file, [r.fs for _, r in recs], config.detector.min_slide_s)
@@ -100,6 +103,11 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
                             "recordings it has not learnt")
     labelled = (slides.y != "") & slides.originals()
     table = ws.per_class()  # {surface: (slides, slides with a usable window, files)}, a surface none of whose slides is usable too
+    if not table and (label is not None or any(r.label is not None or r.slides() for _, r in recs)):
+        names = [n for n, _ in recs]
+        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        raise TactiledError(f"no slide to enrol: the detector found none in {shown} (recordings of the surface being slid over; see "
+                            "tactiled replay on one of them)")
     if not table:
         raise TactiledError("the recordings carry no labels (per-slide ground truth or a file label): pass --label NAME")
     short = [f"{k} ({ok})" if ok == n else f"{k} ({ok} of {n} slides usable)" for k, (n, ok, _) in table.items() if ok < min_slides]
