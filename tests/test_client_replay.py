@@ -166,6 +166,15 @@ def test_tactiled_mcap_and_replay_json_replay_as_roughness_messages(tmp_path: Pa
 
     base = load_recording(path).first_index  # MCAP: sensor indices, as on the wire; replay --json: positions in the file
     assert [(m.start, m.label) for m in from_mcap if m.final] == [(p["start"] + base, p["label"]) for p in printed]
+    # a provisional label replayed from the --json lines ends where its windows did, as the daemon published it (the MCAP
+    # holds the messages as published): it carried the final label's stop, window and quality, then 1.5 s in its future
+    early_json = [m for m in got if not m.final]
+    early_mcap = [m for m in from_mcap if not m.final]
+    assert early_json and len(early_json) == len(early_mcap)
+    for j, m in zip(early_json, early_mcap, strict=True):
+        assert (j.start + base, j.stop + base, [w + base for w in j.window], j.label, j.used_s) == (m.start, m.stop, m.window, m.label, m.used_s)
+        assert j.t_stop == pytest.approx(j.t_start + j.used_s)
+        assert {k: v for k, v in j.quality.items() if k != "compute_ms"} == {k: v for k, v in m.quality.items() if k != "compute_ms"}
 
 
 @pytest.fixture(scope="module")

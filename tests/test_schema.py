@@ -98,5 +98,6 @@ def test_replay_json_is_one_line_per_slide_with_its_provisional_labels(tmp_path:
     assert [(r.slide_id, [p.used_s for p in ps]) for r, ps in grouped] == [(0, [0.25]), (1, [0.25])]
     line = result_record("r.npz", rec, grouped[0][0], grouped[0][1]).to_map()
     assert line["provisional"] == [{"label": "x", "confidence": early[0].confidence, "used_s": 0.25, "top": [list(t) for t in early[0].top],
-                                    "reason": early[0].reason, "novelty": early[0].novelty}]
+                                    "reason": early[0].reason, "novelty": early[0].novelty, "stop": early[0].stop,
+                                    "quality": {**early[0].quality, "compute_ms": round(early[0].compute_ms, 3)}}]
     assert json.loads(json.dumps(line))["provisional"][0]["label"] == "x"

@@ -328,8 +328,12 @@ class LogReader:
                 for i, p in enumerate(provisional):
                     if not isinstance(p, dict):
                         raise LogError(f"{where}: provisional[{i}]: {type(p).__name__}, not a map")
-                    early = {**final, **{k: v for k, v in p.items() if k in wire}, "final": False}
                     t = start + _seconds(p, "used_s", 0.0, f"{where}: provisional[{i}]")
+                    early = {**final, **{k: v for k, v in p.items() if k in wire}, "final": False, "t_stop": t,
+                             "stop_mono": None, "stop_unix": None}  # the end of what it used, not the slide's
+                    window = final.get("window")
+                    if isinstance(p.get("stop"), int) and isinstance(window, list) and window:
+                        early["window"] = [window[0], p["stop"]]  # from the slide's first window to the end of its last one used
                     yield Entry(t, t, topic, _pack(early, where), at)
                 t = _seconds(final, "t_stop", start, where)
                 yield Entry(t, t, topic, _pack(final, where), at)

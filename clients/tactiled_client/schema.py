@@ -347,6 +347,8 @@ class ProvisionalLabel:
     top: list[list[Any]]
     reason: str | None = None
     novelty: float | None = None
+    stop: int | None = None  # one past the samples it used (as a live provisional label's stop); None in lines written before 2026-11-27
+    quality: dict[str, Any] | None = None  # of the windows it used, as a live one's; None in older lines
 
     def to_map(self) -> dict[str, Any]:
         """The fields as a dict (the object in a ``tactiled replay --json`` line)."""
@@ -435,7 +437,8 @@ def shadow(sensor: str, r: SlideOutcome, *, fs: float, model: str, version: str,
 
 def provisional_label(r: SlideOutcome) -> ProvisionalLabel:
     """The short form of a provisional result kept inside a replay line."""
-    return ProvisionalLabel(r.label, r.confidence, round(r.used_s, 6), [[c, p] for c, p in r.top], r.reason, r.novelty)
+    return ProvisionalLabel(r.label, r.confidence, round(r.used_s, 6), [[c, p] for c, p in r.top], r.reason, r.novelty, r.stop,
+                            {**r.quality, "compute_ms": round(r.compute_ms, 3)})
 
 
 def slide_start(sensor: str, slide_id: int, start: int, fs: float, to_host: HostTime | None = None) -> Slide:
