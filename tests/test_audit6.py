@@ -118,3 +118,23 @@ def test_enrol_refuses_recordings_of_rest_and_says_so_for_one_too_short_for_a_sl
     np.savez(short, **{**arrays, "samples": arrays["samples"][: int(0.07 * float(arrays["fs"]))]})
     res = cli_here(capfd, "enrol", str(model), str(short), "--label", "P80", "-o", str(tmp_path / "m3.npz"))
     assert res.returncode == 2 and "no slide to enrol: the detector found none in" in res.stderr and "--label" not in res.stderr, res.stderr
+
+
+def test_trains_time_left_is_measured_from_the_first_finished_task(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The workers' start-up was counted as work: "16/208 fits, 0:05 elapsed, about 0:57 left", then done at 0:06. Here the
+    first task ends 10 s in (the start-up), each next one 1 s later: 2 s left after the second, where 11 s was said."""
+    import tactiled.learn.search as search
+
+    clock = iter([0.0, 10.0, 11.0, 12.0, 13.0])  # the start, then each task's end
+
+    class Clock:
+        @staticmethod
+        def perf_counter() -> float:
+            return next(clock)
+
+    monkeypatch.setattr(search, "time", Clock)
+    lines: list[str] = []
+    out = search._run_with_progress([(abs, (-k,)) for k in range(4)], lines.append, None)
+    assert out == [0, 1, 2, 3]
+    assert lines == ["[#####               ] 1/4 fits, 0:10 elapsed", "[##########          ] 2/4 fits, 0:11 elapsed, about 0:02 left",
+                     "[###############     ] 3/4 fits, 0:12 elapsed, about 0:01 left", "[####################] 4/4 fits, 0:13 elapsed"]
