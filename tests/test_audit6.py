@@ -138,3 +138,29 @@ def test_trains_time_left_is_measured_from_the_first_finished_task(monkeypatch: 
     assert out == [0, 1, 2, 3]
     assert lines == ["[#####               ] 1/4 fits, 0:10 elapsed", "[##########          ] 2/4 fits, 0:11 elapsed, about 0:02 left",
                      "[###############     ] 3/4 fits, 0:12 elapsed, about 0:01 left", "[####################] 4/4 fits, 0:13 elapsed"]
+
+
+def test_surface_names_that_differ_only_in_case_are_said_in_train_and_refused_by_enrol(
+        two_of_three: tuple[Path, list[Path], list[Path]], tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """"Ra1.00" typed "ra1.00" on two of four recordings became two surfaces without a word (train: each recall 0.00; enrol
+    --label ra0.44 on a model knowing Ra0.44: "a new surface")."""
+    from tactiled.files.recording import case_twins
+
+    assert case_twins(["Ra1.00", "ra1.00", "P80", "RA1.00", "p60"]) == [["RA1.00", "Ra1.00", "ra1.00"]]
+    model, taught, untaught = two_of_three
+    name = str(np.load(taught[0])["surface"][0])
+    renamed = []
+    for f in taught:
+        with np.load(f) as z:
+            arrays = {k: z[k] for k in z.files}
+        if f == taught[0]:
+            arrays["surface"] = np.array([name.lower()] * len(arrays["surface"]))
+        renamed.append(tmp_path / f.name)
+        np.savez(renamed[-1], **arrays)
+    # said with the slides per surface, before anything else (here train then stops: the lower-case name has one recording)
+    res = cli_here(capfd, "train", *map(str, renamed), "-o", str(tmp_path / "m.npz"), "--method", "quick", "--folds", "2")
+    assert f"warning: surfaces {name} and {name.lower()} differ only in case: taught as 2 surfaces" in res.stderr, res.stderr
+    res = cli_here(capfd, "enrol", str(model), *map(str, untaught), "--label", name.lower(), "-o", str(tmp_path / "m2.npz"))
+    assert res.returncode == 2 and not (tmp_path / "m2.npz").exists()
+    assert res.stderr.strip() == (f"tactiled: error: {name.lower()}: {model} knows {name}, which differs only in case: enrolled, it would be "
+                                  "a new surface; give the name the model knows (--label) to teach it more of that one"), res.stderr

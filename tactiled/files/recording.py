@@ -146,6 +146,15 @@ def surface_name(name: str) -> str:
     return unicodedata.normalize("NFC", name)
 
 
+def case_twins(names: Iterable[str]) -> list[list[str]]:
+    """The groups (each sorted, two or more) of ``names`` that differ only in case ("Ra1.00" and "ra1.00"): two surfaces to
+    a model, and most often one surface typed twice."""
+    groups: dict[str, set[str]] = {}
+    for name in names:
+        groups.setdefault(name.casefold(), set()).add(name)
+    return sorted(sorted(g) for g in groups.values() if len(g) > 1)
+
+
 def first_index_problem(first: int, n: int) -> str | None:
     """What is wrong with ``first`` as the sensor sample index of row 0 of ``n`` rows, or None: the indices
     ``first .. first + n`` are int64 (the sensor's index unwrapped to 64 bits: what files and messages carry)."""

@@ -114,6 +114,11 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     if short:
         why = f" (slides without a usable window: {reasons_text(ws.skipped)})" if ws.skipped else ""
         raise TactiledError(f"too few usable slides for {', '.join(short)}: enrolment needs at least {min_slides} per surface{why}; record more")
+    known = {k.casefold(): k for k in old.classes}
+    twins = [(k, known[k.casefold()]) for k in table if k not in old.classes and k.casefold() in known]
+    if twins:
+        raise TactiledError("; ".join(f"{k}: {where} knows {m}, which differs only in case" for k, m in twins)
+                            + ": enrolled, it would be a new surface; give the name the model knows (--label) to teach it more of that one")
     added = {k: ok for k, (_, ok, _) in table.items()}
     grown = len(set(old.classes) | set(added))
     if grown > MAX_CLASSES:  # a file its own loader would refuse

@@ -19,7 +19,7 @@ from typing import Any
 from tactiled.config import Config
 from tactiled.core.detect import front_end_settings
 from tactiled.errors import TactiledError
-from tactiled.files.recording import Recording
+from tactiled.files.recording import Recording, case_twins
 from tactiled.learn.dataset import (
     GROUP_PIECE_S,
     LabelledSlide,
@@ -216,6 +216,9 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     say("slides per surface (slides, found by the detector, files):")
     for label, (n, det, files) in table.items():
         say(f"  {label}: {n}, {det}, {files}")
+    for twins in case_twins(table):
+        say(f"warning: surfaces {' and '.join(twins)} differ only in case: taught as {len(twins)} surfaces; if they are one, give "
+            "their recordings one name (docs/recordings.md)")
     if not table:
         raise TactiledError("no labelled slides: the recordings carry neither per-slide ground truth nor a file label "
                             "(tactiled record --label SURFACE, or docs/recordings.md)")
