@@ -136,9 +136,12 @@ def test_train_and_score_one_channel_other_rate(tmp_path: Path, capfd: pytest.Ca
     one, two = (cli_here(capfd, "replay", "--json", "--model", str(model), *files, "--jobs", jobs) for jobs in ("1", "2"))
     assert one.returncode == two.returncode == 0 and one.stderr == two.stderr, two.stderr
 
-    def steady(out: str) -> list[dict[str, object]]:  # every field but the time each took
-        return [{k: v if k != "quality" else {q: x for q, x in v.items() if q != "compute_ms"} for k, v in json.loads(line).items()
-                 if k not in ("time_unix", "latency_ms")} for line in out.splitlines()]
+    def timeless(quality: dict[str, object]) -> dict[str, object]:
+        return {q: x for q, x in quality.items() if q != "compute_ms"}
+
+    def steady(out: str) -> list[dict[str, object]]:  # every field but the time each took (the slide's, its provisional labels')
+        return [{k: timeless(v) if k == "quality" else [{**p, "quality": timeless(p["quality"])} for p in v] if k == "provisional" else v
+                 for k, v in json.loads(line).items() if k not in ("time_unix", "latency_ms")} for line in out.splitlines()]
     assert steady(one.stdout) == steady(two.stdout) and len(steady(one.stdout)) == 18  # the same slides and labels, in order
     res = cli_here(capfd, "replay", "--json", "--model", str(model), files[0])
     lines = [json.loads(line) for line in res.stdout.splitlines()]
