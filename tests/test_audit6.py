@@ -164,3 +164,40 @@ def test_surface_names_that_differ_only_in_case_are_said_in_train_and_refused_by
     assert res.returncode == 2 and not (tmp_path / "m2.npz").exists()
     assert res.stderr.strip() == (f"tactiled: error: {name.lower()}: {model} knows {name}, which differs only in case: enrolled, it would be "
                                   "a new surface; give the name the model knows (--label) to teach it more of that one"), res.stderr
+
+
+def test_surfaces_recorded_unevenly_weigh_alike_in_the_choice_and_its_estimates() -> None:
+    """2 recordings of one surface and 12 of another: the choice by slides picked a kNN that called 51 of 60 slides of a
+    balanced test the larger surface, and promised 66.7 % where that test gave 46.7 %. Slide counts 3 or more times apart
+    weigh each surface alike; a set recorded about evenly is judged by slides, bit for bit as before."""
+    from tactiled.learn.score import recording_interval
+    from tactiled.learn.search import IMBALANCE, Candidate, accuracy_of, surface_weights
+
+    y = np.array([0] * 10 + [1] * 60 + [-1] * 5)  # -1: an unlabelled slide, no surface
+    w = surface_weights(y, 2)
+    assert w is not None and w == pytest.approx([3.5, 70 / 120])
+    scores = np.zeros((75, 2))
+    scores[:, 1] = 1.0  # always the larger surface
+    assert accuracy_of(scores[:70], y[:70]) == pytest.approx(60 / 70)
+    assert accuracy_of(scores[:70], y[:70], w) == pytest.approx(0.5)  # the balanced accuracy
+    assert surface_weights(np.array([0] * 10 + [1] * (IMBALANCE * 10 - 1)), 2) is None
+    assert surface_weights(np.array([0] * 44 + [1] * 45), 2) is None
+    hits, groups = np.arange(30) % 3 == 0, np.arange(30) // 5
+    assert recording_interval(hits, groups) == recording_interval(hits, groups, weights=np.ones(30))
+    svm = Candidate(("psd",), "svm", 0.25)
+    assert "class_weight" not in svm.params and replace(svm, balanced=True).params["class_weight"] == "balanced"
+    assert replace(svm, balanced=True) == svm and replace(svm, balanced=True).name == svm.name
+    assert "class_weight" not in replace(Candidate(("psd",), "knn", 0.25), balanced=True).params
+
+
+def test_train_on_surfaces_recorded_unevenly_says_it_weighed_them_alike(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    from tactiled.learn.model import load_model
+
+    small = sorted(write_dataset(tmp_path / "a", scene="robot", surfaces="Ra0.44", files_per_surface=2, slides_per_file=2, seed=3))
+    large = sorted(write_dataset(tmp_path / "b", scene="robot", surfaces="Ra4.43", files_per_surface=4, slides_per_file=4, seed=4))
+    res = cli_here(capfd, "train", *map(str, small + large), "-o", str(tmp_path / "m.npz"), "--method", "quick", "--folds", "2")
+    assert res.returncode == 0, res.stderr
+    assert "the choice, its cross-validated accuracies and the nested estimate weigh each surface alike" in res.stdout, res.stdout
+    model = load_model(tmp_path / "m.npz")
+    assert model.summary["cv_accuracy"]["weighted"] is True
+    assert model.kind not in ("svm", "linear") or model.params["class_weight"] == "balanced"

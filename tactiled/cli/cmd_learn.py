@@ -111,7 +111,10 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def recall_line(nested: dict[str, Any], per_class: dict[str, tuple[int, int, int]], group_by: str = "file") -> None:
     """Print the nested estimate per surface (its three lowest recalls) and its balanced accuracy, with a note when the
-    surfaces' slide counts differ threefold or more (the estimate weighs each slide, so the larger surfaces count more)."""
+    surfaces' slide counts differ :data:`~tactiled.learn.search.IMBALANCE` times or more: the search then weighed each
+    surface alike (``weighted``); else (``--method paper``) the estimate weighs each slide, so the larger surfaces count more."""
+    from tactiled.learn.search import IMBALANCE
+
     recall = nested.get("recall") or {}
     if not recall:
         return
@@ -121,9 +124,13 @@ def recall_line(nested: dict[str, Any], per_class: dict[str, tuple[int, int, int
     print(f"nested CV per surface (recall of {what} on {unseen} it was not fitted on): lowest "
           + ", ".join(f"{k} {v:.2f}" for k, v in low) + f"; balanced accuracy {nested['balanced']:.3f} (each surface alike)")
     counts = [n for n, _, _ in per_class.values()]
-    if counts and min(counts) > 0 and max(counts) >= 3 * min(counts):
-        print(f"the surfaces have {min(counts)} to {max(counts)} slides: the nested estimate weighs each slide, so the larger surfaces "
-              "count more in it than in use on surfaces met alike; the balanced accuracy weighs each surface alike")
+    span = f"the surfaces have {min(counts)} to {max(counts)} slides" if counts else ""
+    if nested.get("weighted"):
+        print(f"{span}: the choice, its cross-validated accuracies and the nested estimate weigh each surface alike, as in use on "
+              "surfaces met alike (and the svm and linear classifiers fit them so)")
+    elif counts and min(counts) > 0 and max(counts) >= IMBALANCE * min(counts):
+        print(f"{span}: the nested estimate weighs each slide, so the larger surfaces count more in it than in use on surfaces met "
+              "alike; the balanced accuracy weighs each surface alike")
 
 
 ANOTHER_UNIT = ("these estimates hold for new recordings with the sensor unit that made the training recordings: another unit (a swapped or "

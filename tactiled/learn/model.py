@@ -152,11 +152,12 @@ def make_classifier(kind: str, params: dict[str, Any], seed: int = 0) -> Any:
     if kind == "svm":
         from sklearn.svm import SVC
 
-        return SVC(kernel=str(params.get("kernel", "rbf")), C=float(params.get("C", 10.0)), gamma=params.get("gamma", "scale"), random_state=seed)
+        return SVC(kernel=str(params.get("kernel", "rbf")), C=float(params.get("C", 10.0)), gamma=params.get("gamma", "scale"), random_state=seed,
+                   class_weight=params.get("class_weight"))
     if kind == "linear":
         from sklearn.linear_model import LogisticRegression
 
-        return LogisticRegression(C=float(params.get("C", 1.0)), max_iter=int(params.get("max_iter", 1000)))
+        return LogisticRegression(C=float(params.get("C", 1.0)), max_iter=int(params.get("max_iter", 1000)), class_weight=params.get("class_weight"))
     raise ModelError(f"unknown classifier {kind!r}; choose one of {', '.join(CLASSIFIERS)}")
 
 
@@ -846,6 +847,8 @@ def _check_params(path: Path, kind: str, params: dict[str, Any], where: str = "p
         gamma = params.get("gamma", "scale")
         _need(params.get("kernel", "rbf") in ("rbf", "linear") and (gamma in ("scale", "auto") or (_is_number(gamma) and 0 < gamma <= 1e6)),
               path, f"{where}: svm kernel must be rbf or linear, gamma scale, auto or a number in (0, 1e6]")
+    _need(params.get("class_weight") in (None, "balanced") and (kind in ("svm", "linear") or "class_weight" not in params), path,
+          f"{where}.class_weight: must be balanced (svm and linear only) or absent")
     if kind == "elm":
         _need(str(params.get("init", "hpelm")) in ("hpelm", "huang") and isinstance(params.get("calibrate", False), bool), path,
               f"{where}: elm init must be hpelm or huang, calibrate true or false")

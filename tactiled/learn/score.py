@@ -116,8 +116,9 @@ def open_set_scores(hits: npt.NDArray[np.bool_], files: npt.NDArray[Any], taught
 
 
 def recording_interval(hits: npt.NDArray[np.bool_], groups: npt.NDArray[Any], level: float = 0.95,
-                       resamples: int = 2000, seed: int = 0) -> list[float] | None:
-    """[low, high] of the slide accuracy ``hits`` (n,) at ``level``, resampling whole recordings (``groups`` (n,)).
+                       resamples: int = 2000, seed: int = 0, weights: npt.NDArray[np.float64] | None = None) -> list[float] | None:
+    """[low, high] of the slide accuracy ``hits`` (n,) at ``level``, resampling whole recordings (``groups`` (n,)); each
+    slide weighing ``weights`` (n,) if given (``train``'s choice on surfaces recorded unevenly).
 
     A percentile bootstrap over recordings, not slides: slides of one recording share its day, specimen and fingertip, so
     they say less than as many independent slides, and a new recording can miss by as much as the recordings differ.
@@ -132,8 +133,9 @@ def recording_interval(hits: npt.NDArray[np.bool_], groups: npt.NDArray[Any], le
     if hits.all() or not hits.any():
         m = len(names)
         return [1.0 - min(1.0, 3.0 / m), 1.0] if hits.all() else [0.0, min(1.0, 3.0 / m)]
-    right = np.bincount(idx, weights=hits.astype(np.float64), minlength=len(names))
-    count = np.bincount(idx, minlength=len(names)).astype(np.float64)
+    w = np.ones(len(hits)) if weights is None else np.asarray(weights, dtype=np.float64)
+    right = np.bincount(idx, weights=hits * w, minlength=len(names))
+    count = np.bincount(idx, weights=w, minlength=len(names))
     res = stats.bootstrap((right, count), lambda r, c, axis: r.sum(axis=axis) / c.sum(axis=axis), paired=True, vectorized=True,
                           confidence_level=level, n_resamples=resamples, method="percentile", random_state=seed)
     return [float(res.confidence_interval.low), float(res.confidence_interval.high)]

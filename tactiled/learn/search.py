@@ -109,6 +109,7 @@ PARAMS: dict[str, dict[str, Any]] = {
     "svm": {"kernel": "rbf", "C": 10.0, "gamma": "scale"},
     "linear": {"C": 10.0, "max_iter": 2000},
 }
+WEIGHTED_KINDS = ("svm", "linear")  # the classifiers that weigh each surface alike (class_weight) on surfaces recorded unevenly
 KIND_RANK: dict[str, int] = {"linear": 0, "svm": 1, "knn": 2, "elm": 3}
 PAPER_PARAMS: dict[str, Any] = {"n_hidden": 200, "alpha": 1e-6}
 # train --ensemble: off, always (when the winner may have SPECTRUM as a partner: can_partner), guarded (then only within one
@@ -189,6 +190,9 @@ class Candidate:
     sfs: bool = False
     fusion: str = "scores"  # scores: average the windows' scores; features: classify the slide's average features
     kbest: int = 0  # keep the k features with the largest ANOVA F (0: all)
+    # the surfaces were recorded unevenly (surface_weights): an svm or linear classifier weighs each alike (scikit-learn's
+    # class_weight "balanced"). Not part of what the candidate is: equal, and named, as without it.
+    balanced: bool = field(default=False, compare=False)
 
     @property
     def name(self) -> str:
@@ -201,9 +205,11 @@ class Candidate:
 
     @property
     def params(self) -> dict[str, Any]:
-        """Classifier parameters: the papers' ELM's with forward selection, else the kind's defaults; ``kbest`` added when set."""
+        """Classifier parameters: the papers' ELM's with forward selection, else the kind's defaults; ``kbest`` added when set,
+        ``class_weight`` when :attr:`balanced` (svm and linear)."""
         base = PAPER_PARAMS if self.sfs else PARAMS[self.kind]
-        return {**base, "kbest": self.kbest} if self.kbest else base
+        weighed = {"class_weight": "balanced"} if self.balanced and self.kind in WEIGHTED_KINDS and not self.sfs else {}
+        return {**base, **({"kbest": self.kbest} if self.kbest else {}), **weighed}
 
     @property
     def placement(self) -> tuple[float, float, int]:
@@ -364,9 +370,32 @@ def hits_of(scores: FloatArray, y_idx: npt.NDArray[np.intp]) -> npt.NDArray[np.b
     return out
 
 
-def accuracy_of(scores: FloatArray, y_idx: npt.NDArray[np.intp]) -> float:
-    """Slide accuracy: the mean of :func:`hits_of`; 0 without slides."""
-    return float(np.mean(hits_of(scores, y_idx))) if len(y_idx) else 0.0
+def accuracy_of(scores: FloatArray, y_idx: npt.NDArray[np.intp], weights: FloatArray | None = None) -> float:
+    """Slide accuracy: the mean of :func:`hits_of`, each slide weighing its surface's ``weights`` entry (K,) if given
+    (:func:`surface_weights`); 0 without slides."""
+    if not len(y_idx):
+        return 0.0
+    hits = hits_of(scores, y_idx)
+    if weights is None:
+        return float(np.mean(hits))
+    w = weights[y_idx]
+    return float(np.sum(w * hits) / np.sum(w))
+
+
+IMBALANCE = 3  # surfaces whose slide counts differ this many times or more weigh alike in the choice (surface_weights)
+
+
+def surface_weights(y_idx: npt.NDArray[np.intp], k: int) -> FloatArray | None:
+    """(K,) each surface's weight per slide, n / (K n_k), where the labelled slides' counts ``y_idx`` (n,) (-1: none) differ
+    :data:`IMBALANCE` times or more: then the choice, its fold accuracies and its estimates weigh each surface alike, as a
+    lab meets its surfaces in use whatever it recorded of each (with 2 recordings of one surface and 12 of another, the
+    choice by slides picked a kNN that called 51 of 60 slides of a balanced test the larger surface). None otherwise: a
+    set recorded about evenly is judged by slides, as before (to the bit)."""
+    counts = np.bincount(y_idx[y_idx >= 0], minlength=k).astype(np.float64)
+    if counts.min() <= 0 or counts.max() < IMBALANCE * counts.min():
+        return None
+    out: FloatArray = counts.sum() / (k * counts)
+    return out
 
 
 def _interval_text(band: list[float] | None, over: str = "recordings") -> str:
@@ -561,13 +590,13 @@ def candidate_folds(ws: WindowSet, c: Candidate, splits: list[tuple[Any, Any, li
              [candidate_fold(ws, c, itr, ite, classes, seed, inner_folds, gain) for itr, ite in inner]) for tr, te, inner in splits]
 
 
-def gain_accuracies(scores: FloatArray, y_idx: npt.NDArray[np.intp]) -> tuple[float, float | None]:
+def gain_accuracies(scores: FloatArray, y_idx: npt.NDArray[np.intp], weights: FloatArray | None = None) -> tuple[float, float | None]:
     """(the accuracy as recorded, the mean accuracy under the P film gains or None without them) of one fold's
-    :func:`candidate_fold` scores (1 + P, n, K)."""
-    nominal = accuracy_of(scores[0], y_idx)
+    :func:`candidate_fold` scores (1 + P, n, K); ``weights``: :func:`accuracy_of`'s."""
+    nominal = accuracy_of(scores[0], y_idx, weights)
     if len(scores) == 1:
         return nominal, None
-    return nominal, float(np.mean([accuracy_of(sc, y_idx) for sc in scores[1:]]))
+    return nominal, float(np.mean([accuracy_of(sc, y_idx, weights) for sc in scores[1:]]))
 
 
 def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int = 5, inner_folds: int = 3, seed: int = 0,
@@ -657,6 +686,9 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         raise TactiledError(f"training needs at least two surfaces, got {classes}")
     y_idx = np.array([classes.index(s.label) if s.label in classes else -1 for s in first.slides])
     files = np.array([s.file for s in first.slides])  # every window set has these slides in this order
+    weights = surface_weights(y_idx, len(classes))  # None unless the surfaces' slide counts differ IMBALANCE times or more
+    if weights is not None:  # the classifiers that can weigh each surface alike do (equal candidates all the same)
+        usable = [replace(c, balanced=True) for c in usable]
     outer = slide_folds(first, folds, seed)
     nested_on = len(usable) > 1
     # every window set has the same slides in the same order, so one set of inner folds per outer fold serves every candidate
@@ -689,10 +721,10 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         per_fold = [r for _ in range(len(outer) if c.sfs else 1) for r in next(results)]
         for (_, te), folds_in, (sc, inner_scores) in zip(outer, inner, per_fold, strict=True):
             scores[te] = sc[0]
-            nominal, under = gain_accuracies(sc, y_idx[te])
+            nominal, under = gain_accuracies(sc, y_idx[te], weights)
             accs.append(nominal)
             stressed += [] if under is None else [under]
-            per_outer_inner.append([gain_accuracies(isc, y_idx[ite]) for (_itr, ite), isc in zip(folds_in, inner_scores, strict=True)])
+            per_outer_inner.append([gain_accuracies(isc, y_idx[ite], weights) for (_itr, ite), isc in zip(folds_in, inner_scores, strict=True)])
         oof[c.name] = scores
         inner_acc[c.name] = per_outer_inner
         stressed_folds.append(stressed)
@@ -715,9 +747,10 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
         picks.append(usable[pick].name)
         nested_accs.append(float(board[pick]["folds"][o]))
     nested_hits = np.concatenate([hits_of(oof[name][te], y_idx[te]) for name, (_, te) in zip(picks, outer, strict=True)])
-    band = recording_interval(nested_hits, np.concatenate([files[te] for _, te in outer]))
+    nested_y = np.concatenate([y_idx[te] for _, te in outer])
+    band = recording_interval(nested_hits, np.concatenate([files[te] for _, te in outer]), weights=None if weights is None else weights[nested_y])
     nested: dict[str, Any] = {"mean": float(np.mean(nested_accs)), "sd": float(np.std(nested_accs)), "folds": nested_accs, "picks": picks, "interval95": band,
-              **per_surface(nested_hits, np.concatenate([y_idx[te] for _, te in outer]), classes),
+              **per_surface(nested_hits, nested_y, classes), **({"weighted": True} if weights is not None else {}),
               **({"inner_grouped_by": "none" if "none" in grouping else "slide"} if set(grouping) - {"file"} else {}),
               **({"grouped_by": "slide"} if group_by == "slide" else {})}
     shown = leaderboard[:12] + ([board[chosen]] if board[chosen] not in leaderboard[:12] else [])
@@ -734,9 +767,10 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
             f"the choice's windows are not {SPECTRUM.name}'s (0.25 s from the start, all of them)"))
     if ensemble != "off" and can_partner(best, usable):
         own_t = fit_temperature(oof[best.name], y_idx)  # the winner's temperature as a member (label-smoothed, as the partner's)
-        partner = _fit_member(sets, SPECTRUM, oof[SPECTRUM.name], y_idx, classes, config, fs, channels, seed, inner_folds, method)
+        spectrum = usable[usable.index(SPECTRUM)]  # the one scored (balanced where the surfaces were recorded unevenly)
+        partner = _fit_member(sets, spectrum, oof[SPECTRUM.name], y_idx, classes, config, fs, channels, seed, inner_folds, method)
         both = ensemble_scores(oof[best.name], own_t, oof[SPECTRUM.name], partner.temperature)
-        folds_both = [accuracy_of(both[te], y_idx[te]) for _, te in outer]
+        folds_both = [accuracy_of(both[te], y_idx[te], weights) for _, te in outer]
         within = 1 in within_one_se([board[chosen]["folds"], folds_both])
         info = {"partner": SPECTRUM.name, "mean": float(np.mean(folds_both)), "sd": float(np.std(folds_both)), "folds": folds_both,
                 "within_one_se": within, "mode": ensemble, "used": ensemble == "always" or within}
@@ -745,7 +779,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
             model = ensemble_of(alone, own_t, partner, both, y_idx, sets[_key(best)][1].names)
             # the model written is the ensemble: its file states the ensemble's nested estimate (the winner alone's is kept)
             info["alone_nested"] = nested
-            nested = _nested_ensemble(oof, usable, picks, outer, y_idx, files, {best.name: own_t}, partner.temperature, nested, classes)
+            nested = _nested_ensemble(oof, usable, picks, outer, y_idx, files, {best.name: own_t}, partner.temperature, nested, classes, weights)
             band = nested["interval95"]
             model.summary = {**model.summary, "cv_accuracy": nested, "ensemble": info}
             members, scores = [(best, own_t), (SPECTRUM, partner.temperature)], both
@@ -784,7 +818,7 @@ def per_surface(hits: npt.NDArray[np.bool_], y_idx: npt.NDArray[np.intp], classe
 
 def _nested_ensemble(oof: dict[str, FloatArray], usable: Sequence[Candidate], picks: Sequence[str], outer: Sequence[tuple[Any, Any]],
                      y_idx: npt.NDArray[np.intp], files: npt.NDArray[Any], temperatures: dict[str, float], partner_temperature: float,
-                     alone: dict[str, Any], classes: Sequence[str]) -> dict[str, Any]:
+                     alone: dict[str, Any], classes: Sequence[str], weights: FloatArray | None = None) -> dict[str, Any]:
     """The nested estimate of ``train --ensemble``'s model, in the form of :func:`search`'s ``nested``: in each outer fold, the
     candidate the inner folds picked (``picks``) with :data:`SPECTRUM` as its partner where it may have one
     (:func:`can_partner`; alone where not), scored on that fold's out-of-fold scores ``oof``. Each member's temperature is
@@ -799,12 +833,13 @@ def _nested_ensemble(oof: dict[str, FloatArray], usable: Sequence[Candidate], pi
             t = temperatures.get(name)
             t = fit_temperature(oof[name], y_idx) if t is None else t
             sc = ensemble_scores(sc, t, oof[SPECTRUM.name][te], partner_temperature)
-        accs.append(accuracy_of(sc, y_idx[te]))
+        accs.append(accuracy_of(sc, y_idx[te], weights))
         hits.append(hits_of(sc, y_idx[te]))
-    band = recording_interval(np.concatenate(hits), np.concatenate([files[te] for _, te in outer]))
+    ys = np.concatenate([y_idx[te] for _, te in outer])
+    band = recording_interval(np.concatenate(hits), np.concatenate([files[te] for _, te in outer]), weights=None if weights is None else weights[ys])
     return {"mean": float(np.mean(accs)), "sd": float(np.std(accs)), "folds": accs, "picks": list(picks), "interval95": band,
             "model": "ensemble", **per_surface(np.concatenate(hits), np.concatenate([y_idx[te] for _, te in outer]), classes),
-            **{k: v for k, v in alone.items() if k in ("grouped_by", "inner_grouped_by")}}
+            **{k: v for k, v in alone.items() if k in ("grouped_by", "inner_grouped_by", "weighted")}}
 
 
 def can_partner(best: Candidate, usable: Sequence[Candidate]) -> bool:
