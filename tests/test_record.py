@@ -244,6 +244,21 @@ def test_recover_drops_a_torn_last_chunk_and_a_corrupt_one(tmp_path: Path) -> No
     assert np.array_equal(rec.samples[rec.valid_mask()], np.concatenate([samples[:1000], samples[2000:3000]]))
 
 
+@pytest.mark.parametrize(("tail", "dropped"), [(b"\0", 0), (b"\0" * 5000, 0), (b"\xff" * 100, 1)], ids=["one-zero", "zeros", "garbage"])
+def test_recover_keeps_the_last_intact_chunk_before_a_tail_of_other_bytes(tail: bytes, dropped: int, tmp_path: Path) -> None:
+    """A power cut leaves zeros after the last write: the intact last chunk before them was dropped as damaged (its end
+    neither the file's nor a marker), 0.5 s of fsynced samples lost for one zero byte (an outside audit)."""
+    samples = np.random.default_rng(3).integers(-3000, 3000, (4000, 2), dtype=np.int16)
+    journal = _journal_of(tmp_path, samples, 0)
+    with open(journal, "ab") as fh:
+        fh.write(tail)
+    result = recover(journal, tmp_path / "r.npz")
+    assert (result.chunks, result.samples, result.samples_lost, result.dropped_chunks, result.dropped_bytes) == (4, 4000, 0, dropped, len(tail))
+    assert np.array_equal(load_recording(tmp_path / "r.npz").samples, samples)
+    assert result.line().endswith(f"nothing dropped but {len(tail)} zero bytes after the last chunk" if not dropped
+                                  else f"dropped 1 damaged or torn chunk(s), {len(tail)} bytes")
+
+
 def test_recover_refuses_the_journal_of_a_running_recorder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """An audit recovered a live recorder's journal (part of the capture, "nothing dropped"), removed it as after a
     recovery, and the recorder then failed at its stop with the whole capture lost: a locked journal is refused."""

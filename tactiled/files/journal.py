@@ -180,7 +180,7 @@ class JournalScan:
     meta: dict[str, Any]
     chunks: list[Chunk] = field(default_factory=list)
     dropped_chunks: int = 0  # chunks that failed their length or CRC check, or overlapped an earlier one
-    dropped_bytes: int = 0  # bytes not in an intact chunk (a torn last chunk, garbage)
+    dropped_bytes: int = 0  # bytes not in an intact chunk (a torn last chunk, garbage, a tail of zeros)
     size: int = 0
 
     @property
@@ -322,35 +322,40 @@ def _scan_chunks(scan: JournalScan, data: mmap.mmap, pos: int) -> None:
 
     An intact chunk is kept (if it does not overlap the ones before) and skipped whole. A marker whose declared length
     ends on the next marker or at the end of the file frames a chunk even if its CRC fails (damaged inside): it is
-    dropped and skipped whole. Any other marker is not trusted: the next marker is looked for one byte on.
+    dropped and skipped whole. So does the file's last marker when bytes that hold no marker follow its chunk (a power
+    cut leaves zeros after the last write): kept if intact, where that tail made it a damaged one. Any other marker is
+    not trusted: the next marker is looked for one byte on.
     """
     size = len(data)
+    last = data.rfind(CHUNK_MAGIC, pos)  # the file's last marker: only its chunk may end before a tail of other bytes
     while pos < size:
-        framed = _framed_at(data, pos)
+        framed = _framed_at(data, pos, pos == last)
         if framed is not None:
             chunk = _chunk_at(data, pos, framed, scan.channels)
             if chunk is not None and chunk.position >= scan.rows:
                 scan.chunks.append(chunk)
                 pos += 8 + framed + 4
                 continue
-        scan.dropped_chunks += 1
         nxt = pos + 8 + framed + 4 if framed is not None else data.find(CHUNK_MAGIC, pos + 1)
         scan.dropped_bytes += (nxt if nxt >= 0 else size) - pos
+        if nxt < 0 and not data[pos:size].strip(b"\0"):  # zeros to the end: never written (a power cut), no chunk lost
+            break
+        scan.dropped_chunks += 1
         if nxt < 0:
             break
         pos = nxt
 
 
-def _framed_at(data: mmap.mmap, pos: int) -> int | None:
+def _framed_at(data: mmap.mmap, pos: int, last: bool = False) -> int | None:
     """The body length of the chunk marker at ``pos`` if it frames a chunk (in range, ending at the next marker or at the
-    end of the file), else None. O(1)."""
+    end of the file, or anywhere for the file's ``last`` marker), else None. O(1)."""
     if data[pos:pos + 4] != CHUNK_MAGIC or pos + 8 > len(data):
         return None
     (n,) = _u32.unpack_from(data, pos + 4)
     end = pos + 8 + n + 4
     if n < _body.size or n > MAX_CHUNK_BYTES or end > len(data):
         return None
-    return n if end == len(data) or data[end:end + 4] == CHUNK_MAGIC else None
+    return n if last or end == len(data) or data[end:end + 4] == CHUNK_MAGIC else None
 
 
 def _chunk_at(data: mmap.mmap, pos: int, n: int, channels: int) -> Chunk | None:
@@ -396,6 +401,7 @@ class Recovered:
     def line(self) -> str:
         """One line for the user: samples recovered (seconds, lost), chunks, and what was dropped."""
         dropped = (f"dropped {self.dropped_chunks} damaged or torn chunk(s), {self.dropped_bytes} bytes" if self.dropped_chunks
+                   else f"nothing dropped but {self.dropped_bytes} zero bytes after the last chunk" if self.dropped_bytes
                    else "nothing dropped")
         return (f"recovered {self.samples} samples ({self.samples / self.fs:.3f} s, {self.samples_lost} lost) "
                 f"from {self.chunks} chunks; {dropped}")
