@@ -159,6 +159,33 @@ def test_a_recording_of_no_samples_round_trips(tmp_path: Path) -> None:
     assert res.returncode == 0, res.stderr
 
 
+def test_an_int16_recording_at_full_scale_round_trips(tmp_path: Path) -> None:
+    """-32768 is a count int16 holds (a clipped ADC); the reader checked |counts| < 32767.5 and refused the export of any
+    recording that had one (an outside audit): every sample back, bit for bit; one beyond the range is still refused."""
+    from mcap.writer import Writer
+
+    samples = np.random.default_rng(0).integers(-3000, 3000, (4000, 2), dtype=np.int16)
+    samples[100, 1], samples[200, 0] = -32768, 32767
+    src, out = tmp_path / "clip.npz", tmp_path / "clip.mcap"
+    save_recording(src, Recording(samples, 20_000.0, 5 / 32768))
+    assert run_cli("export", "--no-model", str(src), "-o", str(out)).returncode == 0
+    back = open_recording(out)
+    assert isinstance(back, Recording) and np.array_equal(back.samples, samples)
+    res = run_cli("replay", str(out))
+    assert res.returncode == 0, res.stderr
+    beyond = tmp_path / "beyond.mcap"
+    with open(beyond, "wb") as fh:  # a count of -32769
+        w = Writer(fh)
+        w.start(profile="", library="x")
+        cid = w.register_channel("/tactiled/fingertip0/samples", "json", w.register_schema("tactiled.Samples", "jsonschema", b"{}"))
+        w.add_metadata("tactiled.recording", {"fs": "20000.0", "channels": "1", "volts_per_count": "1.0", "first_index": "0",
+                                              "samples_dtype": "int16", "meta": "{}"})
+        w.add_message(cid, log_time=0, publish_time=0, data=b'{"index":0,"n":2,"lost":[],"film1":[0,-32769]}')
+        w.finish()
+    res = run_cli("replay", str(beyond))
+    assert res.returncode == 2 and "samples: -32769 counts at volts_per_count 1.0, beyond the int16 of samples_dtype" in res.stderr, res.stderr
+
+
 def _bomb(path: Path, n: int, frame_size: bool = True) -> Path:
     """A tactiled-looking MCAP file of one samples message of ``n`` zeros per film in one zstd chunk (a few kB on disk, 4n
     bytes of JSON inflated); ``frame_size`` False: the chunk declares 1 kB, only its zstd frame the true size."""

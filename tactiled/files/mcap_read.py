@@ -56,10 +56,11 @@ def load_mcap_recording(path: str | Path) -> Recording:
             raise RecordingError(f"{p}: samples: no samples messages, and no channel count in the metadata") from None
     volts = np.concatenate(rows)
     if dtype.kind == "i":
-        peak = float(np.abs(volts).max()) / vpc if volts.size else 0.0
-        limit = np.iinfo(dtype).max + 1  # rint of less than this is a count the dtype holds (its least is -limit)
-        if not peak < limit - 0.5:
-            raise RecordingError(f"{p}: samples: {peak:.6g} counts at volts_per_count {vpc!r}, beyond the {dtype} of samples_dtype")
+        info_i = np.iinfo(dtype)  # rint of a count within [min - 0.5, max + 0.5) is one the dtype holds: -32768 too (a clipped ADC)
+        low, high = (float(volts.min()) / vpc, float(volts.max()) / vpc) if volts.size else (0.0, 0.0)
+        if not (info_i.min - 0.5 <= low and high < info_i.max + 0.5):
+            bad = low if low < info_i.min - 0.5 else high
+            raise RecordingError(f"{p}: samples: {bad:.6g} counts at volts_per_count {vpc!r}, beyond the {dtype} of samples_dtype")
     samples = np.rint(volts / vpc).astype(dtype) if dtype.kind == "i" else volts
     arrays: dict[str, Any] = {"samples": samples, "fs": np.float64(fs), "volts_per_count": np.float64(vpc if dtype.kind == "i" else 1.0),
                               "first_index": np.int64(first),
