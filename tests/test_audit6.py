@@ -201,3 +201,18 @@ def test_train_on_surfaces_recorded_unevenly_says_it_weighed_them_alike(tmp_path
     model = load_model(tmp_path / "m.npz")
     assert model.summary["cv_accuracy"]["weighted"] is True
     assert model.kind not in ("svm", "linear") or model.params["class_weight"] == "balanced"
+
+
+def test_score_skips_a_recording_of_another_rate_with_its_line_and_scores_the_others(
+        two_of_three: tuple[Path, list[Path], list[Path]], tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """One file at another rate made score refuse every file, where replay says its line and goes on."""
+    model, taught, _ = two_of_three
+    other = tmp_path / "10k.npz"
+    with np.load(taught[0]) as z:
+        np.savez(other, **{**{k: z[k] for k in z.files}, "fs": np.float64(10_000.0)})
+    res = cli_here(capfd, "score", str(model), *map(str, taught[1:]), str(other))
+    assert res.returncode == 2 and f"skipped: {model}: model trained at fs 20000 Hz, {other} is 10000 Hz" in res.stderr, res.stderr
+    assert "accuracy " in res.stdout
+    res = cli_here(capfd, "score", str(model), str(other))
+    assert res.returncode == 2 and res.stderr.strip().splitlines()[-1] == (
+        f"tactiled: error: no recording to score: none is readable and of {model}'s rate and channels (listed above)"), res.stderr

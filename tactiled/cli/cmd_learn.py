@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from tactiled.cli import common as c
 from tactiled.cli.common import EXIT_OK, EXIT_USAGE, Sub, command, config_of, files_done, say
-from tactiled.errors import TactiledError
+from tactiled.errors import ModelError, TactiledError
 
 if TYPE_CHECKING:
     from tactiled.files.recording import Recording
@@ -195,10 +195,17 @@ def cmd_score(args: argparse.Namespace) -> int:
 
     config = config_of(args)
     model = load_model(args.model)
-    recs = load_recordings(args.files, say)
-    for name, rec in recs:
-        model.check_stream(rec.fs, rec.channels, name, args.model)
+    recs = []  # as replay: a recording of another rate or channel count than the model is its line, and the others go on
+    for name, rec in load_recordings(args.files, say):
+        try:
+            model.check_stream(rec.fs, rec.channels, name, args.model)
+        except ModelError as exc:
+            say(f"skipped: {exc}")
+            continue
+        recs.append((name, rec))
     scored = with_ground_truth(recs)
+    if not recs:
+        raise TactiledError(f"no recording to score: none is readable and of {args.model}'s rate and channels (listed above)")
     if not scored:
         raise TactiledError("no recording with ground truth (per-slide surfaces or a file label) to score")
     # as train: one recording given twice (or a copy of it) would count its slides twice; one with per-slide truth is refused
