@@ -216,3 +216,13 @@ def test_score_skips_a_recording_of_another_rate_with_its_line_and_scores_the_ot
     res = cli_here(capfd, "score", str(model), str(other))
     assert res.returncode == 2 and res.stderr.strip().splitlines()[-1] == (
         f"tactiled: error: no recording to score: none is readable and of {model}'s rate and channels (listed above)"), res.stderr
+
+
+def test_features_says_why_a_recording_given_twice_is_refused(two_of_three: tuple[Path, list[Path], list[Path]], tmp_path: Path,
+                                                              capfd: pytest.CaptureFixture[str]) -> None:
+    """features refused it for what cross-validation would do with it, which features does not do."""
+    _, taught, _ = two_of_three
+    res = cli_here(capfd, "features", str(taught[0]), str(taught[0]), "-o", str(tmp_path / "f.npz"))
+    assert res.returncode == 2 and res.stderr.strip() == (
+        f"tactiled: error: {taught[0]} and {taught[0]} hold the same samples: one recording would count as two (its windows would be "
+        "in the table twice); give each recording once"), res.stderr

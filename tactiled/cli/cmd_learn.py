@@ -210,14 +210,15 @@ def cmd_score(args: argparse.Namespace) -> int:
         raise TactiledError("no recording with ground truth (per-slide surfaces or a file label) to score")
     # as train: one recording given twice (or a copy of it) would count its slides twice; one with per-slide truth is refused
     # before the replays, one with a file label alone once they found its slides (two files of silence count nothing)
-    check_distinct([(n, r) for n, r in scored if r.slides()])
+    twice = "its slides would count twice in the accuracy"
+    check_distinct([(n, r) for n, r in scored if r.slides()], twice)
     report = score_recordings(scored, config, model, args.jobs, files_done("score"))
     if report["n"] == 0:  # only file labels, and the detector found no slide in any of them: an accuracy of 0 of 0 is no score
         names = [n for n, _ in scored]
         shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
         raise TactiledError(f"no true slide to score: the detector found no slide in {shown} (a file label names the surface of "
                             "each slide the detector finds; see `tactiled replay` on one of them)")
-    check_distinct([rec for rec, f in zip(scored, report["files"], strict=True) if f["slides"]])
+    check_distinct([rec for rec, f in zip(scored, report["files"], strict=True) if f["slides"]], twice)
     if args.json:
         print(json.dumps(report))
         return EXIT_OK if len(scored) == len(args.files) else EXIT_USAGE

@@ -88,10 +88,14 @@ def undetected_text(surfaces: dict[str, tuple[int, int]]) -> str:
             "or silent sensor? the slides' ground truth is not where the signal is, or the detector's settings do not suit it)")
 
 
-def check_distinct(recs: Sequence[tuple[str, Recording]]) -> None:
-    """Refuse (one line naming both) two recordings with the same samples, such as one file given twice or a copy under
-    another name: cross-validation grouped by recording would test each on its own copy and promise what it never measured
-    (``train``, ``evaluate``), and enrolment would count its slides twice."""
+CROSS_VALIDATION = "cross-validation would test it on its own copy"  # check_distinct's reason for train and evaluate
+
+
+def check_distinct(recs: Sequence[tuple[str, Recording]], why: str = CROSS_VALIDATION) -> None:
+    """Refuse (one line naming both, and ``why`` it matters to the command) two recordings with the same samples, such as one
+    file given twice or a copy under another name: cross-validation grouped by recording would test each on its own copy
+    and promise what it never measured (``train``, ``evaluate``), enrolment would count its slides twice, ``score`` its
+    slides, ``features`` its windows."""
     import hashlib
 
     seen: dict[str, str] = {}
@@ -101,8 +105,8 @@ def check_distinct(recs: Sequence[tuple[str, Recording]]) -> None:
         h.update(samples.data)
         digest = h.hexdigest()
         if digest in seen:
-            raise TactiledError(f"{seen[digest]} and {name} hold the same samples: one recording would count as two (cross-validation "
-                                "would test it on its own copy); give each recording once")
+            raise TactiledError(f"{seen[digest]} and {name} hold the same samples: one recording would count as two ({why}); give each "
+                                "recording once")
         seen[digest] = name
 
 

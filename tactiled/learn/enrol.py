@@ -79,7 +79,7 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
         raise TactiledError(f"{len(paths) - len(recs)} of {len(paths)} recordings unreadable (named above); nothing enrolled")
     for name, rec in recs:
         old.check_stream(rec.fs, rec.channels, name, where)
-    check_distinct(recs)  # a copy would count its slides twice towards min_slides
+    check_distinct(recs, "its slides would count twice")
     # as the daemon running the model finds them: with its start level, a recording of rest is no slide (it was one, from
     # the first sample to the last: the detector, undecided, could not tell rest from a slide without a pause)
     per_file, counts = find_slides(recs, config, start_level(old, config.detector))

@@ -33,7 +33,7 @@ def write_features(path: str | Path, recs: Sequence[tuple[str, Recording]], conf
     """Analyse every slide of ``recs`` with the config's feature families and windows (on ``jobs`` processes, None: every
     core); write the file; return the windows. Recordings of differing rates or channel counts, or one given twice, are a
     :class:`~tactiled.errors.TactiledError` (``train``'s check): the windows of all are analysed with one set of bands."""
-    check_recordings(recs, len(recs))
+    check_recordings(recs, len(recs), "its windows would be in the table twice")
     fs, channels = recs[0][1].fs, recs[0][1].channels
     try:
         settings = AnalysisSettings.from_config(config, channels, fs)

@@ -21,6 +21,7 @@ from tactiled.core.detect import front_end_settings
 from tactiled.errors import TactiledError
 from tactiled.files.recording import Recording, case_twins
 from tactiled.learn.dataset import (
+    CROSS_VALIDATION,
     GROUP_PIECE_S,
     LabelledSlide,
     Progress,
@@ -57,8 +58,8 @@ METHODS = ("auto", "quick", "paper")
 GROUP_BY = ("file", "slide")
 
 
-def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None:
-    """Every file readable, one rate and channel count, no recording twice (:func:`check_distinct`)."""
+def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int, why: str = CROSS_VALIDATION) -> None:
+    """Every file readable, one rate and channel count, no recording twice (:func:`check_distinct`, ``why``)."""
     if len(recs) != wanted:
         raise TactiledError("unreadable recordings (listed above); nothing written")
     if not recs:
@@ -69,7 +70,7 @@ def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int) -> None
     if len(kinds) > 1:
         which = "; ".join(f"{path}: {fs:g} Hz, {c} channel{'s' if c > 1 else ''}" for (fs, c), path in kinds.items())
         raise TactiledError(f"recordings differ in fs or channels ({which}); use one rate and channel count at a time")
-    check_distinct(recs)
+    check_distinct(recs, why)
 
 
 def file_labels(recs: Sequence[tuple[str, Recording]], per_file: list[list[LabelledSlide]], say: Progress) -> list[str | None]:
