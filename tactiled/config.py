@@ -385,6 +385,22 @@ def subscribe_endpoint(config: Config, sensor: str | None = None) -> str:
     return local_endpoint(sensor or config.sensor.id) if endpoint == DEFAULT_ENDPOINT else endpoint
 
 
+def in_use(endpoint: str) -> bool:
+    """Whether ``endpoint`` is an ``ipc://`` socket another process still listens on: ZeroMQ's bind would silently take it
+    over (the other process's peers then reach this one). A stale socket, of a daemon that died, is not in use (the bind
+    replaces it)."""
+    if not (endpoint.startswith("ipc://") and Path(endpoint[6:]).is_socket()):
+        return False
+    import socket
+
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        try:
+            probe.connect(endpoint[6:])
+        except OSError:
+            return False  # nobody listens
+    return True
+
+
 def is_local_endpoint(endpoint: str) -> bool:
     """True for ``auto``, ipc://, inproc:// and tcp:// endpoints on a loopback address."""
     if endpoint == DEFAULT_ENDPOINT:

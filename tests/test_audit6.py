@@ -112,8 +112,9 @@ def test_enrol_refuses_recordings_of_rest_and_says_so_for_one_too_short_for_a_sl
         np.savez(rests[-1], **{**arrays, "samples": noise.astype(np.int16)})
     res = cli_here(capfd, "enrol", str(model), *map(str, rests), "--label", "P80", "-o", str(tmp_path / "m2.npz"))
     assert res.returncode == 2 and not (tmp_path / "m2.npz").exists()
-    assert res.stderr.strip() == (f"tactiled: error: no slide to enrol: the detector found none in {rests[0]}, {rests[1]}, {rests[2]} "
-                                  "(recordings of the surface being slid over; see tactiled replay on one of them)"), res.stderr
+    assert res.stderr.strip() == (f"tactiled: error: no slide to enrol in {rests[0]}, {rests[1]}, {rests[2]}: the daemon running {model} "
+                                  "finds none there (at rest, by the level it learnt between slides; recordings of the surface being "
+                                  "slid over, please); nothing enrolled"), res.stderr
     short = tmp_path / "short.npz"
     np.savez(short, **{**arrays, "samples": arrays["samples"][: int(0.07 * float(arrays["fs"]))]})
     res = cli_here(capfd, "enrol", str(model), str(short), "--label", "P80", "-o", str(tmp_path / "m3.npz"))

@@ -17,9 +17,8 @@ from rich.console import Console
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, Status, schema
 
 from tactiled.apps.monitor import MonitorState, render
-from tactiled.config import parse_config
+from tactiled.config import in_use, parse_config
 from tactiled.errors import ConfigError, TactiledError
-from tactiled.service.publish import in_use
 from tests.conftest import REPO, board_and_daemon, run_cli, tactiled_cmd, wait_for
 from tests.test_daemon import raw_request
 

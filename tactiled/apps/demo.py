@@ -24,8 +24,8 @@ from tactiled_client import BlockingSubscriber, NoData, Roughness, Slide, schema
 from tactiled_client.truth import overlapping
 
 from tactiled.apps.monitor import read_truth, run_monitor
+from tactiled.config import in_use
 from tactiled.errors import ConfigError
-from tactiled.service.publish import in_use
 from tactiled.signals import sigterm_as_exit
 
 DAEMON_LAST_WORDS_S = 10.0  # how long a daemon that gave no label may take to exit and say why, s

@@ -80,9 +80,16 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     for name, rec in recs:
         old.check_stream(rec.fs, rec.channels, name, where)
     check_distinct(recs, "its slides would count twice")
-    # as the daemon running the model finds them: with its start level, a recording of rest is no slide (it was one, from
-    # the first sample to the last: the detector, undecided, could not tell rest from a slide without a pause)
-    per_file, counts = find_slides(recs, config, start_level(old, config.detector))
+    per_file, counts = find_slides(recs, config)  # as train found its slides (what the learnt-recordings check compares)
+    level = start_level(old, config.detector)
+    if level is not None:  # the daemon running the model, with its start level, finds no slide in a recording of rest; the
+        # detector without it, undecided, takes such a recording for one slide from the first sample to the last
+        live, _ = find_slides(recs, config, level)
+        rest = [name for (name, rec), slides, seen in zip(recs, per_file, live, strict=True) if slides and not seen and not rec.slides()]
+        if rest:
+            shown = ", ".join(rest[:3]) + (f" and {len(rest) - 3} more" if len(rest) > 3 else "")
+            raise TactiledError(f"no slide to enrol in {shown}: the daemon running {where} finds none there (at rest, by the level it "
+                                "learnt between slides; recordings of the surface being slid over, please); nothing enrolled")
     if label is not None:  # as a recording's names are read (NFC)
         per_file = [[replace(s, label=surface_name(label)) for s in slides] for slides in per_file]
     silent = undetected(per_file, [r.fs for _, r in recs], config.detector.min_slide_s)

@@ -19,9 +19,9 @@ import zmq.asyncio
 import zmq.auth
 from tactiled_client.endpoints import allow_ipv6
 
-from tactiled.config import Config
+from tactiled.config import Config, in_use
 from tactiled.errors import ConfigError
-from tactiled.service.publish import bind_problem, in_use, share_socket
+from tactiled.service.publish import bind_problem, share_socket
 
 COMMANDS = ("load", "shadow", "status")
 MAX_REQUEST_BYTES = 4096

@@ -24,7 +24,7 @@ from tactiled_client import schema
 from tactiled_client.endpoints import AUTO, allow_ipv6, local_socket, remove_socket_file
 
 from tactiled import __version__
-from tactiled.config import PublishConfig, missing_ipc_folder
+from tactiled.config import PublishConfig, in_use, missing_ipc_folder
 from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideResumed, SlideStarted
 from tactiled.errors import ConfigError, OutputError
 from tactiled.files.outputs import check_folder, check_output
@@ -86,20 +86,6 @@ def bind_problem(endpoint: str, exc: zmq.ZMQError) -> str:
     """Why ZeroMQ could not bind ``endpoint``, in words: a missing ipc folder as ``check-config`` says it, else ZeroMQ's."""
     folder = missing_ipc_folder(endpoint)
     return f"cannot bind {endpoint}: " + (f"the folder {folder} does not exist (make it, or choose another path)" if folder else str(exc))
-
-
-def in_use(endpoint: str) -> bool:
-    """Whether ``endpoint`` is an ``ipc://`` socket another process still listens on: ZeroMQ's bind would silently take it
-    over (the other process's peers then reach this one). A stale socket, of a daemon that died, is not in use (the bind
-    replaces it)."""
-    if not (endpoint.startswith("ipc://") and Path(endpoint[6:]).is_socket()):
-        return False
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
-        try:
-            probe.connect(endpoint[6:])
-        except OSError:
-            return False  # nobody listens
-    return True
 
 
 def share_socket(path: Path, group: str) -> None:
