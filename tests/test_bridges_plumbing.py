@@ -205,3 +205,25 @@ def test_a_gap_longer_than_nan_max_s_is_only_its_marker() -> None:
     assert len(rows) == 100 + 2000 + 100 + 100 + 100 and np.diff(stamps).min() > 0
     assert [(m["index"], m["count"], m["filled"]) for m in markers if m["count"] != 5] == [(100, 2000, True), (2200, 2001, False),
                                                                                            (4301, 2**40 - 4301, False)]
+
+
+def test_a_lost_range_across_messages_is_one_marker() -> None:
+    """An outside audit: a range of 500 lost samples split by a samples message's end gave two markers (400 and 100), so a
+    tool counting lost ranges in the XDF overcounted. One marker, stamped at its first sample, once the range ends; a range
+    that ends with a message and is not continued is pushed with the next message, or at close."""
+    def lost_batch(index: int, lost: list[list[int]], n: int = 100) -> Samples:
+        counts = np.ones((n, 2), dtype=np.int16)
+        return schema.samples("tip7", index, counts.astype("<i2").tobytes(), n, 2, fs=FS, volts_per_count=0.5, lost=lost,
+                              to_host=lambda i: (50.0 + i / FS, 1.7e9 + i / FS))
+
+    sink = fake_sink(nan_lost=False)
+    sink.samples(lost_batch(0, [[60, 40]]))  # reaches the end
+    sink.samples(lost_batch(100, [[0, 100]]))  # a whole message lost
+    sink.samples(lost_batch(200, [[0, 20], [50, 10]]))  # goes on, then a range of its own
+    sink.samples(lost_batch(300, [[90, 10]]))  # reaches the end, then the next message starts intact
+    sink.samples(lost_batch(400, []))
+    sink.samples(lost_batch(500, [[95, 5]]))  # open when the bridge stops
+    outlet = sink.markers
+    sink.close()
+    assert [(m["index"], m["count"], t) for m, t in outlet.strings if m["event"] == "lost"] == [
+        (60, 160, 50.06), (250, 10, 50.25), (390, 10, 50.39), (595, 5, 50.595)]

@@ -85,6 +85,8 @@ class LslSink:
         self.pushed = 0  # rows pushed on the raw outlet, NaN rows included
         self.nan_filled = 0  # NaN rows pushed for gaps between messages
         self.lost_marked = 0
+        self._open: tuple[dict[str, Any], float | None] | None = None  # a lost range reaching the last message's end, and its time:
+        # its marker waits for the next message, whose first rows may be the same range going on (one range, one marker)
 
     def _raw_outlet(self, meta: StreamMeta) -> Any:
         info = self.lsl.StreamInfo(f"tactiled-{meta.sensor}", "Tactile", meta.channels, meta.fs, "float32", f"tactiled-{meta.sensor}-raw")
@@ -105,7 +107,8 @@ class LslSink:
         Each lost range also gets a ``lost`` marker: those the message lists, and the samples between
         the last message and this one (its ``lost_before``, or a jump of the index the daemon did not
         announce: a daemon restart, messages missed), as one range; an index that went back is a
-        marker of unknown count. A change of channels, rate or scale makes the raw outlet again first.
+        marker of unknown count. A range that goes on across messages is one marker, pushed once it ends
+        (stamped at its first sample). A change of channels, rate or scale makes the raw outlet again first.
         """
         self._check(msg)
         v, valid, t = volts(msg)
@@ -118,17 +121,20 @@ class LslSink:
             if gap_first > self.next_index:  # not announced: the daemon restarted (the board's index carried on) or messages were missed
                 gap_first, gap = self.next_index, msg.index - self.next_index
             else:  # the index went back: a daemon restarted with a fresh index; how many were lost is unknown
+                self._close_open()
                 self._marker({"event": "lost", "index": None, "count": None, "next": msg.index, "filled": False},
                              self.next_mono if self.next_mono is not None else first_at)
+        carried = self._open
         if gap:
             fill = self.nan_lost and gap <= self.nan_max_s * self.meta.fs
             gap_stamps = None if first_at is None else self._gap_stamps(gap if fill else 1, gap, first_at, period)
-            self._marker({"event": "lost", "index": gap_first, "count": gap, "filled": fill}, None if gap_stamps is None else gap_stamps[0])
+            self._lost(gap_first, gap, fill, None if gap_stamps is None else float(gap_stamps[0]), open_end=msg.n == 0)
             if fill:
                 self._push_nan(gap, gap_stamps)
         for p, count in msg.lost:
-            self._marker({"event": "lost", "index": msg.index + p, "count": count, "filled": self.nan_lost},
-                         None if stamps is None else float(stamps[p]))
+            self._lost(msg.index + p, count, self.nan_lost, None if stamps is None else float(stamps[p]), open_end=p + count == msg.n)
+        if carried is not None and self._open is carried:  # this message did not go on with it: it ended with the last one
+            self._close_open()
         self.next_index = msg.index + msg.n
         self.next_mono = None if msg.index_mono is None else msg.index_mono + msg.n * period
         rows = np.ones(msg.n, dtype=bool) if self.nan_lost else valid
@@ -164,6 +170,31 @@ class LslSink:
         self.pushed += rows
         self.nan_filled += rows
 
+    def _lost(self, index: int, count: int, filled: bool, at: float | None, open_end: bool) -> None:
+        """A ``lost`` marker for ``count`` samples from ``index`` (stamped ``at``), or the open range it goes on with;
+        ``open_end``: the range reaches the message's end, so its marker waits for the next message."""
+        if self._open is not None:
+            event, when = self._open
+            if event["index"] + event["count"] == index and event["filled"] == filled:
+                event["count"] += count
+                self._open = (event, when)  # a new tuple: this message went on with it (samples() checks which is open)
+                if not open_end:
+                    self._close_open()
+                return
+            self._close_open()
+        event = {"event": "lost", "index": index, "count": count, "filled": filled}
+        if open_end:
+            self._open = (event, at)
+        else:
+            self._marker(event, at)
+
+    def _close_open(self) -> None:
+        """Push the marker of the lost range left open at the last message's end, if any."""
+        if self._open is not None:
+            event, at = self._open
+            self._open = None
+            self._marker(event, at)
+
     def _marker(self, event: dict[str, Any], at: float | None) -> None:
         self.markers.push_sample([json.dumps(event)], 0.0 if at is None else float(at))
         self.lost_marked += 1
@@ -183,6 +214,8 @@ class LslSink:
         pass
 
     def close(self) -> None:
-        """Drop both outlets (pylsl closes an outlet when it is collected)."""
+        """Push the marker of a lost range still open, then drop both outlets (pylsl closes an outlet when it is collected)."""
+        if self.markers is not None:
+            self._close_open()
         self.raw = None
         self.markers = None
