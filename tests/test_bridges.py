@@ -52,11 +52,14 @@ def expected(out: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
 
 
 def lost_expected(out: dict[str, Any]) -> list[tuple[int, int]]:
-    ranges = []
+    """Every lost range sent, those that run on into the next (across a message's end) as one."""
+    ranges: list[tuple[int, int]] = []
     for first, _, lost, lost_before in out["batches"]:
-        if lost_before:
-            ranges.append((first - lost_before, lost_before))
-        ranges += [(first + p, c) for p, c in lost]
+        for start, count in ([(first - lost_before, lost_before)] if lost_before else []) + [(first + p, c) for p, c in lost]:
+            if ranges and sum(ranges[-1]) == start:
+                ranges[-1] = (ranges[-1][0], ranges[-1][1] + count)
+            else:
+                ranges.append((start, count))
     return ranges
 
 
