@@ -227,3 +227,20 @@ def test_features_says_why_a_recording_given_twice_is_refused(two_of_three: tupl
     assert res.returncode == 2 and res.stderr.strip() == (
         f"tactiled: error: {taught[0]} and {taught[0]} hold the same samples: one recording would count as two (its windows would be "
         "in the table twice); give each recording once"), res.stderr
+
+
+def test_a_recordings_error_never_narrows_the_interval_below_that_of_none() -> None:
+    """score: 50 of 50 right in 10 recordings gave [0.70, 1]; with an 11th recording holding one error (54 of 55) the
+    percentile bootstrap gave [0.95, 1]: more certain for a miss. Resampled with a pseudo-recording of each outcome, the
+    bound stays near the error-free one and an interval still holds its point."""
+    from tactiled.learn.score import recording_interval
+
+    def interval(wrong_per_recording: list[int], size: int = 5) -> list[float]:
+        hits = np.concatenate([np.arange(size) >= w for w in wrong_per_recording])
+        band = recording_interval(hits, np.repeat(np.arange(len(wrong_per_recording)), size))
+        assert band is not None and band[0] <= hits.mean() <= band[1]
+        return band
+
+    none, one, two = interval([0] * 10), interval([0] * 10 + [1]), interval([0] * 10 + [1, 1])
+    assert none == [0.7, 1.0]
+    assert one[0] < 0.8 and two[0] < 0.8 and two[0] <= one[0] + 0.05

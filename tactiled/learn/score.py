@@ -123,7 +123,10 @@ def recording_interval(hits: npt.NDArray[np.bool_], groups: npt.NDArray[Any], le
     A percentile bootstrap over recordings, not slides: slides of one recording share its day, specimen and fingertip, so
     they say less than as many independent slides, and a new recording can miss by as much as the recordings differ.
     Where every slide is right (or every one wrong) the resamples cannot vary: the rule of three over the m recordings
-    gives [1 - 3/m, 1] (or [0, 3/m]). None with fewer than 3 recordings.
+    gives [1 - 3/m, 1] (or [0, 3/m]). Otherwise the recordings are resampled with one more of each outcome, of the average
+    size, all right and all wrong (as Agresti and Coull add two successes and two failures to a proportion): where one
+    recording of eleven held the only error, the plain bootstrap gave [0.95, 1], narrower than the [0.70, 1] of ten
+    recordings without one (an outside audit); so smoothed, [0.74, 1]. None with fewer than 3 recordings.
     """
     from scipy import stats
 
@@ -136,6 +139,8 @@ def recording_interval(hits: npt.NDArray[np.bool_], groups: npt.NDArray[Any], le
     w = np.ones(len(hits)) if weights is None else np.asarray(weights, dtype=np.float64)
     right = np.bincount(idx, weights=hits * w, minlength=len(names))
     count = np.bincount(idx, weights=w, minlength=len(names))
+    size = float(count.mean())
+    right, count = np.r_[right, size, 0.0], np.r_[count, size, size]  # a recording all right and one all wrong, of the average size
     res = stats.bootstrap((right, count), lambda r, c, axis: r.sum(axis=axis) / c.sum(axis=axis), paired=True, vectorized=True,
                           confidence_level=level, n_resamples=resamples, method="percentile", random_state=seed)
     return [float(res.confidence_interval.low), float(res.confidence_interval.high)]
