@@ -84,7 +84,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         ratio, far = nov.get("threshold") is not None, nov.get("distance_threshold") is not None
         if (ratio or far) and nov.get("known_rejected") is not None:
             known = (f"by leaving each recording out, {100 * nov['known_rejected']:.1f} % of the slides of a new recording of a known surface "
-                     "are called unknown" if nov.get("known_rejected_by") == "recording left out" else
+                     "slid as these were are called unknown (slid otherwise, more: by hand where these were by robot, or in strokes of "
+                     "another length; a slide's speed moves its spectrum)" if nov.get("known_rejected_by") == "recording left out" else
                      f"by cross-validation, {100 * nov['known_rejected']:.1f} % of slides of known surfaces are called unknown")
             print(f"unknown surfaces: {known}, "
                   + (f"{100 * nov['unseen_flagged']:.1f} % of slides of a surface left out of training" if nov.get("unseen_flagged") is not None
