@@ -50,8 +50,8 @@ def start_level(recs: Sequence[Recording], slides: Sequence[Sequence[tuple[int, 
     return learn_start_level(recs, slides, config)[0]
 
 
-def learn_start_level(recs: Sequence[Recording], slides: Sequence[Sequence[tuple[int, int]]], config: DetectorConfig
-                      ) -> tuple[float | None, str]:
+def learn_start_level(recs: Sequence[Recording], slides: Sequence[Sequence[tuple[int, int]]], config: DetectorConfig,
+                      surfaces: Sequence[Sequence[str | None]] | None = None) -> tuple[float | None, str]:
     """(the envelope level that tells a slide's start from rest on this sensor, or None where the recordings cannot say;
     one line saying which, and why, for ``train`` to print).
 
@@ -61,19 +61,23 @@ def learn_start_level(recs: Sequence[Recording], slides: Sequence[Sequence[tuple
     settling at the start), each the median of it and the two hops before (as the detector decides at rest: a knock of a
     hop or two between slides counts no more than it does there). With the quietest 5 % of slides' levels at least ``on_factor``² above the rests', the level is
     their geometric mean (a margin of ``on_factor`` each way: another unit's gain moves both by far less); else None.
+    ``surfaces``: each slide's surface (as ``slides``), to name the surfaces whose slides are no louder than the rests then
+    (recordings of rest labelled as a surface are the usual cause).
     """
     slide_levels: list[float] = []
+    slide_surfaces: list[str | None] = []
     rest: list[npt.NDArray[np.float64]] = []
     rest_hops = 0
-    for rec, spans in zip(recs, slides, strict=True):
+    for k, (rec, spans) in enumerate(zip(recs, slides, strict=True)):
         env, intact, hop = hop_envelope(rec, config)
         starts = np.arange(env.shape[0]) * hop
         edge, gap, settle = round(EDGE_S * rec.fs), round(REST_GAP_S * rec.fs), round((config.settle_s + config.initial_s) * rec.fs)
         near = np.zeros(env.shape[0], dtype=bool)
-        for a, b in spans:
+        for j, (a, b) in enumerate(spans):
             inside = intact & (starts >= a + edge) & (starts + hop <= b - edge)
             if inside.sum() * hop >= config.initial_s * rec.fs:
                 slide_levels.append(float(np.quantile(env[inside], 0.8)))
+                slide_surfaces.append(surfaces[k][j] if surfaces is not None else None)
             near |= (starts + hop > a - gap) & (starts < b + gap)
         quiet = intact & ~near & (starts >= settle) & (env > 0)
         rest.append(np.asarray(median3_runs(env.tolist()), dtype=np.float64)[quiet])
@@ -86,8 +90,11 @@ def learn_start_level(recs: Sequence[Recording], slides: Sequence[Sequence[tuple
     loud_rest = float(np.quantile(np.concatenate(rest), REST_QUANTILE))
     quiet_slide = float(np.quantile(slide_levels, SLIDE_QUANTILE))
     if not (loud_rest > 0 and quiet_slide >= loud_rest * config.on_factor**2):
+        still = sorted({str(n) for n, v in zip(slide_surfaces, slide_levels, strict=True) if n is not None and v <= loud_rest})
+        hint = (f"; the slides of {', '.join(still)} are no louder than the rests (recordings of rest labelled as a surface? the "
+                "daemon would find no slide in them)") if still else ""
         return None, (f"no start level: the quietest slides lie only {quiet_slide / loud_rest if loud_rest > 0 else math.inf:.1f} times "
-                      f"above the loudest rest ({config.on_factor**2:g} needed); {unknown}")
+                      f"above the loudest rest ({config.on_factor**2:g} needed){hint}; {unknown}")
     level = math.sqrt(loud_rest * quiet_slide)
     return level, (f"start level {level:.3g} (the quietest slides {quiet_slide / loud_rest:.0f} times above the loudest rest): a daemon "
                    "started while the finger slides labels that slide as it goes")

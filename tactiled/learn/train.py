@@ -193,6 +193,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
     check_recordings(recs, len(paths))
     per_file, counts = find_slides(recs, config)
     spans = [[(s.start, s.stop) for s in slides] for slides in per_file]  # every slide found, for the detector's start level
+    surfaces = [[s.label for s in slides] for slides in per_file]  # theirs (file labels are given below, by file_labels)
     say(f"{len(recs)} files, {sum(len(s) for s in per_file)} slides ({counts.truth} in ground truth, {counts.detected} detected, "
         f"{sum(counts.missed.values())} missed by the detector, {sum(counts.false.values())} detections outside any true slide)")
     for name, n in counts.missed.items():
@@ -251,7 +252,7 @@ def train(paths: Sequence[str | Path], config: Config, *, method: str = "auto", 
         result = search(recs, config, folds=folds, seed=seed, progress=say, scheduler=scheduler, found=found, candidates=candidates,
                         keep_models=keep_models, novelty=novelty, ensemble=ensemble, untaught=untaught, speed=speed,
                         check_usable=check, group_by=group_by, gain=gain)
-    result.model.start_level, note = learn_start_level([r for _, r in recs], spans, config.detector)
+    result.model.start_level, note = learn_start_level([r for _, r in recs], spans, config.detector, surfaces)
     result.model.start_front = front_end_settings(config.detector) if result.model.start_level is not None else None
     say(note)
     result.model.summary["files_trained"] = [Path(n).name for n, _ in recs]
