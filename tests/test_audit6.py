@@ -69,10 +69,11 @@ def test_a_slide_is_held_to_the_novelty_threshold_of_its_own_number_of_windows(t
     x = np.random.default_rng(0).normal(size=(9, len(base.names)))
     rows = [(0, 1), (1, 3), (3, 9)]  # 1, 2 and 6 windows
     plain = base.novelty_many(x, rows)
-    loose = replace(base, novelty_prefix=(4.0, 2.0, 1.5))  # beyond its last entry, the last one
+    loose = replace(base, novelty_prefix=(4.0, 2.0, 1.5))  # beyond its last entry: a provisional label's last, a whole slide's 1
     final, provisional = loose.novelty_many(x, rows, final=True), loose.novelty_many(x, rows, final=False)
-    assert final == provisional
-    assert final == pytest.approx([p / f for p, f in zip(plain, (4.0, 2.0, 1.5), strict=True)], rel=1e-12)  # type: ignore[operator]
+    assert final[:2] == provisional[:2]
+    assert final == pytest.approx([p / f for p, f in zip(plain, (4.0, 2.0, 1.0), strict=True)], rel=1e-12)  # type: ignore[operator]
+    assert provisional[2] == pytest.approx(plain[2] / 1.5, rel=1e-12)  # type: ignore[operator]
 
 
 @pytest.mark.parametrize("kind", ["ipc", "tcp"])
@@ -262,3 +263,28 @@ def test_train_names_a_surface_whose_slides_are_no_louder_than_rest(two_of_three
     assert res.returncode == 0, res.stderr
     note = next(line for line in (res.stdout + res.stderr).splitlines() if "start level" in line)
     assert note.startswith("train: no start level") and "the slides of P80 are no louder than the rests (recordings of rest labelled" in note, note
+
+
+def test_an_ensemble_on_surfaces_recorded_unevenly_calibrates_the_partner_it_ships(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A reviewer: the provisional labels' calibration refitted the spectral partner unweighted (the module's SPECTRUM,
+    which is not balanced) while the file held the weighted one."""
+    import tactiled.learn.search as search
+    from tactiled.config import Config
+    from tactiled.learn.train import train
+
+    small = sorted(write_dataset(tmp_path / "a", scene="robot", surfaces="Ra0.44", files_per_surface=2, slides_per_file=2, seed=3))
+    large = sorted(write_dataset(tmp_path / "b", scene="robot", surfaces="Ra4.43", files_per_surface=4, slides_per_file=4, seed=4))
+    scored: list[tuple[str, bool]] = []
+    real = search._prefix_scorer
+
+    def spy(ws: object, c: search.Candidate, *args: object) -> object:
+        scored.append((c.name, c.balanced))
+        return real(ws, c, *args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(search, "_prefix_scorer", spy)
+    result = train([*small, *large], Config(), folds=2, ensemble="always",
+                   candidates=[search.Candidate(("psd",), "linear", 0.25), search.SPECTRUM])
+    assert result.model.summary["cv_accuracy"]["weighted"] is True
+    assert scored and all(balanced for _, balanced in scored), scored
+    if result.model.partner is not None:
+        assert result.model.partner.params.get("class_weight") == "balanced"

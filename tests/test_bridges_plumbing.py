@@ -227,3 +227,12 @@ def test_a_lost_range_across_messages_is_one_marker() -> None:
     sink.close()
     assert [(m["index"], m["count"], t) for m, t in outlet.strings if m["event"] == "lost"] == [
         (60, 160, 50.06), (250, 10, 50.25), (390, 10, 50.39), (595, 5, 50.595)]
+    # a gap between messages (lost_before) that the next message's first rows go on with, also after an open range: one
+    gap = fake_sink(nan_lost=False)
+    gap.samples(lost_batch(0, [[90, 10]]))
+    counts = np.ones((100, 2), dtype=np.int16)
+    gap.samples(schema.samples("tip7", 200, counts.astype("<i2").tobytes(), 100, 2, fs=FS, volts_per_count=0.5, lost=[[0, 20]],
+                               lost_before=100, to_host=lambda i: (50.0 + i / FS, 1.7e9 + i / FS)))
+    outlet = gap.markers
+    gap.close()
+    assert [(m["index"], m["count"]) for m, _ in outlet.strings if m["event"] == "lost"] == [(90, 130)]

@@ -86,4 +86,6 @@ def test_a_controller_started_before_the_system_daemon_waits_on_the_services_soc
             proc.wait(30)
             os.close(master)
             os.close(slave)
-    assert local_endpoint("boot") == f"ipc://{run}/boot.sock"  # the folder systemd made stays (RuntimeDirectoryPreserve)
+    assert local_endpoint("boot") == f"ipc://{run}/boot.sock"  # its config stays
+    # another sensor, with no service here, while /run/tactiled (the folder systemd made for boot's) exists: this environment's
+    assert run.is_dir() and local_endpoint("bench1") == f"ipc://{tmp_path}/user/tactiled/bench1.sock"

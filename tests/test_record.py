@@ -249,6 +249,7 @@ def test_recover_keeps_the_last_intact_chunk_before_a_tail_of_other_bytes(tail: 
     """A power cut leaves zeros after the last write: the intact last chunk before them was dropped as damaged (its end
     neither the file's nor a marker), 0.5 s of fsynced samples lost for one zero byte (an outside audit)."""
     samples = np.random.default_rng(3).integers(-3000, 3000, (4000, 2), dtype=np.int16)
+    samples[3500] = (19028, 19267)  # the bytes of the chunk marker, "TJCK", inside the last chunk's samples (a reviewer's case)
     journal = _journal_of(tmp_path, samples, 0)
     with open(journal, "ab") as fh:
         fh.write(tail)

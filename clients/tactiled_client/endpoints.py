@@ -38,15 +38,15 @@ def local_socket(sensor: str) -> Path:
 def local_endpoint(sensor: str = "fingertip0") -> str:
     """The endpoint of the local daemon of ``sensor``: this environment's socket if it exists, else the system
     service's (``/run/tactiled/<sensor>.sock``) if that exists. If neither does (the daemon starts later), the system
-    service's where this machine has one for ``sensor`` (``/etc/tactiled/<sensor>.toml``, or ``/run/tactiled`` made by
-    systemd), else this environment's: a controller started at boot before the service must wait on the service's
-    socket, not on one no daemon will bind. ``$TACTILED_RUNTIME_DIR`` always means this environment's. Decided once, when
-    called: a subscriber stays connected to the endpoint it was given."""
+    service's where this machine has one for ``sensor`` (``/etc/tactiled/<sensor>.toml``), else this environment's: a
+    controller started at boot before the service must wait on the service's socket, not on one no daemon will bind.
+    ``$TACTILED_RUNTIME_DIR`` always means this environment's. Decided once, when called: a subscriber stays connected to
+    the endpoint it was given."""
     own = local_socket(sensor)
     system = SYSTEM_DIR / f"{sensor}.sock"
     if "TACTILED_RUNTIME_DIR" in os.environ or own.exists():
         return f"ipc://{own}"
-    if system.exists() or (SYSTEM_CONFIG_DIR / f"{sensor}.toml").exists() or SYSTEM_DIR.is_dir():
+    if system.exists() or (SYSTEM_CONFIG_DIR / f"{sensor}.toml").exists():  # (not /run/tactiled alone: another sensor's service)
         return f"ipc://{system}"
     return f"ipc://{own}"
 

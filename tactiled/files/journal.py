@@ -322,23 +322,27 @@ def _scan_chunks(scan: JournalScan, data: mmap.mmap, pos: int) -> None:
 
     An intact chunk is kept (if it does not overlap the ones before) and skipped whole. A marker whose declared length
     ends on the next marker or at the end of the file frames a chunk even if its CRC fails (damaged inside): it is
-    dropped and skipped whole. So does the file's last marker when bytes that hold no marker follow its chunk (a power
-    cut leaves zeros after the last write): kept if intact, where that tail made it a damaged one. Any other marker is
-    not trusted: the next marker is looked for one byte on.
+    dropped and skipped whole. A chunk that ends where only zeros follow (a power cut leaves them after the last write),
+    or the file's last marker's whatever follows it, is kept if intact, where that tail made it a damaged one; if not
+    intact it is not trusted. Any other marker is not trusted: the next marker is looked for one byte on.
     """
     size = len(data)
-    last = data.rfind(CHUNK_MAGIC, pos)  # the file's last marker: only its chunk may end before a tail of other bytes
+    zeros = _zeros_from(data, pos)  # where the zeros that end the file begin (size: none)
+    last = data.rfind(CHUNK_MAGIC, pos)  # the file's last marker that declares a chunk in range (not "TJCK" in samples)
+    while last >= pos and _declared_at(data, last) is None:
+        last = data.rfind(CHUNK_MAGIC, pos, last + 3)
     while pos < size:
-        framed = _framed_at(data, pos, pos == last)
-        if framed is not None:
-            chunk = _chunk_at(data, pos, framed, scan.channels)
+        framed = _framed_at(data, pos)
+        tail = None if framed is not None else _tail_chunk_at(data, pos, zeros, pos == last)
+        if framed is not None or tail is not None:
+            chunk = _chunk_at(data, pos, framed if framed is not None else tail or 0, scan.channels)
             if chunk is not None and chunk.position >= scan.rows:
                 scan.chunks.append(chunk)
-                pos += 8 + framed + 4
+                pos += 8 + (framed if framed is not None else tail or 0) + 4
                 continue
         nxt = pos + 8 + framed + 4 if framed is not None else data.find(CHUNK_MAGIC, pos + 1)
         scan.dropped_bytes += (nxt if nxt >= 0 else size) - pos
-        if nxt < 0 and not data[pos:size].strip(b"\0"):  # zeros to the end: never written (a power cut), no chunk lost
+        if nxt < 0 and pos >= zeros:  # zeros to the end: never written (a power cut), no chunk lost
             break
         scan.dropped_chunks += 1
         if nxt < 0:
@@ -346,16 +350,42 @@ def _scan_chunks(scan: JournalScan, data: mmap.mmap, pos: int) -> None:
         pos = nxt
 
 
-def _framed_at(data: mmap.mmap, pos: int, last: bool = False) -> int | None:
+def _zeros_from(data: mmap.mmap, start: int, step: int = 1 << 16) -> int:
+    """Where the run of zero bytes that ends ``data`` begins, at ``start`` at the earliest (``len(data)``: it ends in another
+    byte). Reads back from the end, ``step`` bytes at a time."""
+    stop = len(data)
+    while stop > start:
+        lo = max(start, stop - step)
+        kept = data[lo:stop].rstrip(b"\0")
+        if kept:
+            return lo + len(kept)
+        stop = lo
+    return start
+
+
+def _framed_at(data: mmap.mmap, pos: int) -> int | None:
     """The body length of the chunk marker at ``pos`` if it frames a chunk (in range, ending at the next marker or at the
-    end of the file, or anywhere for the file's ``last`` marker), else None. O(1)."""
+    end of the file), else None. O(1)."""
+    n = _declared_at(data, pos)
+    if n is None:
+        return None
+    end = pos + 8 + n + 4
+    return n if end == len(data) or data[end:end + 4] == CHUNK_MAGIC else None
+
+
+def _tail_chunk_at(data: mmap.mmap, pos: int, zeros: int, last: bool) -> int | None:
+    """The body length of the chunk marker at ``pos`` if its chunk ends where only zeros follow (``zeros``: where they begin),
+    or it is the file's ``last`` marker; None otherwise. O(1). Such a chunk is kept only if intact."""
+    n = _declared_at(data, pos)
+    return n if n is not None and (last or pos + 8 + n + 4 >= zeros) else None
+
+
+def _declared_at(data: mmap.mmap, pos: int) -> int | None:
+    """The body length the chunk marker at ``pos`` declares, if there is a marker and its chunk fits in ``data``."""
     if data[pos:pos + 4] != CHUNK_MAGIC or pos + 8 > len(data):
         return None
     (n,) = _u32.unpack_from(data, pos + 4)
-    end = pos + 8 + n + 4
-    if n < _body.size or n > MAX_CHUNK_BYTES or end > len(data):
-        return None
-    return n if last or end == len(data) or data[end:end + 4] == CHUNK_MAGIC else None
+    return n if _body.size <= n <= MAX_CHUNK_BYTES and pos + 8 + n + 4 <= len(data) else None
 
 
 def _chunk_at(data: mmap.mmap, pos: int, n: int, channels: int) -> Chunk | None:

@@ -452,15 +452,17 @@ class Model:
         """:meth:`novelty` of q slides, slide i the windows ``x[lo:hi]`` ((lo, hi) = ``rows[i]``) of raw features x (n, F),
         each bit for bit (each slide's mean a row alone), in one pass over the training slides. A slide of w windows, whole
         or the first windows of one that goes on (not ``final``), is held to the distance threshold of w windows
-        (:attr:`novelty_prefix`, the last one beyond them), where the model has them: fewer windows estimate the spectrum less
-        well, and a new recording's short slides of a taught surface were called unknown 4 to 8 times as often as its long
-        ones under the whole slides' threshold. ``final`` is kept for callers' sake; the threshold is the same for both."""
+        (:attr:`novelty_prefix`), where the model has them: fewer windows estimate the spectrum less well, and a new
+        recording's short slides of a taught surface were called unknown 4 to 8 times as often as its long ones under the
+        whole slides' threshold. Beyond the table, a provisional label keeps its last entry and a whole slide the whole
+        training slides' threshold (it is as long as the longest of them)."""
         if self.novelty_x is None or not len(self.novelty_x):
             return [None] * len(rows)
         limit: float | FloatArray = self.novelty_distance_threshold
-        if self.novelty_prefix:
+        if self.novelty_prefix:  # beyond the table a whole slide is as long as the longest training slides: their threshold
             last = len(self.novelty_prefix)
-            limit = limit * np.array([self.novelty_prefix[min(hi - lo, last) - 1] for lo, hi in rows])
+            limit = limit * np.array([self.novelty_prefix[min(hi - lo, last) - 1] if not final or hi - lo <= last else 1.0
+                                      for lo, hi in rows])
         z = self.novelty_standardise(self.novelty_features(slice_means(x, rows)))
         if self.novelty_y is not None and (self._groups is None or self._groups[0] is not self.novelty_y):
             self._groups = (self.novelty_y, surface_groups(self.novelty_y))

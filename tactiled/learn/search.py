@@ -782,7 +782,7 @@ def search(recs: Sequence[tuple[str, Recording]], config: Config, *, folds: int 
             nested = _nested_ensemble(oof, usable, picks, outer, y_idx, files, {best.name: own_t}, partner.temperature, nested, classes, weights)
             band = nested["interval95"]
             model.summary = {**model.summary, "cv_accuracy": nested, "ensemble": info}
-            members, scores = [(best, own_t), (SPECTRUM, partner.temperature)], both
+            members, scores = [(best, own_t), (spectrum, partner.temperature)], both  # the one fitted (balanced where weighted)
         else:
             alone.summary = {**alone.summary, "ensemble": info}
     said = f" with {SPECTRUM.name} (ensemble)" if model.partner is not None else ""

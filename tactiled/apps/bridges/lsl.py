@@ -128,7 +128,8 @@ class LslSink:
         if gap:
             fill = self.nan_lost and gap <= self.nan_max_s * self.meta.fs
             gap_stamps = None if first_at is None else self._gap_stamps(gap if fill else 1, gap, first_at, period)
-            self._lost(gap_first, gap, fill, None if gap_stamps is None else float(gap_stamps[0]), open_end=msg.n == 0)
+            goes_on = msg.n == 0 or (bool(msg.lost) and msg.lost[0][0] == 0)  # the message's first rows lost too: one range
+            self._lost(gap_first, gap, fill, None if gap_stamps is None else float(gap_stamps[0]), open_end=goes_on)
             if fill:
                 self._push_nan(gap, gap_stamps)
         for p, count in msg.lost:
