@@ -56,10 +56,9 @@ def run_demo(scene: str = "hand", seed: int = 0, publish: str | None = None, hea
             def running() -> bool:  # a daemon that fails (a tcp port it cannot bind) exits: what came is not its labels
                 return daemon.poll() is None
 
-            if not headless:
-                code = run_monitor(endpoint, board_log, running)  # the simulator's log: the true surface of every slide
-                if running():
-                    return code
+            if not headless:  # the simulator's log: the true surface of every slide
+                if run_monitor(endpoint, board_log, running) == 0:  # q or Ctrl-C (which the daemon child gets too)
+                    return 0
                 failed = "the daemon stopped"
             else:
                 labels = print_labels(endpoint, seconds, board_log, running)

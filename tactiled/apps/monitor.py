@@ -307,8 +307,8 @@ def render_compact(model: MonitorState, endpoint: str, width: int, height: int) 
 
 
 def run_monitor(endpoint: str, truth_log: str | None = None, running: Callable[[], bool] = lambda: True) -> int:
-    """Show the live view of the daemon at ``endpoint`` (redrawn every 0.1 s) until ``q``, Ctrl-C or ``running()`` False (the
-    demo's own daemon stopped); exit code 0."""
+    """Show the live view of the daemon at ``endpoint`` (redrawn every 0.1 s) until ``q`` or Ctrl-C (exit code 0) or
+    ``running()`` False (the demo's own daemon stopped: 1)."""
     from rich.live import Live
 
     model = MonitorState(truth_log)
@@ -336,7 +336,7 @@ def run_monitor(endpoint: str, truth_log: str | None = None, running: Callable[[
                 if tty and select.select([sys.stdin], [], [], 0)[0] and os.read(sys.stdin.fileno(), 1) in (b"q", b"Q"):
                     return 0
                 if not running():
-                    return 0
+                    return 1
     except KeyboardInterrupt:
         return 0
     finally:

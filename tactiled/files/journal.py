@@ -431,7 +431,8 @@ class Recovered:
     def line(self) -> str:
         """One line for the user: samples recovered (seconds, lost), chunks, and what was dropped."""
         dropped = (f"dropped {self.dropped_chunks} damaged or torn chunk(s), {self.dropped_bytes} bytes" if self.dropped_chunks
-                   else f"nothing dropped but {self.dropped_bytes} zero bytes after the last chunk" if self.dropped_bytes
+                   else f"nothing dropped but {self.dropped_bytes} zero bytes after the last "
+                        + ("chunk" if self.chunks else "header") if self.dropped_bytes
                    else "nothing dropped")
         return (f"recovered {self.samples} samples ({self.samples / self.fs:.3f} s, {self.samples_lost} lost) "
                 f"from {self.chunks} chunks; {dropped}")

@@ -33,7 +33,7 @@ import numpy.typing as npt
 from tactiled.config import Config
 from tactiled.core.pipeline import start_level
 from tactiled.errors import ModelError, TactiledError
-from tactiled.files.recording import check_label_option, surface_name
+from tactiled.files.recording import case_twins, check_label_option, surface_name
 from tactiled.learn.dataset import (
     Progress,
     WindowSet,
@@ -117,15 +117,19 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
                             "tactiled replay on one of them)")
     if not table:
         raise TactiledError("the recordings carry no labels (per-slide ground truth or a file label): pass --label NAME")
+    known = {k.casefold(): k for k in old.classes}
+    twins = [(k, known[k.casefold()]) for k in table if k not in old.classes and k.casefold() in known]
+    if twins:  # before any other check of the new slides: the name is what to mend first
+        raise TactiledError("; ".join(f"{k}: {where} knows {m}, which differs only in case" for k, m in twins)
+                            + ": enrolled, it would be a new surface; give the name the model knows (--label) to teach it more of that one")
+    alike = case_twins(k for k in table if k not in old.classes)
+    if alike:
+        raise TactiledError("; ".join(" and ".join(g) for g in alike) + ": new surfaces whose names differ only in case would be "
+                            "taught as different surfaces; give each surface one name")
     short = [f"{k} ({ok})" if ok == n else f"{k} ({ok} of {n} slides usable)" for k, (n, ok, _) in table.items() if ok < min_slides]
     if short:
         why = f" (slides without a usable window: {reasons_text(ws.skipped)})" if ws.skipped else ""
         raise TactiledError(f"too few usable slides for {', '.join(short)}: enrolment needs at least {min_slides} per surface{why}; record more")
-    known = {k.casefold(): k for k in old.classes}
-    twins = [(k, known[k.casefold()]) for k in table if k not in old.classes and k.casefold() in known]
-    if twins:
-        raise TactiledError("; ".join(f"{k}: {where} knows {m}, which differs only in case" for k, m in twins)
-                            + ": enrolled, it would be a new surface; give the name the model knows (--label) to teach it more of that one")
     added = {k: ok for k, (_, ok, _) in table.items()}
     grown = len(set(old.classes) | set(added))
     if grown > MAX_CLASSES:  # a file its own loader would refuse
