@@ -288,3 +288,26 @@ def test_an_ensemble_on_surfaces_recorded_unevenly_calibrates_the_partner_it_shi
     assert scored and all(balanced for _, balanced in scored), scored
     if result.model.partner is not None:
         assert result.model.partner.params.get("class_weight") == "balanced"
+
+
+def test_a_low_rate_recording_with_a_disconnection_mark_replays_every_slide(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """One channel at 2.2 kHz, a disconnection mark late in the file: replay fed it in blocks of 65 536 rows, 30 s, longer
+    than the 20 s ring, so the first slides of each block were overwritten before their analysis (6 of 25 labels lost)."""
+    from tactiled.files.recording import load_recording, save_recording
+
+    files = sorted(write_dataset(tmp_path / "d", scene="one-channel", surfaces="Ra0.44,Ra4.43", files_per_surface=2, slides_per_file=20, seed=5))
+    model = tmp_path / "m.npz"
+    assert cli_here(capfd, "train", *map(str, files), "-o", str(model), "--method", "quick", "--folds", "2").returncode == 0
+    rec = load_recording(files[0])
+    assert rec.fs == 2200.0 and rec.samples.shape[0] > 70_000  # more than a default block
+    marked = tmp_path / "marked.npz"
+    mark = rec.samples.shape[0] - 100  # in the rest after the last slide
+    save_recording(marked, replace(rec, disconnected=np.array([mark], dtype=np.int64)))
+
+    def reasons(path: Path) -> list[str | None]:
+        res = cli_here(capfd, "replay", "--json", "--model", str(model), str(path))
+        assert res.returncode == 0, res.stderr
+        return [__import__("json").loads(line)["reason"] for line in res.stdout.splitlines()]
+
+    plain, cut = reasons(files[0]), reasons(marked)
+    assert "overwritten" not in cut and cut == plain, (plain, cut)

@@ -158,6 +158,8 @@ def replay_recording(rec: Recording, config: Config, model: Any | None, *, block
     n = rec.samples.shape[0]
     marks = [int(d) for d in rec.disconnected]
     if (pacer is not None and pacer.paced) or marks:  # block by block, as they come: the first events at once
+        if stream.pipeline is not None:  # a block is written to the ring at once: at most half of it (at 2.2 kHz the default
+            block = max(1, min(block, stream.pipeline.ring.capacity // 2))  # 65 536 rows overwrote a third of each before its analysis)
         cuts = [*sorted({*range(0, n, block), *(d for d in marks if d < n)}), n]
         k = 0  # marks handled
         for lo, hi in pairwise(cuts):
