@@ -311,3 +311,19 @@ def test_a_low_rate_recording_with_a_disconnection_mark_replays_every_slide(tmp_
 
     plain, cut = reasons(files[0]), reasons(marked)
     assert "overwritten" not in cut and cut == plain, (plain, cut)
+
+
+def test_a_model_refuses_a_stream_of_more_channels_too(tmp_path: Path) -> None:
+    """The shipped two-film model labelled a three-film sensor's slides at 20 kHz without a word, and check-config said ok."""
+    from tactiled.errors import ModelError
+    from tactiled.learn.model import load_model
+    from tests.conftest import run_cli
+
+    shipped = load_model()
+    with pytest.raises(ModelError, match="^model of 2 channels, sensor s3 has 3$"):
+        shipped.check_stream(20_000.0, 3, "sensor s3")
+    shipped.check_stream(20_000.0, 2, "sensor s2")
+    config = tmp_path / "three.toml"
+    config.write_text('[sensor]\nid = "s3"\nchannels = 3\n')
+    res = run_cli("check-config", str(config))
+    assert res.returncode == 2 and "the shipped model does not fit this sensor (model of 2 channels, sensor s3 has 3)" in res.stderr, res.stderr

@@ -156,7 +156,7 @@ def test_a_rate_refusal_names_the_model_file(taught: tuple[Path, list[Path], Pat
     m = load_model(model)
     with pytest.raises(ModelError, match=rf"^m\.npz: model trained at fs {m.fs:g} Hz, sensor ft is 2200 Hz$"):
         m.check_stream(2200.0, 2, "sensor ft", "m.npz")
-    with pytest.raises(ModelError, match=r"^m\.npz: model needs 2 channels, sensor ft has 1$"):
+    with pytest.raises(ModelError, match=r"^m\.npz: model of 2 channels, sensor ft has 1$"):
         m.check_stream(m.fs, 1, "sensor ft", "m.npz")
     slow = tmp_path / "slow.npz"
     save_recording(slow, Recording(np.zeros((4400, 2), dtype=np.int16), 2200.0, 1e-4))

@@ -555,13 +555,15 @@ class Model:
         return np.asarray(self.classes)[np.argmax(self.predict_proba(x), axis=1)]
 
     def check_stream(self, fs: float, channels: int, where: str = "stream", model: str | Path | None = None) -> None:
-        """Refuse a stream (``where``) of another rate ``fs`` (Hz) or fewer ``channels``: one line naming the stream and, when
-        given, the model file ``model`` (``model.npz: model trained at fs 2200 Hz, sensor ft is 20000 Hz``)."""
+        """Refuse a stream (``where``) of another rate ``fs`` (Hz) or another number of ``channels``: one line naming the
+        stream and, when given, the model file ``model`` (``model.npz: model trained at fs 2200 Hz, sensor ft is 20000 Hz``).
+        A stream of more channels was accepted until 2026-11-27: the shipped two-film model labelled a three-film sensor's
+        slides without a word (an outside audit), where README says any other channel count is refused."""
         named = f"{model}: " if model is not None else ""
         if abs(fs - self.fs) > 1e-6 * self.fs:
             raise ModelError(f"{named}model trained at fs {self.fs:g} Hz, {where} is {fs:g} Hz")
-        if channels < self.channels:
-            raise ModelError(f"{named}model needs {self.channels} channels, {where} has {channels}")
+        if channels != self.channels:
+            raise ModelError(f"{named}model of {self.channels} channel{'s' if self.channels > 1 else ''}, {where} has {channels}")
 
     def describe(self) -> str:
         """One line: method, classifier(s), features, windows, cross-validated accuracy."""
