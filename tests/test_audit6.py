@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 
 from tactiled.sim.simulate import write_dataset
-from tests.conftest import cli_here
+from tests.conftest import REPO, cli_here
+
+REPO_MODEL = REPO / "tactiled" / "data" / "default_model.npz"
 
 
 @pytest.fixture(scope="module")
@@ -320,10 +322,28 @@ def test_a_model_refuses_a_stream_of_more_channels_too(tmp_path: Path) -> None:
     from tests.conftest import run_cli
 
     shipped = load_model()
-    with pytest.raises(ModelError, match="^model of 2 channels, sensor s3 has 3$"):
+    with pytest.raises(ModelError, match=r"^model of 2 channels, sensor s3 has 3$"):
         shipped.check_stream(20_000.0, 3, "sensor s3")
     shipped.check_stream(20_000.0, 2, "sensor s2")
     config = tmp_path / "three.toml"
     config.write_text('[sensor]\nid = "s3"\nchannels = 3\n')
     res = run_cli("check-config", str(config))
     assert res.returncode == 2 and "the shipped model does not fit this sensor (model of 2 channels, sensor s3 has 3)" in res.stderr, res.stderr
+
+
+def test_replay_with_a_config_labels_with_its_model_path(two_of_three: tuple[Path, list[Path], list[Path]], tmp_path: Path,
+                                                         capfd: pytest.CaptureFixture[str]) -> None:
+    """run --config my.toml labels with model.path; replay --config my.toml used the shipped model, so it did not reproduce
+    the daemon (an outside audit: 0 of 29 slides labelled, the shipped model not fitting the lab's sensor)."""
+    import json
+
+    from tactiled.learn.model import load_model
+
+    model, taught, _ = two_of_three
+    config = tmp_path / "my.toml"
+    config.write_text(f'[model]\npath = "{model}"\n')
+    res = cli_here(capfd, "replay", "--json", "--config", str(config), str(taught[0]))
+    assert res.returncode == 0, res.stderr
+    assert {json.loads(line)["model"] for line in res.stdout.splitlines()} == {load_model(model).fingerprint}
+    other = cli_here(capfd, "replay", "--json", "--config", str(config), "--model", str(REPO_MODEL), str(taught[0]))
+    assert {json.loads(line)["model"] for line in other.stdout.splitlines()} == {load_model(REPO_MODEL).fingerprint}  # --model first

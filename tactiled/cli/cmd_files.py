@@ -20,10 +20,11 @@ if TYPE_CHECKING:
 
 
 def _choice(args: argparse.Namespace, config: Config) -> ModelChoice:
-    """The model choice of a command with --model / --no-model (and --force)."""
+    """The model choice of a command with --model / --no-model (and --force): --model, else the config's ``model.path``
+    (as ``run`` takes it: replay --config my.toml labels with the daemon's model), else the shipped one."""
     from tactiled.learn.choose import ModelChoice
 
-    return ModelChoice(config, args.model, explicit=args.no_model, force=getattr(args, "force", False), warn=say)
+    return ModelChoice(config, args.model or config.model.path or None, explicit=args.no_model, force=getattr(args, "force", False), warn=say)
 
 
 def cmd_record(args: argparse.Namespace) -> int:

@@ -192,5 +192,6 @@ SURFACES_HELP = ("N surfaces spread over the range, or names such as Ra0.44,Ra4.
 CONNECT_HELP = ("daemon endpoint to subscribe to (default: publish.endpoint of --config; for 'auto', the built-in default, "
                 "the local daemon's socket: /run/tactiled/<sensor.id>.sock or $XDG_RUNTIME_DIR/tactiled/<sensor.id>.sock)")
 SEED_HELP = "random seed"
-MODEL_HELP = "model file (default: the shipped model, when it fits the recording's rate and channels)"
+MODEL_HELP = ("model file (default: --config's model.path, as tactiled run takes it; else the shipped model, when it fits the "
+              "recording's rate and channels)")
 FORCE_HELP = "replace an existing output file"
