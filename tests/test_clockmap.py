@@ -231,3 +231,16 @@ def test_each_byte_handed_over_keeps_the_time_of_its_own_read() -> None:
     item = Reads.join([b"ab", b"cde", b"f"], [1.0, 2.0, 3.0])  # three reads handed over together
     assert item.data == b"abcdef" and [item.time_at(i) for i in range(6)] == [1.0, 1.0, 2.0, 2.0, 2.0, 3.0]
     assert Reads.join([b"xy"], [5.0]).time_at(1) == 5.0
+
+
+@pytest.mark.parametrize("true_fs", [8_000.0, 16_000.0, 30_000.0])
+def test_a_board_slower_or_faster_than_nominal_is_measured(true_fs: float) -> None:
+    """A board at 8 kHz on a port configured for 16 kHz fell behind the nominal line by 0.5 s a second; once 0.5 s behind
+    for 1 s the map took it for a restart and began again, before the 2 s the rate takes to measure: fs stayed the
+    nominal one, and the daemon never said the board's rate (an outside audit). Faster boards were measured."""
+    nominal = 16_000.0
+    clock = ClockMap(nominal)
+    for k in range(1, 400):  # 8 s of reads every 20 ms, 2 ms of transport
+        t = T0 + k * 0.02
+        clock.observe(int((t - T0 - 0.002) * true_fs), t)
+    assert abs(clock.fs - true_fs) < 0.01 * true_fs and clock.resets == 0
