@@ -347,3 +347,17 @@ def test_replay_with_a_config_labels_with_its_model_path(two_of_three: tuple[Pat
     assert {json.loads(line)["model"] for line in res.stdout.splitlines()} == {load_model(model).fingerprint}
     other = cli_here(capfd, "replay", "--json", "--config", str(config), "--model", str(REPO_MODEL), str(taught[0]))
     assert {json.loads(line)["model"] for line in other.stdout.splitlines()} == {load_model(REPO_MODEL).fingerprint}  # --model first
+
+
+def test_a_films_status_level_is_its_rms_about_the_mean() -> None:
+    """A DC-coupled film at 0.6 V of offset: its plain RMS moved 0.640 -> 0.613..0.677 V between rest and slides, and the
+    monitor's bars hardly moved (an outside audit). About the mean, the offset is gone; silence and one sample are 0."""
+    from tactiled.core.features import film_levels
+
+    t = np.arange(20_000) / 20_000.0
+    x = np.stack([0.6 + 0.05 * np.sin(2 * np.pi * 200 * t), np.full_like(t, -1.5)], axis=1)
+    counts = np.rint(x / 1e-4)
+    level = film_levels(counts.sum(axis=0), np.einsum("ij,ij->j", counts, counts), len(t), 1e-4)
+    assert level[0] == pytest.approx(0.05 / np.sqrt(2), rel=1e-3) and level[1] == 0.0
+    assert film_levels(np.zeros(2), np.zeros(2), 0) == []
+    assert film_levels(np.array([3.0]), np.array([9.0]), 1) == [0.0]

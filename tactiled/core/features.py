@@ -59,6 +59,16 @@ def feature_names(channels: int, level: int = 4, domains: Sequence[str] = DOMAIN
     return [f"film{c + 1}.{d}.{b}.{s}" for c in range(channels) for d in domains for b in bands for s in stats]
 
 
+def film_levels(sums: npt.NDArray[np.float64], sumsq: npt.NDArray[np.float64], n: int, scale: float = 1.0) -> list[float]:
+    """Each film's RMS about its mean over n samples, from their sums (C,) and sums of squares (C,), times ``scale`` (V per
+    count), rounded to 1e-6: the status's ``level``. About the mean, so a DC-coupled film's offset does not hide its slides
+    (the plain RMS of a film at 0.6 V of offset moved from 0.640 to 0.613..0.677 V between rest and slides). [] for n 0."""
+    if n <= 0:
+        return []
+    var = np.maximum(sumsq / n - (sums / n) ** 2, 0.0)  # never below 0 by rounding
+    return [round(float(np.sqrt(v)) * scale, 6) for v in var]
+
+
 def row_dots(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     """(W,) the dot product of each row of ``a`` and ``b`` (W, m): the same values as ``np.dot`` of each pair of rows (matmul
     of vectors is BLAS ``ddot``, as ``np.dot`` is; ``einsum`` rounds differently)."""

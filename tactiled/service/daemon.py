@@ -51,6 +51,7 @@ from tactiled.board.clockmap import ClockMap, rate_mismatch
 from tactiled.board.serialsource import CONNECTED, DISCONNECTED, ByteSource, SerialSource
 from tactiled.config import Config
 from tactiled.core.events import PipelineEvent, SlideResult, SlideResumed
+from tactiled.core.features import film_levels
 from tactiled.core.shadow import ShadowStats
 from tactiled.errors import ConfigError, TactiledError, WindowError
 from tactiled.learn.cost import check_speed
@@ -84,6 +85,7 @@ class DaemonState:
     started: float = field(default_factory=time.monotonic)
     samples_window: int = 0
     sumsq: np.ndarray | None = None
+    sums: np.ndarray | None = None  # their sums (C,): the level is about the mean
     last_index: int = 0
     overloaded: int = 0  # samples decoded whose analysis was skipped (load shed)
     shedding: bool = False
@@ -459,7 +461,9 @@ class Daemon:
                 self.recorder.add(b)
             x = b.samples.astype(np.float64)
             sq = np.einsum("ij,ij->j", x, x)  # a third of the time of einsum's own cast (dtype=), same sums (exact below 2**53)
+            total = x.sum(axis=0)
             st.sumsq = sq if st.sumsq is None else st.sumsq + sq
+            st.sums = total if st.sums is None else st.sums + total
             st.samples_window += b.samples.shape[0]
             st.last_index = b.end
 
@@ -534,9 +538,9 @@ class Daemon:
             state = schema.STATE_CONNECTED
         else:
             state = schema.STATE_IDLE
-        level = []
-        if st.sumsq is not None and st.samples_window:
-            level = [round(float(np.sqrt(v / st.samples_window)) * self.config.sensor.volts_per_count, 6) for v in st.sumsq]
+        level: list[float] = []
+        if st.sumsq is not None and st.sums is not None:
+            level = film_levels(st.sums, st.sumsq, st.samples_window, self.config.sensor.volts_per_count)
         clock_index = clock_mono = clock_unix = None
         if self.clock.ready and st.last_index:
             clock_index = st.last_index
@@ -598,7 +602,7 @@ class Daemon:
             self._say_channel_errors()
             self._say_rate()
             self.state.samples_window = 0
-            self.state.sumsq = None
+            self.state.sumsq = self.state.sums = None
             # a dead reader, or input the daemon cannot keep up with, starves the watchdog: systemd restarts the daemon
             samples = self.stream.stats.samples
             if watchdog and self.reader_alive(now) and self.keeping_up(now - last, samples - handled):

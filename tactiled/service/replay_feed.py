@@ -16,6 +16,7 @@ from tactiled_client import schema
 from tactiled import __version__
 from tactiled.config import Config
 from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult, SlideResumed, SlideStarted
+from tactiled.core.features import film_levels
 from tactiled.core.pipeline import FinalCounts
 from tactiled.run.ingest import Batch
 from tactiled.run.pacer import Pacer
@@ -45,6 +46,7 @@ class ReplayFeed:
         self.count = self.lost = 0
         self.index: int | None = None  # the next sensor index expected
         self._sumsq = np.zeros(channels)
+        self._sums = np.zeros(channels)
         self._window = 0
         self._next_status: int | None = None
 
@@ -92,6 +94,7 @@ class ReplayFeed:
                                                       to_host=self.pacer.to_host, fs_clock=self._fs_clock))
             good = rows[ok].astype(np.float64)
             self._sumsq += np.einsum("ij,ij->j", good, good)
+            self._sums += good.sum(axis=0)
             self._window += len(good)
             self.count += int(ok.sum())
             self.lost += n - int(ok.sum())
@@ -103,7 +106,7 @@ class ReplayFeed:
 
     def _status(self, state: str | None = None) -> None:
         scale = self.volts_per_count if self.integer else 1.0
-        level = [round(float(np.sqrt(v / self._window)) * scale, 6) for v in self._sumsq] if self._window else []
+        level = film_levels(self._sums, self._sumsq, self._window, scale)
         clock: dict[str, Any] = {}
         if self.pacer.paced and self.index is not None:
             mono, unix = self.pacer.host(self.index)
@@ -114,6 +117,7 @@ class ReplayFeed:
             uptime_s=round(time.monotonic() - self.t0, 3), index=self.index or 0, level=level, version=__version__,
             dropped_messages=self.publisher.dropped, **clock))
         self._sumsq[:] = 0.0
+        self._sums[:] = 0.0
         self._window = 0
 
     def finish(self, last: bool = False) -> None:
