@@ -318,7 +318,8 @@ def read_journal(path: str | Path) -> JournalScan:
 
 
 def _scan_chunks(scan: JournalScan, data: mmap.mmap, pos: int) -> None:
-    """Every chunk of ``data`` from ``pos`` into ``scan``, in time linear in the bytes (each byte is CRC-checked at most once).
+    """Every chunk of ``data`` from ``pos`` into ``scan``, in time linear in the bytes of any journal a recorder wrote (each
+    byte CRC-checked once; in a hostile file, the chunks that would end in its zero tail may be checked more).
 
     An intact chunk is kept (if it does not overlap the ones before) and skipped whole. A marker whose declared length
     ends on the next marker or at the end of the file frames a chunk even if its CRC fails (damaged inside): it is
@@ -333,12 +334,12 @@ def _scan_chunks(scan: JournalScan, data: mmap.mmap, pos: int) -> None:
         last = data.rfind(CHUNK_MAGIC, pos, last + 3)
     while pos < size:
         framed = _framed_at(data, pos)
-        tail = None if framed is not None else _tail_chunk_at(data, pos, zeros, pos == last)
-        if framed is not None or tail is not None:
-            chunk = _chunk_at(data, pos, framed if framed is not None else tail or 0, scan.channels)
+        n = framed if framed is not None else _tail_chunk_at(data, pos, zeros, pos == last)
+        if n is not None:
+            chunk = _chunk_at(data, pos, n, scan.channels)
             if chunk is not None and chunk.position >= scan.rows:
                 scan.chunks.append(chunk)
-                pos += 8 + (framed if framed is not None else tail or 0) + 4
+                pos += 8 + n + 4
                 continue
         nxt = pos + 8 + framed + 4 if framed is not None else data.find(CHUNK_MAGIC, pos + 1)
         scan.dropped_bytes += (nxt if nxt >= 0 else size) - pos
