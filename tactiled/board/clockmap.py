@@ -143,8 +143,7 @@ class ClockMap:
             # until the rate is measured (arrivals spanning MIN_SPAN_S) the line runs at the nominal rate, so a board slower
             # than sensor.fs falls behind it: that is what the measurement is for, not a restart (reset, it never measured one:
             # the rate stayed nominal and no warning came; an outside audit)
-            measured = len(self._points) > 1 and self._points[-1][1] - self._points[0][1] >= MIN_SPAN_S
-            if not measured or t_mono - self.estimate(end_index) <= self.reset_s:
+            if not self._measured() or t_mono - self.estimate(end_index) <= self.reset_s:
                 self._late_since = None
             else:
                 self._late_since = t_mono if self._late_since is None else self._late_since
@@ -175,9 +174,13 @@ class ClockMap:
     def _delay(self, index: int, t: float) -> float:
         return t - index / self.fs_nominal
 
+    def _measured(self) -> bool:
+        """Whether the envelope's points span :data:`MIN_SPAN_S`: the rate is measured (else it is the nominal one)."""
+        return len(self._points) > 1 and self._points[-1][1] - self._points[0][1] >= MIN_SPAN_S
+
     def _fit(self) -> None:
         pts = list(self._points)
-        if pts[-1][1] - pts[0][1] >= MIN_SPAN_S:
+        if self._measured():
             half = len(pts) // 2
             a = min(pts[:half], key=lambda p: self._delay(*p))
             b = min(pts[half:], key=lambda p: self._delay(*p))

@@ -190,7 +190,7 @@ def with_ground_truth(recs: list[tuple[str, Recording]]) -> list[tuple[str, Reco
 
 def cmd_score(args: argparse.Namespace) -> int:
     """Accuracy, coverage and calibration of a model over every true slide of held-out recordings."""
-    from tactiled.learn.dataset import check_distinct, load_recordings
+    from tactiled.learn.dataset import check_distinct, load_recordings, some_names
     from tactiled.learn.model import load_model
     from tactiled.learn.score import score_recordings
 
@@ -215,8 +215,7 @@ def cmd_score(args: argparse.Namespace) -> int:
     check_distinct([(n, r) for n, r in scored if r.slides()], twice)
     report = score_recordings(scored, config, model, args.jobs, files_done("score"))
     if report["n"] == 0:  # only file labels, and the detector found no slide in any of them: an accuracy of 0 of 0 is no score
-        names = [n for n, _ in scored]
-        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        shown = some_names([n for n, _ in scored])
         raise TactiledError(f"no true slide to score: the detector found no slide in {shown} (a file label names the surface of "
                             "each slide the detector finds; see `tactiled replay` on one of them)")
     check_distinct([rec for rec, f in zip(scored, report["files"], strict=True) if f["slides"]], twice)

@@ -333,15 +333,16 @@ def _scan_chunks(scan: JournalScan, data: mmap.mmap, pos: int) -> None:
     while last >= pos and _declared_at(data, last) is None:
         last = data.rfind(CHUNK_MAGIC, pos, last + 3)
     while pos < size:
-        framed = _framed_at(data, pos)
-        n = framed if framed is not None else _tail_chunk_at(data, pos, zeros, pos == last)
-        if n is not None:
+        n = _declared_at(data, pos)
+        end = pos + 8 + (n or 0) + 4
+        framed = n is not None and (end == size or data[end:end + 4] == CHUNK_MAGIC)  # damaged or not, skipped whole
+        if n is not None and (framed or pos == last or end >= zeros):  # a tail chunk is kept only if intact
             chunk = _chunk_at(data, pos, n, scan.channels)
             if chunk is not None and chunk.position >= scan.rows:
                 scan.chunks.append(chunk)
-                pos += 8 + n + 4
+                pos = end
                 continue
-        nxt = pos + 8 + framed + 4 if framed is not None else data.find(CHUNK_MAGIC, pos + 1)
+        nxt = end if framed else data.find(CHUNK_MAGIC, pos + 1)
         scan.dropped_bytes += (nxt if nxt >= 0 else size) - pos
         if nxt < 0 and pos >= zeros:  # zeros to the end: never written (a power cut), no chunk lost
             break
@@ -362,23 +363,6 @@ def _zeros_from(data: mmap.mmap, start: int, step: int = 1 << 16) -> int:
             return lo + len(kept)
         stop = lo
     return start
-
-
-def _framed_at(data: mmap.mmap, pos: int) -> int | None:
-    """The body length of the chunk marker at ``pos`` if it frames a chunk (in range, ending at the next marker or at the
-    end of the file), else None. O(1)."""
-    n = _declared_at(data, pos)
-    if n is None:
-        return None
-    end = pos + 8 + n + 4
-    return n if end == len(data) or data[end:end + 4] == CHUNK_MAGIC else None
-
-
-def _tail_chunk_at(data: mmap.mmap, pos: int, zeros: int, last: bool) -> int | None:
-    """The body length of the chunk marker at ``pos`` if its chunk ends where only zeros follow (``zeros``: where they begin),
-    or it is the file's ``last`` marker; None otherwise. O(1). Such a chunk is kept only if intact."""
-    n = _declared_at(data, pos)
-    return n if n is not None and (last or pos + 8 + n + 4 >= zeros) else None
 
 
 def _declared_at(data: mmap.mmap, pos: int) -> int | None:

@@ -88,6 +88,11 @@ def undetected_text(surfaces: dict[str, tuple[int, int]]) -> str:
             "or silent sensor? the slides' ground truth is not where the signal is, or the detector's settings do not suit it)")
 
 
+def some_names(names: Sequence[str], shown: int = 3) -> str:
+    """The first ``shown`` of ``names`` joined by commas, and how many more (``a, b, c and 2 more``): a line's list of files."""
+    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
+
+
 CROSS_VALIDATION = "cross-validation would test it on its own copy"  # check_distinct's reason for train and evaluate
 
 

@@ -41,6 +41,7 @@ from tactiled.learn.dataset import (
     collect_windows,
     find_slides,
     load_recordings,
+    some_names,
     speed_ratios,
     undetected,
     undetected_text,
@@ -84,12 +85,13 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     level = start_level(old, config.detector)
     if level is not None:  # the daemon running the model, with its start level, finds no slide in a recording of rest; the
         # detector without it, undecided, takes such a recording for one slide from the first sample to the last
-        live, _ = find_slides(recs, config, level)
-        rest = [name for (name, rec), slides, seen in zip(recs, per_file, live, strict=True) if slides and not seen and not rec.slides()]
+        # (only the recordings that could be such: slides found, no per-slide truth; the others are not detected again)
+        doubtful = [(name, rec) for (name, rec), slides in zip(recs, per_file, strict=True) if slides and not rec.slides()]
+        live, _ = find_slides(doubtful, config, level)
+        rest = [name for (name, _), seen in zip(doubtful, live, strict=True) if not seen]
         if rest:
-            shown = ", ".join(rest[:3]) + (f" and {len(rest) - 3} more" if len(rest) > 3 else "")
-            raise TactiledError(f"no slide to enrol in {shown}: the daemon running {where} finds none there (at rest, by the level it "
-                                "learnt between slides; recordings of the surface being slid over, please); nothing enrolled")
+            raise TactiledError(f"no slide to enrol in {some_names(rest)}: the daemon running {where} finds none there (at rest, by the "
+                                "level it learnt between slides; recordings of the surface being slid over, please); nothing enrolled")
     if label is not None:  # as a recording's names are read (NFC)
         per_file = [[replace(s, label=surface_name(label)) for s in slides] for slides in per_file]
     silent = undetected(per_file, [r.fs for _, r in recs], config.detector.min_slide_s)
@@ -111,10 +113,8 @@ def enrol(model_path: str | Path | None, paths: Sequence[str | Path], config: Co
     labelled = (slides.y != "") & slides.originals()
     table = ws.per_class()  # {surface: (slides, slides with a usable window, files)}, a surface none of whose slides is usable too
     if not table and (label is not None or any(r.label is not None or r.slides() for _, r in recs)):
-        names = [n for n, _ in recs]
-        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
-        raise TactiledError(f"no slide to enrol: the detector found none in {shown} (recordings of the surface being slid over; see "
-                            "tactiled replay on one of them)")
+        raise TactiledError(f"no slide to enrol: the detector found none in {some_names([n for n, _ in recs])} (recordings of the "
+                            "surface being slid over; see tactiled replay on one of them)")
     if not table:
         raise TactiledError("the recordings carry no labels (per-slide ground truth or a file label): pass --label NAME")
     known = {k.casefold(): k for k in old.classes}

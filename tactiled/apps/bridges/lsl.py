@@ -124,7 +124,9 @@ class LslSink:
                 self._close_open()
                 self._marker({"event": "lost", "index": None, "count": None, "next": msg.index, "filled": False},
                              self.next_mono if self.next_mono is not None else first_at)
-        carried = self._open
+        first_lost = gap_first if gap else msg.index if msg.lost and msg.lost[0][0] == 0 else None
+        if self._open is not None and first_lost != self._open[0]["index"] + self._open[0]["count"]:
+            self._close_open()  # this message does not go on with the range left open: it ended with the last one
         if gap:
             fill = self.nan_lost and gap <= self.nan_max_s * self.meta.fs
             gap_stamps = None if first_at is None else self._gap_stamps(gap if fill else 1, gap, first_at, period)
@@ -134,8 +136,6 @@ class LslSink:
                 self._push_nan(gap, gap_stamps)
         for p, count in msg.lost:
             self._lost(msg.index + p, count, self.nan_lost, None if stamps is None else float(stamps[p]), open_end=p + count == msg.n)
-        if carried is not None and self._open is carried:  # this message did not go on with it: it ended with the last one
-            self._close_open()
         self.next_index = msg.index + msg.n
         self.next_mono = None if msg.index_mono is None else msg.index_mono + msg.n * period
         rows = np.ones(msg.n, dtype=bool) if self.nan_lost else valid
@@ -175,10 +175,9 @@ class LslSink:
         """A ``lost`` marker for ``count`` samples from ``index`` (stamped ``at``), or the open range it goes on with;
         ``open_end``: the range reaches the message's end, so its marker waits for the next message."""
         if self._open is not None:
-            event, when = self._open
+            event = self._open[0]
             if event["index"] + event["count"] == index and event["filled"] == filled:
                 event["count"] += count
-                self._open = (event, when)  # a new tuple: this message went on with it (samples() checks which is open)
                 if not open_end:
                     self._close_open()
                 return
