@@ -261,11 +261,12 @@ class PublishConfig:
     curve_authorized_dir: str = ""
     samples: bool = False
     max_connections: int = 64  # subscriber connections at once; one more is disconnected as soon as it is accepted
+    handshake_s: float = 5.0  # a connection that has not completed ZeroMQ's greeting by then is dropped (its place freed)
     socket_group: str = "tactiled"  # an ipc socket's group (mode 660), when that group exists and the daemon is in it
 
     def validate(self, p: str) -> None:
         """Check endpoint (``auto``, tcp://HOST:PORT or ipc://PATH, :func:`endpoint_problem`; loopback unless ``allow_remote``),
-        status_interval_s (s), and the CURVE key file and folder.
+        status_interval_s and handshake_s (s), max_connections, and the CURVE key file and folder.
 
         The key file and folder are set together or not at all, and must exist. A bad value raises ConfigError naming the key.
         """
@@ -276,6 +277,7 @@ class PublishConfig:
             _check(problem is None, f"{p}.endpoint", f"must be {DEFAULT_ENDPOINT!r}, tcp://HOST:PORT or ipc://PATH: {problem}")
         _check(0.01 <= self.status_interval_s <= 1.0, f"{p}.status_interval_s", "must be in [0.01, 1] s")
         _check(1 <= self.max_connections <= 512, f"{p}.max_connections", "must be in 1..512 (the unit's LimitNOFILE is 1024)")
+        _check(0.1 <= self.handshake_s <= 60.0, f"{p}.handshake_s", "must be in [0.1, 60] s")
         _check(self.allow_remote or is_local_endpoint(self.endpoint), f"{p}.endpoint",
                "binds a non-loopback address; set publish.allow_remote = true to allow it")
         _readable_file(self.curve_secret_key_file, f"{p}.curve_secret_key_file", MAX_KEY_FILE_BYTES)

@@ -231,6 +231,32 @@ def test_connections_over_the_cap_are_dropped_and_those_within_it_are_served(tmp
             ctx.term()
 
 
+def test_peers_that_never_greet_lose_their_places_after_the_handshake_time(tmp_path: Path) -> None:
+    """Two peers that connect and never send ZeroMQ's greeting fill publish.max_connections = 2; after publish.handshake_s
+    the daemon drops them (each sees its connection end) and a subscriber that came after them is served. libzmq's own
+    default would have held them for 30 s."""
+    endpoint = f"ipc://{tmp_path}/pub"
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[publish]\nmax_connections = 2\nstatus_interval_s = 0.1\nhandshake_s = 0.5\n")
+    with daemon_process(str(tmp_path / "absent"), endpoint, "--config", str(cfg)) as proc:
+        wait_for(lambda: (tmp_path / "pub").exists(), 30, "the daemon's socket")
+        silent = [socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) for _ in range(2)]
+        try:
+            for peer in silent:
+                peer.settimeout(20)
+                peer.connect(str(tmp_path / "pub"))
+                assert peer.recv(1), "the daemon did not accept a peer"  # its greeting's first byte: accepted
+            with BlockingSubscriber(endpoint, topics=["status"], timeout=20) as late:
+                assert isinstance(late.receive(), Status)  # served only once a silent peer's place is free
+            for peer in silent:
+                while peer.recv(1 << 16):  # the rest of the greeting, then the end the daemon gave the connection
+                    pass
+        finally:
+            for peer in silent:
+                peer.close()
+        assert proc.poll() is None
+
+
 def test_hundreds_of_silent_peers_do_not_stop_the_port_reopening_after_an_unplug(tmp_path: Path) -> None:
     """600 local peers connect and never speak (the cap is 64): the daemon holds at most the cap, keeps its descriptors
     bounded, and reopens the serial port after an unplug with status flowing. The unplug comes 6 s after the board starts (18 s

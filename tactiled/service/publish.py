@@ -124,6 +124,9 @@ class Publisher:
         self.socket = self.context.socket(zmq.XPUB if see_subscribers else zmq.PUB)
         self.socket.setsockopt(zmq.LINGER, 0)
         self.socket.setsockopt(zmq.SNDHWM, send_hwm)
+        # a peer that connects and never completes the greeting holds one of max_connections' places until libzmq drops it
+        # (30 s by default): a subscriber greets within milliseconds, and one dropped for a slow greeting connects again
+        self.socket.setsockopt(zmq.HANDSHAKE_IVL, round(config.handshake_s * 1000))
         # PUB and XPUB sockets receive their subscribers' SUBSCRIBE messages: a peer sending a longer one is disconnected,
         # so a 16 MB topic prefix can never grow the daemon (topics are "<type>/<sensor id>", under 100 bytes)
         self.socket.setsockopt(zmq.MAXMSGSIZE, MAX_INBOUND_CURVE_BYTES if config.curve_secret_key_file else MAX_INBOUND_BYTES)
