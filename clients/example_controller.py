@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import sys
 
-from tactiled_client import EndOfLog, NoData, Replay, Roughness, Slide, Status, Subscriber
+from tactiled_client import ClientError, EndOfLog, NoData, Replay, Roughness, Slide, Status, Subscriber
 
 FAST, SLOW = 0.09, 0.05  # m/s
 
@@ -54,7 +55,8 @@ async def main(args: argparse.Namespace) -> None:
             try:
                 msg = await sub.receive()
             except EndOfLog:
-                print("end of the recorded session")
+                cut = source.truncated if isinstance(source, Replay) else None
+                print(f"end of the recorded session{f' ({cut})' if cut else ''}")
                 return
             except NoData:
                 print("no data from the daemon for 3 s: stopping the arm", flush=True)
@@ -90,3 +92,6 @@ if __name__ == "__main__":
         asyncio.run(main(parsed))
     except KeyboardInterrupt:  # Ctrl-C: how it is stopped
         print("stopped", flush=True)
+    except ClientError as exc:  # a log that cannot be replayed, a bad endpoint: one line
+        print(f"example_controller: {exc}", file=sys.stderr)
+        sys.exit(2)

@@ -106,10 +106,16 @@ class _Player(_Tracker):
             raise UsageError("nothing to deliver")  # only reached after _next gave an entry
         self._pending = None
         self._recorded_now = entry.time_mono
-        return self.accept(entry.frames())
+        return self.accept(entry.frames(), entry.time_unix)
 
     def _silence(self, t: float) -> NoData:
         return NoData(f"{self.path}: no message for {t:g} s of recorded time")
+
+    @property
+    def truncated(self) -> str | None:
+        """Once the replay has ended: a one-line note if the file ended inside a message (a recording cut short, by a
+        crash or a copy), else None."""
+        return self.reader.truncated
 
     def _end(self) -> EndOfLog:
         return EndOfLog(f"{self.path}: end of file after {self.reader.count} messages")

@@ -275,9 +275,9 @@ class Status(Message):
     model: str = ""
     uptime_s: float = 0.0
     index: int = 0  # newest sensor sample index
-    level: list[float] = field(default_factory=list)  # RMS per film over the last status interval, V
+    level: list[float] = field(default_factory=list)  # RMS per film about its mean over the last status interval, V
     version: str = ""
-    dropped_messages: int = 0
+    dropped_messages: int = 0  # messages the PUB socket refused (0: a subscriber's own losses are its seq gaps)
     channel_errors: int = 0
     clock_index: int | None = None  # a sample index ...
     clock_mono: float | None = None  # ... its host monotonic time, s ...

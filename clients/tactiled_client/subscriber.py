@@ -16,15 +16,17 @@ Blocking (scripts)::
 CURVE. Every message is typed (:mod:`tactiled_client.schema`); ``msg.missed`` is how many
 messages of that topic were lost just before it (from ``seq``); ``timeout`` (s) raises
 :class:`NoData` when nothing arrives for that long; :meth:`latest` returns the newest
-roughness label if it is younger than a given age. A message that is not a tactiled message
+roughness label if it was sent at most a given time ago (a label that waited in the queue counts its wait). A message that is not a tactiled message
 (something else publishing there), or one with a known field of the wrong type (a ``confidence`` that
 is a string), is skipped and counted in ``malformed`` (``last_malformed`` says why), never raised.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import time
+from collections import deque
 from collections.abc import AsyncIterator, Iterator, Sequence
 from types import TracebackType
 from typing import Any
@@ -38,6 +40,11 @@ from tactiled_client.errors import NoData, UsageError
 
 __all__ = ["BlockingSubscriber", "NoData", "Subscriber"]
 
+# s of arrivals over which the quickest message's lag (arrival less send time, on two hosts' wall clocks) stands for that
+# of a message that did not wait in a queue: long enough to span a controller's busy spell; a wall clock that steps
+# forward makes labels look that much older (no label rather than a stale one) for at most this long
+LAG_WINDOW_S = 300.0
+
 
 class _Tracker:
     """seq bookkeeping and the freshest roughness message, shared by the subscribers and the replays.
@@ -50,10 +57,12 @@ class _Tracker:
         self.missed: dict[str, int] = {}
         self.malformed = 0  # messages skipped because they are not tactiled messages (docs/messages.md)
         self.last_malformed: str | None = None  # why the last of them was skipped (topic and fault, one line)
-        self._latest: tuple[float, schema.Roughness] | None = None
+        self._latest: tuple[float, float | None, schema.Roughness] | None = None  # (arrived, its lag, the message)
+        self._lags: deque[tuple[float, float]] = deque()  # (arrived, lag): increasing lags, the first the least of LAG_WINDOW_S
 
-    def accept(self, frames: list[bytes]) -> schema.Message | None:
-        """The typed message of ``frames`` with its ``missed`` set; None, counted in :attr:`malformed`, if it is not a
+    def accept(self, frames: list[bytes], arrived_unix: float | None = None) -> schema.Message | None:
+        """The typed message of ``frames`` with its ``missed`` set (``arrived_unix``: when it arrived on the wall clock, s;
+        None: now); None, counted in :attr:`malformed`, if it is not a
         tactiled message (not two frames, a body that is not a msgpack map, ``v``, ``seq``, ``sensor`` or ``type`` missing
         or of the wrong type, any other field the schema knows of a type it does not declare): something else publishing
         on the endpoint, or a faulty publisher, must neither end a controller's loop nor hand it garbage."""
@@ -76,23 +85,48 @@ class _Tracker:
         self.last_seq[topic] = msg.seq
         self.missed[topic] = self.missed.get(topic, 0) + gap
         msg.missed = gap
+        arrived = self.now()
+        lag = self._lag(arrived, time.time() if arrived_unix is None else arrived_unix, msg.time_unix)
         if isinstance(msg, schema.Roughness):
-            self._latest = (self.now(), msg)
+            self._latest = (arrived, lag, msg)
         elif (isinstance(msg, schema.Slide) and msg.event == schema.SLIDE_RESUMED and self._latest is not None
-              and self._latest[1].slide_id == msg.slide_id and self._latest[1].sensor == msg.sensor):
+              and self._latest[2].slide_id == msg.slide_id and self._latest[2].sensor == msg.sensor):
             self._latest = None  # its final label is withdrawn: the slide went on
         return msg
+
+    def _lag(self, arrived: float, arrived_unix: float, sent_unix: float) -> float | None:
+        """How much later than it was sent a message arrived by the two hosts' wall clocks (s; None: no send time), kept
+        in the sliding minimum over the messages of the last :data:`LAG_WINDOW_S` (``arrived``: on :meth:`now`'s clock)."""
+        lag = arrived_unix - sent_unix
+        if not sent_unix > 0 or not math.isfinite(lag):
+            return None
+        lags = self._lags
+        while lags and lags[-1][1] >= lag:
+            lags.pop()
+        lags.append((arrived, lag))
+        while lags[0][0] < arrived - LAG_WINDOW_S:
+            lags.popleft()
+        return lag
 
     def now(self) -> float:
         """The clock ages are measured on, s."""
         return time.monotonic()
 
     def latest(self, max_age_s: float) -> schema.Roughness | None:
-        """The newest roughness message if it arrived at most ``max_age_s`` ago, else None (also when a ``resumed`` slide
-        message withdrew it; subscribe to ``slide`` to see those)."""
-        if self._latest is None or self.now() - self._latest[0] > max_age_s:
+        """The newest roughness message if it was sent at most ``max_age_s`` ago, else None (also when a ``resumed`` slide
+        message withdrew it; subscribe to ``slide`` to see those).
+
+        Its age is the time since it arrived plus how long it had waited to be received: how much later it arrived than
+        the quickest message of the last :data:`LAG_WINDOW_S` did, by the daemon's send time (``time_unix``) on each
+        host's wall clock. So a label that waited in the queue while the controller was busy is as old as it is, and the
+        two hosts' clocks need not agree, only not step. The quickest lag is known as well as the freshest message of the
+        window shows it: subscribe to ``status`` too (one every 0.5 s), as ``example_controller.py`` does.
+        """
+        if self._latest is None:
             return None
-        return self._latest[1]
+        arrived, lag, msg = self._latest
+        waited = lag - self._lags[0][1] if lag is not None and self._lags else 0.0
+        return None if self.now() - arrived + max(waited, 0.0) > max_age_s else msg
 
 
 MAX_SEQ = 2**63 - 1  # a daemon's seq counts messages from 0: a value outside 0..MAX_SEQ is no tactiled message

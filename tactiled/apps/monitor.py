@@ -165,7 +165,8 @@ def losses(s: Status, missed: int) -> str:
 
 def other_losses(s: Status) -> str:
     """The counters of rarer losses and faults, those not 0, in one line ("" when all are 0): board restarts, repeated
-    frames dropped, messages the daemon could not queue, samples not analysed (load shed), input dropped undecoded, bad headers."""
+    frames dropped, messages the daemon's socket refused (a subscriber's own losses are its missed messages), samples not
+    analysed (load shed), input dropped undecoded, bad headers."""
     parts = [f"{label} {value}" for label, value in (
         ("restarts", s.restarts), ("duplicate frames", s.duplicate_frames), ("dropped msgs", s.dropped_messages),
         ("overloaded", s.overloaded), ("input shed bytes", s.input_shed_bytes), ("bad headers", s.bad_headers)) if value]
