@@ -24,7 +24,7 @@ from tactiled_client import BlockingSubscriber, Roughness, Slide, Status
 from tactiled.board.frames import encode_frame, encode_frames
 from tactiled.board.serialsource import CONNECTED, DISCONNECTED, MemorySource, SerialSource, port_fd
 from tactiled.config import Config
-from tactiled.core.events import PipelineEvent, SlideResult
+from tactiled.core.events import PipelineEvent, SlideEnded, SlideResult
 from tactiled.files.capture import read_chunks, recording_bytes
 from tactiled.files.recording import Recording
 from tactiled.learn.model import load_model
@@ -97,6 +97,25 @@ def test_a_huge_forward_jump_costs_constant_memory(jump: int, counted: bool) -> 
         assert stream.stats.restarts == 1 and stream.stats.samples_lost == 0
         assert [(b.index, b.restart) for b in after] == [(6000, True)]  # the timeline continues where it was
         assert stream.live.ring.end == 7000
+
+
+@pytest.mark.parametrize("restart", [True, False])
+def test_a_slide_cut_by_a_board_restart_or_a_gap_past_the_ring_ends_interrupted(restart: bool) -> None:
+    """The board restarts (its index back to 0), or 30 s of samples are lost with the port open, in the middle of a slide:
+    the slide ends at the last sample before, reason ``interrupted`` (``end_of_stream`` is for a stream that ends: a
+    subscriber reads it as the daemon stopping), its final label follows, and the stream goes on (an outside audit)."""
+    sim = simulate_file(SimParams(), pick_surfaces("Ra2.29")[0], 2, 4)
+    cut = (sim.truth[0].start + sim.truth[0].stop) // 2 // 20 * 20
+    stream = Stream(Config(), load_model())
+    first = 1_000_000
+    events = stream.feed_bytes(encode_frames(first, sim.samples[:cut])).events
+    after = 0 if restart else first + cut + int(30 * FS)
+    events += stream.feed_bytes(encode_frames(after, sim.samples[cut:])).events + stream.finish().events
+    assert (stream.stats.restarts, stream.stats.samples_lost > 0) == ((1, False) if restart else (0, True))
+    ends = [ev for ev in events if isinstance(ev, SlideEnded)]
+    assert (ends[0].reason, ends[0].stop) == ("interrupted", first + cut)
+    assert any(isinstance(ev, SlideResult) and ev.final and ev.slide_id == ends[0].slide_id for ev in events)
+    assert [ev.reason for ev in ends[1:]] == ["quiet", "quiet"]  # the rest of that slide, and the next one
 
 
 def test_a_gap_within_the_ring_is_lost_samples_not_a_restart() -> None:

@@ -13,7 +13,8 @@ pipeline by hand, and nobody has to remember what the end of a stream or a board
   ends at the last sample fed (it gets its final result).
 - **A lost port** (:meth:`Stream.disconnected`: the daemon when its port goes, a replay at a recording's
   ``disconnected`` mark) ends a slide in progress at the last sample fed, reason ``disconnected``, and the stream
-  goes on with the samples after it.
+  goes on with the samples after it. A board restart or a gap longer than the ring ends it the same way, reason
+  ``interrupted``.
 
 Each call returns a :class:`Step`: the batches decoded (for a recorder or the samples topic), the live
 pipeline's events and, with a shadow model, the shadow pipeline's events. Sans-IO: nothing here reads a
@@ -161,11 +162,11 @@ class Stream:
 
     def process(self, batches: list[Batch]) -> Step:
         """Decoded batches through the pipelines; a batch after a board restart or a gap longer than the ring first ends the
-        slide in progress (the detector then skips the gap in constant time)."""
+        slide in progress, reason ``schema.END_INTERRUPTED`` (the detector then skips the gap in constant time)."""
         step = Step(batches=batches)
         for b in batches:
             if b.restart or b.lost > self.long_gap:
-                step += self._finish_pipelines()
+                step += self._finish_pipelines(schema.END_INTERRUPTED)
             step += self._feed(b.index, b.samples, None)
         return step
 
@@ -213,8 +214,7 @@ class Stream:
         step = Step()
         self._take_requests()
         if self.pipeline is not None:
-            step.events = [replace(ev, reason=schema.END_DISCONNECTED) if isinstance(ev, SlideEnded) and ev.reason == "end_of_stream"
-                           else ev for ev in self.pipeline.disconnected()]
+            step.events = _ended_by(self.pipeline.disconnected(), schema.END_DISCONNECTED)
         if self.shadow is not None:
             step.shadow = self.shadow.disconnected()
         return step
@@ -226,8 +226,17 @@ class Stream:
         return Step(events=self.pipeline.feed(index, samples, valid),
                     shadow=self.shadow.feed(index, samples, valid) if self.shadow is not None else [])
 
-    def _finish_pipelines(self) -> Step:
+    def _finish_pipelines(self, reason: str | None = None) -> Step:
+        """Slides in progress end at the last sample fed, with ``reason`` where the stream goes on (None: the stream ends)."""
         if self.pipeline is None:
             return Step()
         self._take_requests()
-        return Step(events=self.pipeline.finish(), shadow=self.shadow.finish() if self.shadow is not None else [])
+        events = self.pipeline.finish()
+        return Step(events=events if reason is None else _ended_by(events, reason),
+                    shadow=self.shadow.finish() if self.shadow is not None else [])
+
+
+def _ended_by(events: list[PipelineEvent], reason: str) -> list[PipelineEvent]:
+    """``events`` with each slide end that says the stream ended (``end_of_stream``) saying ``reason`` instead: the stream
+    goes on after a lost port or an interruption."""
+    return [replace(ev, reason=reason) if isinstance(ev, SlideEnded) and ev.reason == "end_of_stream" else ev for ev in events]
