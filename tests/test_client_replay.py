@@ -166,6 +166,9 @@ def test_tactiled_mcap_and_replay_json_replay_as_roughness_messages(tmp_path: Pa
 
     base = load_recording(path).first_index  # MCAP: sensor indices, as on the wire; replay --json: positions in the file
     assert [(m.start, m.label) for m in from_mcap if m.final] == [(p["start"] + base, p["label"]) for p in printed]
+    # stamped as the daemon stamps what it sends: seq per topic from 0 (no gap counted), time_unix the message's log time
+    assert [m.seq for m in from_mcap] == list(range(len(from_mcap))) and rep.missed == {"roughness/fingertip0": 0}
+    assert all(m.time_unix > 1e9 for m in from_mcap)
     # a provisional label replayed from the --json lines ends where its windows did, as the daemon published it (the MCAP
     # holds the messages as published): it carried the final label's stop, window and quality, then 1.5 s in its future
     early_json = [m for m in got if not m.final]

@@ -196,7 +196,8 @@ def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", 
             at = replace(r, start=base + r.start, stop=base + r.stop, window=(base + r.window[0], base + r.window[1]))
             # logged when it could first have been published: at the end of what it read (a provisional label's windows, a
             # final label's slide), as the ROS 2 profile and a replay's JSON place it; not at the slide's onset
-            put("roughness", r.stop, schema.roughness(sensor, at, fs=rec.fs, model=r.model or model, version=__version__).to_map())
+            msg = schema.roughness(sensor, at, fs=rec.fs, model=r.model or model, version=__version__)
+            put("roughness", r.stop, as_sent(msg, counts["roughness"], ns(r.stop)))
         for position, body in marks:
             put("disconnected", position, body)
         writer.finish()
@@ -305,13 +306,20 @@ def export_ros2_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingerti
             msg = schema.roughness(sensor, at, fs=rec.fs, model=r.model or model, version=__version__)
             if msg.final:
                 put("label", r.stop, string_t(data=msg.label or ""), "std_msgs/msg/String")
-            put("roughness", r.stop, string_t(data=json.dumps(msg.to_map())), "std_msgs/msg/String")
+            put("roughness", r.stop, string_t(data=json.dumps(as_sent(msg, counts["roughness"], ns(r.stop)))), "std_msgs/msg/String")
             counts["roughness"] += 1
         for position, body in marks:
             put("disconnected", position, string_t(data=json.dumps(body)), "std_msgs/msg/String")
             counts["disconnected"] += 1
         writer.finish()
     return counts
+
+
+def as_sent(msg: schema.Message, seq: int, t_ns: int) -> dict[str, Any]:
+    """``msg``'s map stamped as the daemon stamps what it sends: the ``seq``-th of its topic (from 0), ``time_unix`` its log
+    time ``t_ns`` (unix ns), so that a replay of the file counts no gap and ages a label as a subscriber would."""
+    msg.seq, msg.time_unix = seq, t_ns / 1e9
+    return msg.to_map()
 
 
 def export_recording(path: str | Path, output: str | Path, config: Config, choice: ModelChoice, *, batch: int | None = None,
