@@ -25,7 +25,6 @@ from tactiled.readable import file_problem
 DEFAULT_ENDPOINT = "auto"  # ipc://<runtime folder>/<sensor id>.sock (tactiled_client.endpoints); TCP is opt-in
 MAX_CONFIG_BYTES = 1 << 20
 MAX_KEY_FILE_BYTES = 64 << 10  # a CURVE certificate is a few hundred bytes
-MAX_MODEL_FILE_BYTES = 1 << 30  # a model file on disk (its arrays inflated are bounded again at load)
 MAX_RING_BYTES = 1 << 30  # the ring buffer of raw samples (float64 in the worst case)
 STAT_NAMES = ("mean", "sd", "energy", "rms", "skew", "kurt")
 
@@ -245,9 +244,12 @@ class ModelConfig:
     shadow: str = ""
 
     def validate(self, p: str) -> None:
-        """Check path and shadow are empty or regular files of at most 1 GiB; a bad value raises ConfigError naming the key (``p``: the section)."""
+        """Check path and shadow are paths (at most 4096 bytes, no NUL); a bad value raises ConfigError naming the key (``p``:
+        the section). The files themselves are checked where a command loads them (:class:`tactiled.learn.choose.ModelChoice`,
+        ``check-config``): a missing model must not stop ``record``, ``monitor``, ``run --model OTHER`` or ``--no-model``."""
         for key in ("path", "shadow"):
-            _readable_file(getattr(self, key), f"{p}.{key}", MAX_MODEL_FILE_BYTES)
+            value = getattr(self, key)
+            _check(len(value) <= 4096 and "\0" not in value, f"{p}.{key}", "must be a path (at most 4096 bytes, no NUL)")
 
 
 @dataclass(frozen=True)

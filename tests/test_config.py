@@ -91,6 +91,33 @@ def test_check_config_cli(tmp_path: Path) -> None:
     assert res.stderr.strip().splitlines() == [f"tactiled: error: {bad}: detector.min_slide_s: must be in (0, 60] s"]
 
 
+def test_a_missing_model_file_stops_only_the_commands_that_would_load_it(tmp_path: Path) -> None:
+    """A config whose model.path names a file that is gone: check-config, run and replay that would load it say so in one
+    line naming the key, exit 2; check-config --no-model, run --model OTHER, replay --model OTHER and replay --no-model go on
+    (every command that read the config refused it, even those that need no model: an outside audit)."""
+    import numpy as np
+
+    from tactiled.files.recording import Recording, save_recording
+
+    gone = tmp_path / "gone.npz"
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[model]\npath = "{gone}"\n')
+    rec = tmp_path / "r.npz"
+    save_recording(rec, Recording(np.zeros((20_000, 2), dtype=np.int16), 20_000.0, 1e-4))
+    shipped = str(REPO / "tactiled" / "data" / "default_model.npz")
+    said = f"tactiled: error: {cfg}: model.path: {gone}: no such model file"
+    for argv in (["check-config", str(cfg)], ["run", "--config", str(cfg), "--port", str(tmp_path / "none"), "--no-wait"],
+                 ["replay", "--config", str(cfg), str(rec)]):
+        res = run_cli(*argv)
+        assert res.returncode == 2 and res.stderr.strip().splitlines() == [said], (argv, res.stderr)
+    for argv in (["check-config", str(cfg), "--no-model"], ["replay", "--config", str(cfg), "--model", shipped, str(rec)],
+                 ["replay", "--config", str(cfg), "--no-model", str(rec)]):
+        res = run_cli(*argv)
+        assert res.returncode == 0 and "model.path" not in res.stderr, (argv, res.stderr)
+    res = run_cli("run", "--config", str(cfg), "--model", shipped, "--port", str(tmp_path / "none"), "--no-wait")
+    assert "model.path" not in res.stderr and "none" in res.stderr, res.stderr  # on to the port, which is missing
+
+
 def test_check_config_says_whether_run_would_find_a_model(tmp_path: Path) -> None:
     """A sensor at 2.2 kHz on one channel: the config is valid, but the shipped model does not fit it and no model.path is
     set, so run would refuse it: an error naming the key (it said "ok" and exit 0, an outside audit found); with --no-model

@@ -24,7 +24,9 @@ def _choice(args: argparse.Namespace, config: Config) -> ModelChoice:
     (as ``run`` takes it: replay --config my.toml labels with the daemon's model), else the shipped one."""
     from tactiled.learn.choose import ModelChoice
 
-    return ModelChoice(config, args.model or config.model.path or None, explicit=args.no_model, force=getattr(args, "force", False), warn=say)
+    from_config = not args.model and not args.no_model and config.model.path
+    return ModelChoice(config, args.model or (config.model.path if from_config else None), explicit=args.no_model,
+                       force=getattr(args, "force", False), warn=say, set_by=f"{getattr(args, 'config', None)}: model.path" if from_config else None)
 
 
 def cmd_record(args: argparse.Namespace) -> int:

@@ -24,12 +24,13 @@ def cmd_run(args: argparse.Namespace) -> int:
                               "model.path": args.model, "publish.samples": True if args.samples else None, "model.shadow": args.shadow})
     s = config.sensor
     where = f"sensor {s.id}"
-    choice = ModelChoice(config, None if args.no_model else config.model.path or None, explicit=args.no_model, force=args.force, check_cost=False, warn=say)
+    choice = ModelChoice(config, None if args.no_model else config.model.path or None, explicit=args.no_model, force=args.force, check_cost=False,
+                         warn=say, set_by=None if args.model else f"{args.config}: model.path")
     model = choice.for_stream(s.fs, s.channels, where)
     if model is None and not args.no_model:
         raise TactiledError("no model fits this sensor (train one with tactiled train, or pass --no-model)")
-    shadow = ModelChoice(config, config.model.shadow, explicit=True, check_cost=False).for_stream(s.fs, s.channels, where) \
-        if config.model.shadow else None
+    shadow = ModelChoice(config, config.model.shadow, explicit=True, check_cost=False, set_by=None if args.shadow else f"{args.config}: model.shadow") \
+        .for_stream(s.fs, s.channels, where) if config.model.shadow else None
     for out, suffix in ((args.record, ".npz"), (args.raw, ".bin")):
         if out:
             check_output(out, args.force, (suffix,))  # before the port opens: never replace a file (or write a device) unasked

@@ -24,12 +24,14 @@ log = logging.getLogger(__name__)
 class ModelChoice:
     """Choose the model of each stream: :meth:`for_stream`. ``path``: an explicit model file (None: the shipped one,
     where it fits); ``explicit``: no model unless ``path`` is given (``--no-model``); ``force``: run a model too slow
-    for the sensor anyway; ``warn``: where the one-line notes go."""
+    for the sensor anyway; ``warn``: where the one-line notes go; ``set_by``: where ``path`` was set (``my.toml: model.path``),
+    said before a :class:`ModelError` about it (None: the command line, which names the file itself)."""
 
     def __init__(self, config: Config, path: str | None = None, *, explicit: bool = False, force: bool = False,
-                 check_cost: bool = True, warn: Callable[[str], None] = log.warning) -> None:
+                 check_cost: bool = True, warn: Callable[[str], None] = log.warning, set_by: str | None = None) -> None:
         self.config = config
         self.path = path or None
+        self.set_by = set_by
         self.explicit = explicit
         self.force = force
         self.check_cost = check_cost
@@ -55,14 +57,17 @@ class ModelChoice:
     def for_stream(self, fs: float, channels: int, where: str) -> Model | None:
         """The model for a stream of ``fs`` Hz and ``channels`` named ``where``: an explicit one that does not fit is a
         :class:`ModelError`; the shipped one that does not fit is said in one line and no model is used."""
-        model = self._load()
+        try:
+            model = self._load()
+        except ModelError as exc:
+            raise self._named(exc) from None
         if model is None:
             return None
         try:
             model.check_stream(fs, channels, where, self.path or None)
         except ModelError as exc:
             if self.path:
-                raise
+                raise self._named(exc) from None
             self.warn(f"shipped model not used: {exc}")
             return None
         if not self._checked:
@@ -71,6 +76,10 @@ class ModelChoice:
                 check_speed(model, self.path or "the shipped model", self.force)
             self._say_settings(model)
         return model
+
+    def _named(self, exc: ModelError) -> ModelError:
+        """``exc`` about :attr:`path`, after where it was set (:attr:`set_by`) when that is known."""
+        return ModelError(f"{self.set_by}: {exc}") if self.set_by and self.path else exc
 
     def _say_settings(self, model: Model) -> None:
         """One note when the config sets analysis sections that the model replaces with its own."""
