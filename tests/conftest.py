@@ -261,10 +261,12 @@ def running(board: VirtualBoard) -> Iterator[VirtualBoard]:
 
 
 @contextlib.contextmanager
-def daemon_process(port: str, endpoint: str, *args: str) -> Iterator[subprocess.Popen[str]]:
-    """``tactiled run --port PORT --publish ENDPOINT ARGS`` as a process (stderr piped); terminated when the block ends
-    (killed if it does not stop within 30 s). Its ``returncode`` and ``stderr`` are there to check afterwards."""
-    proc = subprocess.Popen(tactiled_cmd("run", "--port", port, "--publish", endpoint, *args), stderr=subprocess.PIPE, text=True)
+def daemon_process(port: str, endpoint: str, *args: str, preexec_fn: Callable[[], None] | None = None) -> Iterator[subprocess.Popen[str]]:
+    """``tactiled run --port PORT --publish ENDPOINT ARGS`` as a process (stderr piped; ``preexec_fn`` run in the child before
+    it starts, e.g. a resource limit); terminated when the block ends (killed if it does not stop within 30 s). Its
+    ``returncode`` and ``stderr`` are there to check afterwards."""
+    proc = subprocess.Popen(tactiled_cmd("run", "--port", port, "--publish", endpoint, *args), stderr=subprocess.PIPE, text=True,
+                            preexec_fn=preexec_fn)
     try:
         yield proc
     finally:

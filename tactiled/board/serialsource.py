@@ -59,7 +59,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Iterable
-from typing import BinaryIO, Protocol
+from typing import Protocol
 
 import serial
 
@@ -74,6 +74,14 @@ MAX_BACKLOG_BYTES = 4 << 20  # bytes read but not yet consumed: beyond this, new
 CONNECTED = "connected"
 DISCONNECTED = "disconnected"
 _END: tuple[str, str] = ("end", "")  # SerialSource.run's queue: the reader thread has ended (compared by identity)
+
+
+class Tee(Protocol):
+    """Where a copy of every byte read goes (a raw capture: :class:`tactiled.files.capture.CaptureWriter`); its writes must
+    not raise, or the reader takes the error for the port's."""
+
+    def write(self, data: bytes, /) -> object: ...
+    def flush(self) -> object: ...
 
 
 class Reads:
@@ -137,8 +145,8 @@ def check_port(path: str) -> None:
     kind = not_a_tty(path)
     if kind is not None:
         raise DeviceError(f"{path}: {NOT_A_TTY}: {kind}")
-    try:
-        port = serial.Serial(path, timeout=0, exclusive=True)
+    try:  # keeping its input: pyserial's open would empty it, and the reader's count of stale bytes would miss what it held
+        port = KeepInputSerial(path, timeout=0, exclusive=True)
     except (serial.SerialException, OSError) as exc:
         why = open_error(exc, path)
         raise DeviceError(f"{path}: {why}" if why.startswith(NOT_A_TTY) else f"{path}: cannot open serial device: {why}") from None
@@ -198,7 +206,7 @@ class SerialSource:
         retry_max_s: float = 2.0,
         read_interval_s: float = 0.01,
         read_size: int = 1 << 20,
-        tee: BinaryIO | None = None,
+        tee: Tee | None = None,
         hand_over_s: float = 0.0,
         max_backlog_bytes: int = MAX_BACKLOG_BYTES,
     ) -> None:

@@ -7,9 +7,11 @@ become index gaps).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import contextlib
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -33,6 +35,53 @@ class Capture:
     def chunks(self, size: int = 1 << 16) -> Iterator[bytes]:
         """The capture's bytes in pieces of ``size``."""
         return read_chunks(self.path, size)
+
+
+class CaptureWriter:
+    """A raw capture being written (``run --raw``): every byte read from the port, as read, appended to ``path``.
+
+    A write the machine refuses (a full disk, a file-size limit, an I/O error) ends the capture, never the reading: the
+    bytes already on disk stay, :attr:`error` says in one line what happened and where, and ``said`` is called with it
+    once (from the reader thread). Before, the error reached the serial reader, which took it for an unplug and reopened
+    the port some 80 times a second, losing nearly every sample.
+    """
+
+    def __init__(self, path: str | Path, said: Callable[[str], None] = lambda line: None) -> None:
+        self.path = Path(path)
+        self.error: str | None = None
+        self._said = said
+        self._fh: BinaryIO | None = open(self.path, "wb")  # noqa: SIM115 - closed by close()
+
+    def write(self, data: bytes) -> None:
+        """Append ``data`` (nothing once the capture has ended)."""
+        if self._fh is not None:
+            try:
+                self._fh.write(data)
+            except OSError as exc:
+                self._end(exc)
+
+    def flush(self) -> None:
+        """What is buffered, to the file."""
+        if self._fh is not None:
+            try:
+                self._fh.flush()
+            except OSError as exc:
+                self._end(exc)
+
+    def close(self) -> None:
+        """Flush and close (a failing flush is :attr:`error`, not raised)."""
+        self.flush()
+        self._end(None)
+
+    def _end(self, exc: OSError | None) -> None:
+        fh, self._fh = self._fh, None
+        if fh is not None:
+            with contextlib.suppress(OSError):  # the buffer's last flush fails again on a full disk; the descriptor closes all the same
+                fh.close()
+        if exc is not None and self.error is None:
+            size = self.path.stat().st_size if self.path.is_file() else 0
+            self.error = f"{self.path}: {exc.strerror or exc}: raw capture stopped at byte {size} (what is on disk is kept; reading goes on)"
+            self._said(self.error)
 
 
 def read_chunks(path: str | Path, size: int = 1 << 16) -> Iterator[bytes]:

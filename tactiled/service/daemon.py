@@ -40,7 +40,6 @@ import signal
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import BinaryIO
 
 import numpy as np
 from tactiled_client import schema
@@ -54,6 +53,7 @@ from tactiled.core.events import PipelineEvent, SlideResult, SlideResumed
 from tactiled.core.features import film_levels
 from tactiled.core.shadow import ShadowStats
 from tactiled.errors import ConfigError, TactiledError, WindowError
+from tactiled.files.capture import CaptureWriter
 from tactiled.learn.cost import check_speed
 from tactiled.learn.model import Model, load_model
 from tactiled.run.ingest import Batch
@@ -136,6 +136,7 @@ class Daemon:
                                       counters=lambda: link_counters(self.stream.stats, self.source),
                                       on_error=log.error) if record_to else None  # streams to record_to's journal (tactiled/files/journal.py)
         self._recording_error: str | None = None
+        self._tee: CaptureWriter | None = None  # run --raw
         self.clock = ClockMap(s.fs)  # sample index -> host time
         self._raw_next: int | None = None  # next index of the samples topic
         self._reader: asyncio.Task[None] | None = None
@@ -154,7 +155,7 @@ class Daemon:
         """The endpoint the publisher is bound to, as ZeroMQ resolved it (a ``tcp://...:*`` bind shows its port)."""
         return self.publisher.endpoint
 
-    def _make_source(self, tee: BinaryIO | None) -> ByteSource:
+    def _make_source(self, tee: CaptureWriter | None) -> ByteSource:
         if self._source_factory is not None:
             return self._source_factory(self._on_bytes, self._on_state)
         s, c = self.config.sensor, self.config.serial
@@ -169,7 +170,7 @@ class Daemon:
         """
         loop = asyncio.get_running_loop()
         s = self.config.sensor
-        tee = open(self.raw_to, "wb") if self.raw_to else None  # noqa: SIM115 - closed in finally
+        tee = self._tee = CaptureWriter(self.raw_to, lambda line: log.error("run --raw: %s", line)) if self.raw_to else None
         self.source = self._make_source(tee)
         for sig in STOP_SIGNALS:
             if sig != signal.SIGHUP:
@@ -506,9 +507,9 @@ class Daemon:
 
     @property
     def recording_error(self) -> str | None:
-        """The recording's failure in one line (a full disk while capturing, or the ``.npz`` not written at exit), or None:
-        ``tactiled run --record`` then exits 1."""
-        return self._recording_error or (self.recorder.error if self.recorder is not None else None)
+        """The recording's failure in one line (a full disk while capturing, or the ``.npz`` not written at exit), or the raw
+        capture's (``--raw``), or None: ``tactiled run`` then exits 1."""
+        return self._recording_error or (self.recorder.error if self.recorder is not None else None) or (self._tee.error if self._tee else None)
 
     def _save_recording(self) -> None:
         """The recording written from its journal (the journal removed); one of no sample is not written (as ``tactiled
