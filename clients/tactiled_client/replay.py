@@ -106,7 +106,7 @@ class _Player(_Tracker):
             raise UsageError("nothing to deliver")  # only reached after _next gave an entry
         self._pending = None
         self._recorded_now = entry.time_mono
-        return self.accept(entry.frames(), entry.time_unix)
+        return self.accept(entry.frames(), entry.time_unix, entry.time_mono)  # arrived when it was due: a late delivery ages it
 
     def _silence(self, t: float) -> NoData:
         return NoData(f"{self.path}: no message for {t:g} s of recorded time")
@@ -217,7 +217,7 @@ class BlockingReplay(_Player):
 def publish(path: str | Path, endpoint: str, *, speed: float | None = 1.0, topics: Sequence[str] | None = None, sensor: str | None = None,
             wait_subscriber_s: float = 0.0, warn: Callable[[str], None] | None = None) -> int:
     """Publish a recorded session on ``endpoint`` (bound) as the daemon would: the same topics and two-frame msgpack framing,
-    a fresh gapless ``seq`` per topic. Waits up to ``wait_subscriber_s`` for a first subscriber. Returns the messages sent.
+    a fresh gapless ``seq`` per topic, ``time_unix`` when sent. Waits up to ``wait_subscriber_s`` for a first subscriber. Returns the messages sent.
 
     ``warn`` is told, in one line, when the file ends inside a record (a killed recorder: every message before it is sent)."""
     import zmq
@@ -240,6 +240,7 @@ def publish(path: str | Path, endpoint: str, *, speed: float | None = 1.0, topic
         for entry in player.entries():
             body = check_body(entry.body, f"{path}: {entry.where}" if entry.where else str(path))
             body["seq"] = sent.get(entry.topic, 0)
+            body["time_unix"] = time.time()  # sent now, as the daemon stamps what it sends (a subscriber ages labels by it)
             sent[entry.topic] = body["seq"] + 1
             sock.send_multipart([entry.topic.encode(), schema.pack(body)])
     finally:

@@ -41,9 +41,37 @@ from tactiled_client.errors import NoData, UsageError
 __all__ = ["BlockingSubscriber", "NoData", "Subscriber"]
 
 # s of arrivals over which the quickest message's lag (arrival less send time, on two hosts' wall clocks) stands for that
-# of a message that did not wait in a queue: long enough to span a controller's busy spell; a wall clock that steps
-# forward makes labels look that much older (no label rather than a stale one) for at most this long
+# of a message that did not wait in a queue: long enough to span a controller's busy spell; a daemon's wall clock stepped
+# back (or the controller's forward) makes its labels look that much older (no label rather than a stale one) for at most
+# this long
 LAG_WINDOW_S = 300.0
+
+
+class _Lags:
+    """One daemon's message lags (arrival less send time ``time_unix``, on the two hosts' wall clocks, s): their least over
+    the last :data:`LAG_WINDOW_S` of arrivals is the lag of a message that did not wait. Each lag is taken with the one before
+    it (the larger of two in a row), so one message stamped wrongly, by a clock wrong for a moment, cannot make the later
+    ones look late."""
+
+    def __init__(self) -> None:
+        self._window: deque[tuple[float, float]] = deque()  # (arrived, lag): increasing lags, the first the least
+        self._last: float | None = None
+
+    def add(self, arrived: float, lag: float) -> None:
+        """The lag of a message that arrived at ``arrived`` (on :meth:`_Tracker.now`'s clock)."""
+        last, self._last = self._last, lag
+        if last is None:
+            return
+        pair, window = max(lag, last), self._window
+        while window and window[-1][1] >= pair:
+            window.pop()
+        window.append((arrived, pair))
+        while window[0][0] < arrived - LAG_WINDOW_S:
+            window.popleft()
+
+    def least(self) -> float | None:
+        """The lag of a message that did not wait (None: not yet two messages)."""
+        return self._window[0][1] if self._window else None
 
 
 class _Tracker:
@@ -58,11 +86,11 @@ class _Tracker:
         self.malformed = 0  # messages skipped because they are not tactiled messages (docs/messages.md)
         self.last_malformed: str | None = None  # why the last of them was skipped (topic and fault, one line)
         self._latest: tuple[float, float | None, schema.Roughness] | None = None  # (arrived, its lag, the message)
-        self._lags: deque[tuple[float, float]] = deque()  # (arrived, lag): increasing lags, the first the least of LAG_WINDOW_S
+        self._lags: dict[str, _Lags] = {}  # per sensor: each daemon's clock is its own
 
-    def accept(self, frames: list[bytes], arrived_unix: float | None = None) -> schema.Message | None:
+    def accept(self, frames: list[bytes], arrived_unix: float | None = None, arrived: float | None = None) -> schema.Message | None:
         """The typed message of ``frames`` with its ``missed`` set (``arrived_unix``: when it arrived on the wall clock, s;
-        None: now); None, counted in :attr:`malformed`, if it is not a
+        ``arrived``: on :meth:`now`'s clock; None: now); None, counted in :attr:`malformed`, if it is not a
         tactiled message (not two frames, a body that is not a msgpack map, ``v``, ``seq``, ``sensor`` or ``type`` missing
         or of the wrong type, any other field the schema knows of a type it does not declare): something else publishing
         on the endpoint, or a faulty publisher, must neither end a controller's loop nor hand it garbage."""
@@ -85,28 +113,18 @@ class _Tracker:
         self.last_seq[topic] = msg.seq
         self.missed[topic] = self.missed.get(topic, 0) + gap
         msg.missed = gap
-        arrived = self.now()
-        lag = self._lag(arrived, time.time() if arrived_unix is None else arrived_unix, msg.time_unix)
+        arrived = self.now() if arrived is None else arrived
+        lag: float | None = (time.time() if arrived_unix is None else arrived_unix) - msg.time_unix
+        if msg.time_unix > 0 and lag is not None and math.isfinite(lag):
+            self._lags.setdefault(msg.sensor, _Lags()).add(arrived, lag)
+        else:
+            lag = None
         if isinstance(msg, schema.Roughness):
             self._latest = (arrived, lag, msg)
         elif (isinstance(msg, schema.Slide) and msg.event == schema.SLIDE_RESUMED and self._latest is not None
               and self._latest[2].slide_id == msg.slide_id and self._latest[2].sensor == msg.sensor):
             self._latest = None  # its final label is withdrawn: the slide went on
         return msg
-
-    def _lag(self, arrived: float, arrived_unix: float, sent_unix: float) -> float | None:
-        """How much later than it was sent a message arrived by the two hosts' wall clocks (s; None: no send time), kept
-        in the sliding minimum over the messages of the last :data:`LAG_WINDOW_S` (``arrived``: on :meth:`now`'s clock)."""
-        lag = arrived_unix - sent_unix
-        if not sent_unix > 0 or not math.isfinite(lag):
-            return None
-        lags = self._lags
-        while lags and lags[-1][1] >= lag:
-            lags.pop()
-        lags.append((arrived, lag))
-        while lags[0][0] < arrived - LAG_WINDOW_S:
-            lags.popleft()
-        return lag
 
     def now(self) -> float:
         """The clock ages are measured on, s."""
@@ -117,15 +135,17 @@ class _Tracker:
         message withdrew it; subscribe to ``slide`` to see those).
 
         Its age is the time since it arrived plus how long it had waited to be received: how much later it arrived than
-        the quickest message of the last :data:`LAG_WINDOW_S` did, by the daemon's send time (``time_unix``) on each
-        host's wall clock. So a label that waited in the queue while the controller was busy is as old as it is, and the
-        two hosts' clocks need not agree, only not step. The quickest lag is known as well as the freshest message of the
-        window shows it: subscribe to ``status`` too (one every 0.5 s), as ``example_controller.py`` does.
+        the quickest of its daemon's messages of the last :data:`LAG_WINDOW_S` did, by the daemon's send time
+        (``time_unix``) on each host's wall clock. So a label that waited in the queue while the controller was busy is as
+        old as it is, and the hosts' clocks need not agree, only not step. The quickest lag is known as well as the
+        freshest message of the window shows it: subscribe to ``status`` too (one every 0.5 s), as ``example_controller.py``
+        does. A replay ages a label from when it was due on the replay's clock.
         """
         if self._latest is None:
             return None
         arrived, lag, msg = self._latest
-        waited = lag - self._lags[0][1] if lag is not None and self._lags else 0.0
+        least = self._lags[msg.sensor].least() if msg.sensor in self._lags else None
+        waited = lag - least if lag is not None and least is not None else 0.0
         return None if self.now() - arrived + max(waited, 0.0) > max_age_s else msg
 
 
