@@ -440,15 +440,17 @@ class SlideDetector:
             # the stream began at rest: a sustained rise (a slide's own level fluctuates hop to hop more than on_factor)
             began, early = self._began, self._early
             self._early = False
+            # the rise took a window of hops to show: the slide began at its first loud hop (above the quiet level) that no
+            # quiet of off_hold_s, the quiet that would have ended a slide, separates from this one (its dips are the slide's)
+            start = at
+            for idx, e in reversed(self._undecided_hops):
+                if e > c.off_factor * ref:
+                    start = idx
+                elif start - idx >= c.off_hold_s * self.fs:
+                    break
             self._undecided_hops.clear()
             self._floor = ref
             self.floor = ref
-            start = at
-            for idx, e in reversed(self._recent):
-                if e > c.off_factor * ref and idx == start - self.hop:
-                    start = idx
-                elif idx < start:
-                    break
             self.sliding = True
             self._start = start
             self._quiet_since = None

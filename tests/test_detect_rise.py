@@ -1,0 +1,43 @@
+"""Where a slide begins when the stream's start was undecided and a rise showed it began at rest (an outside audit,
+nineteenth session: on a fingertip sliding from the first sample with dips, a slide was reported 2.85 s after it began).
+
+Sans-IO: the detector fed a synthetic stream, every number in the docstrings.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tactiled.config import Config
+from tactiled.core.detect import SlideDetector
+from tactiled.core.events import Onset
+
+FS = 20_000.0
+
+
+def _stream(parts: list[tuple[float, float]], seed: int = 3) -> np.ndarray:
+    """White noise in pieces of (seconds, RMS volts), two films, (n, 2) float64."""
+    rng = np.random.default_rng(seed)
+    return np.concatenate([rng.normal(0.0, rms, (round(s * FS), 2)) for s, rms in parts])
+
+
+def test_a_rise_from_rest_begins_before_a_dip_shorter_than_the_quiet_that_ends_a_slide() -> None:
+    """0.5 s of rest, then a slide at 5 times its RMS (14 dB) that dips back to rest for 0.2 s after its first 0.1 s. The
+    rise shows only once most of a 0.4 s window is loud (about 1 s in); the slide began at 0.5 s, since a dip shorter than
+    ``off_hold_s`` (0.3 s) does not end a slide, so it cannot start one. It was reported at the end of the dip, 0.8 s."""
+    config = Config().detector
+    det = SlideDetector(config, FS, 2)
+    x = _stream([(0.5, 0.01), (0.1, 0.05), (0.2, 0.01), (1.5, 0.05), (1.0, 0.01)])
+    events = [ev for i in range(0, x.shape[0], 400) for ev in det.feed(i, x[i:i + 400])]
+    onsets = [ev for ev in events if isinstance(ev, Onset)]
+    assert len(onsets) == 1 and abs(onsets[0].start / FS - 0.5) < 0.02, onsets
+
+
+def test_a_rise_after_a_quiet_as_long_as_the_one_that_ends_a_slide_begins_after_it() -> None:
+    """The same, with the dip 0.4 s long (longer than ``off_hold_s``): the loud 0.1 s before it is no part of the slide,
+    which begins after the dip, at 1.0 s."""
+    det = SlideDetector(Config().detector, FS, 2)
+    x = _stream([(0.5, 0.01), (0.1, 0.05), (0.4, 0.01), (1.5, 0.05), (1.0, 0.01)])
+    events = [ev for i in range(0, x.shape[0], 400) for ev in det.feed(i, x[i:i + 400])]
+    onsets = [ev for ev in events if isinstance(ev, Onset)]
+    assert onsets and abs(onsets[-1].start / FS - 1.0) < 0.02, onsets
