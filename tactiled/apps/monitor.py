@@ -307,13 +307,14 @@ def render_compact(model: MonitorState, endpoint: str, width: int, height: int) 
     return Group(title, state, *counters, *levels, labels)
 
 
-def run_monitor(endpoint: str, truth_log: str | None = None, running: Callable[[], bool] = lambda: True) -> int:
-    """Show the live view of the daemon at ``endpoint`` (redrawn every 0.1 s) until ``q`` or Ctrl-C (exit code 0) or
-    ``running()`` False (the demo's own daemon stopped: 1)."""
+def run_monitor(endpoint: str, truth_log: str | None = None, running: Callable[[], bool] = lambda: True,
+                curve: tuple[str, str] | None = None) -> int:
+    """Show the live view of the daemon at ``endpoint`` (redrawn every 0.1 s; ``curve``: its CURVE certificates, as a
+    subscriber takes them) until ``q`` or Ctrl-C (exit code 0) or ``running()`` False (the demo's own daemon stopped: 1)."""
     from rich.live import Live
 
     model = MonitorState(truth_log)
-    sub = BlockingSubscriber(endpoint)  # an endpoint no subscriber can connect to is refused before (tactiled.cli.cmd_live)
+    sub = BlockingSubscriber(endpoint, curve=curve)  # an endpoint no subscriber can connect to is refused before (tactiled.cli.cmd_live)
     tty = sys.stdin.isatty()
     old = None
     if tty:

@@ -76,11 +76,12 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     """The terminal view of a running daemon."""
     from tactiled.apps.monitor import run_monitor
 
-    endpoint = subscriber_endpoint(args, config_of(args))
+    config = config_of(args)
+    endpoint, curve = subscriber_endpoint(args, config), c.subscriber_curve(args, config)
     if not sys.stdout.isatty():  # it redraws a screen: into a file or a pipe it would write nothing readable
         raise TactiledError("monitor: its output is not a terminal (it redraws a screen); for lines to log or pipe, record the "
                             f"session (python -m tactiled_client record {endpoint} session.tlog, then replay it with --json)")
-    return run_monitor(endpoint, args.truth)
+    return run_monitor(endpoint, args.truth, curve=curve)
 
 
 def cmd_lsl(args: argparse.Namespace) -> int:
@@ -88,7 +89,8 @@ def cmd_lsl(args: argparse.Namespace) -> int:
     from tactiled.apps.bridges.cli import serve
 
     config = config_of(args)
-    return serve("lsl", config, subscriber_endpoint(args, config, args.sensor_id), args.sensor_id, nan_lost=args.nan_lost)
+    return serve("lsl", config, subscriber_endpoint(args, config, args.sensor_id), args.sensor_id, nan_lost=args.nan_lost,
+                 curve=c.subscriber_curve(args, config))
 
 
 def cmd_ros2(args: argparse.Namespace) -> int:
@@ -96,7 +98,8 @@ def cmd_ros2(args: argparse.Namespace) -> int:
     from tactiled.apps.bridges.cli import serve
 
     config = config_of(args)
-    return serve("ros2", config, subscriber_endpoint(args, config, args.sensor_id), args.sensor_id, ros_args=args.ros_args)
+    return serve("ros2", config, subscriber_endpoint(args, config, args.sensor_id), args.sensor_id, ros_args=args.ros_args,
+                 curve=c.subscriber_curve(args, config))
 
 
 def check_demo_scene(spec: str) -> None:
@@ -147,6 +150,7 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--connect", help=c.CONNECT_HELP)
     p.add_argument("--config", help=c.CONFIG_HELP)
     p.add_argument("--truth", help="a virtual board's log (simulate serial --log): show the true surface of each slide (default: none)")
+    p.add_argument("--curve", nargs=2, metavar=("DAEMON.key", "MY.key_secret"), help=c.CURVE_HELP)
 
     for name, help_, handler, example in (
             ("lsl", "Lab Streaming Layer outlets of a daemon's raw samples and labels (tactiled[lsl])", cmd_lsl,
@@ -157,6 +161,7 @@ def add_commands(sub: Sub) -> None:
         p.add_argument("--connect", help=c.CONNECT_HELP)
         p.add_argument("--config", help=c.CONFIG_HELP)
         p.add_argument("--sensor-id", help="sensor to bridge (default: sensor.id of --config)")
+        p.add_argument("--curve", nargs=2, metavar=("DAEMON.key", "MY.key_secret"), help=c.CURVE_HELP)
         if name == "lsl":
             p.add_argument("--nan-lost", action="store_true", help="push lost samples as NaN rows (a regular stream; a gap longer "
                                                                    "than 30 s gets its marker only); each lost range is a marker either way")

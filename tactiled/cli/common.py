@@ -12,6 +12,7 @@ from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
 from tactiled.config import Config, load_config
+from tactiled.errors import TactiledError
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
 
@@ -191,7 +192,23 @@ SURFACES_HELP = ("N surfaces spread over the range, or names such as Ra0.44,Ra4.
                  "(default: all 15)")
 CONNECT_HELP = ("daemon endpoint to subscribe to (default: publish.endpoint of --config; for 'auto', the built-in default, "
                 "the local daemon's socket: /run/tactiled/<sensor.id>.sock or $XDG_RUNTIME_DIR/tactiled/<sensor.id>.sock)")
+CURVE_HELP = ("a daemon that requires ZeroMQ CURVE (publish.curve_secret_key_file): its public certificate and this subscriber's "
+              "secret one, whose public half is in the daemon's publish.curve_authorized_dir (tactiled curve-keys makes a pair; "
+              "default: none)")
 SEED_HELP = "random seed"
 MODEL_HELP = ("model file (default: --config's model.path, as tactiled run takes it; else the shipped model, when it fits the "
               "recording's rate and channels)")
 FORCE_HELP = "replace an existing output file"
+
+
+def subscriber_curve(args: argparse.Namespace, config: Config) -> tuple[str, str] | None:
+    """The CURVE certificates a subscribing command (monitor, a bridge) connects with: ``--curve``; refused in one line when
+    the config's daemon requires CURVE (``publish.curve_secret_key_file``), the endpoint is the config's and none was given:
+    it would wait for ever, hearing nothing."""
+    if args.curve:
+        return (args.curve[0], args.curve[1])
+    if config.publish.curve_secret_key_file and not args.connect:
+        raise TactiledError(f"{args.config or 'the config'}: publish.curve_secret_key_file is set: that daemon serves only subscribers "
+                            "with an authorised key; pass --curve DAEMON.key MY.key_secret (tactiled curve-keys makes a pair, whose .key "
+                            "goes into publish.curve_authorized_dir)")
+    return None

@@ -18,6 +18,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol
 
 from tactiled_client import BlockingSubscriber, NoData, Roughness, Samples, Slide, Status, schema
@@ -62,10 +63,21 @@ def _say(line: str) -> None:
     print(f"tactiled: {line}", file=sys.stderr, flush=True)
 
 
-def first_status(endpoint: str, sensor: str, timeout: float) -> Status | None:
-    """The first status message of ``sensor`` within ``timeout`` s, or None (no daemon, or not that sensor)."""
+def sockets_beside(endpoint: str) -> str:
+    """Where ``endpoint`` is an ``ipc://`` socket that does not exist: what its folder holds instead (the sockets of the
+    daemons running there: a wrong ``--sensor-id`` picks a socket nobody binds), as a clause for a waiting line; else ""."""
+    if not endpoint.startswith("ipc://") or Path(endpoint[6:]).exists():
+        return ""
+    folder = Path(endpoint[6:]).parent
+    others = sorted(p.name for p in folder.glob("*.sock") if p.is_socket()) if folder.is_dir() else []
+    return f"; no socket there yet, and {folder} holds {', '.join(others)}: another --sensor-id?" if others else "; no socket there yet"
+
+
+def first_status(endpoint: str, sensor: str, timeout: float, curve: tuple[str, str] | None = None) -> Status | None:
+    """The first status message of ``sensor`` within ``timeout`` s, or None (no daemon, or not that sensor); ``curve``: the
+    daemon's CURVE certificates, as a subscriber takes them."""
     deadline = time.monotonic() + timeout
-    with BlockingSubscriber(endpoint, topics=["status"]) as sub:
+    with BlockingSubscriber(endpoint, topics=["status"], curve=curve) as sub:
         while (left := deadline - time.monotonic()) > 0:
             try:
                 msg = sub.receive(timeout=left)
@@ -77,8 +89,10 @@ def first_status(endpoint: str, sensor: str, timeout: float) -> Status | None:
 
 
 def run_bridge(endpoint: str, sink: Sink, stop: threading.Event, sensor: str | None = None, poll_s: float = 0.2,
-               patience_s: float = PATIENCE_S, say: Callable[[str], None] = _say, raw_name: str = "raw samples") -> int:
-    """Forward ``sensor``'s messages (every sensor's when None) from ``endpoint`` to ``sink`` until ``stop`` is set.
+               patience_s: float = PATIENCE_S, say: Callable[[str], None] = _say, raw_name: str = "raw samples",
+               curve: tuple[str, str] | None = None) -> int:
+    """Forward ``sensor``'s messages (every sensor's when None) from ``endpoint`` (``curve``: its CURVE certificates) to
+    ``sink`` until ``stop`` is set.
 
     Returns how many were forwarded. After ``patience_s`` s: raises :class:`TactiledError` if only
     other sensors were heard (a wrong ``--sensor-id``), says once if nothing was heard, and says
@@ -89,7 +103,7 @@ def run_bridge(endpoint: str, sink: Sink, stop: threading.Event, sensor: str | N
     others: set[str] = set()
     ours_at: float | None = None  # when the first message of the sensor came
     samples_seen = heard_any = said_silent = said_no_samples = False
-    with BlockingSubscriber(endpoint, topics=["samples", "roughness", "status", "slide"]) as sub:
+    with BlockingSubscriber(endpoint, topics=["samples", "roughness", "status", "slide"], curve=curve) as sub:
         try:
             while not stop.is_set():
                 try:
@@ -122,10 +136,11 @@ def run_bridge(endpoint: str, sink: Sink, stop: threading.Event, sensor: str | N
                     raise TactiledError(f"{endpoint} publishes sensor {', '.join(sorted(others))}, not {sensor!r}: nothing to bridge "
                                         "(--sensor-id, or sensor.id of --config)")
                 if not heard_any and not said_silent:
-                    say(f"nothing from {endpoint} in {patience_s:g} s; waiting (is a daemon or tactiled replay --publish there?)")
+                    say(f"nothing from {endpoint} in {patience_s:g} s; waiting (is a daemon or tactiled replay --publish there?"
+                        f"{sockets_beside(endpoint)})")
                     said_silent = True
                 if ours_at is not None and now - ours_at >= patience_s and not samples_seen and not said_no_samples:
-                    say(f"sensor {sensor or '(any)'}: status and labels but no samples in {patience_s:g} s: the {raw_name} stay empty "
+                    say(f"sensor {sensor or '(any)'}: status and labels but no samples in {patience_s:g} s: the {raw_name} stays empty "
                         "until the daemon publishes them (tactiled run --samples, or publish.samples = true)")
                     said_no_samples = True
         finally:

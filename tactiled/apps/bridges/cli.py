@@ -10,11 +10,12 @@ from tactiled.config import subscribe_endpoint
 
 
 def serve(kind: str, config: Any, connect: str | None = None, sensor_id: str | None = None, *, nan_lost: bool = False,
-          ros_args: list[str] | None = None, status_wait_s: float = 2.0) -> int:
+          ros_args: list[str] | None = None, status_wait_s: float = 2.0, curve: tuple[str, str] | None = None) -> int:
     """``tactiled lsl`` / ``tactiled ros2``: make the sink at once, then bridge until SIGTERM or SIGINT; returns the exit code (0).
 
     ``config``: a :class:`tactiled.config.Config` (endpoint, sensor id, channels, rate and scale
-    before the daemon says otherwise). LSL waits up to ``status_wait_s`` for the daemon's first
+    before the daemon says otherwise); ``curve``: the daemon's CURVE certificates, as a subscriber takes them. LSL waits
+    up to ``status_wait_s`` for the daemon's first
     status, for the model fingerprint in the stream description.
     """
     import signal
@@ -26,7 +27,7 @@ def serve(kind: str, config: Any, connect: str | None = None, sensor_id: str | N
         from tactiled.apps.bridges.lsl import LslSink
 
         s = config.sensor
-        first = first_status(endpoint, sensor, status_wait_s)
+        first = first_status(endpoint, sensor, status_wait_s, curve)
         meta = StreamMeta(sensor, s.channels, first.fs_nominal if first and first.fs_nominal else s.fs, s.volts_per_count,
                           first.model if first else "", first.version if first else "")
         sink = LslSink(meta, nan_lost=nan_lost)
@@ -41,5 +42,5 @@ def serve(kind: str, config: Any, connect: str | None = None, sensor_id: str | N
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     _say(f"{kind} bridge for sensor {sensor} from {endpoint}")
-    run_bridge(endpoint, sink, stop, sensor, raw_name=raw_name)
+    run_bridge(endpoint, sink, stop, sensor, raw_name=raw_name, curve=curve)
     return 0
