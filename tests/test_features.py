@@ -89,3 +89,20 @@ def test_a_plan_computes_only_what_it_names() -> None:
     subset = [every[5], "film2.tex.centroid", every[-1]]
     assert FeaturePlan(subset, fs=fs).compute(x).tolist() == [full[n] for n in subset]
     assert FeaturePlan(["film2.tex.rms"], fs=fs).channels_needed == 2
+
+
+def test_a_window_of_tiny_volts_gives_the_features_of_its_shape_and_its_scale() -> None:
+    """Samples near 1e-87 V (a float recording in other units: finite and valid): every family's features are finite, the
+    scale-free ones (kurtosis, skew, crest, centroid, ...) as those of the same window at 1e-3 V, the others scaled by the
+    power of two (an outside review: the fourth moment underflowed to 0 and the kurtosis raised ZeroDivisionError)."""
+    fs = 2200.0
+    names = family_names("dwt", 2, fs) + family_names("psd", 2, fs) + family_names("tex", 2, fs)
+    plan = FeaturePlan(names, fs=fs)
+    x = 1e-3 * np.random.default_rng(4).standard_normal((1100, 2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        big, tiny = plan.compute(x), plan.compute(np.ldexp(x, -280))
+    assert np.all(np.isfinite(tiny))
+    degree = np.array([plan._degrees[i] for i in range(len(names))])
+    assert np.allclose(tiny[degree == 0], big[degree == 0], rtol=1e-12, atol=0.0)  # exact but what goes through a logarithm
+    assert np.allclose(tiny[degree > 0], np.ldexp(big[degree > 0], -280 * degree[degree > 0]), rtol=1e-12, atol=0.0)

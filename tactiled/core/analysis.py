@@ -300,7 +300,9 @@ class Analyser:
             medians = self._medians(counts, rows, todo, lost) if s.spikes == "mad" and counts is not None else None
             clean, spikes = remove_spikes_many(volts[todo] if len(todo) < w else volts, s.spikes, s.half_width, s.nsigma, overwrite=True,
                                                medians=medians)
-            bounded = self.integer and volts_bound(samples.dtype, self.volts_per_count) <= 2.0 ** HUGE_EXPONENT
+            # counts in volts: no |x| beyond 2**HUGE_EXPONENT, and none but 0 below 2**-HUGE_EXPONENT (one count is that far up)
+            bounded = (self.integer and volts_bound(samples.dtype, self.volts_per_count) <= 2.0 ** HUGE_EXPONENT
+                       and self.volts_per_count >= 2.0 ** -HUGE_EXPONENT)
             features = self.plan.compute_many(clean, bounded=bounded)
             finite = cast(list[bool], np.isfinite(features).all(axis=1).tolist())
             for j, (i, removed) in enumerate(zip(todo, cast(list[int], spikes.tolist()), strict=True)):

@@ -185,20 +185,22 @@ def family_names(family: str, channels: int, fs: float, settings: Any = None) ->
 
 
 SHORT_DWT = 1000  # rows of at most this many values go down one DWT level in one pywt.dwt call (FeaturePlan._downcoef)
-HUGE_EXPONENT = 100  # a window with samples beyond 2**100 V is analysed scaled down by a power of two (squares stay finite)
+HUGE_EXPONENT = 100  # a window with samples beyond 2**100 V, or all below 2**-100 V, is analysed scaled by a power of two
 
 
 def pow2_normalised(x: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.int64]]:
-    """(``x`` (W, ...) with each window scaled by 2**-k, k (W,)): k is 0 (the window as it is) unless some |x| of the window
-    exceeds 2**:data:`HUGE_EXPONENT`, then the power of two that brings its max |x| into [0.5, 1). Scaling by a power of
-    two is exact, so sums, squares and FFTs of the scaled window, scaled back, are the unscaled ones bit for bit wherever
-    those are finite (what goes through a logarithm, to rounding); sums of squares of samples near 1e307 no longer overflow."""
+    """(``x`` (W, ...) with each window scaled by 2**-k, k (W,)): k is 0 (the window as it is) unless the window's max |x|
+    exceeds 2**:data:`HUGE_EXPONENT` or is below 2**-:data:`HUGE_EXPONENT` (and not 0), then the power of two that brings
+    it into [0.5, 1). Scaling by a power of two is exact, so sums, squares and FFTs of the scaled window, scaled back, are
+    the unscaled ones bit for bit wherever those are finite (what goes through a logarithm, to rounding); sums of squares
+    of samples near 1e307 no longer overflow, and fourth moments of samples near 1e-85 no longer underflow to 0 (a
+    kurtosis divided by zero)."""
     axes = tuple(range(1, x.ndim))
     top = np.maximum(x.max(axis=axes), -x.min(axis=axes)) if x.size else np.zeros(x.shape[0])
-    huge = (top > 2.0 ** HUGE_EXPONENT) & np.isfinite(top)
-    if not huge.any():
+    off = ((top > 2.0 ** HUGE_EXPONENT) | ((top < 2.0 ** -HUGE_EXPONENT) & (top > 0))) & np.isfinite(top)
+    if not off.any():
         return x, np.zeros(x.shape[0], dtype=np.int64)
-    k = np.where(huge, np.frexp(top)[1], 0).astype(np.int64)
+    k = np.where(off, np.frexp(top)[1], 0).astype(np.int64)
     return np.ldexp(x, -k.reshape((-1,) + (1,) * (x.ndim - 1))), k
 
 
@@ -508,13 +510,14 @@ class FeaturePlan:
         # energies of a saturated window reach ~1e9; a non-finite one comes only from samples beyond any real sensor
         if not np.all(np.isfinite(out)):
             k = int(pow2_normalised(x[None])[1][0])
-            raise WindowError("non_finite", "features are not finite" + (f" (samples up to 2^{k} V: their energies are beyond float64)" if k else ""))
+            raise WindowError("non_finite", "features are not finite" + (f" (samples up to 2^{k} V: their energies are beyond float64)" if k > 0 else ""))
         return out
 
     def compute_many(self, x: npt.NDArray[np.float64], *, bounded: bool = False) -> npt.NDArray[np.float64]:
         """Feature vectors (W, len(names)) of W windows ``x`` (W, n, C) in volts, float64, each row the same values as the
         window alone (the transforms run on all windows at once: offline, a slide's windows cost one call). ``bounded``:
-        the caller knows that no |x| exceeds 2**:data:`HUGE_EXPONENT` (int16 counts in volts), so no window is scaled.
+        the caller knows that no |x| exceeds 2**:data:`HUGE_EXPONENT` and none but 0 is below 2**-:data:`HUGE_EXPONENT` (int16
+        counts in volts), so no window is scaled.
 
         A row with a feature beyond float64 (the energy of samples near 1e307) holds inf (:meth:`compute` raises ``non_finite``).
         Raises :class:`WindowError` (reason ``window_too_short``) when n < :meth:`min_samples`, and ValueError if x has fewer
