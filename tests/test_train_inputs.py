@@ -7,6 +7,7 @@ constant samples whose slides are 10 samples long, too short for any window (``w
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -165,3 +166,20 @@ def test_train_says_slides_of_a_recording_without_a_surface_are_not_learnt(data:
     assert code == 0, err
     assert any("slides without a surface (their recordings name none) are not learnt" in line for line in err), err
     assert not any("unlabelled" in line for line in err), err
+
+
+def test_by_slide_a_surface_of_one_slide_is_refused(data: tuple[list[str], list[str]], tmp_path: Path) -> None:
+    """``--group-by slide --min-slides 1`` on one slide per surface: no fold can test a surface on a slide it did not learn
+    from. It wrote a model ("nested CV 0.0 %", every confidence 0.5) and exited 0 (an outside review); now one line naming
+    the surfaces."""
+    good, _ = data
+    one = []
+    for path in sorted(good)[::2]:  # one recording of each surface, its first slide alone
+        rec = load_recording(path)
+        assert rec.slide_start is not None and rec.slide_stop is not None and rec.surface is not None
+        single = replace(rec, slide_start=rec.slide_start[:1], slide_stop=rec.slide_stop[:1], surface=rec.surface[:1],
+                         ra_um=None if rec.ra_um is None else rec.ra_um[:1])
+        one.append(str(tmp_path / Path(path).name))
+        save_recording(one[-1], single)
+    with pytest.raises(TactiledError, match=r"have a single usable slide: cross-validation grouped by slide cannot test them"):
+        train(one, Config(), group_by="slide", min_slides=1, candidates=quick_candidates()[:1], folds=2)

@@ -133,6 +133,11 @@ def usable_check(min_slides: int, drop_rare: bool, group_by: str, say: Progress,
         if group_by == "file":
             check_two_recordings({k: (ok, 0, files) for k, (_, ok, files, _) in table.items() if k not in short},
                                  ", or pass --group-by slide (an optimistic estimate)", "usable slides")
+        else:  # folds by slide: a surface of one slide is never tested on a slide it did not learn from
+            single = [k for k, (_, ok, _, _) in table.items() if k not in short and ok < 2]
+            if single:
+                raise TactiledError(f"surface(s) {', '.join(single)} have a single usable slide: cross-validation grouped by slide "
+                                    "cannot test them on a slide it did not train on; record more slides of each")
         return short
 
     return check
