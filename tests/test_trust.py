@@ -541,3 +541,20 @@ def test_the_far_test_is_combined_without_its_ratio_and_flags_only_a_slide_far_f
     assert known is not None and far is not None and known < 1.0 < far
     threshold, info = fit_novelty(z[:12], np.arange(12) % 4, np.zeros(12, dtype=int), 3, score="far")  # one surface: no test
     assert threshold == math.inf and info["distance_threshold"] is None
+
+
+def test_with_two_surfaces_the_ratio_claims_no_untaught_surface_it_cannot_measure() -> None:
+    """Two surfaces: leaving one out leaves one, with no second-nearest surface, so no ratio; its column held a plain
+    distance, the ratio threshold landed between ratios (at most 1) and distances (6.3), and train said 100 % of untaught
+    slides were flagged where the model could flag none (an outside review). Now the ratio claims nothing: ``ratio`` says
+    no figure, ``combined`` counts only its distance test."""
+    from tactiled.learn.search import fit_novelty
+
+    rng = np.random.default_rng(0)
+    z = np.concatenate([rng.normal(0.0, 1.0, (20, 4)), rng.normal(6.0, 1.0, (20, 4))])
+    labels = np.array(["A"] * 20 + ["B"] * 20)
+    files = np.array([0] * 10 + [1] * 10 + [2] * 10 + [3] * 10)
+    threshold, info = fit_novelty(z, files, labels, 3, score="ratio")
+    assert info["unseen_flagged"] is None and (math.isinf(threshold) or threshold <= 1.0), info
+    _, info = fit_novelty(z, files, labels, 3, score="combined")
+    assert info["unseen_flagged"] is not None and info["distance_threshold"] is not None

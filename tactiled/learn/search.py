@@ -1126,6 +1126,9 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
             else:
                 out[i] = novelty_parts(z[i:i + 1], z[keep], labels[keep], k, parts_of)[0]
     have, flagged = known[np.isfinite(known[:, 0])], unseen[np.isfinite(unseen[:, 0])]
+    two = len(surfaces) < 3 and score != "spectrum"  # a surface of two left out leaves one: no second-nearest, so no ratio to take
+    if two:
+        flagged[:, 0] = 0.0  # the ratio tells nothing of an untaught surface here (its column held a plain distance)
     info: dict[str, Any] = {"k": k, "score": score, "untaught": untaught, "threshold": None, "known_rejected": None, "unseen_flagged": None}
     if parts_of == "combined":
         info["distance_threshold"] = None
@@ -1150,8 +1153,9 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
             info.update(known_rejected=held_out_rejected(z, files, labels, k, per_known, reject), known_rejected_by="recording left out")
     else:
         info.update(known_rejected=float(np.mean(over_thresholds(have, threshold, far) > 1.0)))
+    measured = len(flagged) and not (two and not math.isfinite(far))  # with two surfaces, only a distance test is measured
     info.update(threshold=threshold if math.isfinite(threshold) else None,
-                unseen_flagged=float(np.mean(over_thresholds(flagged, threshold, far) > 1.0)) if len(flagged) else None)
+                unseen_flagged=float(np.mean(over_thresholds(flagged, threshold, far) > 1.0)) if measured else None)
     return threshold, info
 
 
