@@ -1126,7 +1126,7 @@ def fit_novelty(z: FloatArray, files: npt.NDArray[Any], labels: npt.NDArray[Any]
             else:
                 out[i] = novelty_parts(z[i:i + 1], z[keep], labels[keep], k, parts_of)[0]
     have, flagged = known[np.isfinite(known[:, 0])], unseen[np.isfinite(unseen[:, 0])]
-    two = len(surfaces) < 3 and score != "spectrum"  # a surface of two left out leaves one: no second-nearest, so no ratio to take
+    two = len(surfaces) < 3 and parts_of in ("ratio", "combined")  # a surface of two left out leaves one: no second-nearest, no ratio
     if two:
         flagged[:, 0] = 0.0  # the ratio tells nothing of an untaught surface here (its column held a plain distance)
     info: dict[str, Any] = {"k": k, "score": score, "untaught": untaught, "threshold": None, "known_rejected": None, "unseen_flagged": None}
