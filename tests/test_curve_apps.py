@@ -71,15 +71,37 @@ def test_the_monitor_and_bridges_take_curve_keys_and_say_when_they_need_them(tmp
 
 def test_a_bridge_waiting_on_a_socket_nobody_binds_names_the_ones_that_are_there(tmp_path: Path) -> None:
     """``tactiled lsl --sensor-id nosuch`` without ``--connect`` waits on ``<runtime folder>/nosuch.sock``, which no daemon
-    binds (an outside audit: it waited for ever, saying only "is a daemon there?"); its waiting line names the sockets the
-    folder holds."""
+    binds (an outside audit: it waited for ever, saying only "is a daemon there?"); its waiting line names the sockets that
+    folder and the service's folder hold."""
     import socket
 
     from tactiled.apps.bridges import sockets_beside
 
-    with socket.socket(socket.AF_UNIX) as bound:
+    service = tmp_path / "run"  # stands for /run/tactiled, where the systemd unit's daemons bind
+    service.mkdir()
+    with socket.socket(socket.AF_UNIX) as bound, socket.socket(socket.AF_UNIX) as served:
         bound.bind(str(tmp_path / "fingertip0.sock"))
-        assert sockets_beside(f"ipc://{tmp_path}/nosuch.sock") == \
-            f"; no socket there yet, and {tmp_path} holds fingertip0.sock: another --sensor-id?"
-        assert sockets_beside(f"ipc://{tmp_path}/fingertip0.sock") == "" and sockets_beside("tcp://127.0.0.1:7350") == ""
-    assert sockets_beside(f"ipc://{tmp_path}/empty/x.sock") == "; no socket there yet"
+        served.bind(str(service / "arm.sock"))
+        assert sockets_beside(f"ipc://{tmp_path}/nosuch.sock", service) == \
+            f"; no socket there yet, and {tmp_path / 'fingertip0.sock'}, {service / 'arm.sock'} are: another --sensor-id or --connect?"
+        assert sockets_beside(f"ipc://{tmp_path}/fingertip0.sock", service) == "" and sockets_beside("tcp://127.0.0.1:7350") == ""
+    assert sockets_beside(f"ipc://{tmp_path}/empty/x.sock", tmp_path / "none") == "; no socket there yet"
+
+
+def test_a_missing_curve_certificate_and_a_shadow_without_a_model_are_one_line_each(tmp_path: Path) -> None:
+    """``--curve`` naming a file that is not there: one line, exit 2, for the monitor and the bridges alike (it was a
+    traceback from the client library). ``run --no-model`` with a config's ``model.shadow``: no shadow (check-config
+    --no-model says such a config is fine for it), and ``--shadow`` with ``--no-model`` is refused (a review)."""
+    for command in ("monitor", "lsl", "ros2"):
+        res = run_cli(command, "--curve", str(tmp_path / "d.key"), str(tmp_path / "me.key_secret"), "--connect", f"ipc://{tmp_path}/x")
+        assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+            f"tactiled: error: --curve {tmp_path / 'd.key'}: no such certificate file (tactiled curve-keys makes them)"], res.stderr
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[model]\nshadow = "{tmp_path / "gone.npz"}"\n')
+    res = run_cli("check-config", str(cfg), "--no-model")
+    assert res.returncode == 0, res.stderr
+    res = run_cli("run", "--config", str(cfg), "--no-model", "--port", str(tmp_path / "none"), "--no-wait")
+    assert res.returncode == 2 and "model.shadow" not in res.stderr and "no such serial device" in res.stderr, res.stderr
+    res = run_cli("run", "--no-model", "--shadow", str(tmp_path / "gone.npz"), "--port", str(tmp_path / "none"), "--no-wait")
+    assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+        "tactiled: error: --shadow runs a candidate beside the live model: not with --no-model"], res.stderr

@@ -118,6 +118,17 @@ def test_a_slide_cut_by_a_board_restart_or_a_gap_past_the_ring_ends_interrupted(
     assert [ev.reason for ev in ends[1:]] == ["quiet", "quiet"]  # the rest of that slide, and the next one
 
 
+def test_a_slide_cut_by_a_load_shed_ends_interrupted_too() -> None:
+    """The daemon sheds load in the middle of a slide: it ends ``interrupted``, as at a board restart, not
+    ``end_of_stream`` (which a live subscriber reads as the daemon stopping; a review of the restart's change)."""
+    sim = simulate_file(SimParams(), pick_surfaces("Ra2.29")[0], 2, 4)
+    cut = (sim.truth[0].start + sim.truth[0].stop) // 2 // 20 * 20
+    stream = Stream(Config(), load_model())
+    stream.feed_bytes(encode_frames(0, sim.samples[:cut]))
+    ends = [ev for ev in stream.shed().events if isinstance(ev, SlideEnded)]
+    assert [(ev.reason, ev.stop) for ev in ends] == [("interrupted", cut)]
+
+
 def test_a_gap_within_the_ring_is_lost_samples_not_a_restart() -> None:
     ingest = Ingest(2, max_gap=max_gap_for(20.0, FS))
     ingest.feed(_frames(0, 10))

@@ -88,14 +88,14 @@ def test_tactiled_built_without_clients_beside_it_requires_the_same_version_from
 
 def test_the_client_wheel_owns_the_client_library(built: Built) -> None:
     record = _record(built.wheels["tactiled-client"])
-    sources = sorted(f"tactiled_client/{p.name}" for p in (REPO / "clients" / "tactiled_client").glob("*.py"))
+    sources = sorted([*(f"tactiled_client/{p.name}" for p in (REPO / "clients" / "tactiled_client").glob("*.py")), "tactiled_client/py.typed"])
     assert sorted(p for p in record if p.startswith("tactiled_client/")) == sources
     assert [p for p in record if not p.startswith(("tactiled_client/", "tactiled_client-"))] == []
 
 
 def test_the_unit_documentation_is_a_file_the_wheel_installs(built: Built) -> None:
     """Documentation=file://PREFIX/share/... where PREFIX is that of ExecStart's PREFIX/bin/tactiled: the wheel's
-    ``<name>.data/data/share/...`` is installed under the prefix (sys.prefix; /usr/local for sudo pip install)."""
+    ``<name>.data/data/share/...`` is installed under the prefix (sys.prefix: the README's venv /opt/tactiled)."""
     keys = [line.split("=", 1) for line in UNIT.read_text().splitlines() if "=" in line and not line.startswith("#")]
     (exec_start,) = [v for k, v in keys if k == "ExecStart"]
     prefix = exec_start.split()[0].removesuffix("/bin/tactiled")

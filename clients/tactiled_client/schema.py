@@ -32,7 +32,8 @@ SCHEMA_VERSION = 9  # 3: roughness messages carry novelty; reason unknown_surfac
 # 6: slide event "resumed": an end published after a short quiet (detector.end_hold_s) is withdrawn with its final label
 # 7: status.discarded_at_start (stale bytes in the port when the daemon first opened it, dropped rather than counted as lost samples)
 # 8: slide end reason "disconnected" (the serial port went away during the slide, which ends at the last sample read)
-# 9: slide end reason "interrupted" (the board restarted, or more samples were lost than the ring holds, during the slide)
+# 9: slide end reason "interrupted" (the board restarted, more samples were lost than the ring holds, or the daemon shed
+#    load, during the slide)
 ROUGHNESS, SLIDE, STATUS, SAMPLES, SHADOW = "roughness", "slide", "status", "samples", "shadow"
 TOPICS = (ROUGHNESS, SLIDE, STATUS, SAMPLES, SHADOW)
 
@@ -55,7 +56,7 @@ STATES = (STATE_DISCONNECTED, STATE_CONNECTED, STATE_IDLE, STATE_SLIDING, STATE_
 SLIDE_START, SLIDE_END, SLIDE_CANCELLED, SLIDE_RESUMED = "start", "end", "cancelled", "resumed"
 END_QUIET, END_MAX_DURATION, END_TOO_SHORT = "quiet", "max_duration", "too_short"
 END_DISCONNECTED = "disconnected"  # the daemon's serial port went away during the slide (it ends at the last sample read)
-END_INTERRUPTED = "interrupted"  # the board restarted, or a gap longer than the ring came, during the slide (it ends there)
+END_INTERRUPTED = "interrupted"  # the board restarted, a gap longer than the ring came, or the daemon shed load, during the slide
 
 HostTime = Callable[[int], tuple[float, float]]
 """Sensor sample index → (host monotonic time, host unix time) of that sample, s."""

@@ -80,8 +80,11 @@ class Tee(Protocol):
     """Where a copy of every byte read goes (a raw capture: :class:`tactiled.files.capture.CaptureWriter`); its writes must
     not raise, or the reader takes the error for the port's."""
 
-    def write(self, data: bytes, /) -> object: ...
-    def flush(self) -> object: ...
+    def write(self, data: bytes, /) -> object:
+        """Append ``data``, the bytes of one read."""
+
+    def flush(self) -> object:
+        """What is buffered, to its file."""
 
 
 class Reads:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import difflib
 import math
+import os
 import re
 import sys
 from collections.abc import Callable, Sequence
@@ -206,6 +207,9 @@ def subscriber_curve(args: argparse.Namespace, config: Config) -> tuple[str, str
     the config's daemon requires CURVE (``publish.curve_secret_key_file``), the endpoint is the config's and none was given:
     it would wait for ever, hearing nothing."""
     if args.curve:
+        for path in args.curve:  # before anything connects (a file that is no certificate: the client library says so)
+            if not os.path.isfile(path):
+                raise TactiledError(f"--curve {path}: no such certificate file (tactiled curve-keys makes them)")
         return (args.curve[0], args.curve[1])
     if config.publish.curve_secret_key_file and not args.connect:
         raise TactiledError(f"{args.config or 'the config'}: publish.curve_secret_key_file is set: that daemon serves only subscribers "

@@ -77,6 +77,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:  # the machine refused (a full disk, a folder gone): one line, what was already written stays
         print(f"tactiled: error: {exc}", file=sys.stderr)
         return EXIT_FAIL
+    except Exception as exc:
+        client = sys.modules.get("tactiled_client.errors")  # loaded if it raised (importing it here would load ZeroMQ)
+        if client is not None and isinstance(exc, client.ClientError):  # the client library's: a --curve certificate unread
+            print(f"tactiled: error: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        raise
 
 
 def hold_hangup(argv: Sequence[str]) -> None:

@@ -56,7 +56,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from typing import cast
 
@@ -188,7 +188,7 @@ def rests_split(hops: Iterable[tuple[int, float]], start: int, stop: int, hop: i
     return spans
 
 
-def _median3(v: deque[float]) -> float:
+def _median3(v: Sequence[float]) -> float:
     """Median of one to three floats (the mean of two), without numpy's overhead."""
     if len(v) == 3:
         a, b, c = v
@@ -440,12 +440,20 @@ class SlideDetector:
             # the stream began at rest: a sustained rise (a slide's own level fluctuates hop to hop more than on_factor)
             began, early = self._began, self._early
             self._early = False
-            # the rise took a window of hops to show: the slide began at its first loud hop (above the quiet level) that no
-            # quiet of off_hold_s, the quiet that would have ended a slide, separates from this one (its dips are the slide's)
+            # the rise took a window of hops to show: the slide began at its first loud hop (the median of three above the
+            # quiet level, as at rest: one loud hop is a tap) that no quiet of off_hold_s, the quiet that would have ended a
+            # slide, separates from this one (its dips are the slide's), with most hops from there on loud (taps at rest
+            # less than off_hold_s apart are no slide)
             start = at
-            for idx, e in reversed(self._undecided_hops):
-                if e > c.off_factor * ref:
-                    start = idx
+            hops = list(self._undecided_hops)
+            envs = [e for _, e in hops]
+            loud = total = 0
+            for j in range(len(hops) - 1, -1, -1):
+                idx, total = hops[j][0], total + 1
+                if _median3(envs[max(0, j - 2):j + 1]) > c.off_factor * ref:
+                    loud += 1
+                    if 2 * loud >= total:
+                        start = idx
                 elif start - idx >= c.off_hold_s * self.fs:
                     break
             self._undecided_hops.clear()

@@ -13,8 +13,8 @@ pipeline by hand, and nobody has to remember what the end of a stream or a board
   ends at the last sample fed (it gets its final result).
 - **A lost port** (:meth:`Stream.disconnected`: the daemon when its port goes, a replay at a recording's
   ``disconnected`` mark) ends a slide in progress at the last sample fed, reason ``disconnected``, and the stream
-  goes on with the samples after it. A board restart or a gap longer than the ring ends it the same way, reason
-  ``interrupted``.
+  goes on with the samples after it. A board restart, a gap longer than the ring or a load shed ends it the same way,
+  reason ``interrupted``.
 
 Each call returns a :class:`Step`: the batches decoded (for a recorder or the samples topic), the live
 pipeline's events and, with a shadow model, the shadow pipeline's events. Sans-IO: nothing here reads a
@@ -171,12 +171,13 @@ class Stream:
         return step
 
     def shed(self) -> Step:
-        """Stop analysing until the next batch (load shed): slides in progress end at the last sample fed and get their final
-        results; the next batch processed, at any later index, starts new detectors there (tactiled.core.pipeline.Pipeline.shed)."""
+        """Stop analysing until the next batch (load shed): slides in progress end at the last sample fed, reason
+        ``schema.END_INTERRUPTED``, and get their final results; the next batch processed, at any later index, starts new
+        detectors there (tactiled.core.pipeline.Pipeline.shed)."""
         if self.pipeline is None:
             return Step()
         self._take_requests()
-        return Step(events=self.pipeline.shed(), shadow=self.shadow.shed() if self.shadow is not None else [])
+        return Step(events=_ended_by(self.pipeline.shed(), schema.END_INTERRUPTED), shadow=self.shadow.shed() if self.shadow is not None else [])
 
     def feed_bytes(self, data: bytes | bytearray | memoryview) -> Step:
         """Bytes read from a port or a capture, cut anywhere: the events do not depend on how."""

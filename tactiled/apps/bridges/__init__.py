@@ -63,14 +63,18 @@ def _say(line: str) -> None:
     print(f"tactiled: {line}", file=sys.stderr, flush=True)
 
 
-def sockets_beside(endpoint: str) -> str:
-    """Where ``endpoint`` is an ``ipc://`` socket that does not exist: what its folder holds instead (the sockets of the
-    daemons running there: a wrong ``--sensor-id`` picks a socket nobody binds), as a clause for a waiting line; else ""."""
+SERVICE_RUNTIME = Path("/run/tactiled")  # where the systemd unit's daemons bind their sockets (its RuntimeDirectory)
+
+
+def sockets_beside(endpoint: str, service: Path = SERVICE_RUNTIME) -> str:
+    """Where ``endpoint`` is an ``ipc://`` socket that does not exist: the sockets its folder and the service's folder
+    ``service`` hold instead (the daemons running there: a wrong ``--sensor-id`` picks a socket nobody binds), as a
+    clause for a waiting line; else ""."""
     if not endpoint.startswith("ipc://") or Path(endpoint[6:]).exists():
         return ""
-    folder = Path(endpoint[6:]).parent
-    others = sorted(p.name for p in folder.glob("*.sock") if p.is_socket()) if folder.is_dir() else []
-    return f"; no socket there yet, and {folder} holds {', '.join(others)}: another --sensor-id?" if others else "; no socket there yet"
+    folders = dict.fromkeys([Path(endpoint[6:]).parent, service])
+    others = [str(p) for folder in folders if folder.is_dir() for p in sorted(folder.glob("*.sock")) if p.is_socket()]
+    return f"; no socket there yet, and {', '.join(others)} are: another --sensor-id or --connect?" if others else "; no socket there yet"
 
 
 def first_status(endpoint: str, sensor: str, timeout: float, curve: tuple[str, str] | None = None) -> Status | None:
