@@ -41,3 +41,16 @@ def test_a_rise_after_a_quiet_as_long_as_the_one_that_ends_a_slide_begins_after_
     events = [ev for i in range(0, x.shape[0], 400) for ev in det.feed(i, x[i:i + 400])]
     onsets = [ev for ev in events if isinstance(ev, Onset)]
     assert onsets and abs(onsets[-1].start / FS - 1.0) < 0.02, onsets
+
+
+def test_taps_at_rest_before_the_rise_are_no_part_of_the_slide() -> None:
+    """2 s of rest with a 5 ms tap every 0.25 s, then a slide from 2.0 s: the slide begins at 2.0 s. A walk back over each
+    hop's own envelope linked the taps, less than ``off_hold_s`` apart, and began it at the first (0.1 s; a review)."""
+    det = SlideDetector(Config().detector, FS, 2)
+    parts: list[tuple[float, float]] = []
+    for _ in range(8):
+        parts += [(0.1, 0.01), (0.005, 0.05), (0.145, 0.01)]
+    x = _stream([*parts, (1.5, 0.05), (1.0, 0.01)])
+    events = [ev for i in range(0, x.shape[0], 400) for ev in det.feed(i, x[i:i + 400])]
+    onsets = [ev for ev in events if isinstance(ev, Onset)]
+    assert len(onsets) == 1 and abs(onsets[0].start / FS - 2.0) < 0.02, onsets
