@@ -450,7 +450,7 @@ class SlideDetector:
             loud = total = 0
             for j in range(len(hops) - 1, -1, -1):
                 idx, total = hops[j][0], total + 1
-                if _median3(envs[max(0, j - 2):j + 1]) > c.off_factor * ref:
+                if _median3(envs[max(0, j - 1):j + 2]) > c.off_factor * ref:  # the hop and its neighbours
                     loud += 1
                     if 2 * loud >= total:
                         start = idx
