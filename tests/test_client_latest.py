@@ -132,7 +132,7 @@ def test_the_example_controller_says_a_damaged_log_in_one_line(tmp_path: Path) -
     path = tmp_path / "s.tlog"
     with LogWriter(path) as log:
         for i in range(20):
-            log.write(_status(i, 1.7e9 + i), 100.0 + i, 1.7e9 + i)
+            log.write(_status(i, 1.7e9 + 0.01 * i), 100.0 + 0.01 * i, 1.7e9 + 0.01 * i)  # replayed at speed 1: 0.2 s
     data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 0xFF
     path.write_bytes(bytes(data))
