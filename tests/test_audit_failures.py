@@ -74,3 +74,36 @@ def test_a_first_look_at_the_port_keeps_what_it_holds_for_the_reader_to_count() 
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_an_export_the_machine_refuses_leaves_no_file_under_its_name(tmp_path: Path) -> None:
+    """``export`` past a file-size limit (a full disk, a Ctrl-C: the same path): exit 1, and no MCAP file without its
+    footer under the output's name, which a rerun then took for a finished one ("exists (--force overwrites it)"; an
+    outside audit). It writes to a temporary file beside it and renames it when whole, as features and recover do."""
+    import subprocess
+
+    from tactiled.files.recording import Recording, save_recording
+    from tests.conftest import tactiled_cmd
+
+    rec = tmp_path / "r.npz"
+    save_recording(rec, Recording(np.random.default_rng(0).integers(-3000, 3000, (100_000, 2)).astype(np.int16), 20_000.0, 1e-4))
+    res = subprocess.run(tactiled_cmd("export", str(rec), "-o", str(tmp_path / "out.mcap"), "--no-model"), capture_output=True,
+                         text=True, timeout=120, preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (RAW_LIMIT, RAW_LIMIT)))
+    assert res.returncode == 1 and "Traceback" not in res.stderr, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.npz"]
+
+
+def test_an_output_that_is_one_of_the_inputs_is_refused_even_with_force(tmp_path: Path) -> None:
+    """``features r.npz -o r.npz --force`` replaced the recording with its features table, exit 0 (an outside audit);
+    ``train`` and ``recover`` could do the same. One line, exit 2, the input as it was."""
+    from tactiled.files.recording import Recording, save_recording
+
+    rec = tmp_path / "r.npz"
+    save_recording(rec, Recording(np.zeros((20_000, 2), dtype=np.int16), 20_000.0, 1e-4))
+    before = rec.read_bytes()
+    for argv in (["features", str(rec), "-o", str(rec), "--force"], ["train", str(rec), "-o", str(rec), "--force"],
+                 ["recover", str(rec), "-o", str(rec), "--force"]):
+        res = run_cli(*argv)
+        assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+            f"tactiled: error: {rec}: is one of the files it reads; write it elsewhere"], (argv, res.stderr)
+    assert rec.read_bytes() == before

@@ -71,7 +71,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
     from tactiled.files.journal import recover
     from tactiled.files.outputs import check_output
 
-    check_output(args.output, args.force, (".npz",))
+    check_output(args.output, args.force, (".npz",), [args.journal])
     try:
         result = recover(args.journal, args.output, {"recovered_from": str(args.journal)})
     except TactiledError:

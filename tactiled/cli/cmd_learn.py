@@ -36,7 +36,7 @@ def cmd_features(args: argparse.Namespace) -> int:
     from tactiled.learn.feature_table import write_features
 
     config = config_of(args)
-    check_output(args.output, args.force, (".npz",))  # before every window is analysed, not after
+    check_output(args.output, args.force, (".npz",), args.files)  # before every window is analysed, not after
     recs = load_recordings(args.files, say)
     if not recs:
         raise TactiledError("no readable recordings")
@@ -52,7 +52,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from tactiled.learn.train import train
 
     config = config_of(args)
-    check_output(args.output, args.force, (".npz",))  # before minutes of search, not after
+    check_output(args.output, args.force, (".npz",), args.files)  # before minutes of search, not after
     result = train(args.files, config, method=args.method, folds=args.folds, seed=args.seed, min_slides=args.min_slides, drop_rare=args.drop_rare,
                    scheduler=args.scheduler, progress=lambda m: print(f"train: {m}", file=sys.stderr, flush=True), group_by=args.group_by,
                    novelty=args.novelty, ensemble=args.ensemble, speed=args.speed_copies, gain=args.gain_tolerance / 100,
@@ -156,7 +156,7 @@ def cmd_enrol(args: argparse.Namespace) -> int:
     from tactiled.learn.enrol import enrol
 
     config = config_of(args)
-    check_output(args.output, args.force, (".npz",))
+    check_output(args.output, args.force, (".npz",), args.files)
     if args.model and Path(args.model).resolve() == Path(args.output).resolve():
         raise TactiledError(f"{args.output}: is the input model; enrol writes a new file and never changes its input")
     done = enrol(args.model or None, args.files, config, args.label, args.min_slides, say)

@@ -67,12 +67,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=level, format="tactiled: %(levelname)s: %(message)s", stream=sys.stderr)
     handler: Handler = args.handler
     one_blas_thread()
+    from tactiled.signals import sigterm_as_exit  # here, not at the top: --help stops in parse_args without it
+
     try:
-        return handler(args)
+        with sigterm_as_exit():  # a plain kill stops a command as Ctrl-C does: its worker processes too (run and record have their own)
+            return handler(args)
     except TactiledError as exc:
         print(f"tactiled: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except (KeyboardInterrupt, BrokenPipeError):
+    except KeyboardInterrupt:
+        return EXIT_FAIL
+    except BrokenPipeError as exc:  # stdout closed early (| head): quiet; any other pipe (a worker pool's) is said
+        if not reader_gone(sys.stdout.fileno()):
+            print(f"tactiled: error: {exc}", file=sys.stderr)
         return EXIT_FAIL
     except OSError as exc:  # the machine refused (a full disk, a folder gone): one line, what was already written stays
         print(f"tactiled: error: {exc}", file=sys.stderr)
@@ -83,6 +90,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"tactiled: error: {exc}", file=sys.stderr)
             return EXIT_USAGE
         raise
+
+
+def reader_gone(fd: int) -> bool:
+    """Whether ``fd`` is the write end of a pipe whose reader has closed it (``tactiled replay --json | head -1``)."""
+    import select
+
+    poller = select.poll()
+    poller.register(fd, select.POLLOUT)
+    return any(events & select.POLLERR for _, events in poller.poll(0))
 
 
 def hold_hangup(argv: Sequence[str]) -> None:

@@ -8,19 +8,23 @@ is never written. Each failure is an :class:`~tactiled.errors.OutputError` of on
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from pathlib import Path
 
 from tactiled.errors import OutputError
 
 
-def check_output(out: str | Path, force: bool, suffixes: tuple[str, ...] = ()) -> None:
+def check_output(out: str | Path, force: bool, suffixes: tuple[str, ...] = (), inputs: Iterable[str | Path] = ()) -> None:
     """Raise :class:`OutputError` naming ``out`` unless a file can be written there: its folder exists and is writable,
-    its name ends in one of ``suffixes`` (if given), and, without ``force``, no file is there already.
+    its name ends in one of ``suffixes`` (if given), it is none of the command's ``inputs`` (even with ``force``: a
+    recording read would be replaced by what was made of it), and, without ``force``, no file is there already.
 
     Every command that writes a file calls this before any work (docs/cli.md: the output policy).
     """
     out = Path(out)
     folder = out.parent
+    if any(Path(i).resolve() == out.resolve() for i in inputs):
+        raise OutputError(f"{out}: is one of the files it reads; write it elsewhere")
     if not folder.exists():
         raise OutputError(f"{out}: folder {folder} does not exist")
     if not folder.is_dir():

@@ -8,15 +8,16 @@ optionally block by block (:class:`StreamedArray`), so a long capture never has 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tempfile
 import unicodedata
 import zipfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, BinaryIO
 
 import numpy as np
 import numpy.typing as npt
@@ -364,23 +365,18 @@ def save_recording(path: str | Path, rec: Recording, samples: StreamedArray | No
     atomic_savez(path, arrays)
 
 
-def atomic_savez(path: str | Path, arrays: dict[str, Any]) -> None:
-    """What ``np.savez`` writes (uncompressed zip of ``.npy`` members), to a temporary file beside ``path``, then
-    fsync and rename over it and fsync the folder: ``path`` is the old file or the whole new one, even after a
-    power cut. A :class:`StreamedArray` value is written block by block."""
+@contextlib.contextmanager
+def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
+    """A binary file to write ``path`` through: a temporary file beside it, then (when the block ends without an error)
+    fsync and rename over ``path`` and fsync the folder. ``path`` is the old file or the whole new one, even after a power
+    cut; an error, a full disk or a Ctrl-C in the block leaves no file behind (the temporary one is removed)."""
     path = Path(path)
     folder = path.parent or Path(".")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
     done = False
     try:
         with os.fdopen(fd, "wb") as fh:
-            with zipfile.ZipFile(fh, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
-                for key, value in arrays.items():
-                    with zf.open(f"{key}.npy", "w", force_zip64=True) as member:
-                        if isinstance(value, StreamedArray):
-                            _write_streamed(member, key, value)
-                        else:
-                            np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+            yield fh
             fh.flush()
             os.fsync(fh.fileno())
         umask = os.umask(0)
@@ -392,6 +388,18 @@ def atomic_savez(path: str | Path, arrays: dict[str, Any]) -> None:
     finally:
         if not done:  # interrupted or failed: never leave a half-written file behind
             os.unlink(tmp)
+
+
+def atomic_savez(path: str | Path, arrays: dict[str, Any]) -> None:
+    """What ``np.savez`` writes (uncompressed zip of ``.npy`` members), through :func:`atomic_file`: ``path`` is the old
+    file or the whole new one. A :class:`StreamedArray` value is written block by block."""
+    with atomic_file(path) as fh, zipfile.ZipFile(fh, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+        for key, value in arrays.items():
+            with zf.open(f"{key}.npy", "w", force_zip64=True) as member:
+                if isinstance(value, StreamedArray):
+                    _write_streamed(member, key, value)
+                else:
+                    np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
 
 
 def _write_streamed(member: IO[bytes], key: str, value: StreamedArray) -> None:

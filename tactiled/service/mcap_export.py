@@ -42,7 +42,7 @@ from tactiled.core.events import SlideResult
 from tactiled.errors import OutputError, TactiledError
 from tactiled.extras import need
 from tactiled.files.outputs import check_output
-from tactiled.files.recording import Recording, load_recording, merge_ranges
+from tactiled.files.recording import Recording, atomic_file, load_recording, merge_ranges
 from tactiled.learn.choose import ModelChoice
 from tactiled.rostable import field_names, table_dtype
 from tactiled.run.replay import replay_recording
@@ -150,7 +150,7 @@ def export_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingertip0", 
     def ns(position: int) -> int:
         return round(origin * 1e9) + round(position * 1e9 / rec.fs)  # in two parts: a float of unix ns has a 256 ns grain
 
-    with open(out, "wb") as fh:
+    with atomic_file(out) as fh:  # an export cut short (Ctrl-C, a full disk) leaves no unreadable file under its name
         writer = writer_mod.Writer(fh, compression=writer_mod.CompressionType.ZSTD)
         writer.start(profile="", library=f"tactiled {__version__}")
         writer.add_metadata("tactiled.recording", {
@@ -250,7 +250,7 @@ def export_ros2_mcap(rec: Recording, out: str | Path, *, sensor: str = "fingerti
     def ns(position: int) -> int:
         return round(origin * 1e9) + round(position * 1e9 / rec.fs)  # in two parts: a float of unix ns has a 256 ns grain
 
-    with open(out, "wb") as fh:
+    with atomic_file(out) as fh:  # an export cut short (Ctrl-C, a full disk) leaves no unreadable file under its name
         writer = writer_mod.Writer(fh, compression=writer_mod.CompressionType.ZSTD)
         writer.start(profile="ros2", library=f"tactiled {__version__}")
         writer.add_metadata("tactiled.recording", {
