@@ -215,7 +215,7 @@ def test_score_skips_a_recording_of_another_rate_with_its_line_and_scores_the_ot
     with np.load(taught[0]) as z:
         np.savez(other, **{**{k: z[k] for k in z.files}, "fs": np.float64(10_000.0)})
     res = cli_here(capfd, "score", str(model), *map(str, taught[1:]), str(other))
-    assert res.returncode == 2 and f"skipped: {model}: model trained at fs 20000 Hz, {other} is 10000 Hz" in res.stderr, res.stderr
+    assert res.returncode == 2 and f"skipped: {other}: model trained at fs 20000 Hz, it is 10000 Hz" in res.stderr, res.stderr
     assert "accuracy " in res.stdout
     res = cli_here(capfd, "score", str(model), str(other))
     assert res.returncode == 2 and res.stderr.strip().splitlines()[-1] == (

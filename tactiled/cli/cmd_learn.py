@@ -199,9 +199,9 @@ def cmd_score(args: argparse.Namespace) -> int:
     recs = []  # as replay: a recording of another rate or channel count than the model is its line, and the others go on
     for name, rec in load_recordings(args.files, say):
         try:
-            model.check_stream(rec.fs, rec.channels, name, args.model)
+            model.check_stream(rec.fs, rec.channels, "it")
         except ModelError as exc:
-            say(f"skipped: {exc}")
+            say(f"skipped: {name}: {exc}")  # the file skipped first, as for an unreadable one
             continue
         recs.append((name, rec))
     scored = with_ground_truth(recs)

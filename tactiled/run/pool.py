@@ -52,7 +52,16 @@ def map_files(fn: Callable[[T], R], items: Sequence[T], jobs: int | None = None,
         from joblib import Parallel, delayed
 
         results = Parallel(n_jobs=n, return_as="generator")(delayed(fn)(item) for item in items)
-    for i, result in enumerate(results, 1):
-        if done is not None:
-            done(i, len(items))
-        yield result
+    try:
+        for i, result in enumerate(results, 1):
+            if done is not None:
+                done(i, len(items))
+            yield result
+    finally:  # the consumer stopped early (a closed stdout): the pool ends here, without joblib's note of results unused
+        close = getattr(results, "close", None)
+        if n > 1 and close is not None:
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", category=UserWarning, module="joblib.parallel")  # tasks unused, or cancelled
+                close()
