@@ -12,13 +12,14 @@ import tty
 from pathlib import Path
 
 import numpy as np
+import pytest
 from tactiled_client import BlockingSubscriber, Status
 
 from tactiled.board.frames import encode_frames
 from tactiled.board.serialsource import SerialSource, check_port
 from tactiled.sim.physics import SensorSimulator, SimParams, pick_surfaces
 from tactiled.sim.virtualboard import VirtualBoard
-from tests.conftest import daemon_process, run_cli, running, wait_for
+from tests.conftest import cli_here, daemon_process, run_cli, running, wait_for
 
 RAW_LIMIT = 200_000  # bytes: about 2.2 s of the standard board's frames
 
@@ -93,7 +94,7 @@ def test_an_export_the_machine_refuses_leaves_no_file_under_its_name(tmp_path: P
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.npz"]
 
 
-def test_an_output_that_is_one_of_the_inputs_is_refused_even_with_force(tmp_path: Path) -> None:
+def test_an_output_that_is_one_of_the_inputs_is_refused_even_with_force(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     """``features r.npz -o r.npz --force`` replaced the recording with its features table, exit 0 (an outside audit);
     ``train`` and ``recover`` could do the same. One line, exit 2, the input as it was."""
     from tactiled.files.recording import Recording, save_recording
@@ -103,7 +104,7 @@ def test_an_output_that_is_one_of_the_inputs_is_refused_even_with_force(tmp_path
     before = rec.read_bytes()
     for argv in (["features", str(rec), "-o", str(rec), "--force"], ["train", str(rec), "-o", str(rec), "--force"],
                  ["recover", str(rec), "-o", str(rec), "--force"]):
-        res = run_cli(*argv)
+        res = cli_here(capfd, *argv)
         assert res.returncode == 2 and res.stderr.strip().splitlines() == [
             f"tactiled: error: {rec}: is one of the files it reads; write it elsewhere"], (argv, res.stderr)
     assert rec.read_bytes() == before

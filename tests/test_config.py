@@ -6,7 +6,7 @@ import pytest
 
 from tactiled.config import Config, is_local_endpoint, load_config, parse_config
 from tactiled.errors import ConfigError
-from tests.conftest import REPO, run_cli
+from tests.conftest import REPO, cli_here, run_cli
 
 
 def test_shipped_config_is_valid_and_matches_defaults() -> None:
@@ -91,7 +91,7 @@ def test_check_config_cli(tmp_path: Path) -> None:
     assert res.stderr.strip().splitlines() == [f"tactiled: error: {bad}: detector.min_slide_s: must be in (0, 60] s"]
 
 
-def test_a_missing_model_file_stops_only_the_commands_that_would_load_it(tmp_path: Path) -> None:
+def test_a_missing_model_file_stops_only_the_commands_that_would_load_it(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     """A config whose model.path names a file that is gone: check-config, run and replay that would load it say so in one
     line naming the key, exit 2; check-config --no-model, run --model OTHER, replay --model OTHER and replay --no-model go on
     (every command that read the config refused it, even those that need no model: an outside audit)."""
@@ -108,11 +108,11 @@ def test_a_missing_model_file_stops_only_the_commands_that_would_load_it(tmp_pat
     said = f"tactiled: error: {cfg}: model.path: {gone}: no such model file"
     for argv in (["check-config", str(cfg)], ["run", "--config", str(cfg), "--port", str(tmp_path / "none"), "--no-wait"],
                  ["replay", "--config", str(cfg), str(rec)]):
-        res = run_cli(*argv)
+        res = cli_here(capfd, *argv)
         assert res.returncode == 2 and res.stderr.strip().splitlines() == [said], (argv, res.stderr)
     for argv in (["check-config", str(cfg), "--no-model"], ["replay", "--config", str(cfg), "--model", shipped, str(rec)],
                  ["replay", "--config", str(cfg), "--no-model", str(rec)]):
-        res = run_cli(*argv)
+        res = cli_here(capfd, *argv)
         assert res.returncode == 0 and "model.path" not in res.stderr, (argv, res.stderr)
     res = run_cli("run", "--config", str(cfg), "--model", shipped, "--port", str(tmp_path / "none"), "--no-wait")
     assert "model.path" not in res.stderr and "none" in res.stderr, res.stderr  # on to the port, which is missing

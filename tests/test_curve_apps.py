@@ -10,10 +10,11 @@ import subprocess
 import threading
 from pathlib import Path
 
+import pytest
 from tactiled_client import Status
 
 from tactiled.apps.bridges import run_bridge
-from tests.conftest import run_cli, tactiled_cmd, wait_for
+from tests.conftest import cli_here, run_cli, tactiled_cmd, wait_for
 
 
 class _Statuses:
@@ -33,7 +34,7 @@ class _Statuses:
         self.got.set()
 
 
-def test_the_monitor_and_bridges_take_curve_keys_and_say_when_they_need_them(tmp_path: Path) -> None:
+def test_the_monitor_and_bridges_take_curve_keys_and_say_when_they_need_them(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     """Without ``--curve``, ``monitor`` and ``lsl`` on the config of a daemon that requires CURVE: one line saying so, exit 2
     (they subscribed, heard nothing, and said "is a daemon there?"). With ``--curve`` the bridge hears the daemon."""
     keys, allowed = tmp_path / "keys", tmp_path / "allowed"
@@ -46,7 +47,7 @@ def test_the_monitor_and_bridges_take_curve_keys_and_say_when_they_need_them(tmp
     cfg.write_text(f'[publish]\nendpoint = "{endpoint}"\ncurve_secret_key_file = "{keys / "daemon.key_secret"}"\n'
                    f'curve_authorized_dir = "{allowed}"\nstatus_interval_s = 0.05\n')
     for command in ("monitor", "lsl", "ros2"):
-        res = run_cli(command, "--config", str(cfg))
+        res = cli_here(capfd, command, "--config", str(cfg))
         assert res.returncode == 2 and res.stderr.strip().splitlines() == [
             f"tactiled: error: {cfg}: publish.curve_secret_key_file is set: that daemon serves only subscribers with an authorised "
             "key; pass --curve DAEMON.key MY.key_secret (tactiled curve-keys makes a pair, whose .key goes into "
@@ -88,17 +89,18 @@ def test_a_bridge_waiting_on_a_socket_nobody_binds_names_the_ones_that_are_there
     assert sockets_beside(f"ipc://{tmp_path}/empty/x.sock", tmp_path / "none") == "; no socket there yet"
 
 
-def test_a_missing_curve_certificate_and_a_shadow_without_a_model_are_one_line_each(tmp_path: Path) -> None:
+def test_a_missing_curve_certificate_and_a_shadow_without_a_model_are_one_line_each(tmp_path: Path,
+                                                                                    capfd: pytest.CaptureFixture[str]) -> None:
     """``--curve`` naming a file that is not there: one line, exit 2, for the monitor and the bridges alike (it was a
     traceback from the client library). ``run --no-model`` with a config's ``model.shadow``: no shadow (check-config
     --no-model says such a config is fine for it), and ``--shadow`` with ``--no-model`` is refused (a review)."""
     for command in ("monitor", "lsl", "ros2"):
-        res = run_cli(command, "--curve", str(tmp_path / "d.key"), str(tmp_path / "me.key_secret"), "--connect", f"ipc://{tmp_path}/x")
+        res = cli_here(capfd, command, "--curve", str(tmp_path / "d.key"), str(tmp_path / "me.key_secret"), "--connect", f"ipc://{tmp_path}/x")
         assert res.returncode == 2 and res.stderr.strip().splitlines() == [
             f"tactiled: error: --curve {tmp_path / 'd.key'}: no such certificate file (tactiled curve-keys makes them)"], res.stderr
     cfg = tmp_path / "c.toml"
     cfg.write_text(f'[model]\nshadow = "{tmp_path / "gone.npz"}"\n')
-    res = run_cli("check-config", str(cfg), "--no-model")
+    res = cli_here(capfd, "check-config", str(cfg), "--no-model")
     assert res.returncode == 0, res.stderr
     res = run_cli("run", "--config", str(cfg), "--no-model", "--port", str(tmp_path / "none"), "--no-wait")
     assert res.returncode == 2 and "model.shadow" not in res.stderr and "no such serial device" in res.stderr, res.stderr
