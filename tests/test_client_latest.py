@@ -100,7 +100,8 @@ def test_a_paced_replay_ages_a_label_the_controller_took_late(tmp_path: Path) ->
                                       (_label(0, 1.7e9 + 1.0, "Ra1.00"), 101.0, 1.7e9 + 1.0)])
     with BlockingReplay(path, speed=1000.0) as rep:
         assert rep.receive().type == "status"
-        time.sleep(0.1)  # the controller busy with something else: the work this test is about, not a synchronisation
+        assert rep._origin is not None  # the controller busy for 0.1 s of wall time: the replay's clock started that much earlier
+        rep._origin = (rep._origin[0], rep._origin[1] - 0.1)
         assert [rep.receive().type for _ in range(2)] == ["status", "roughness"]
         assert rep.latest(max_age_s=2.0) is None
 

@@ -26,7 +26,7 @@ def _choice(args: argparse.Namespace, config: Config) -> ModelChoice:
 
     from_config = not args.model and not args.no_model and config.model.path
     return ModelChoice(config, args.model or (config.model.path if from_config else None), explicit=args.no_model,
-                       force=getattr(args, "force", False), warn=say, set_by=f"{getattr(args, 'config', None)}: model.path" if from_config else None)
+                       force=getattr(args, "force", False), warn=say, set_by=c.set_in_config(args, "model.path", not from_config))
 
 
 def cmd_record(args: argparse.Namespace) -> int:

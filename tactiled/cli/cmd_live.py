@@ -25,14 +25,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     s = config.sensor
     where = f"sensor {s.id}"
     choice = ModelChoice(config, None if args.no_model else config.model.path or None, explicit=args.no_model, force=args.force, check_cost=False,
-                         warn=say, set_by=None if args.model else f"{args.config}: model.path")
+                         warn=say, set_by=c.set_in_config(args, "model.path", args.model))
     model = choice.for_stream(s.fs, s.channels, where)
     if model is None and not args.no_model:
         raise TactiledError("no model fits this sensor (train one with tactiled train, or pass --no-model)")
     if args.no_model and args.shadow:
         raise TactiledError("--shadow runs a candidate beside the live model: not with --no-model")
     # --no-model publishes slides and status only: no shadow either, as check-config --no-model checks the config
-    shadow = ModelChoice(config, config.model.shadow, explicit=True, check_cost=False, set_by=None if args.shadow else f"{args.config}: model.shadow") \
+    shadow = ModelChoice(config, config.model.shadow, explicit=True, check_cost=False, set_by=c.set_in_config(args, "model.shadow", args.shadow)) \
         .for_stream(s.fs, s.channels, where) if config.model.shadow and not args.no_model else None
     for out, suffix in ((args.record, ".npz"), (args.raw, ".bin")):
         if out:

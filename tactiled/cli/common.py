@@ -202,6 +202,12 @@ MODEL_HELP = ("model file (default: --config's model.path, as tactiled run takes
 FORCE_HELP = "replace an existing output file"
 
 
+def set_in_config(args: argparse.Namespace, key: str, given: object) -> str | None:
+    """Where a value came from, for an error about it: ``--config``'s ``key`` (``my.toml: model.path``), or None when the
+    command line gave it (``given``), whose error names it itself."""
+    return None if given else f"{getattr(args, 'config', None)}: {key}"
+
+
 def subscriber_curve(args: argparse.Namespace, config: Config) -> tuple[str, str] | None:
     """The CURVE certificates a subscribing command (monitor, a bridge) connects with: ``--curve``; refused in one line when
     the config's daemon requires CURVE (``publish.curve_secret_key_file``), the endpoint is the config's and none was given:
