@@ -51,6 +51,36 @@ def test_evaluate_writes_all_six_experiments(tmp_path: Path, capfd: pytest.Captu
     assert "expected calibration error" in md and (report / "reliability.png").stat().st_size > 10_000
 
 
+@pytest.mark.parametrize("n_features", ["auto", 3])
+def test_forward_selection_chooses_the_columns_scikit_learns_selector_chooses(n_features: str | int) -> None:
+    """sfs_columns runs the rule of scikit-learn's SequentialFeatureSelector as its own loop (for speed): the same columns,
+    with the same folds and ELM, on three classes where two columns carry the class and one is constant."""
+    from types import SimpleNamespace
+
+    from sklearn.feature_selection import SequentialFeatureSelector
+    from sklearn.preprocessing import StandardScaler
+
+    from tactiled.learn.elm import ELMClassifier
+    from tactiled.learn.search import grouped_splits, sfs_columns
+
+    rng = np.random.default_rng(5)
+    y = np.repeat(np.array(["a", "b", "c"]), 20)
+    x = np.abs(rng.standard_normal((60, 8))) + 1.0
+    x[:, 2] += (y == "b") * 1.5
+    x[:, 5] += (y == "c") * 1.2
+    x[:, 7] = 1.0  # constant: never a candidate
+    groups = np.repeat(np.arange(12), 5)  # four files per surface
+    ws = SimpleNamespace(x=x, y=y, groups=groups, slide=np.arange(60), names=[f"f{i}" for i in range(8)])
+    got = sfs_columns(ws, np.arange(60), seed=3, inner_folds=3, n_features=n_features)  # type: ignore[arg-type]
+    sfs = SequentialFeatureSelector(ELMClassifier(n_hidden=50, calibrate=False, random_state=3), direction="forward", scoring="accuracy",
+                                    n_features_to_select=n_features, tol=0.005 if n_features == "auto" else None,
+                                    cv=grouped_splits(y, groups, 3, 3))
+    sfs.fit(StandardScaler().fit_transform(x)[:, :7], y)
+    assert got == [int(j) for j in np.flatnonzero(sfs.get_support())] and {2, 5} <= set(got)
+    if n_features == 3:
+        assert len(got) == 3
+
+
 def test_evaluate_needs_ground_truth(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     res = cli_here(capfd, "evaluate", str(tmp_path / "nope.npz"), "--report", str(tmp_path / "r"))
     assert res.returncode == 2 and "at least two readable recordings" in res.stderr
