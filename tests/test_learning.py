@@ -327,7 +327,7 @@ def test_headless_demo_without_labels_exits_1_quoting_the_daemons_last_line(tmp_
     assert res.returncode == 1 and res.stdout == ""
     line = res.stderr.strip()
     # the daemon stopped within the 2 s, or (a loaded machine) was waited for after them
-    said = ("the daemon stopped; the daemon's last words:" in line) or ("no label in 2 s; the daemon's last words:" in line)
+    said = ("the daemon stopped; the daemon's last words:" in line) or ("no final label in 2 s; the daemon's last words:" in line)
     assert len(line.splitlines()) == 1 and said and f"cannot bind {endpoint}" in line, line
 
 

@@ -234,3 +234,20 @@ def test_board_log_stays_bounded_when_nothing_reads_the_port(tmp_path: Path) -> 
     frames = [e["index"] for e in events if e["event"] == "overrun"]
     assert 1 <= len(lines) <= wall_s + 2  # one line per second of wall time, plus the last
     assert len(frames) > 15_000 and frames == sorted(set(frames)) and all(e["count"] == 20 for e in events if e["event"] == "overrun")
+
+
+def test_rest_first_puts_that_long_at_rest_before_the_scenes_first_slide(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """simulate serial --rest-first S (the demo's board: the daemon is reading before the first slide): the board's log puts
+    the first slide after S s plus one of the scene's rests (0.5-1.2 s), where without it the first slide comes after a rest."""
+    from tactiled.sim.virtualboard import read_log
+
+    firsts = {}
+    for rest in ("0", "2.5"):
+        log = tmp_path / f"board{rest}.jsonl"
+        res = cli_here(capfd, "simulate", "serial", "--link", str(tmp_path / f"tty{rest}"), "--seconds", "6", "--speed", "40",
+                       "--rest-first", rest, "--log", str(log))
+        assert res.returncode == 0, res.stderr
+        firsts[rest] = next(e["start"] for e in read_log(log) if e["event"] == "slide") / SimParams().fs
+    assert 0.5 <= firsts["0"] <= 1.2 and 3.0 <= firsts["2.5"] <= 3.7, firsts
+    refused = cli_here(capfd, "simulate", "serial", "--rest-first", "-1")
+    assert refused.returncode == 2 and "--rest-first" in refused.stderr

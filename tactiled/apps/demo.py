@@ -28,6 +28,7 @@ from tactiled.config import in_use
 from tactiled.errors import ConfigError
 from tactiled.signals import sigterm_as_exit
 
+DEMO_REST_FIRST_S = 1.5  # the virtual board's rest before its first slide, s: the daemon is reading by then
 DAEMON_LAST_WORDS_S = 10.0  # how long a daemon that gave no label may take to exit and say why, s
 
 
@@ -45,7 +46,10 @@ def run_demo(scene: str = "hand", seed: int = 0, publish: str | None = None, hea
         exe = [sys.executable, "-m", "tactiled"]
         started: list[subprocess.Popen[str] | subprocess.Popen[bytes]] = []  # stopped however the demo ends, even while starting them
         try:
-            board = subprocess.Popen([*exe, "simulate", "serial", "--link", link, "--scene", scene, "--seed", str(seed), "--log", board_log],
+            # the board starts at rest long enough for the daemon to be reading by the first slide: a daemon started in a
+            # slide cannot end it before a longer quiet than the scene's rests, and its first label would come late
+            board = subprocess.Popen([*exe, "simulate", "serial", "--link", link, "--scene", scene, "--seed", str(seed), "--log", board_log,
+                                      "--rest-first", str(DEMO_REST_FIRST_S)],
                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
             started.append(board)
             assert board.stdout is not None
@@ -64,7 +68,7 @@ def run_demo(scene: str = "hand", seed: int = 0, publish: str | None = None, hea
                 labels = print_labels(endpoint, seconds, board_log, running)
                 if labels and running():
                     return 0
-                failed = "the daemon stopped" if not running() else f"no label in {seconds:g} s"
+                failed = "the daemon stopped" if not running() else f"no final label in {seconds:g} s"
                 if running():  # on a loaded machine it may still be starting
                     with contextlib.suppress(subprocess.TimeoutExpired):
                         daemon.wait(DAEMON_LAST_WORDS_S)

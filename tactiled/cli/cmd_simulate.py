@@ -102,6 +102,9 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--reset-at", default="", help="comma-separated sensor times (s) at which the board resets: its index starts "
                    "again at 0 (the daemon counts a restart; default: never)")
     p.add_argument("--seconds", type=c.positive, default=None, help="stop after this much sensor time, s (default: run until stopped)")
+    p.add_argument("--rest-first", type=c.number_in(0.0, 3600.0, "seconds"), default=0.0,
+                   help="start with this long at rest, s, before the scene's own rests and slides (a finger put down after the "
+                        "daemon is up; default: 0)")
     p.add_argument("--seed", type=c.seed, default=0, help=c.SEED_HELP)
     p.add_argument("--fs", type=c.positive, default=None, help="sample rate, Hz (default: the scene's)")
     p.add_argument("--channels", type=c.channels, default=None, help="channels (default: the scene's)")

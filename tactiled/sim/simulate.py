@@ -166,8 +166,11 @@ def run_virtual_board(args: argparse.Namespace) -> int:
     log = open(args.log, "w", encoding="utf-8") if args.log else None  # noqa: SIM115 - closed below
     board = None
     try:
+        model = SensorSimulator(params, args.seed)
+        if getattr(args, "rest_first", 0.0) > 0:
+            model.add_rest(args.rest_first)
         try:
-            board = VirtualBoard(SensorSimulator(params, args.seed), _surfaces(args.surfaces, params.family), link=args.link, speed=args.speed,
+            board = VirtualBoard(model, _surfaces(args.surfaces, params.family), link=args.link, speed=args.speed,
                                  corrupt=args.corrupt, drop=args.drop, garbage=args.garbage, unplug_at=unplug_at,
                                  unplug_s=args.unplug_s, seed=args.seed, log=log, reset_at=reset_at)
         except ValueError as exc:
