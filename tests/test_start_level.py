@@ -276,3 +276,17 @@ def test_a_rest_louder_than_the_level_costs_the_start_not_every_slide() -> None:
         spans = _spans(_events(volts, level))
         assert spans[0][0] == 0 and spans[0][2] == withdrawn, spans  # the early "slide", ended where the first real one begins
         assert spans[1:] == plain, (spans, plain)
+
+
+@pytest.mark.parametrize("lead_s", [0.1, 0.2, 0.3])
+def test_a_stream_begun_just_before_a_slide_finds_it_from_rest_and_ends_it_at_a_short_rest(lead_s: float) -> None:
+    """A recording or daemon started ``lead_s`` before the finger moves (less than initial_s): the initial level is a
+    slide's, yet the stream began at rest. The slide starts where it does, not at the first sample, and a rest of 0.55 s
+    (shorter than the off_hold_s + initial_s that ends a slide the stream began in) ends it: it took the next slide in, up
+    to the first longer rest, and the rest before it into its label."""
+    volts = _volts((None, lead_s), ("Ra1.40", 1.5), (None, 0.55), ("Ra3.76", 1.2), (None, 1.0), ("Ra0.85", 1.2), (None, 1.0))
+    spans = _spans(_events(volts, _level()))
+    truth = [(lead_s, lead_s + 1.5), (lead_s + 2.05, lead_s + 3.25), (lead_s + 4.25, lead_s + 5.45)]
+    assert len(spans) == 3, spans
+    for (a, b, reason), (ta, tb) in zip(spans, truth, strict=True):
+        assert reason == "quiet" and abs(a / FS - ta) <= 0.1 and abs(b / FS - tb) <= 0.1, (spans, truth)

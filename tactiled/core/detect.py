@@ -34,7 +34,9 @@ quiet's level shows there (:func:`rests_split`: a rest shorter than that hold we
 becomes the floor. If neither happens before :meth:`SlideDetector.finish`, the whole stream
 was one slide (reason ``end_of_stream``). With a ``start_level`` (a model's, learnt from the rests and slides of its
 training recordings: tactiled.learn.levels) the reference decides at once: at or above it the stream began in a slide,
-reported then (its end still judged as undecided), below it the stream is at rest.
+reported then (its end still judged as undecided), below it the stream is at rest. At or above it with the first hops
+below the level by √``on_factor`` or more (the median of three), the stream began at rest and a slide within
+``initial_s``: that slide starts at the first hop above them, over a floor of theirs.
 
 At rest, the floor tracks the envelope (exponential in the log domain, ``floor_tau_s``). A
 slide starts when the envelope exceeds ``on_factor`` × floor (its onset moved back over the
@@ -503,6 +505,22 @@ class SlideDetector:
         or rest, the floor from now on."""
         assert self.start_level is not None
         if reference >= self.start_level:
+            # the stream may have begun at rest and a slide within initial_s (a recording or daemon started just before the
+            # finger moved): its first hops then lie well below the start level (a rest's are, by how it is learnt; a dip of
+            # a slide rarely is). The slide then begins at the first hop above them, the floor is theirs, and it ends as any
+            # slide does, where taken for one the stream began in it ran on through every rest shorter than off_hold_s +
+            # initial_s and took the rest before it into its label
+            envs = median3_runs([e for _, e in self._undecided_hops])
+            head = next((k for k, e in enumerate(envs) if e >= self.start_level / math.sqrt(self.c.on_factor)), len(envs))
+            if head >= 2:
+                floor = max(float(np.median(envs[:head])), 1e-300)
+                start = self._undecided_hops[head][0] if head < len(envs) else self._undecided_hops[-1][0]
+                self._undecided_hops.clear()
+                self._floor = self.floor = floor
+                self.sliding = True
+                self._start = start
+                self._quiet_since = None
+                return [Onset(start)]
             self._early = True
             return [Onset(self._began)]
         self._undecided_hops.clear()
