@@ -1456,7 +1456,7 @@ def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_fold
     """Forward selection (ELM criterion, grouped CV) on the windows ``rows``: the rule of scikit-learn's
     SequentialFeatureSelector (each step adds the column whose CV accuracy, mean over the folds, is highest, the first of
     equals; "auto" stops when that gains less than ``tol``), written as a loop of plain fits and predictions because its
-    ``cross_val_score`` per candidate spent four fifths of the time validating inputs and scoring (a test checks that both
+    ``cross_val_score`` per candidate spent about three quarters of the time validating inputs and scoring (a test checks that both
     choose the same columns).
 
     ``n_features`` "auto": add features while the CV accuracy rises by at least ``tol``. Folds grouped by file; by slide
