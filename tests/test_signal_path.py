@@ -160,11 +160,18 @@ def test_a_lossy_link_from_the_start_still_finds_the_slides(hand_files: list[tup
     assert found / total >= 0.9
 
 def test_rests_split_cuts_a_span_at_runs_below_the_quiet_level_that_last_the_hold() -> None:
+    """Runs judged on the median of each hop and its neighbours: a one-hop dip is no rest, a one-hop click no end of one."""
     hops = [(i * 10, e) for i, e in enumerate([9, 9, 1, 1, 1, 9, 9, 1, 9, 1, 1, 1, 1])]  # hop 10; quiet below 2; hold 30
-    assert rests_split(hops, 0, 130, 10, 2.0, 30) == [(0, 20), (50, 90)]  # the run at 20-50 splits, 70-80 is a dip
-    assert rests_split(hops, 0, 130, 10, 2.0, 40) == [(0, 90)]  # no run of 40: one slide, up to the final quiet's start
-    assert rests_split(hops[:3] + hops[4:], 0, 130, 10, 2.0, 30) == [(0, 90)]  # a lost hop breaks the run: no rest there
+    # the run at 20-50 splits, 70 is a dip; the loud hop at 80 among quiet ones is no slide: the final quiet starts there
+    assert rests_split(hops, 0, 130, 10, 2.0, 30) == [(0, 20), (50, 80)]
+    assert rests_split(hops, 0, 130, 10, 2.0, 40) == [(0, 80)]  # no run of 40: one slide, up to the final quiet's start
+    assert rests_split(hops[:3] + hops[4:], 0, 130, 10, 2.0, 30) == [(0, 80)]  # a lost hop breaks the run: no rest there
     assert rests_split([], 5, 50, 10, 2.0, 30) == [(5, 50)]  # hops no longer kept: the span whole
+    clicked = [(i * 10, e) for i, e in enumerate([9, 9, 1, 1, 9, 1, 1, 9, 9])]  # a click in a rest of 50
+    assert rests_split(clicked, 0, 90, 10, 2.0, 30) == [(0, 20), (70, 90)]
+    headed = [(i * 10, e) for i, e in enumerate([1, 1, 9, 9, 9, 1, 1, 1, 9, 9])]  # the stream began at rest, 20 of it
+    assert rests_split(headed, 0, 100, 10, 2.0, 30, head=True) == [(20, 50), (80, 100)]
+    assert rests_split(headed, 0, 100, 10, 2.0, 30) == [(0, 50), (80, 100)]  # a slide the stream began in: its dip
 
 
 @pytest.fixture(scope="module")

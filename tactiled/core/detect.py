@@ -19,8 +19,9 @@ over the samples):
    median, a slide moves all of them.
 
 The first P + L − 1 samples of a stream (the comb has no history yet) count as settling.
-Decisions at rest and in a slide use the median envelope of the last three hops, so one
-loud hop neither starts a slide nor interrupts the quiet that ends one.
+Decisions at rest, in a slide and while undecided use the median envelope of the last three hops, so one
+loud hop neither starts a slide nor interrupts the quiet that ends one (the rests a slide the stream began in is split
+at are judged on the median of each hop and its neighbours).
 
 States. The detector starts *undecided*: it does not know whether the stream began at rest
 or in the middle of a slide. Its reference is the 80th percentile of the envelope over the first
@@ -153,6 +154,17 @@ def median3_runs(values: list[float]) -> list[float]:
     return v[:2].tolist() + mid.tolist()  # type: ignore[no-any-return]
 
 
+def median3_centred(values: Sequence[float]) -> list[float]:
+    """(n,) the median of each value and its two neighbours, as :func:`_median3` takes them (at either end the mean of the
+    value and its one neighbour; a single value is itself): one loud hop among quiet ones is quiet, and no lag."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.size < 3:
+        return [_median3(list(values))] * v.size if v.size else []
+    a, b, c = v[:-2], v[1:-1], v[2:]
+    mid = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
+    return [float((v[0] + v[1]) / 2), *mid.tolist(), float((v[-2] + v[-1]) / 2)]
+
+
 def _hop_validity(pending: npt.NDArray[np.bool_], valid: npt.NDArray[np.bool_] | None, rows: int, hop: int) -> tuple[list[bool], npt.NDArray[np.bool_]]:
     """(whether each whole hop of the flags ``pending`` followed by ``valid`` (``rows`` new rows; None: all valid) is valid,
     the flags of the rows after the last whole hop); no array is walked when every flag is True."""
@@ -166,18 +178,22 @@ def _hop_validity(pending: npt.NDArray[np.bool_], valid: npt.NDArray[np.bool_] |
 UNDECIDED_HISTORY_S = 120.0  # the undecided hops kept for splitting the slide the stream began in (s of stream)
 
 
-def rests_split(hops: Iterable[tuple[int, float]], start: int, stop: int, hop: int, quiet: float, hold: int) -> list[tuple[int, int]]:
+def rests_split(hops: Iterable[tuple[int, float]], start: int, stop: int, hop: int, quiet: float, hold: int,
+                head: bool = False) -> list[tuple[int, int]]:
     """The slides [a, b) of the span [start, stop) the stream began in, split at its rests: runs of consecutive hops (index,
-    envelope) ``hops`` whose envelope stays below ``quiet`` (off_factor × the floor the quiet after the span showed) for at
-    least ``hold`` samples (off_hold_s), as a slide ends once the floor is known. Hops before the first kept (a stream
-    longer than :data:`UNDECIDED_HISTORY_S`) leave their part of the span whole."""
+    envelope) ``hops`` whose envelope, the median of each hop and its neighbours (:func:`median3_centred`: a click in a
+    rest is no end of it), stays below ``quiet`` (off_factor × the floor the quiet after the span showed) for at least
+    ``hold`` samples (off_hold_s), as a slide ends once the floor is known. ``head``: a quiet run the span begins with is
+    rest however short (the stream began at rest, a slide within its first hops), the slide starting after it. Hops
+    before the first kept (a stream longer than :data:`UNDECIDED_HISTORY_S`) leave their part of the span whole."""
+    inside = [(i, e) for i, e in hops if start <= i < stop]
     spans: list[tuple[int, int]] = []
     a, rest, last = start, None, None  # the slide's start, the rest run's first hop, the hop before this one
-    for i, e in hops:
-        if i < start or i >= stop:
-            continue
+    for i, e in zip([i for i, _ in inside], median3_centred([e for _, e in inside]), strict=True):
         if rest is not None and (e >= quiet or (last is not None and i != last + hop)):  # the run ends
-            if last is not None and last + hop - rest >= hold and rest > a:
+            if head and a == start and rest == inside[0][0] and e >= quiet:  # the stream's quiet head
+                a = i
+            elif last is not None and last + hop - rest >= hold and rest > a:
                 spans.append((a, rest))
                 a = i
             rest = None
@@ -398,6 +414,7 @@ class SlideDetector:
                 if self._floor is not None:  # at rest: the onset's lookback runs over contiguous hops only
                     self._recent.clear()
                 elif valid and self._reference is not None:  # undecided, its level known: exact silence is quiet (a rest of zeros)
+                    self._last3.append(0.0)
                     return self._undecided(at, 0.0)
                 elif valid and not self._initial:  # exact silence before any level: the stream's first slide begins after it
                     self._lead_end = at + self.hop
@@ -448,11 +465,11 @@ class SlideDetector:
             # less than off_hold_s apart are no slide)
             start = at
             hops = list(self._undecided_hops)
-            envs = [e for _, e in hops]
+            envs = median3_centred([e for _, e in hops])
             loud = total = 0
             for j in range(len(hops) - 1, -1, -1):
                 idx, total = hops[j][0], total + 1
-                if _median3(envs[max(0, j - 1):j + 2]) > c.off_factor * ref:  # the hop and its neighbours
+                if envs[j] > c.off_factor * ref:  # the hop and its neighbours
                     loud += 1
                     if 2 * loud >= total:
                         start = idx
@@ -472,7 +489,8 @@ class SlideDetector:
             slide = ref >= math.sqrt(c.on_factor) * (self.start_level or 0.0)
             return [Offset(began, max(start, began + 1), "quiet" if slide else "too_short", at=start), Onset(start)]
         said: list[DetectorEvent] = []  # a slide reported early (start_level): its quiets and dips, as a slide's (Quiet, Loud)
-        if env < ref / c.on_factor:
+        # the median of the last three hops, as at rest and in a slide: one loud hop (a tap) does not restart the quiet
+        if _median3(list(self._last3)) < ref / c.on_factor:
             if self._quiet_since is None:
                 self._quiet_since = at
                 if self._early:
@@ -485,7 +503,7 @@ class SlideDetector:
                 self._quiet_since = None
                 quiet = [e for i, e in self._undecided_hops if i >= stop]
                 spans = rests_split(self._undecided_hops, self._began, stop, self.hop, self.c.off_factor * float(np.median(quiet)),
-                                    round(self.c.off_hold_s * self.fs))
+                                    round(self.c.off_hold_s * self.fs), head=not self._early)
                 self._undecided_hops.clear()
                 events: list[DetectorEvent] = []
                 for k, (a, b) in enumerate(spans):  # each known over at its end (Onset.at): no later window is its own
