@@ -131,6 +131,7 @@ def test_train_and_score_one_channel_other_rate(tmp_path: Path, capfd: pytest.Ca
     for jobs in ("1", "2"):
         res = cli_here(capfd, "features", *files, "-o", str(tmp_path / f"f{jobs}.npz"), "--jobs", jobs)
         assert res.returncode == 0, res.stderr
+        assert f"features: windows: {len(files)}/{len(files)} files" in res.stderr  # progress, as train says it (an outside audit)
     with np.load(tmp_path / "f1.npz") as one, np.load(tmp_path / "f2.npz") as two:
         assert one.files == two.files and all(np.array_equal(one[k], two[k]) for k in one.files)
     one, two = (cli_here(capfd, "replay", "--json", "--model", str(model), *files, "--jobs", jobs) for jobs in ("1", "2"))

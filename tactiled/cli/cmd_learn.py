@@ -40,7 +40,7 @@ def cmd_features(args: argparse.Namespace) -> int:
     recs = load_recordings(args.files, say)
     if not recs:
         raise TactiledError("no readable recordings")
-    ws = write_features(args.output, recs, config, args.jobs)
+    ws = write_features(args.output, recs, config, args.jobs, lambda m: print(f"features: {m}", file=sys.stderr, flush=True))
     print(f"{args.output}: {ws.x.shape[0]} windows of {len(ws.slides)} slides x {ws.x.shape[1]} features"
           + (f" (slides without a window: {ws.skipped})" if ws.skipped else ""))
     return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE

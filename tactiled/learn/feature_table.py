@@ -21,7 +21,7 @@ from tactiled.core.analysis import AnalysisSettings
 from tactiled.errors import RecordingError, WindowError
 from tactiled.files.npzio import NpzError, load_json_bounded, read_npz
 from tactiled.files.recording import Recording, atomic_savez
-from tactiled.learn.dataset import WindowSet, collect_windows
+from tactiled.learn.dataset import Progress, WindowSet, collect_windows
 from tactiled.learn.train import check_recordings
 
 FORMAT, VERSION = "tactiled-features", 1
@@ -29,17 +29,19 @@ KEYS = ("header", "x", "names", "label", "file", "slide", "span", "files")
 MAX_FEATURES_BYTES = 1 << 30  # inflated, all arrays together
 
 
-def write_features(path: str | Path, recs: Sequence[tuple[str, Recording]], config: Config, jobs: int | None = None) -> WindowSet:
+def write_features(path: str | Path, recs: Sequence[tuple[str, Recording]], config: Config, jobs: int | None = None,
+                   progress: Progress | None = None) -> WindowSet:
     """Analyse every slide of ``recs`` with the config's feature families and windows (on ``jobs`` processes, None: every
-    core); write the file; return the windows. Recordings of differing rates or channel counts, or one given twice, are a
-    :class:`~tactiled.errors.TactiledError` (``train``'s check): the windows of all are analysed with one set of bands."""
+    core; ``progress``: a line every 10 files, as ``train`` says it); write the file; return the windows. Recordings of
+    differing rates or channel counts, or one given twice, are a :class:`~tactiled.errors.TactiledError` (``train``'s
+    check): the windows of all are analysed with one set of bands."""
     check_recordings(recs, len(recs), "its windows would be in the table twice")
     fs, channels = recs[0][1].fs, recs[0][1].channels
     try:
         settings = AnalysisSettings.from_config(config, channels, fs)
     except WindowError as exc:  # the rate is a property of the recordings: name the first
         raise WindowError(exc.reason, f"{recs[0][0]}: {exc}") from None
-    ws = collect_windows(recs, config, settings, require_labels=False, jobs=jobs)
+    ws = collect_windows(recs, config, settings, progress, require_labels=False, jobs=jobs)
     header = {"format": FORMAT, "version": VERSION, "settings": settings.to_dict(), "fs": fs, "channels": channels}
     atomic_savez(path, {"header": np.str_(json.dumps(header)), "x": ws.x, "names": np.array(ws.names, dtype=np.str_), "label": ws.y,
                         "file": ws.groups, "slide": ws.slide, "span": ws.spans, "files": np.array(ws.files, dtype=np.str_)})
