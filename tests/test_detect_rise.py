@@ -85,3 +85,15 @@ def test_a_stream_begun_at_rest_a_slide_within_its_first_tenths_starts_the_slide
     ``off_hold_s``) was taken into the first, reported from the first sample. It begins at 0.2 s."""
     found = _slides(_stream([(0.2, 2e-4), (1.2, 0.02), (1.0, 2e-4), (1.0, 0.02), (1.0, 2e-4)]))
     assert len(found) == 2 and abs(found[0][0] - 0.2) <= 0.03 and abs(found[1][0] - 2.4) <= 0.03, found
+
+
+def test_a_knock_at_rest_shortly_before_a_slide_does_not_start_it() -> None:
+    """A knock 0.25 s before a slide (an outside audit, twentieth session): an 800 Hz ring of 0.5 V decaying in 5 ms, loud
+    for about 50 ms with its comb echo, then quiet for less than ``off_hold_s``, so the slide took the knock for its start,
+    0.25 s early. A start loud for less than KNOCK_S (0.1 s) and quiet at least as long after it is a knock: the slide
+    begins where it does."""
+    x = _stream([(1.0, 2e-4), (1.0, 0.02), (1.0, 2e-4), (1.0, 0.02), (1.0, 2e-4)])  # the floor known from the first slide on
+    t = np.arange(round(0.05 * FS)) / FS
+    x[round(2.75 * FS):round(2.8 * FS)] += (0.5 * np.sin(2 * np.pi * 800 * t) * np.exp(-t / 0.005))[:, None]
+    found = _slides(x)
+    assert len(found) == 2 and abs(found[1][0] - 3.0) <= 0.03 and abs(found[1][1] - 4.0) <= 0.03, found

@@ -175,6 +175,7 @@ def _hop_validity(pending: npt.NDArray[np.bool_], valid: npt.NDArray[np.bool_] |
     return cast(list[bool], flags[: hops * hop].reshape(hops, hop).all(axis=1).tolist()), flags[hops * hop:]
 
 
+KNOCK_S = 0.1  # a slide's start loud for less than this, then quiet as long: a knock (and its comb echo), not its start (s)
 UNDECIDED_HISTORY_S = 120.0  # the undecided hops kept for splitting the slide the stream began in (s of stream)
 
 
@@ -316,6 +317,7 @@ class SlideDetector:
         hop, last, recent = self.hop, self._last3, self._recent
         on, off, alpha = self.c.on_factor, self.c.off_factor, self._alpha
         longest = self.c.max_slide_s * self.fs if self.c.max_slide_s > 0 else math.inf
+        knock = KNOCK_S * self.fs
         exp, log = math.exp, math.log
         unsettled = self._first + self.front.history  # type: ignore[operator]
         floor, sliding, paused, settle, holdoff = self._floor, self.sliding, self._paused, self._settle_until, self._holdoff_until
@@ -337,7 +339,9 @@ class SlideDetector:
                     envelope = env
                     at += hop
                     continue
-                if sliding and smooth >= off * floor and not paused and at + hop - self._start < longest:  # a slide goes on (as _in_slide)
+                quiet = self._quiet_since
+                if (sliding and smooth >= off * floor and not paused and at + hop - self._start < longest  # a slide goes on (as _in_slide)
+                        and (quiet is None or not quiet - self._start < knock <= at - quiet)):  # but after a knock
                     if self._quiet_since is not None:  # after a dip
                         self._quiet_since = None
                         events.append(Loud(self._start, at + hop))
@@ -589,8 +593,21 @@ class SlideDetector:
                 assert self._quiet_since is not None
                 events.append(Resume(self._start, self._quiet_since))
                 self._paused = False
-            elif self._quiet_since is not None:  # a dip shorter than the pause
-                events.append(Loud(self._start))
+            elif self._quiet_since is not None:
+                if self._quiet_since - self._start < KNOCK_S * self.fs <= at - self._quiet_since:  # (as _hops tells it)
+                    # what started it was a knock, quiet again before it lasted KNOCK_S, and the slide begins now: as
+                    # from rest (a quiet shorter than off_hold_s would otherwise join the knock to it)
+                    start = at
+                    for idx, e in reversed(self._recent):
+                        if idx >= self._quiet_since and e > c.off_factor * self._floor and idx == start - self.hop:
+                            start = idx
+                        else:
+                            break
+                    knock = Offset(self._start, self._quiet_since, "too_short")
+                    self._start, self._quiet_since = start, None
+                    self._recent.append((at, env))
+                    return [knock, Onset(start)]
+                events.append(Loud(self._start))  # a dip shorter than the pause
             self._quiet_since = None
             if c.max_slide_s > 0 and end - self._start >= c.max_slide_s * self.fs:
                 return events + self._finish_at(self._start, end, "max_duration")
