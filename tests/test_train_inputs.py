@@ -166,6 +166,8 @@ def test_train_says_slides_of_a_recording_without_a_surface_are_not_learnt(data:
     assert code == 0, err
     assert any("slides without a surface (their recordings name none) are not learnt" in line for line in err), err
     assert not any("unlabelled" in line for line in err), err
+    # which recording (an outside audit: a lab that forgot --label on one record did not learn which)
+    assert any(f"{bare}: no label and no per-slide truth (recorded without --label?)" in line for line in err), err
 
 
 def test_by_slide_a_surface_of_one_slide_is_refused(data: tuple[list[str], list[str]], tmp_path: Path) -> None:

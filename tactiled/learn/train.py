@@ -75,11 +75,14 @@ def check_recordings(recs: Sequence[tuple[str, Recording]], wanted: int, why: st
 
 def file_labels(recs: Sequence[tuple[str, Recording]], per_file: list[list[LabelledSlide]], say: Progress) -> list[str | None]:
     """The file-level label of each recording (None where per-slide truth gives the slides), saying each labelled file the
-    detector found no slide in (its surface may still have slides from other files: said, not lost silently)."""
+    detector found no slide in (its surface may still have slides from other files: said, not lost silently), and each
+    recording with neither a label nor per-slide truth (a ``record`` without ``--label``: its slides teach no surface)."""
     labels = [None if rec.slides() else rec.label for _, rec in recs]
-    for (name, _), label, slides in zip(recs, labels, per_file, strict=True):
+    for (name, rec), label, slides in zip(recs, labels, per_file, strict=True):
         if label is not None and not slides:
             say(f"no slide detected in {name} (label {label})")
+        elif label is None and not rec.slides():
+            say(f"{name}: no label and no per-slide truth (recorded without --label?): its {len(slides)} slide(s) teach no surface")
     return labels
 
 
