@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import re
 import signal
 import threading
 from collections.abc import Callable, Iterator
@@ -138,6 +139,27 @@ def test_record_says_what_its_port_gave_and_writes_no_empty_recording(tmp_path: 
     assert res.returncode == 1 and lines[-1].startswith(f"tactiled: error: {out}: nothing recorded, no file written: {port}, read for "), res.stderr
     assert seen in lines[-1], lines[-1]
     assert res.stdout == "" and out.read_bytes() == b"an earlier recording" and sorted(p.name for p in tmp_path.iterdir()) == ["s.npz"]
+
+
+def test_record_gives_up_a_port_that_gives_nothing_to_record_after_its_seconds_and_more(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, pty_fed: Callable[[Callable[[int], bytes]], str],
+        capfd: pytest.CaptureFixture[str]) -> None:
+    """A board of another channel count, nothing to record: --seconds counts sensor time, which never came, so record
+    waited until Ctrl-C (an outside audit stopped one after 10 minutes; a script's session hung). It stops after
+    --seconds plus GIVE_UP_AFTER_S (30 s in use) of host time: one line, no file, exit 1."""
+    from tactiled.service import recorder
+
+    monkeypatch.setattr(recorder, "SILENT_AFTER_S", 0.5)
+    monkeypatch.setattr(recorder, "GIVE_UP_AFTER_S", 1.0)
+    port = pty_fed(_two_channel_frames)
+    out = tmp_path / "s.npz"
+    res = cli_here(capfd, "record", "--port", port, "--seconds", "0.5", "-o", str(out), "--channels", "1")
+    lines = res.stderr.strip().splitlines()
+    assert any(re.search(r"still waiting, at most \d+ s more \(Ctrl-C stops\)", line) for line in lines), res.stderr
+    assert any(re.search(rf"{re.escape(port)}: nothing to record after \d+ s \(--seconds 0.5 and 1 s more\): stopping", line)
+               for line in lines), res.stderr
+    assert res.returncode == 1 and lines[-1].startswith(f"tactiled: error: {out}: nothing recorded, no file written"), res.stderr
+    assert not out.exists()
 
 
 # ---- a path that is not a tty -------------------------------------------------------------------------------------

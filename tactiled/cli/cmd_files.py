@@ -146,8 +146,8 @@ def add_commands(sub: Sub) -> None:
     p.add_argument("--config", help=c.CONFIG_HELP)
     p.add_argument("--port", help="serial device path " + c.overrides("sensor.port"))
     p.add_argument("--seconds", type=c.positive, required=True,
-                   help="sensor time to record, s (a port that gives nothing to record is said after 5 s; if nothing was recorded "
-                        "when it stops, no file is written and the exit code is 1)")
+                   help="sensor time to record, s (a port that gives nothing to record is said after 5 s, and given up after "
+                        "--seconds plus 30 s; if nothing was recorded when it stops, no file is written and the exit code is 1)")
     p.add_argument("-o", "--output", required=True, help="recording file to write (.npz, or .mcap with --format mcap)")
     p.add_argument("--label", help="surface of the whole file (its ground truth for train and score; default: none, the file is unlabelled)")
     p.add_argument("--fs", type=c.positive, help="sample rate, Hz " + c.overrides("sensor.fs"))

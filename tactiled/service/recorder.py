@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 COMMIT_S = 0.5  # the commit period, s of wall time: about what a kill or a power cut can lose
 MAX_CHUNK_BYTES = 4 << 20  # a chunk is committed at this size at the latest
 SILENT_AFTER_S = 5.0  # record says once that the port has given nothing to record for this long (host time) from the start
+GIVE_UP_AFTER_S = 30.0  # ... and stops (no file, exit 1) when it has given nothing by --seconds plus this long (host time)
 RATE_AFTER_S = 5.0  # the recorder measures the board's sample rate over this long from its first samples (rate_mismatch)
 QUEUE_BYTES = 64 << 20  # samples waiting for the writer (a disk stalled 13 min at 20 kHz x 2 channels); beyond, frames are lost, counted
 
@@ -346,7 +347,8 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     is saved, so a second Ctrl-C never leaves a half-written file.
 
     A port that gives no sample to record for :data:`SILENT_AFTER_S` of host time from the start (no bytes, bytes with no
-    valid frame, frames of another channel count) is said once, naming the port and what it gave; a recording that ends
+    valid frame, frames of another channel count) is said once, naming the port and what it gave, and one that has given
+    none by ``seconds`` + :data:`GIVE_UP_AFTER_S` stops the recording (a scripted session never hangs); a recording that ends
     with no sample is not written (a file already at ``out`` stays as it was): :attr:`RecordSummary.samples` is 0 and
     :meth:`RecordSummary.nothing_line` says what the port gave.
     """
@@ -419,11 +421,17 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
         log.info("recording %s -> %s (Ctrl-C stops and saves)", s.port, out)
         try:
             while not sink.done and sink.error is None and not stop.is_set():
-                if not silent_said and sink.first_index is None and time.monotonic() - started >= SILENT_AFTER_S:
+                waited = time.monotonic() - started
+                if sink.first_index is None and waited >= seconds + GIVE_UP_AFTER_S:  # a script's record never hangs
+                    log.warning("%s: nothing to record after %.0f s (--seconds %g and %.0f s more): stopping", s.port, waited, seconds,
+                                GIVE_UP_AFTER_S)
+                    break
+                if not silent_said and sink.first_index is None and waited >= SILENT_AFTER_S:
                     silent_said = True  # once: a port that gives nothing to record is said, not waited on in silence
-                    log.warning("%s: nothing to record after %.0f s: %s; still waiting (Ctrl-C stops)", s.port, SILENT_AFTER_S,
-                                port_seen(bytes_read, stream.stats, s.channels, stream.ingest.decoder.foreign_channels or 0,
-                                          source.discarded_at_start))
+                    log.warning("%s: nothing to record after %.0f s: %s; still waiting, at most %.0f s more (Ctrl-C stops)", s.port,
+                                SILENT_AFTER_S, port_seen(bytes_read, stream.stats, s.channels,
+                                                          stream.ingest.decoder.foreign_channels or 0, source.discarded_at_start),
+                                seconds + GIVE_UP_AFTER_S - waited)
                 try:
                     item = chunks.get(timeout=0.1)  # the stop flag's polling period
                 except queue.Empty:
