@@ -621,3 +621,14 @@ def test_record_says_when_the_boards_rate_is_not_sensor_fs(tmp_path: Path) -> No
     assert len(said) == 1 and "sensor.fs is 2000 Hz" in said[0], said
     rate = float(said[0].split("samples arrive at about ")[1].split(" Hz")[0])
     assert 15_000 < rate < 25_000, said[0]
+
+
+def test_record_shorter_than_the_rate_measurement_says_the_rate_at_its_end(tmp_path: Path) -> None:
+    """An outside audit: --fs 10000 on a 20 kHz board for a few seconds (a first day's recordings) wrote the wrong rate in
+    silence, since the rate was measured over RATE_AFTER_S (5 s) only. A recording that ends sooner is measured over what
+    it had, at least RATE_MIN_S (1 s): said once, the file written as asked (exit 0)."""
+    with running_board(tmp_path, seed=1) as board:
+        res = run_cli("record", "--port", board.link or "", "--fs", "10000", "--seconds", "3", "-o", str(tmp_path / "r.npz"))
+    said = [line for line in res.stderr.splitlines() if "samples arrive at about" in line]
+    assert res.returncode == 0 and len(said) == 1 and "sensor.fs is 10000 Hz" in said[0], res.stderr
+    assert 15_000 < float(said[0].split("samples arrive at about ")[1].split(" Hz")[0]) < 25_000, said[0]

@@ -41,6 +41,7 @@ MAX_CHUNK_BYTES = 4 << 20  # a chunk is committed at this size at the latest
 SILENT_AFTER_S = 5.0  # record says once that the port has given nothing to record for this long (host time) from the start
 GIVE_UP_AFTER_S = 30.0  # ... and stops (no file, exit 1) when it has given nothing by --seconds plus this long (host time)
 RATE_AFTER_S = 5.0  # the recorder measures the board's sample rate over this long from its first samples (rate_mismatch)
+RATE_MIN_S = 1.0  # ... or, a recording that ends sooner, over what it had when it ends, if at least this long
 QUEUE_BYTES = 64 << 20  # samples waiting for the writer (a disk stalled 13 min at 20 kHz x 2 channels); beyond, frames are lost, counted
 
 
@@ -381,9 +382,10 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
     # the rate's start: when samples first came, the index's advance by then (samples and lost: an unplug or dropped frames
     # are not a slower board), and the restarts and reconnects by then (either begins the measurement again)
     first: tuple[float, int, tuple[int, int]] | None = None
+    latest: tuple[float, int] | None = None  # the last (read time, index advance) since ``first``: a shorter recording's rate
 
     def take(item: tuple[bytes, float] | None) -> None:
-        nonlocal channels_said, rate_said, first, bytes_read
+        nonlocal channels_said, rate_said, first, latest, bytes_read
         if item is None:  # the port went away after the bytes taken so far: what the decoder holds goes in first
             for batch in stream.held():
                 sink.add(batch)
@@ -402,8 +404,10 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
         # measured by when the bytes were read, not when they were taken off the queue (a lag would look like a rate)
         now, n, epoch = read_at, st.samples + st.samples_lost, (st.restarts, source.reconnects if source is not None else 0)
         if n and (first is None or first[2] != epoch):
-            first = (now, n, epoch)
-        elif first is not None and now - first[0] >= RATE_AFTER_S:  # sensor.fs is written into the recording
+            first, latest = (now, n, epoch), None
+        elif first is not None:
+            latest = (now, n)
+        if first is not None and now - first[0] >= RATE_AFTER_S:  # sensor.fs is written into the recording
             rate_said = True
             line = rate_mismatch(s.id, (n - first[1]) / (now - first[0]), s.fs)
             if line:
@@ -445,6 +449,10 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
             take(chunks.get_nowait())
         for batch in stream.finish().batches:
             sink.add(batch)
+        if not rate_said and first is not None and latest is not None and latest[0] - first[0] >= RATE_MIN_S:
+            line = rate_mismatch(s.id, (latest[1] - first[1]) / (latest[0] - first[0]), s.fs)  # a recording shorter than RATE_AFTER_S
+            if line:
+                log.warning("%s", line)
         wall_s = time.monotonic() - started
         if sink.first_index is None and sink.error is None:  # not one sample: no file (an empty recording is no recording)
             sink.discard()
