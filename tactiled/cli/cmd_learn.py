@@ -46,6 +46,16 @@ def cmd_features(args: argparse.Namespace) -> int:
     return EXIT_OK if len(recs) == len(args.files) else EXIT_USAGE
 
 
+def interval_clause(band: list[float] | None, correct: int, n: int) -> str:
+    """``, 95 % interval over recordings LOW-HIGH`` of score's headline (nothing without ``band``), saying where it comes from
+    when every one of the ``n`` slides is right (or none is): no resample can vary then, and the rule of three gives it."""
+    if not band:
+        return ""
+    rule = " (every slide right: the rule of three, 1 - 3/recordings)" if correct == n else \
+        " (every slide wrong: the rule of three, 3/recordings)" if correct == 0 else ""
+    return f", 95 % interval over recordings {band[0]:.4f}-{band[1]:.4f}{rule}"
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     """Search, fit and save a model; print the leaderboard and what calibration and novelty found."""
     from tactiled.files.outputs import check_output
@@ -222,8 +232,7 @@ def cmd_score(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report))
         return EXIT_OK if len(scored) == len(args.files) else EXIT_USAGE
-    band = report["taught_interval95"]
-    within = f", 95 % interval over recordings {band[0]:.4f}-{band[1]:.4f}" if band else ""
+    within = interval_clause(report["taught_interval95"], report["taught_correct"], report["taught_n"])
     headline = (f"accuracy {report['taught_accuracy']:.4f} ({report['taught_correct']} of {report['taught_n']} true slides of taught "
                 f"surfaces{within})" if report["taught_n"] else "accuracy: no true slide of a surface the model was taught")
     print(f"{headline}; coverage {report['coverage']:.4f} ({report['labelled']} of {report['n']} true slides labelled); "
