@@ -29,7 +29,7 @@ from tactiled.learn.model import (
 )
 from tactiled.learn.search import SPECTRUM, Candidate, accuracy_of
 from tactiled.learn.train import train
-from tests.conftest import run_cli, surfaces_but_one
+from tests.conftest import cli_here, run_cli, surfaces_but_one
 
 CANDIDATES = [SPECTRUM, Candidate(("psd",), "linear", 0.25)]  # the linear one is the simpler: it wins within one standard error
 
@@ -191,10 +191,11 @@ def test_a_corrupt_member_is_refused_in_one_line_naming_the_file(arrays: dict, h
     assert "\n" not in text and str(bad) in text and message in text, text
 
 
-def test_train_prints_the_ensemble_beside_the_choice(trained: tuple[Path, Path, list[str]], tmp_path: Path) -> None:
+def test_train_prints_the_ensemble_beside_the_choice(trained: tuple[Path, Path, list[str]], tmp_path: Path,
+                                                     capfd: pytest.CaptureFixture[str]) -> None:
     _, data, surfaces = trained
     known = [str(p) for p in sorted(data.glob("*.npz")) if f"_{surfaces[4]}_" not in p.name]
-    res = run_cli("train", *known, "-o", str(tmp_path / "m.npz"), "--ensemble", "always", "--folds", "2")
+    res = cli_here(capfd, "train", *known, "-o", str(tmp_path / "m.npz"), "--ensemble", "always", "--folds", "2")
     assert res.returncode == 0, res.stderr
     lines = res.stdout.splitlines()
     chosen = next(i for i, line in enumerate(lines) if line.startswith("* "))

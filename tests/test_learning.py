@@ -473,7 +473,7 @@ def test_nested_estimate_with_one_slide_per_surface_and_recording(tmp_path: Path
     get_reusable_executor().shutdown(wait=True)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        res = train(paths, Config(), progress=said.append)
+        res = train(paths, Config(), method="quick", progress=said.append)  # two candidates, one of them ranking by F
     board = {r["candidate"]: r for r in res.leaderboard}
     assert res.nested["inner_grouped_by"] == "none"
     assert res.nested["folds"] == board[res.winner]["folds"]

@@ -534,17 +534,19 @@ class SlideDetector:
             # initial_s and took the rest before it into its label
             envs = median3_runs([e for _, e in self._undecided_hops])
             head = next((k for k, e in enumerate(envs) if e >= self.start_level / math.sqrt(self.c.on_factor)), len(envs))
-            if head >= 2:
+            if 2 <= head < len(envs):  # (every hop below them: a loud hop or two lifted the reference, the stream is at rest)
                 floor = max(float(np.median(envs[:head])), 1e-300)
-                start = self._undecided_hops[head][0] if head < len(envs) else self._undecided_hops[-1][0]
+                start = self._undecided_hops[head][0]
                 self._undecided_hops.clear()
                 self._floor = self.floor = floor
                 self.sliding = True
                 self._start = start
                 self._quiet_since = None
                 return [Onset(start)]
-            self._early = True
-            return [Onset(self._began)]
+            if head < len(envs) or not envs:
+                self._early = True
+                return [Onset(self._began)]
+            reference = float(np.median(envs))
         self._undecided_hops.clear()
         self._floor = max(reference, 1e-300)
         self.floor = self._floor
