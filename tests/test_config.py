@@ -81,12 +81,12 @@ def test_local_endpoints() -> None:
     assert not is_local_endpoint("tcp://0.0.0.0:1") and not is_local_endpoint("tcp://*:1")
 
 
-def test_check_config_cli(tmp_path: Path) -> None:
-    ok = run_cli("check-config", str(REPO / "configs" / "tactiled.toml"))
+def test_check_config_cli(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    ok = cli_here(capfd, "check-config", str(REPO / "configs" / "tactiled.toml"))
     assert ok.returncode == 0, ok.stderr
     bad = tmp_path / "bad.toml"
     bad.write_text("[detector]\nmin_slide_s = 0\n")
-    res = run_cli("check-config", str(bad))
+    res = cli_here(capfd, "check-config", str(bad))
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [f"tactiled: error: {bad}: detector.min_slide_s: must be in (0, 60] s"]
 
@@ -118,7 +118,7 @@ def test_a_missing_model_file_stops_only_the_commands_that_would_load_it(tmp_pat
     assert "model.path" not in res.stderr and "none" in res.stderr, res.stderr  # on to the port, which is missing
 
 
-def test_check_config_says_whether_run_would_find_a_model(tmp_path: Path) -> None:
+def test_check_config_says_whether_run_would_find_a_model(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     """A sensor at 2.2 kHz on one channel: the config is valid, but the shipped model does not fit it and no model.path is
     set, so run would refuse it: an error naming the key (it said "ok" and exit 0, an outside audit found); with --no-model
     (a config for record or run --no-model) it is ok. A model.path that does not fit is an error naming the key, as run
@@ -126,30 +126,30 @@ def test_check_config_says_whether_run_would_find_a_model(tmp_path: Path) -> Non
     sensor = "[sensor]\nfs = 2200\nchannels = 1\n"
     one = tmp_path / "one.toml"
     one.write_text(sensor)
-    res = run_cli("check-config", str(one))
+    res = cli_here(capfd, "check-config", str(one))
     assert res.returncode == 2 and res.stdout == "", res.stdout
     assert res.stderr.strip().splitlines() == [
         f"tactiled: error: {one}: model.path: not set, and the shipped model does not fit this sensor (model trained at fs 20000 Hz, "
         "sensor fingertip0 is 2200 Hz): tactiled run would refuse it; train one (tactiled train) and set model.path, or check a "
         "config for record or run --no-model with --no-model"], res.stderr
-    run = run_cli("run", "--config", str(one), "--port", str(tmp_path / "none"), "--no-wait")
+    run = cli_here(capfd, "run", "--config", str(one), "--port", str(tmp_path / "none"), "--no-wait")
     assert run.returncode == 2 and "no model fits this sensor" in run.stderr, run.stderr  # what the check foretold
-    res = run_cli("check-config", str(one), "--no-model")
+    res = cli_here(capfd, "check-config", str(one), "--no-model")
     assert res.returncode == 0 and res.stdout.strip() == f"{one}: ok (without a model)" and res.stderr == "", res.stderr
     named = tmp_path / "named.toml"
     named.write_text(sensor + f'[model]\npath = "{REPO / "tactiled" / "data" / "default_model.npz"}"\n')
-    res = run_cli("check-config", str(named))
+    res = cli_here(capfd, "check-config", str(named))
     assert res.returncode == 2 and res.stderr.strip().splitlines() == [
         f"tactiled: error: {named}: model.path: {REPO / 'tactiled' / 'data' / 'default_model.npz'}: model trained at fs 20000 Hz, sensor fingertip0 is "
         "2200 Hz"], res.stderr
-    assert run_cli("check-config", str(REPO / "configs" / "tactiled.toml")).stderr == ""  # the shipped model fits: nothing to say
+    assert cli_here(capfd, "check-config", str(REPO / "configs" / "tactiled.toml")).stderr == ""  # the shipped model fits: nothing to say
     lazy = tmp_path / "lazy.toml"  # 0.05 s between reads: 4.5 KiB of the standard board's frames wait, more than a tty holds
     lazy.write_text("[serial]\nread_interval_s = 0.05\n")
-    res = run_cli("check-config", str(lazy))
+    res = cli_here(capfd, "check-config", str(lazy))
     assert res.returncode == 0 and "serial.read_interval_s = 0.05 s lets ~4.5 KiB of frames wait between reads" in res.stderr, res.stderr
     slow = tmp_path / "slow.toml"  # record works at 100 Hz; run --no-model cannot analyse: said, naming the keys (run said it alone)
     slow.write_text("[sensor]\nfs = 100\nchannels = 1\n")
-    res = run_cli("check-config", str(slow), "--no-model")
+    res = cli_here(capfd, "check-config", str(slow), "--no-model")
     assert res.returncode == 0 and "run --no-model cannot analyse with this config (record can record with it): " \
         "window.duration_s = 0.5 s at 100 Hz is too short for " \
         "features.families = dwt, psd, tex" in res.stderr, res.stderr

@@ -16,7 +16,7 @@ from tactiled.files.recording import Recording, load_recording, save_recording
 from tactiled.service.mcap_export import read_mcap_samples
 from tactiled.sim.physics import SensorSimulator, SimParams, default_surfaces
 from tactiled.sim.virtualboard import VirtualBoard
-from tests.conftest import lossy_recording, run_cli, running, tactiled_cmd
+from tests.conftest import cli_here, lossy_recording, run_cli, running, tactiled_cmd
 
 
 def test_export_round_trips_every_sample_slide_and_label(tmp_path: Path) -> None:
@@ -97,7 +97,7 @@ def test_export_marks_a_thousand_lost_ranges_exactly(tmp_path: Path) -> None:
     assert np.array_equal(valid, rec.valid_mask())
 
 
-def test_export_never_replaces_its_input_nor_a_file_unasked(tmp_path: Path) -> None:
+def test_export_never_replaces_its_input_nor_a_file_unasked(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     import shutil
 
     from tests.conftest import REPO
@@ -105,19 +105,19 @@ def test_export_never_replaces_its_input_nor_a_file_unasked(tmp_path: Path) -> N
     src = tmp_path / "a.npz"
     shutil.copy(REPO / "tests" / "hostile" / "rec-good.npz", src)
     before = src.read_bytes()
-    res = run_cli("export", str(src), "-o", str(src))
+    res = cli_here(capfd, "export", str(src), "-o", str(src))
     assert res.returncode == 2 and "is the recording being exported" in res.stderr and src.read_bytes() == before
-    res = run_cli("export", str(src), "-o", str(tmp_path / "no" / "x.mcap"))
+    res = cli_here(capfd, "export", str(src), "-o", str(tmp_path / "no" / "x.mcap"))
     assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1 and "does not exist" in res.stderr
     (tmp_path / "x.mcap").write_bytes(b"keep")
-    res = run_cli("export", str(src), "-o", str(tmp_path / "x.mcap"))
+    res = cli_here(capfd, "export", str(src), "-o", str(tmp_path / "x.mcap"))
     assert res.returncode == 2 and "--force" in res.stderr and (tmp_path / "x.mcap").read_bytes() == b"keep"
-    assert run_cli("export", str(src), "-o", str(tmp_path / "x.mcap"), "--force").returncode == 0
+    assert cli_here(capfd, "export", str(src), "-o", str(tmp_path / "x.mcap"), "--force").returncode == 0
 
 
-def test_replay_of_an_mcap_file_that_is_not_tactileds_is_one_line(tmp_path: Path) -> None:
+def test_replay_of_an_mcap_file_that_is_not_tactileds_is_one_line(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "junk.mcap").write_bytes(b"\x89MCAP0\r\n" + b"not records")
-    res = run_cli("replay", str(tmp_path / "junk.mcap"))
+    res = cli_here(capfd, "replay", str(tmp_path / "junk.mcap"))
     assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1 and "junk.mcap: not a readable MCAP file" in res.stderr, res.stderr
 
 

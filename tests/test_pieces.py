@@ -15,7 +15,7 @@ from tactiled.learn.enrol import enrol
 from tactiled.learn.search import SPECTRUM
 from tactiled.learn.train import train
 from tactiled.sim.simulate import write_dataset
-from tests.conftest import run_cli
+from tests.conftest import cli_here
 
 
 def window_set(windows: list[int], copy: list[int] | None = None) -> WindowSet:
@@ -102,21 +102,22 @@ def test_cut_long_slides_cuts_a_long_slide_into_consecutive_even_slides_and_keep
     assert cut_long_slides([long], 46) == [long]
 
 
-def test_train_by_slide_cuts_one_long_recording_per_surface_into_slides_the_folds_can_split(continuous: list[Path], tmp_path: Path) -> None:
+def test_train_by_slide_cuts_one_long_recording_per_surface_into_slides_the_folds_can_split(continuous: list[Path], tmp_path: Path,
+                                                                                             capfd: pytest.CaptureFixture[str]) -> None:
     """A lab whose data are one long slide per surface: train by file stops (naming --group-by slide); by slide it trains,
     saying how the slides were cut and that the estimate is optimistic, and the model labels a slide of another recording."""
     one = [p for p in continuous if p.name.endswith("_00.npz")]  # one recording of each of the three surfaces
     model = tmp_path / "m.npz"
-    res = run_cli("train", *map(str, one), "-o", str(model), "--method", "quick")
+    res = cli_here(capfd, "train", *map(str, one), "-o", str(model), "--method", "quick")
     assert res.returncode == 2 and not model.exists()
     assert "Ra" in res.stderr.strip().splitlines()[-1] and "--group-by slide" in res.stderr.strip().splitlines()[-1]
-    res = run_cli("train", *map(str, one), "-o", str(model), "--method", "quick", "--group-by", "slide")
+    res = cli_here(capfd, "train", *map(str, one), "-o", str(model), "--method", "quick", "--group-by", "slide")
     assert res.returncode == 0, res.stderr
     cut = [line for line in res.stderr.splitlines() if "are cut into slides of 2 to 4 s" in line]
     assert len(cut) == 1 and "the 3 slide(s) of 4 s or more" in cut[0] and "where 3 were found" in cut[0], res.stderr
     assert "optimistic" in res.stderr and "leaderboard (slide accuracy, grouped by slide:" in res.stdout
     other = [p for p in continuous if p.name.endswith("_01.npz")]
-    res = run_cli("replay", str(other[0]), "--model", str(model), "--json")
+    res = cli_here(capfd, "replay", str(other[0]), "--model", str(model), "--json")
     assert res.returncode == 0, res.stderr
     finals = [m for m in map(json.loads, res.stdout.splitlines()) if m.get("final")]
     assert len(finals) == 1 and finals[0]["label"] is not None  # the whole recording is one slide, labelled

@@ -16,7 +16,7 @@ from tactiled.learn.model import load_model
 from tactiled.learn.search import fit_pipeline, slide_scores
 from tactiled.learn.train import train
 from tactiled.sim.simulate import write_dataset
-from tests.conftest import run_cli
+from tests.conftest import cli_here
 
 
 @pytest.fixture(scope="module")
@@ -102,11 +102,11 @@ def test_train_learns_from_copies_and_measures_the_slides_as_recorded(robot: lis
         enrol(tmp_path / "bad.npz", new, config, label="NEW", min_slides=2)
 
 
-def test_train_refuses_a_speed_it_cannot_resample_in_one_line(robot: list[Path], tmp_path: Path) -> None:
-    res = run_cli("train", *map(str, robot), "-o", str(tmp_path / "m.npz"), "--speed-copies", "3.33")
+def test_train_refuses_a_speed_it_cannot_resample_in_one_line(robot: list[Path], tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    res = cli_here(capfd, "train", *map(str, robot), "-o", str(tmp_path / "m.npz"), "--speed-copies", "3.33")
     one_line = "tactiled: error: --speed-copies: must be between 0 and 30 per cent, in steps of 0.1, got 3.33"
     assert res.returncode == 2 and res.stderr.strip().splitlines() == [one_line], res.stderr
-    res = run_cli("train", *map(str, robot), "-o", str(tmp_path / "m.npz"), "--speed-copies", "40")
+    res = cli_here(capfd, "train", *map(str, robot), "-o", str(tmp_path / "m.npz"), "--speed-copies", "40")
     assert res.returncode == 2 and "--speed-copies" in res.stderr and not (tmp_path / "m.npz").exists()
 
 
