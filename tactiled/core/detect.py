@@ -157,12 +157,10 @@ def median3_runs(values: list[float]) -> list[float]:
 def median3_centred(values: Sequence[float]) -> list[float]:
     """(n,) the median of each value and its two neighbours, as :func:`_median3` takes them (at either end the mean of the
     value and its one neighbour; a single value is itself): one loud hop among quiet ones is quiet, and no lag."""
-    v = np.asarray(values, dtype=np.float64)
-    if v.size < 3:
-        return [_median3(list(values))] * v.size if v.size else []
-    a, b, c = v[:-2], v[1:-1], v[2:]
-    mid = np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
-    return [float((v[0] + v[1]) / 2), *mid.tolist(), float((v[-2] + v[-1]) / 2)]
+    v = list(values)
+    if len(v) < 3:
+        return [_median3(v)] * len(v) if v else []
+    return [(v[0] + v[1]) / 2, *median3_runs(v)[2:], (v[-2] + v[-1]) / 2]  # the trailing median at k + 1 is centred at k
 
 
 def _hop_validity(pending: npt.NDArray[np.bool_], valid: npt.NDArray[np.bool_] | None, rows: int, hop: int) -> tuple[list[bool], npt.NDArray[np.bool_]]:
@@ -317,10 +315,9 @@ class SlideDetector:
         hop, last, recent = self.hop, self._last3, self._recent
         on, off, alpha = self.c.on_factor, self.c.off_factor, self._alpha
         longest = self.c.max_slide_s * self.fs if self.c.max_slide_s > 0 else math.inf
-        knock = KNOCK_S * self.fs
         exp, log = math.exp, math.log
         unsettled = self._first + self.front.history  # type: ignore[operator]
-        floor, sliding, paused, settle, holdoff = self._floor, self.sliding, self._paused, self._settle_until, self._holdoff_until
+        floor, sliding, settle, holdoff = self._floor, self.sliding, self._settle_until, self._holdoff_until
         shown, envelope = self.floor, self.envelope  # self.floor and self.envelope, written back before any other path
         medians = median3_runs(energy)
         run = 0  # hops just before this one whose envelopes the short path appended to ``last``, in a row
@@ -339,12 +336,8 @@ class SlideDetector:
                     envelope = env
                     at += hop
                     continue
-                quiet = self._quiet_since
-                if (sliding and smooth >= off * floor and not paused and at + hop - self._start < longest  # a slide goes on (as _in_slide)
-                        and (quiet is None or not quiet - self._start < knock <= at - quiet)):  # but after a knock
-                    if self._quiet_since is not None:  # after a dip
-                        self._quiet_since = None
-                        events.append(Loud(self._start, at + hop))
+                # a slide goes on (as _in_slide; a loud hop after a quiet, a dip's end or a knock's, goes through it)
+                if sliding and smooth >= off * floor and self._quiet_since is None and at + hop - self._start < longest:
                     recent.append((at, smooth))
                     envelope = env
                     at += hop
@@ -357,7 +350,7 @@ class SlideDetector:
                 evs = self._step(at, env, ok and at >= unsettled)
             if evs:
                 events += [e if e.at >= 0 else replace(e, at=at + hop) for e in evs]
-            floor, sliding, paused, settle, holdoff = self._floor, self.sliding, self._paused, self._settle_until, self._holdoff_until
+            floor, sliding, settle, holdoff = self._floor, self.sliding, self._settle_until, self._holdoff_until
             shown, envelope = self.floor, self.envelope
             at += hop
         self._floor, self.floor, self.envelope = floor, shown, envelope
@@ -596,19 +589,13 @@ class SlideDetector:
                 events.append(Resume(self._start, self._quiet_since))
                 self._paused = False
             elif self._quiet_since is not None:
-                if self._quiet_since - self._start < KNOCK_S * self.fs <= at - self._quiet_since:  # (as _hops tells it)
-                    # what started it was a knock, quiet again before it lasted KNOCK_S, and the slide begins now: as
-                    # from rest (a quiet shorter than off_hold_s would otherwise join the knock to it)
-                    start = at
-                    for idx, e in reversed(self._recent):
-                        if idx >= self._quiet_since and e > c.off_factor * self._floor and idx == start - self.hop:
-                            start = idx
-                        else:
-                            break
+                if self._quiet_since - self._start < KNOCK_S * self.fs <= at - self._quiet_since:
+                    # what started it was a knock, quiet again before it lasted KNOCK_S, and the slide begins at this hop,
+                    # the first loud one since (a quiet shorter than off_hold_s would otherwise join the knock to it)
                     knock = Offset(self._start, self._quiet_since, "too_short")
-                    self._start, self._quiet_since = start, None
+                    self._start, self._quiet_since = at, None
                     self._recent.append((at, env))
-                    return [knock, Onset(start)]
+                    return [knock, Onset(at)]
                 events.append(Loud(self._start))  # a dip shorter than the pause
             self._quiet_since = None
             if c.max_slide_s > 0 and end - self._start >= c.max_slide_s * self.fs:

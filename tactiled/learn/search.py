@@ -1490,19 +1490,19 @@ def sfs_columns(ws: WindowSet, rows: npt.NDArray[np.intp], seed: int, inner_fold
 
     def accuracy(cols: list[int]) -> float:
         """Mean over the folds of the accuracy of an ELM on the columns ``cols`` (in ascending order, as the selector's mask)."""
-        with sklearn.config_context(assume_finite=True):  # z is finite: a scaled log of finite features
-            return float(np.mean([np.mean(elm.fit(zv[tr][:, cols], y[tr]).predict(zv[te][:, cols]) == y[te]) for tr, te in cv]))
+        return float(np.mean([np.mean(elm.fit(zv[tr][:, cols], y[tr]).predict(zv[te][:, cols]) == y[te]) for tr, te in cv]))
 
     steps = len(varying) - 1 if n_features == "auto" else min(int(n_features), len(varying) - 1)
     chosen: list[int] = []
     last = -np.inf
-    for _ in range(steps):
-        scores = {j: accuracy(sorted([*chosen, j])) for j in range(len(varying)) if j not in chosen}
-        best = max(scores, key=scores.__getitem__)
-        if n_features == "auto" and scores[best] - last < tol:
-            break
-        last = scores[best]
-        chosen.append(best)
+    with sklearn.config_context(assume_finite=True):  # z is finite: a scaled log of finite features
+        for _ in range(steps):
+            scores = {j: accuracy(sorted([*chosen, j])) for j in range(len(varying)) if j not in chosen}
+            best = max(scores, key=scores.__getitem__)
+            if n_features == "auto" and scores[best] - last < tol:
+                break
+            last = scores[best]
+            chosen.append(best)
     return [int(varying[j]) for j in sorted(chosen)]
 
 

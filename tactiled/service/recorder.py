@@ -408,10 +408,16 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
         elif first is not None:
             latest = (now, n)
         if first is not None and now - first[0] >= RATE_AFTER_S:  # sensor.fs is written into the recording
-            rate_said = True
-            line = rate_mismatch(s.id, (n - first[1]) / (now - first[0]), s.fs)
-            if line:
-                log.warning("%s", line)
+            say_rate(now, n)
+
+    def say_rate(now: float, n: int) -> None:
+        """The board's rate from ``first`` to (read time ``now``, index advance ``n``), said once if far from sensor.fs."""
+        nonlocal rate_said
+        assert first is not None
+        rate_said = True
+        line = rate_mismatch(s.id, (n - first[1]) / (now - first[0]), s.fs)
+        if line:
+            log.warning("%s", line)
 
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}  # a flag: never interrupts a write
@@ -450,9 +456,7 @@ def record(config: Config, seconds: float, out: str | Path, *, label: str | None
         for batch in stream.finish().batches:
             sink.add(batch)
         if not rate_said and first is not None and latest is not None and latest[0] - first[0] >= RATE_MIN_S:
-            line = rate_mismatch(s.id, (latest[1] - first[1]) / (latest[0] - first[0]), s.fs)  # a recording shorter than RATE_AFTER_S
-            if line:
-                log.warning("%s", line)
+            say_rate(*latest)  # a recording shorter than RATE_AFTER_S
         wall_s = time.monotonic() - started
         if sink.first_index is None and sink.error is None:  # not one sample: no file (an empty recording is no recording)
             sink.discard()

@@ -167,7 +167,7 @@ def run_virtual_board(args: argparse.Namespace) -> int:
     board = None
     try:
         model = SensorSimulator(params, args.seed)
-        if getattr(args, "rest_first", 0.0) > 0:
+        if args.rest_first > 0:
             model.add_rest(args.rest_first)
         try:
             board = VirtualBoard(model, _surfaces(args.surfaces, params.family), link=args.link, speed=args.speed,
